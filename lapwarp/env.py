@@ -1,0 +1,330 @@
+"""BatchedEnv: the base of every task env; an ``rsl_rl.env.VecEnv`` over ``num_envs`` scenes.
+
+It owns the env buffers (actions, reward features, rewards, dones, episode counters, observation
+frames and stacks) and the step pipeline; a task fills in the scene and five kernels' worth of hooks:
+
+    _build()                 -> World, and the task's own state arrays
+    _apply_actions(actions)  once per env step: normalised actions -> per-physics-step commands
+    _before_physics_step()   once per physics step (frame skip): drive kinematic instruments
+    _compute_features()      reward features (num_envs, F), success and failure flags
+    _reset_task(env_mask)    re-randomise the masked envs in place from the per-env RNG
+    _compute_observations()  the newest STATE frame (num_envs, D) (and the critic frame)
+
+One env step = action sanitising, ``frame_skip`` physics steps, features, reward and dones, masked
+auto-reset, observations and frame stacks. On CUDA the whole step is captured once as a CUDA graph and
+replayed on torch's current stream, so it runs without host syncs and orders naturally with the policy's
+torch work. Outputs are torch views of Warp arrays (zero copy); ``step`` returns clones of them, because
+rsl-rl keeps references to observations across steps.
+"""
+
+from __future__ import annotations
+
+from abc import abstractmethod
+from typing import Any, ClassVar
+
+import numpy as np
+import torch
+import warp as wp
+from rsl_rl.env import VecEnv
+from tensordict import TensorDict
+
+from lapwarp.config import EnvConfig, build_config
+from lapwarp.kernels import env_kernels
+from lapwarp.world import World
+
+
+class BatchedEnv(VecEnv):
+    """Base class of all lapwarp task envs (see the module docstring for the hooks a task provides).
+
+    Args:
+        cfg: the task's config dataclass.
+        num_envs: number of parallel scenes.
+        device: Warp/torch device, "cpu" or "cuda:N".
+        use_cuda_graph: capture the env step as a CUDA graph on CUDA devices (default True).
+    """
+
+    config_class: ClassVar[type[EnvConfig]] = EnvConfig
+    task_name: ClassVar[str] = ""
+    reward_features: ClassVar[tuple[str, ...]] = ()
+    default_reward_weights: ClassVar[dict[str, float]] = {}
+    supported_observations: ClassVar[tuple[str, ...]] = ("STATE",)
+
+    @classmethod
+    def from_overrides(cls, num_envs: int = 1, device: str = "cpu", use_cuda_graph: bool = True, **overrides: Any):
+        """Build the env from config keyword overrides (unknown keys raise ``ValueError``)."""
+        return cls(build_config(cls.config_class, overrides), num_envs=num_envs, device=device,
+                   use_cuda_graph=use_cuda_graph)
+
+    def __init__(self, cfg: EnvConfig, num_envs: int = 1, device: str = "cpu", use_cuda_graph: bool = True):
+        if not isinstance(cfg, self.config_class):
+            raise TypeError(f"{type(self).__name__} needs a {self.config_class.__name__}, got {type(cfg).__name__}")
+        if not isinstance(num_envs, int) or num_envs < 1:
+            raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
+        cfg.validate(self.reward_features, self.supported_observations)
+        wp.config.quiet = True
+        wp.init()
+        self.cfg = cfg
+        self.num_envs = num_envs
+        self.wp_device = wp.get_device(device)
+        self.device = "cpu" if self.wp_device.is_cpu else f"cuda:{self.wp_device.ordinal}"
+        self.max_episode_length = cfg.max_episode_steps
+        self.dt = cfg.time_step * cfg.frame_skip  # simulated seconds per env step
+        self.reward_weights = {**self.default_reward_weights, **cfg.reward_weights}
+
+        with wp.ScopedDevice(self.wp_device):
+            self.world: World = self._build()
+            self.action_dim = self._action_dim()
+            self.is_discrete = cfg.action_type == "DISCRETE"
+            self.num_actions = 1 if self.is_discrete else self.action_dim
+            self._allocate_buffers()
+        self._use_cuda_graph = bool(use_cuda_graph) and self.wp_device.is_cuda
+        self._graph = None
+        self._torch_streams: dict[int, wp.Stream] = {}
+        self.reset()
+
+    # ------------------------------------------------------------------ hooks a task implements
+    @abstractmethod
+    def _build(self) -> World:
+        """Build the scene: return the World and allocate the task's own state arrays."""
+
+    @abstractmethod
+    def _action_dim(self) -> int:
+        """Size of the continuous action vector."""
+
+    @abstractmethod
+    def _observation_dim(self) -> int:
+        """Size of one STATE observation frame."""
+
+    def _critic_observation_dim(self) -> int:
+        """Size of one privileged critic frame (only used with ``privileged_critic``)."""
+        return self._observation_dim()
+
+    def _discrete_action_table(self) -> np.ndarray:
+        """``(2d+1, d)`` table of normalised actions (1 = maximum velocity) for DISCRETE action types."""
+        raise ValueError(f"{type(self).__name__} has no discrete action table")
+
+    @abstractmethod
+    def _apply_actions(self, actions: wp.array2d) -> None:
+        """Turn sanitised normalised actions ``(num_envs, action_dim)`` into per-physics-step commands."""
+
+    def _before_physics_step(self) -> None:
+        """Per physics step (frame skip) work before ``World.step``; nothing by default."""
+
+    @abstractmethod
+    def _compute_features(self) -> None:
+        """Write ``features`` (num_envs, F), ``success`` and ``failure`` (num_envs,)."""
+
+    @abstractmethod
+    def _reset_task(self, env_mask: wp.array) -> None:
+        """Re-randomise the task state of the envs whose ``env_mask`` entry is non-zero."""
+
+    @abstractmethod
+    def _compute_observations(self) -> None:
+        """Write the newest ``obs_frame`` (and ``critic_frame`` with ``privileged_critic``)."""
+
+    # ------------------------------------------------------------------ buffers
+    def _allocate_buffers(self) -> None:
+        n, dev = self.num_envs, self.wp_device
+        self.actions_in = wp.zeros((n, self.action_dim), dtype=wp.float32, device=dev)
+        self.actions = wp.zeros((n, self.action_dim), dtype=wp.float32, device=dev)
+        self.discrete_in = wp.zeros(n, dtype=wp.int64, device=dev)
+        if self.is_discrete:
+            table = np.asarray(self._discrete_action_table(), dtype=np.float32)
+            if table.shape != (2 * self.action_dim + 1, self.action_dim):
+                raise ValueError(f"discrete action table has shape {table.shape}, "
+                                 f"expected {(2 * self.action_dim + 1, self.action_dim)}")
+            self.action_table = wp.array(table, dtype=wp.float32, device=dev)
+        self.nonfinite_actions = wp.zeros(n, dtype=wp.int32, device=dev)
+        self.clipped_actions = wp.zeros(n, dtype=wp.int32, device=dev)
+
+        num_features = len(self.reward_features)
+        self.features = wp.zeros((n, num_features), dtype=wp.float32, device=dev)
+        weights = np.array([self.reward_weights.get(f, 0.0) for f in self.reward_features], dtype=np.float32)
+        self.weights = wp.array(weights, dtype=wp.float32, device=dev)
+        self.success = wp.zeros(n, dtype=wp.int32, device=dev)
+        self.failure = wp.zeros(n, dtype=wp.int32, device=dev)
+        self.reward = wp.zeros(n, dtype=wp.float32, device=dev)
+        self.terminated = wp.zeros(n, dtype=wp.int32, device=dev)
+        self.truncated = wp.zeros(n, dtype=wp.int32, device=dev)
+        self.done = wp.zeros(n, dtype=wp.int32, device=dev)
+        self.reset_mask = wp.zeros(n, dtype=wp.int32, device=dev)
+        self.episode_length = wp.zeros(n, dtype=wp.int32, device=dev)
+        self.episode_return = wp.zeros(n, dtype=wp.float32, device=dev)
+        self.last_episode_success = wp.zeros(n, dtype=wp.int32, device=dev)
+        self.finished_episodes = wp.zeros(n, dtype=wp.int32, device=dev)
+        self.last_episode_return = wp.zeros(n, dtype=wp.float32, device=dev)
+        self.last_episode_length = wp.zeros(n, dtype=wp.int32, device=dev)
+
+        stack = self.cfg.frame_stack
+        self.obs_frame = wp.zeros((n, self._observation_dim()), dtype=wp.float32, device=dev)
+        self.obs_stack = self.obs_frame if stack == 1 else wp.zeros(
+            (n, stack * self._observation_dim()), dtype=wp.float32, device=dev)
+        if self.cfg.privileged_critic:
+            self.critic_frame = wp.zeros((n, self._critic_observation_dim()), dtype=wp.float32, device=dev)
+            self.critic_stack = self.critic_frame if stack == 1 else wp.zeros(
+                (n, stack * self._critic_observation_dim()), dtype=wp.float32, device=dev)
+
+        # zero-copy torch views of the buffers users and rsl-rl read
+        self._t = {name: wp.to_torch(getattr(self, name)) for name in (
+            "actions_in", "discrete_in", "features", "weights", "reward", "terminated", "truncated", "done",
+            "episode_length", "success", "last_episode_success", "finished_episodes", "last_episode_return",
+            "last_episode_length", "nonfinite_actions", "clipped_actions", "obs_stack")}
+        if self.cfg.privileged_critic:
+            self._t["critic_stack"] = wp.to_torch(self.critic_stack)
+
+    # ------------------------------------------------------------------ VecEnv API
+    @property
+    def episode_length_buf(self) -> torch.Tensor:
+        """Steps taken in the current episode, per env (a view of the device buffer)."""
+        return self._t["episode_length"]
+
+    @episode_length_buf.setter
+    def episode_length_buf(self, value: torch.Tensor) -> None:
+        # rsl-rl assigns random lengths at start (init_at_random_ep_len): copy into our buffer, keep the view.
+        self._t["episode_length"].copy_(torch.as_tensor(value).to(self._t["episode_length"]))
+
+    def get_observations(self) -> TensorDict:
+        """Current observation groups (clones): ``policy`` and, with ``privileged_critic``, ``critic``."""
+        groups = {"policy": self._t["obs_stack"].clone()}
+        if self.cfg.privileged_critic:
+            groups["critic"] = self._t["critic_stack"].clone()
+        return TensorDict(groups, batch_size=[self.num_envs], device=self.device)
+
+    def reset(self, seed: int | None = None) -> tuple[TensorDict, dict]:
+        """Reset every env (re-seeding the device RNG streams first when ``seed`` is given)."""
+        if seed is not None:
+            self.world.seed_rng(int(seed))
+        with self._torch_stream_scope():
+            wp.launch(env_kernels.fill_int_array, dim=self.num_envs, inputs=[1], outputs=[self.reset_mask],
+                      device=self.wp_device)
+            self._reset_and_observe()
+            wp.launch(env_kernels.fill_int_array, dim=self.num_envs, inputs=[0], outputs=[self.reset_mask],
+                      device=self.wp_device)
+        return self.get_observations(), {}
+
+    def step(self, actions: torch.Tensor) -> tuple[TensorDict, torch.Tensor, torch.Tensor, dict]:
+        """Advance every env by one env step; finished envs are reset automatically (obs are post-reset).
+
+        Args:
+            actions: ``(num_envs, num_actions)`` floats in [-1, 1] (CONTINUOUS) or ``(num_envs,)`` /
+                ``(num_envs, 1)`` integer indices (DISCRETE).
+
+        Returns:
+            observations, rewards ``(num_envs,)``, dones ``(num_envs,)`` and extras with ``time_outs`` and
+            ``log`` (reward term means under ``/reward/<feature>``, ``/episode/success`` and friends).
+        """
+        self._load_actions(actions)
+        if self._use_cuda_graph:
+            stream = self._torch_stream()
+            if self._graph is None:
+                with wp.ScopedCapture(device=self.wp_device) as capture:
+                    self._step_launches()
+                self._graph = capture.graph
+            wp.capture_launch(self._graph, stream=stream)
+        else:
+            with self._torch_stream_scope():
+                self._step_launches()
+        return self._step_outputs()
+
+    # ------------------------------------------------------------------ internals
+    def _load_actions(self, actions: torch.Tensor) -> None:
+        if not isinstance(actions, torch.Tensor):
+            actions = torch.as_tensor(np.asarray(actions))
+        if self.is_discrete:
+            if actions.shape not in ((self.num_envs,), (self.num_envs, 1)):
+                raise ValueError(f"expected discrete actions of shape ({self.num_envs},) or ({self.num_envs}, 1), "
+                                 f"got {tuple(actions.shape)}")
+            if actions.dtype.is_floating_point or actions.dtype == torch.bool or actions.dtype.is_complex:
+                raise ValueError(f"discrete actions must be integer indices, got dtype {actions.dtype}")
+            self._t["discrete_in"].copy_(actions.reshape(self.num_envs))
+            return
+        expected = (self.num_envs, self.num_actions)
+        if tuple(actions.shape) != expected:
+            raise ValueError(f"expected actions of shape {expected}, got {tuple(actions.shape)}")
+        if not actions.dtype.is_floating_point:
+            raise ValueError(f"continuous actions must be floating point, got dtype {actions.dtype}")
+        if self.cfg.invalid_actions == "raise" and not bool(torch.isfinite(actions).all()):
+            bad = (~torch.isfinite(actions)).any(dim=1).nonzero().flatten().tolist()[:10]
+            raise ValueError(f"non-finite (NaN/inf) actions in envs {bad}; pass invalid_actions='zero' to zero them")
+        self._t["actions_in"].copy_(actions)
+
+    def _step_launches(self) -> None:
+        """Every launch of one env step, in order; captured as one CUDA graph on CUDA devices."""
+        dev = self.wp_device
+        if self.is_discrete:
+            wp.launch(env_kernels.lookup_discrete_actions, dim=(self.num_envs, self.action_dim),
+                      inputs=[self.discrete_in, self.action_table], outputs=[self.actions, self.nonfinite_actions],
+                      device=dev)
+        else:
+            wp.launch(env_kernels.sanitize_continuous_actions, dim=self.num_envs,
+                      inputs=[self.actions_in, int(self.cfg.clip_actions)],
+                      outputs=[self.actions, self.nonfinite_actions, self.clipped_actions], device=dev)
+        self._apply_actions(self.actions)
+        for _ in range(self.cfg.frame_skip):
+            self._before_physics_step()
+            self.world.step(self.cfg.time_step)
+        self._compute_features()
+        wp.launch(env_kernels.finish_env_step, dim=self.num_envs,
+                  inputs=[self.features, self.weights, self.success, self.failure, self.world.unstable,
+                          self.cfg.max_episode_steps, self.episode_length, self.episode_return],
+                  outputs=[self.reward, self.terminated, self.truncated, self.done, self.reset_mask,
+                           self.last_episode_success, self.finished_episodes, self.last_episode_return,
+                           self.last_episode_length], device=dev)
+        self._reset_and_observe()
+
+    def _reset_and_observe(self) -> None:
+        """Reset the envs flagged in ``reset_mask`` in place, then write observations (and frame stacks)."""
+        dev = self.wp_device
+        self.world.reset(self.reset_mask)
+        self._reset_task(self.reset_mask)
+        wp.launch(env_kernels.clear_episode_buffers, dim=self.num_envs, inputs=[self.reset_mask],
+                  outputs=[self.episode_length, self.episode_return], device=dev)
+        self._compute_observations()
+        if self.cfg.frame_stack > 1:
+            wp.launch(env_kernels.push_observation_frame, dim=self.obs_frame.shape,
+                      inputs=[self.obs_frame, self.reset_mask, self.cfg.frame_stack], outputs=[self.obs_stack],
+                      device=dev)
+            if self.cfg.privileged_critic:
+                wp.launch(env_kernels.push_observation_frame, dim=self.critic_frame.shape,
+                          inputs=[self.critic_frame, self.reset_mask, self.cfg.frame_stack],
+                          outputs=[self.critic_stack], device=dev)
+
+    def _step_outputs(self) -> tuple[TensorDict, torch.Tensor, torch.Tensor, dict]:
+        t = self._t
+        term_means = (t["features"] * t["weights"]).mean(dim=0)
+        log: dict[str, torch.Tensor] = {f"/reward/{name}": term_means[i] for i, name in enumerate(self.reward_features)}
+        finished = t["finished_episodes"] > 0
+        num_finished = finished.sum().clamp(min=1)
+        log["/episode/success"] = (t["last_episode_success"] * finished).sum() / num_finished
+        log["/episode/return"] = (t["last_episode_return"] * finished).sum() / num_finished
+        log["/episode/length"] = (t["last_episode_length"] * finished).sum() / num_finished
+        log["/env/unstable_fraction"] = wp.to_torch(self.world.unstable).float().mean()
+        if not self.is_discrete:
+            log["/action/nonfinite_fraction"] = t["nonfinite_actions"].float().mean() / self.action_dim
+            log["/action/clipped_fraction"] = t["clipped_actions"].float().mean() / self.action_dim
+        extras = {"time_outs": t["truncated"].bool(), "log": log}
+        return self.get_observations(), t["reward"].clone(), t["done"].bool(), extras
+
+    def _torch_stream(self) -> wp.Stream:
+        """torch's current CUDA stream as a Warp stream (cached), so Warp work orders with torch work."""
+        ts = torch.cuda.current_stream(self.device)
+        stream = self._torch_streams.get(ts.cuda_stream)
+        if stream is None:
+            stream = wp.stream_from_torch(ts)
+            self._torch_streams[ts.cuda_stream] = stream
+        return stream
+
+    def _torch_stream_scope(self):
+        if self.wp_device.is_cuda:
+            return wp.ScopedStream(self._torch_stream())
+        return wp.ScopedDevice(self.wp_device)
+
+    # ------------------------------------------------------------------ conveniences
+    @property
+    def observation_dim(self) -> int:
+        """Size of the flattened ``policy`` observation (frames included)."""
+        return self.obs_stack.shape[1]
+
+    def close(self) -> None:
+        """Release the captured graph (buffers are freed with the env)."""
+        self._graph = None

@@ -1,0 +1,154 @@
+"""Task-independent env kernels: action checks, reward sums, episode bookkeeping, frame stacking.
+
+Every kernel runs over ``(num_envs, ...)`` and touches preallocated buffers only, so the whole env
+step can be captured into one CUDA graph.
+"""
+
+import warp as wp
+
+wp.set_module_options({"enable_backward": False})
+
+
+@wp.kernel
+def sanitize_continuous_actions(
+    actions_in: wp.array2d(dtype=wp.float32),
+    clip: int,
+    actions_out: wp.array2d(dtype=wp.float32),
+    nonfinite_out: wp.array(dtype=wp.int32),
+    clipped_out: wp.array(dtype=wp.int32),
+):
+    """Zero non-finite components and clip to [-1, 1], counting both per env (one thread per env)."""
+    env = wp.tid()
+    n_bad = int(0)
+    n_clip = int(0)
+    for j in range(actions_in.shape[1]):
+        a = actions_in[env, j]
+        if not wp.isfinite(a):
+            a = 0.0
+            n_bad += 1
+        if clip != 0:
+            if a > 1.0:
+                a = 1.0
+                n_clip += 1
+            elif a < -1.0:
+                a = -1.0
+                n_clip += 1
+        actions_out[env, j] = a
+    nonfinite_out[env] = n_bad
+    clipped_out[env] = n_clip
+
+
+@wp.kernel
+def lookup_discrete_actions(
+    indices_in: wp.array(dtype=wp.int64),
+    table: wp.array2d(dtype=wp.float32),
+    actions_out: wp.array2d(dtype=wp.float32),
+    invalid_out: wp.array(dtype=wp.int32),
+):
+    """Turn ``Discrete(2d+1)`` indices into rows of the action table; an out-of-range index is a no-op."""
+    env, j = wp.tid()
+    idx = indices_in[env]
+    noop = table.shape[0] - 1
+    bad = int(0)
+    if idx < wp.int64(0) or idx > wp.int64(noop):
+        bad = 1
+        idx = wp.int64(noop)
+    actions_out[env, j] = table[int(idx), j]
+    if j == 0:
+        invalid_out[env] = bad
+
+
+@wp.kernel
+def finish_env_step(
+    features: wp.array2d(dtype=wp.float32),
+    weights: wp.array(dtype=wp.float32),
+    success: wp.array(dtype=wp.int32),
+    failure: wp.array(dtype=wp.int32),
+    unstable: wp.array(dtype=wp.int32),
+    max_episode_length: int,
+    episode_length: wp.array(dtype=wp.int32),
+    episode_return: wp.array(dtype=wp.float32),
+    reward_out: wp.array(dtype=wp.float32),
+    terminated_out: wp.array(dtype=wp.int32),
+    truncated_out: wp.array(dtype=wp.int32),
+    done_out: wp.array(dtype=wp.int32),
+    reset_mask_out: wp.array(dtype=wp.int32),
+    last_episode_success: wp.array(dtype=wp.int32),
+    finished_episodes: wp.array(dtype=wp.int32),
+    last_episode_return: wp.array(dtype=wp.float32),
+    last_episode_length: wp.array(dtype=wp.int32),
+):
+    """Weighted reward sum, termination (success, failure, instability) and truncation (time limit).
+
+    Success and failure terminate as in sofa_env; an unstable env is terminated too, since its state is
+    garbage and must not be bootstrapped. Truncation is reported only when the episode did not terminate,
+    so ``time_outs`` marks exactly the envs PPO should bootstrap.
+    """
+    env = wp.tid()
+    r = float(0.0)
+    for f in range(features.shape[1]):
+        r += weights[f] * features[env, f]
+    if unstable[env] != 0:
+        r = 0.0
+    length = episode_length[env] + 1
+    episode_length[env] = length
+    ret = episode_return[env] + r
+    episode_return[env] = ret
+    term = int(0)
+    if success[env] != 0 or failure[env] != 0 or unstable[env] != 0:
+        term = 1
+    trunc = int(0)
+    if term == 0 and length >= max_episode_length:
+        trunc = 1
+    done = term | trunc
+    reward_out[env] = r
+    terminated_out[env] = term
+    truncated_out[env] = trunc
+    done_out[env] = done
+    reset_mask_out[env] = done
+    if done != 0:
+        last_episode_success[env] = success[env]
+        finished_episodes[env] = finished_episodes[env] + 1
+        last_episode_return[env] = ret
+        last_episode_length[env] = length
+
+
+@wp.kernel
+def clear_episode_buffers(
+    env_mask: wp.array(dtype=wp.int32),
+    episode_length: wp.array(dtype=wp.int32),
+    episode_return: wp.array(dtype=wp.float32),
+):
+    env = wp.tid()
+    if env_mask[env] != 0:
+        episode_length[env] = 0
+        episode_return[env] = 0.0
+
+
+@wp.kernel
+def fill_int_array(value: int, out: wp.array(dtype=wp.int32)):
+    out[wp.tid()] = value
+
+
+@wp.kernel
+def push_observation_frame(
+    frame: wp.array2d(dtype=wp.float32),
+    reset_mask: wp.array(dtype=wp.int32),
+    num_frames: int,
+    stack: wp.array2d(dtype=wp.float32),
+):
+    """Append the newest frame (last slot) to a ``(num_envs, num_frames * D)`` stack.
+
+    One thread owns one feature column of one env, so shifting in place has no races. A freshly reset
+    env gets its first frame repeated in every slot, as gymnasium's FrameStack does.
+    """
+    env, d = wp.tid()
+    dim = frame.shape[1]
+    value = frame[env, d]
+    if reset_mask[env] != 0:
+        for s in range(num_frames):
+            stack[env, s * dim + d] = value
+    else:
+        for s in range(num_frames - 1):
+            stack[env, s * dim + d] = stack[env, (s + 1) * dim + d]
+        stack[env, (num_frames - 1) * dim + d] = value

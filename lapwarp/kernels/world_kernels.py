@@ -1,0 +1,27 @@
+"""Kernels that belong to the World itself: per-env RNG seeding and masked state copies."""
+
+import warp as wp
+
+wp.set_module_options({"enable_backward": False})
+
+
+@wp.kernel
+def init_env_rng(seed: int, rng_out: wp.array(dtype=wp.uint32)):
+    env = wp.tid()
+    rng_out[env] = wp.rand_init(seed, env)
+
+
+@wp.kernel
+def reseed_env_rng(seed: int, env_mask: wp.array(dtype=wp.int32), rng_out: wp.array(dtype=wp.uint32)):
+    env = wp.tid()
+    if env_mask[env] != 0:
+        rng_out[env] = wp.rand_init(seed, env)
+
+
+@wp.kernel
+def copy_masked_vec3(
+    env_mask: wp.array(dtype=wp.int32), src: wp.array2d(dtype=wp.vec3), dst: wp.array2d(dtype=wp.vec3)
+):
+    env, i = wp.tid()
+    if env_mask[env] != 0:
+        dst[env, i] = src[env % src.shape[0], i]

@@ -1,0 +1,40 @@
+"""Task registry: ``make(name, ...)`` and ``list_tasks()``; tasks are imported only when made."""
+
+from __future__ import annotations
+
+import importlib
+from typing import Any
+
+# name -> "module:EnvClass"; the module is imported lazily so ``import lapwarp`` stays light.
+_TASKS: dict[str, str] = {
+    "Reach": "lapwarp.tasks.spatial.reach:ReachEnv",
+}
+
+
+def list_tasks() -> list[str]:
+    """Names of the tasks ``make`` accepts."""
+    return sorted(_TASKS)
+
+
+def task_class(name: str) -> type:
+    """The env class registered under ``name``."""
+    if name not in _TASKS:
+        raise ValueError(f"unknown task {name!r}; available tasks: {list_tasks()}")
+    module_name, class_name = _TASKS[name].split(":")
+    return getattr(importlib.import_module(module_name), class_name)
+
+
+def make(name: str, num_envs: int = 1, device: str = "cpu", **overrides: Any):
+    """Build the batched env of task ``name`` with ``num_envs`` scenes on a Warp device.
+
+    Args:
+        name: task name, see ``list_tasks()``.
+        num_envs: number of parallel scenes.
+        device: "cpu" or "cuda:N".
+        **overrides: fields of the task's config dataclass; unknown keys raise ``ValueError``.
+
+    Returns:
+        A ``lapwarp.env.BatchedEnv`` (an ``rsl_rl.env.VecEnv``).
+    """
+    env_class = task_class(name)
+    return env_class.from_overrides(num_envs=num_envs, device=device, **overrides)

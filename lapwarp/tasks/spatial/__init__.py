@@ -1,0 +1,1 @@
+"""Spatial Reasoning track: Reach, DeflectSpheres, SearchForPoint."""
