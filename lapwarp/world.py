@@ -45,3 +45,5 @@ class World:
 
     def reset(self, env_mask: wp.array) -> None:
         """Restore the initial physical state of the envs whose ``env_mask`` entry is non-zero, in place."""
+        wp.launch(world_kernels.clear_masked_flags, dim=self.num_envs, inputs=[env_mask], outputs=[self.unstable],
+                  device=self.device)

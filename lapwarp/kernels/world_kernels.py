@@ -25,3 +25,10 @@ def copy_masked_vec3(
     env, i = wp.tid()
     if env_mask[env] != 0:
         dst[env, i] = src[env % src.shape[0], i]
+
+
+@wp.kernel
+def clear_masked_flags(env_mask: wp.array(dtype=wp.int32), flags: wp.array(dtype=wp.int32)):
+    env = wp.tid()
+    if env_mask[env] != 0:
+        flags[env] = 0
