@@ -9,4 +9,18 @@ __version__ = "0.1.0"
 
 from lapwarp.registry import list_tasks, make  # noqa: E402
 
+
+def _register_gymnasium() -> None:
+    # gymnasium.make("lapwarp/Reach-v0") works once lapwarp is imported; the adapters load lazily.
+    import gymnasium as gym
+
+    for task in list_tasks():
+        env_id = f"lapwarp/{task}-v0"
+        if env_id not in gym.registry:
+            gym.register(env_id, entry_point="lapwarp.vecenv:LapwarpGymEnv", kwargs={"task": task},
+                         vector_entry_point="lapwarp.vecenv:LapwarpVectorEnv")
+
+
+_register_gymnasium()
+
 __all__ = ["__version__", "list_tasks", "make"]

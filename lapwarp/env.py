@@ -41,6 +41,9 @@ class BatchedEnv(VecEnv):
         num_envs: number of parallel scenes.
         device: Warp/torch device, "cpu" or "cuda:N".
         use_cuda_graph: capture the env step as a CUDA graph on CUDA devices (default True).
+        keep_final_observations: also keep the observation each env had when its episode ended, before
+            the auto-reset, in ``extras["final_observations"]`` (gymnasium's semantics; costs one extra
+            observation pass per step, so rsl-rl training leaves it off).
     """
 
     config_class: ClassVar[type[EnvConfig]] = EnvConfig
@@ -50,12 +53,14 @@ class BatchedEnv(VecEnv):
     supported_observations: ClassVar[tuple[str, ...]] = ("STATE",)
 
     @classmethod
-    def from_overrides(cls, num_envs: int = 1, device: str = "cpu", use_cuda_graph: bool = True, **overrides: Any):
+    def from_overrides(cls, num_envs: int = 1, device: str = "cpu", use_cuda_graph: bool = True,
+                       keep_final_observations: bool = False, **overrides: Any):
         """Build the env from config keyword overrides (unknown keys raise ``ValueError``)."""
         return cls(build_config(cls.config_class, overrides), num_envs=num_envs, device=device,
-                   use_cuda_graph=use_cuda_graph)
+                   use_cuda_graph=use_cuda_graph, keep_final_observations=keep_final_observations)
 
-    def __init__(self, cfg: EnvConfig, num_envs: int = 1, device: str = "cpu", use_cuda_graph: bool = True):
+    def __init__(self, cfg: EnvConfig, num_envs: int = 1, device: str = "cpu", use_cuda_graph: bool = True,
+                 keep_final_observations: bool = False):
         if not isinstance(cfg, self.config_class):
             raise TypeError(f"{type(self).__name__} needs a {self.config_class.__name__}, got {type(cfg).__name__}")
         if not isinstance(num_envs, int) or num_envs < 1:
@@ -70,6 +75,7 @@ class BatchedEnv(VecEnv):
         self.max_episode_length = cfg.max_episode_steps
         self.dt = cfg.time_step * cfg.frame_skip  # simulated seconds per env step
         self.reward_weights = {**self.default_reward_weights, **cfg.reward_weights}
+        self.keep_final_observations = bool(keep_final_observations)
 
         with wp.ScopedDevice(self.wp_device):
             self.world: World = self._build()
@@ -98,6 +104,10 @@ class BatchedEnv(VecEnv):
     def _critic_observation_dim(self) -> int:
         """Size of one privileged critic frame (only used with ``privileged_critic``)."""
         return self._observation_dim()
+
+    def _observation_bounds(self) -> tuple[float, float]:
+        """Bounds of every STATE observation value, for gymnasium spaces (unbounded by default)."""
+        return -np.inf, np.inf
 
     def _discrete_action_table(self) -> np.ndarray:
         """``(2d+1, d)`` table of normalised actions (1 = maximum velocity) for DISCRETE action types."""
@@ -163,12 +173,16 @@ class BatchedEnv(VecEnv):
             self.critic_frame = wp.zeros((n, self._critic_observation_dim()), dtype=wp.float32, device=dev)
             self.critic_stack = self.critic_frame if stack == 1 else wp.zeros(
                 (n, stack * self._critic_observation_dim()), dtype=wp.float32, device=dev)
+        if self.keep_final_observations:
+            self.final_obs = wp.zeros_like(self.obs_stack)
 
         # zero-copy torch views of the buffers users and rsl-rl read
         self._t = {name: wp.to_torch(getattr(self, name)) for name in (
             "actions_in", "discrete_in", "features", "weights", "reward", "terminated", "truncated", "done",
             "episode_length", "success", "last_episode_success", "finished_episodes", "last_episode_return",
             "last_episode_length", "nonfinite_actions", "clipped_actions", "obs_stack")}
+        if self.keep_final_observations:
+            self._t["final_obs"] = wp.to_torch(self.final_obs)
         if self.cfg.privileged_critic:
             self._t["critic_stack"] = wp.to_torch(self.critic_stack)
 
@@ -270,24 +284,35 @@ class BatchedEnv(VecEnv):
                   outputs=[self.reward, self.terminated, self.truncated, self.done, self.reset_mask,
                            self.last_episode_success, self.finished_episodes, self.last_episode_return,
                            self.last_episode_length], device=dev)
-        self._reset_and_observe()
+        if self.keep_final_observations:
+            # observe before the reset: the stack gets the final frame for every env, then the reset envs
+            # alone get their first frame (PUSH_MASKED_ONLY) so no env is shifted twice.
+            self._observe(env_kernels.PUSH_SHIFT_ONLY)
+            wp.copy(self.final_obs, self.obs_stack)
+            self._reset_and_observe(env_kernels.PUSH_MASKED_ONLY)
+        else:
+            self._reset_and_observe(env_kernels.PUSH_ALL)
 
-    def _reset_and_observe(self) -> None:
+    def _reset_and_observe(self, push_mode: int = env_kernels.PUSH_ALL) -> None:
         """Reset the envs flagged in ``reset_mask`` in place, then write observations (and frame stacks)."""
-        dev = self.wp_device
         self.world.reset(self.reset_mask)
         self._reset_task(self.reset_mask)
         wp.launch(env_kernels.clear_episode_buffers, dim=self.num_envs, inputs=[self.reset_mask],
-                  outputs=[self.episode_length, self.episode_return], device=dev)
+                  outputs=[self.episode_length, self.episode_return], device=self.wp_device)
+        self._observe(push_mode)
+
+    def _observe(self, push_mode: int) -> None:
+        """Write the newest frames and push them onto the frame stacks."""
         self._compute_observations()
-        if self.cfg.frame_stack > 1:
-            wp.launch(env_kernels.push_observation_frame, dim=self.obs_frame.shape,
-                      inputs=[self.obs_frame, self.reset_mask, self.cfg.frame_stack], outputs=[self.obs_stack],
-                      device=dev)
-            if self.cfg.privileged_critic:
-                wp.launch(env_kernels.push_observation_frame, dim=self.critic_frame.shape,
-                          inputs=[self.critic_frame, self.reset_mask, self.cfg.frame_stack],
-                          outputs=[self.critic_stack], device=dev)
+        if self.cfg.frame_stack == 1:
+            return
+        pairs = [(self.obs_frame, self.obs_stack)]
+        if self.cfg.privileged_critic:
+            pairs.append((self.critic_frame, self.critic_stack))
+        for frame, stack in pairs:
+            wp.launch(env_kernels.push_observation_frame, dim=frame.shape,
+                      inputs=[frame, self.reset_mask, self.cfg.frame_stack, int(push_mode)], outputs=[stack],
+                      device=self.wp_device)
 
     def _step_outputs(self) -> tuple[TensorDict, torch.Tensor, torch.Tensor, dict]:
         t = self._t
@@ -303,6 +328,8 @@ class BatchedEnv(VecEnv):
             log["/action/nonfinite_fraction"] = t["nonfinite_actions"].float().mean() / self.action_dim
             log["/action/clipped_fraction"] = t["clipped_actions"].float().mean() / self.action_dim
         extras = {"time_outs": t["truncated"].bool(), "log": log}
+        if self.keep_final_observations:
+            extras["final_observations"] = t["final_obs"].clone()
         return self.get_observations(), t["reward"].clone(), t["done"].bool(), extras
 
     def _torch_stream(self) -> wp.Stream:

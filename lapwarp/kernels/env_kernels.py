@@ -19,8 +19,8 @@ def sanitize_continuous_actions(
 ):
     """Zero non-finite components and clip to [-1, 1], counting both per env (one thread per env)."""
     env = wp.tid()
-    n_bad = int(0)
-    n_clip = int(0)
+    n_bad = 0
+    n_clip = 0
     for j in range(actions_in.shape[1]):
         a = actions_in[env, j]
         if not wp.isfinite(a):
@@ -49,7 +49,7 @@ def lookup_discrete_actions(
     env, j = wp.tid()
     idx = indices_in[env]
     noop = table.shape[0] - 1
-    bad = int(0)
+    bad = 0
     if idx < wp.int64(0) or idx > wp.int64(noop):
         bad = 1
         idx = wp.int64(noop)
@@ -85,7 +85,7 @@ def finish_env_step(
     so ``time_outs`` marks exactly the envs PPO should bootstrap.
     """
     env = wp.tid()
-    r = float(0.0)
+    r = 0.0
     for f in range(features.shape[1]):
         r += weights[f] * features[env, f]
     if unstable[env] != 0:
@@ -94,10 +94,10 @@ def finish_env_step(
     episode_length[env] = length
     ret = episode_return[env] + r
     episode_return[env] = ret
-    term = int(0)
+    term = 0
     if success[env] != 0 or failure[env] != 0 or unstable[env] != 0:
         term = 1
-    trunc = int(0)
+    trunc = 0
     if term == 0 and length >= max_episode_length:
         trunc = 1
     done = term | trunc
@@ -130,11 +130,17 @@ def fill_int_array(value: int, out: wp.array(dtype=wp.int32)):
     out[wp.tid()] = value
 
 
+PUSH_ALL = wp.constant(0)  # shift every env; masked (freshly reset) envs get their frame in every slot
+PUSH_SHIFT_ONLY = wp.constant(1)  # shift every env, ignoring the mask (the frame before an auto-reset)
+PUSH_MASKED_ONLY = wp.constant(2)  # fill only the masked envs (after pushing the final frame)
+
+
 @wp.kernel
 def push_observation_frame(
     frame: wp.array2d(dtype=wp.float32),
     reset_mask: wp.array(dtype=wp.int32),
     num_frames: int,
+    mode: int,
     stack: wp.array2d(dtype=wp.float32),
 ):
     """Append the newest frame (last slot) to a ``(num_envs, num_frames * D)`` stack.
@@ -145,7 +151,10 @@ def push_observation_frame(
     env, d = wp.tid()
     dim = frame.shape[1]
     value = frame[env, d]
-    if reset_mask[env] != 0:
+    fill = reset_mask[env] != 0 and mode != PUSH_SHIFT_ONLY
+    if mode == PUSH_MASKED_ONLY and not fill:
+        return
+    if fill:
         for s in range(num_frames):
             stack[env, s * dim + d] = value
     else:

@@ -18,6 +18,7 @@ import warp as wp
 from lapwarp.config import EnvConfig
 from lapwarp.env import BatchedEnv
 from lapwarp.instruments import discrete_action_table
+from lapwarp.kernels.random import rand_uniform_vec3
 from lapwarp.model import Model
 from lapwarp.world import World
 
@@ -105,15 +106,6 @@ class ReachConfig(EnvConfig):
 
 
 # ---------------------------------------------------------------------------- kernels
-@wp.func
-def sample_box(s: wp.uint32, low: wp.vec3, high: wp.vec3) -> wp.vec3:
-    return wp.vec3(
-        low[0] + (high[0] - low[0]) * wp.randf(s),
-        low[1] + (high[1] - low[1]) * wp.randf(s),
-        low[2] + (high[2] - low[2]) * wp.randf(s),
-    )
-
-
 @wp.kernel
 def scale_reach_actions(
     actions: wp.array2d(dtype=wp.float32),
@@ -163,7 +155,7 @@ def eval_reach_features(
 ):
     env = wp.tid()
     dist = wp.length(target_pos[env] - ee_pos[env])
-    ok = int(0)
+    ok = 0
     if dist <= threshold:
         ok = 1
     features_out[env, 0] = dist * inv_diagonal
@@ -201,21 +193,19 @@ def reset_reach(
     env = wp.tid()
     if env_mask[env] == 0:
         return
-    s = rng[env]
     p = start_position
     if randomize_start != 0:
-        p = sample_box(s, start_low, start_high)
-    best = sample_box(s, target_low, target_high)
+        p = rand_uniform_vec3(rng, env, start_low, start_high)
+    best = rand_uniform_vec3(rng, env, target_low, target_high)
     best_d = wp.length(best - p)
     for _ in range(64):
         if best_d >= min_distance:
             break
-        t = sample_box(s, target_low, target_high)
+        t = rand_uniform_vec3(rng, env, target_low, target_high)
         d = wp.length(t - p)
         if d > best_d:
             best = t
             best_d = d
-    rng[env] = s
     ee_pos[env] = p
     target_pos[env] = best
     previous_distance[env] = best_d
@@ -285,6 +275,9 @@ class ReachEnv(BatchedEnv):
 
     def _critic_observation_dim(self) -> int:
         return 10
+
+    def _observation_bounds(self) -> tuple[float, float]:
+        return -1.0, 1.0  # positions normalised by the workspace the end effector never leaves
 
     def _discrete_action_table(self) -> np.ndarray:
         # Discrete(7): +-x, +-y, +-z at 10 mm/s, then no-op; normalised by the continuous maximum speed.
