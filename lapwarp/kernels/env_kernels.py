@@ -19,8 +19,8 @@ def sanitize_continuous_actions(
 ):
     """Zero non-finite components and clip to [-1, 1], counting both per env (one thread per env)."""
     env = wp.tid()
-    n_bad = 0
-    n_clip = 0
+    n_bad = int(0)
+    n_clip = int(0)
     for j in range(actions_in.shape[1]):
         a = actions_in[env, j]
         if not wp.isfinite(a):
@@ -49,7 +49,7 @@ def lookup_discrete_actions(
     env, j = wp.tid()
     idx = indices_in[env]
     noop = table.shape[0] - 1
-    bad = 0
+    bad = int(0)
     if idx < wp.int64(0) or idx > wp.int64(noop):
         bad = 1
         idx = wp.int64(noop)
@@ -85,7 +85,7 @@ def finish_env_step(
     so ``time_outs`` marks exactly the envs PPO should bootstrap.
     """
     env = wp.tid()
-    r = 0.0
+    r = float(0.0)
     for f in range(features.shape[1]):
         r += weights[f] * features[env, f]
     if unstable[env] != 0:
@@ -94,10 +94,10 @@ def finish_env_step(
     episode_length[env] = length
     ret = episode_return[env] + r
     episode_return[env] = ret
-    term = 0
+    term = int(0)
     if success[env] != 0 or failure[env] != 0 or unstable[env] != 0:
         term = 1
-    trunc = 0
+    trunc = int(0)
     if term == 0 and length >= max_episode_length:
         trunc = 1
     done = term | trunc

@@ -155,7 +155,7 @@ def eval_reach_features(
 ):
     env = wp.tid()
     dist = wp.length(target_pos[env] - ee_pos[env])
-    ok = 0
+    ok = int(0)
     if dist <= threshold:
         ok = 1
     features_out[env, 0] = dist * inv_diagonal
