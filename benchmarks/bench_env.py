@@ -1,0 +1,98 @@
+"""Env-step throughput of a task vs num_envs, random actions, written as JSON.
+
+    python benchmarks/bench_env.py --task Reach --device cuda:0 --num-envs 1 64 1024 16384 65536 --out reach.json
+
+Regime: env step only (physics + observations + rewards + dones + masked auto-resets, the whole
+``env.step`` as rsl-rl calls it, including the returned clones and log tensors); no policy. Actions are
+drawn once per benchmark into a pool of random batches and cycled, so action generation is not timed.
+``--invalid-actions zero`` (default here) checks NaN actions on the device; ``raise`` adds the one host
+sync per step that the default env config pays for its NaN check, and is reported separately with
+``--both-nan-modes``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import time
+
+import torch
+import warp as wp
+
+import lapwarp
+
+
+def device_name(device: str) -> str:
+    if device.startswith("cuda"):
+        return torch.cuda.get_device_name(torch.device(device))
+    return f"CPU ({platform.processor() or platform.machine()}), Warp CPU backend"
+
+
+def sync(device: str) -> None:
+    if device.startswith("cuda"):
+        torch.cuda.synchronize(torch.device(device))
+
+
+def bench_one(task: str, num_envs: int, device: str, seconds: float, invalid_actions: str, overrides: dict) -> dict:
+    env = lapwarp.make(task, num_envs=num_envs, device=device, invalid_actions=invalid_actions, **overrides)
+    gen = torch.Generator(device=env.device).manual_seed(0)
+    if env.is_discrete:
+        pool = [torch.randint(0, 2 * env.action_dim + 1, (num_envs,), device=env.device, generator=gen)
+                for _ in range(8)]
+    else:
+        pool = [torch.rand(num_envs, env.num_actions, device=env.device, generator=gen) * 2 - 1 for _ in range(8)]
+    for i in range(5):  # compile kernels, capture the CUDA graph, warm caches
+        env.step(pool[i % 8])
+    sync(env.device)
+    steps, elapsed = 0, 0.0
+    batch = 10
+    start = time.perf_counter()
+    while elapsed < seconds:
+        for i in range(batch):
+            env.step(pool[(steps + i) % 8])
+        steps += batch
+        sync(env.device)
+        elapsed = time.perf_counter() - start
+        batch = min(batch * 2, 1000)
+    result = {
+        "task": task, "num_envs": num_envs, "env_steps": steps * num_envs, "seconds": elapsed,
+        "env_steps_per_s": steps * num_envs / elapsed, "step_ms": 1e3 * elapsed / steps,
+        "invalid_actions": invalid_actions, "frame_skip": env.cfg.frame_skip, "time_step": env.cfg.time_step,
+        "observation_type": env.cfg.observation_type, "cuda_graph": env._use_cuda_graph,
+    }
+    env.close()
+    return result
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--task", default="Reach", choices=lapwarp.list_tasks())
+    parser.add_argument("--device", default="cuda:0" if torch.cuda.is_available() else "cpu")
+    parser.add_argument("--num-envs", type=int, nargs="+", default=[1, 16, 256, 4096, 16384, 65536])
+    parser.add_argument("--seconds", type=float, default=2.0, help="timed seconds per point")
+    parser.add_argument("--invalid-actions", choices=["zero", "raise"], default="zero")
+    parser.add_argument("--both-nan-modes", action="store_true", help="also time invalid_actions='raise'")
+    parser.add_argument("--out", default=None, help="JSON output path")
+    args = parser.parse_args(argv)
+
+    wp.config.quiet = True
+    modes = ["zero", "raise"] if args.both_nan_modes else [args.invalid_actions]
+    results = []
+    print(f"{'task':<10} {'num_envs':>9} {'nan mode':>8} {'env-steps/s':>14} {'step ms':>9}")
+    for n in args.num_envs:
+        for mode in modes:
+            r = bench_one(args.task, n, args.device, args.seconds, mode, {})
+            results.append(r)
+            print(f"{r['task']:<10} {n:>9} {mode:>8} {r['env_steps_per_s']:>14,.0f} {r['step_ms']:>9.3f}", flush=True)
+    report = {"benchmark": "env_step", "regime": "env step only, random actions", "device": args.device,
+              "device_name": device_name(args.device), "warp": wp.__version__, "torch": torch.__version__,
+              "results": results}
+    if args.out:
+        with open(args.out, "w") as f:
+            json.dump(report, f, indent=2)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
