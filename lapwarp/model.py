@@ -7,6 +7,13 @@
 * ``Control`` holds the per-env commands after action scaling.
 
 Physics fields start empty (count 0) so a purely kinematic scene such as Reach carries no cost.
+
+Units are SI throughout (metres, kilograms, seconds, pascals); gravity defaults to ``(0, 0, -9.81)``.
+
+Constraint groups are stored sorted by graph colour: ``<group>_color_offsets`` is a host list of
+``num_colors + 1`` offsets, and constraints ``[offsets[c], offsets[c + 1])`` share no particle (or rod
+segment), so one kernel launch per colour updates them in parallel without atomics (Gauss-Seidel
+across colours, Jacobi-free within a colour).
 """
 
 from __future__ import annotations
@@ -17,21 +24,123 @@ import warp as wp
 
 
 @dataclass
+class SceneObject:
+    """Handle of one object added to a ``SceneBuilder`` (a cloth, a tet mesh, a rod, a particle set).
+
+    Index ranges are global particle indices of the scene (shared by all envs). ``surface_tris`` are in
+    *global* particle indices and wound outwards for tet meshes; ``tets`` / ``tris`` / ``edges`` /
+    ``segments`` likewise. Use ``obj.particles`` to slice ``world.state.particle_q.numpy()``.
+    """
+
+    name: str
+    kind: str
+    particle_start: int
+    particle_count: int
+    surface_tris: object = None  # np.ndarray (F, 3) int32, global particle indices
+    tets: object = None  # np.ndarray (T, 4) int32
+    tris: object = None  # np.ndarray (F, 3) int32 (cloth elements)
+    edges: object = None  # np.ndarray (E, 2) int32 (rod / spring topology)
+    segment_start: int = 0  # first rod segment (rods only)
+    segment_count: int = 0
+    closed: bool = False
+    fixed: object = None  # np.ndarray of global particle indices fixed in place
+
+    @property
+    def particles(self) -> slice:
+        """Slice of this object's particles along the particle axis of state arrays."""
+        return slice(self.particle_start, self.particle_start + self.particle_count)
+
+    @property
+    def segments(self) -> slice:
+        """Slice of this rod's segments along the segment axis of rod state arrays."""
+        return slice(self.segment_start, self.segment_start + self.segment_count)
+
+
+@dataclass
 class Model:
-    """Static description of one scene, shared by all ``num_envs`` copies."""
+    """Static description of one scene, shared by all ``num_envs`` copies.
+
+    Per-constraint arrays are 1-D (topology, shared) or 2-D ``(P, count)`` with ``P`` 1 or ``num_envs``
+    (material parameters, randomisable per env). Empty groups have count 0 and their arrays are None.
+    """
 
     num_envs: int
     device: str
     gravity: wp.vec3 = field(default_factory=lambda: wp.vec3(0.0, 0.0, 0.0))
     particle_count: int = 0
 
+    # particles ------------------------------------------------------------------------------------
+    particle_inv_mass: wp.array2d | None = None  # (P, n) 1/kg, 0 = fixed
+    particle_damping: wp.array2d | None = None  # (P, n) linear velocity damping rate 1/s
+    max_speed: float = 50.0  # m/s, above this an env is flagged unstable
+
+    # distance constraints (cloth stretch/shear edges, springs, pendulum links) ----------------------
+    edge_count: int = 0
+    edge_indices: wp.array | None = None  # (E,) vec2i
+    edge_rest: wp.array | None = None  # (E,) rest length m
+    edge_compliance: wp.array2d | None = None  # (P, E) m/N
+    edge_color_offsets: list = field(default_factory=lambda: [0])
+
+    # dihedral bending hinges (cloth) ----------------------------------------------------------------
+    hinge_count: int = 0
+    hinge_indices: wp.array | None = None  # (H,) vec4i: opposite a, opposite b, edge c, edge d
+    hinge_rest: wp.array | None = None  # (H,) rest dihedral angle rad
+    hinge_compliance: wp.array2d | None = None  # (P, H) 1/(N m)
+    hinge_color_offsets: list = field(default_factory=lambda: [0])
+
+    # tetrahedral FEM, co-rotated (|F - R| and det F - 1 constraints) -----------------------------------
+    tet_count: int = 0
+    tet_indices: wp.array | None = None  # (T,) vec4i
+    tet_inv_rest: wp.array | None = None  # (T,) mat33 Dm^-1
+    tet_params: wp.array2d | None = None  # (P, T) vec3 (alpha_dev, alpha_vol or -1, unused), 1/(Pa m^3)
+    tet_color_offsets: list = field(default_factory=lambda: [0])
+
+    # long-range tethers (cloth hanging from pinned particles, Kim et al. 2012) ---------------------
+    tether_count: int = 0
+    tether_particle: wp.array | None = None  # (K,) int32, each particle at most once
+    tether_anchor: wp.array | None = None  # (K,) int32 fixed anchor particle
+    tether_max: wp.array | None = None  # (K,) max distance m
+
+    # Cosserat rods (Kugelstadt & Schoemer 2016) ----------------------------------------------------
+    segment_count: int = 0
+    segment_particles: wp.array | None = None  # (S,) vec3i: p0, p1, segment index (constraint order)
+    segment_rest: wp.array | None = None  # (S,) rest length m
+    segment_inv_inertia: wp.array2d | None = None  # (P, S) quaternion inverse mass 1/(4 I)
+    segment_damping: wp.array2d | None = None  # (P, S) angular velocity damping rate 1/s
+    segment_compliance: wp.array2d | None = None  # (P, S) vec3 stretch-shear compliance, material frame
+    segment_color_offsets: list = field(default_factory=lambda: [0])
+    bend_count: int = 0
+    bend_segments: wp.array | None = None  # (B,) vec2i
+    bend_rest: wp.array | None = None  # (B,) quat rest Darboux quaternion
+    bend_compliance: wp.array2d | None = None  # (P, B) vec3 bend-twist compliance, material frame
+    bend_color_offsets: list = field(default_factory=lambda: [0])
+
+    # kinematic bodies (instrument jaws) and attachments ---------------------------------------------
+    body_count: int = 0
+    body_names: list = field(default_factory=list)
+    attachment_capacity: int = 0
+
+    objects: list = field(default_factory=list)  # SceneObject handles, in insertion order
+    surface_tris: wp.array | None = None  # (F,) vec3i all render/contact triangles, global indices
+
 
 @dataclass
 class State:
     """Dynamic per-env arrays, shape ``(num_envs, count)``."""
 
-    particle_q: wp.array2d | None = None
-    particle_qd: wp.array2d | None = None
+    particle_q: wp.array2d | None = None  # (N, n) vec3 m
+    particle_qd: wp.array2d | None = None  # (N, n) vec3 m/s
+    segment_q: wp.array2d | None = None  # (N, S) quat, rod segment orientations (d3 = local z)
+    segment_qd: wp.array2d | None = None  # (N, S) vec3 angular velocity rad/s (world frame)
+    body_q: wp.array2d | None = None  # (N, B) transform of kinematic bodies, written by the env layer
+    attach_particle: wp.array2d | None = None  # (N, C) int32 particle index, -1 = free slot
+    attach_body: wp.array2d | None = None  # (N, C) int32 body index, -1 = world frame
+    attach_offset: wp.array2d | None = None  # (N, C) vec3 target in the body frame
+    attach_compliance: wp.array2d | None = None  # (N, C) float m/N
+
+    def arrays(self) -> dict:
+        """All allocated arrays by name (used for reset copies and memory reports)."""
+        return {k: v for k, v in self.__dict__.items() if isinstance(v, wp.array)}
 
 
 @dataclass

@@ -3,14 +3,30 @@
 The World is what ``SceneBuilder.finalize`` returns and what every task env steps. It never imports
 task code. ``step()`` and ``reset(env_mask)`` only launch kernels on preallocated arrays, so they
 can be captured into a CUDA graph by the env that owns the World.
+
+One ``step(dt)`` runs ``substeps`` XPBD substeps of ``dt / substeps`` (Macklin et al. 2019, "Small
+Steps"); each substep predicts positions (gravity, damping), runs ``iterations`` Gauss-Seidel sweeps
+over the graph colours of every constraint group, and derives velocities from the position change.
+After the substeps a stability check flags envs with NaN or runaway speed in ``unstable`` (sticky
+until that env is reset) and, when ``auto_reset_unstable`` is set, restores only those envs.
 """
 
 from __future__ import annotations
 
+import copy
+
+import numpy as np
 import warp as wp
 
 from lapwarp.kernels import world_kernels
 from lapwarp.model import Control, Model, State
+
+
+def _clone_state(state: State) -> State:
+    out = copy.copy(state)
+    for name, arr in state.arrays().items():
+        setattr(out, name, wp.clone(arr))
+    return out
 
 
 class World:
@@ -21,18 +37,84 @@ class World:
         state: initial dynamic state; a copy is kept so ``reset`` can restore masked envs in place.
         control: per-env commands written by the env's action kernels.
         seed: seed of the per-env device RNG streams (env ``i`` uses stream ``rand_init(seed, i)``).
+        substeps: XPBD substeps per ``step`` call.
+        iterations: constraint sweeps per substep (1 is usually best: spend the budget on substeps).
+        auto_reset_unstable: restore the initial state of envs flagged unstable at the end of ``step``.
+
+    Attributes:
+        initial_state: the state ``reset`` copies from; the env layer may overwrite its rows (for
+            example randomised start poses) before calling ``reset``.
+        unstable: ``(num_envs,)`` int32, 1 once an env produced NaN or a speed above
+            ``model.max_speed``; cleared by ``reset`` of that env.
     """
 
-    def __init__(self, model: Model, state: State | None = None, control: Control | None = None, seed: int = 0):
+    def __init__(
+        self,
+        model: Model,
+        state: State | None = None,
+        control: Control | None = None,
+        seed: int = 0,
+        substeps: int = 10,
+        iterations: int = 1,
+        auto_reset_unstable: bool = True,
+    ):
         self.model = model
         self.num_envs = model.num_envs
         self.device = wp.get_device(model.device)
         self.state = state if state is not None else State()
         self.control = control if control is not None else Control()
         self.seed = int(seed)
+        self.substeps = int(substeps)
+        self.iterations = int(iterations)
+        self.auto_reset_unstable = bool(auto_reset_unstable)
         self.rng = wp.empty(self.num_envs, dtype=wp.uint32, device=self.device)
         self.unstable = wp.zeros(self.num_envs, dtype=wp.int32, device=self.device)
+        self._unstable_now = wp.zeros(self.num_envs, dtype=wp.int32, device=self.device)
+        self.initial_state = _clone_state(self.state)
+        self._alloc_scratch()
         self.seed_rng(self.seed)
+
+    # ------------------------------------------------------------------------------------------------
+    def _alloc_scratch(self) -> None:
+        m, n, dev = self.model, self.num_envs, self.device
+        self._q_prev = None
+        self._sq_prev = None
+        self._body_q_prev = None
+        if m.particle_count:
+            self._q_prev = wp.zeros((n, m.particle_count), dtype=wp.vec3, device=dev)
+        if m.segment_count:
+            self._sq_prev = wp.zeros((n, m.segment_count), dtype=wp.quat, device=dev)
+        if self.state.body_q is not None:
+            self._body_q_prev = wp.clone(self.state.body_q)
+        self._dummy_f = wp.zeros((1, 1), dtype=float, device=dev)
+        self._dummy_v2 = wp.zeros((1, 1), dtype=wp.vec2, device=dev)
+        self._dummy_v3 = wp.zeros((1, 1), dtype=wp.vec3, device=dev)
+        self._lam = {}
+        self._alloc_lambdas()
+        self._cmds: list = []
+        self._cmd_key = None
+
+    def _alloc_lambdas(self) -> None:
+        """Multiplier arrays exist only when iterations > 1 (with one sweep lambda starts at 0)."""
+        m, n, dev = self.model, self.num_envs, self.device
+        self._lam = {}
+        if self.iterations <= 1:
+            return
+        for name, count, dtype in (
+            ("edge", m.edge_count, float),
+            ("hinge", m.hinge_count, float),
+            ("tet", m.tet_count, wp.vec2),
+            ("segment", m.segment_count, wp.vec3),
+            ("bend", m.bend_count, wp.vec3),
+        ):
+            if count:
+                self._lam[name] = wp.zeros((n, count), dtype=dtype, device=dev)
+
+    def set_iterations(self, iterations: int) -> None:
+        """Change the sweeps per substep (allocates multipliers; not inside a captured graph)."""
+        self.iterations = int(iterations)
+        self._alloc_lambdas()
+        self._cmd_key = None
 
     def seed_rng(self, seed: int) -> None:
         """Re-seed every env's RNG stream (host-side call, not part of the captured step)."""
@@ -40,10 +122,157 @@ class World:
         wp.launch(world_kernels.init_env_rng, dim=self.num_envs, inputs=[self.seed], outputs=[self.rng],
                   device=self.device)
 
+    # ------------------------------------------------------------------------------------------------
     def step(self, dt: float) -> None:
-        """Advance the physics of every env by ``dt`` seconds. A kinematic scene has nothing to do."""
+        """Advance the physics of every env by ``dt`` seconds. A kinematic scene has nothing to do.
+
+        The launches of one step are recorded once per ``dt`` and replayed (less Python overhead); the
+        state arrays are updated in place and must not be re-assigned after ``finalize``.
+        """
+        if self.model.particle_count == 0:
+            return
+        key = (float(dt), self.substeps, self.iterations)
+        if self._cmd_key != key:
+            self._cmds = self._record_step(float(dt))
+            self._cmd_key = key
+        for cmd in self._cmds:
+            cmd()
+
+    def _record_step(self, dt: float) -> list:
+        from lapwarp.kernels import xpbd
+
+        m, n, dev, s = self.model, self.num_envs, self.device, self.state
+        cmds: list = []
+
+        def launch(kernel, dim, inputs, outputs=()):
+            rec = wp.launch(kernel, dim=dim, inputs=inputs, outputs=list(outputs), device=dev, record_cmd=True)
+            cmds.append(rec.launch)
+
+        h = dt / self.substeps
+        inv_dt2 = 1.0 / (h * h)
+        iters = max(1, self.iterations)
+        use_lam = 1 if iters > 1 else 0
+        lam = self._lam
+        for sub in range(self.substeps):
+            launch(xpbd.integrate_particles, (n, m.particle_count),
+                   [m.particle_inv_mass, m.particle_damping, m.gravity, h, s.particle_q, s.particle_qd], [self._q_prev])
+            if m.segment_count:
+                launch(xpbd.integrate_segments, (n, m.segment_count),
+                       [m.segment_inv_inertia, m.segment_damping, h, s.segment_q, s.segment_qd], [self._sq_prev])
+            for arr in lam.values():
+                cmds.append(arr.zero_)
+            for _ in range(iters):
+                self._record_sweep(launch, xpbd, inv_dt2, use_lam, (sub + 1) / self.substeps)
+            launch(xpbd.update_particle_velocities, (n, m.particle_count), [s.particle_q, self._q_prev, 1.0 / h],
+                   [s.particle_qd])
+            if m.segment_count:
+                launch(xpbd.update_segment_velocities, (n, m.segment_count), [s.segment_q, self._sq_prev, 1.0 / h],
+                       [s.segment_qd])
+        if self._body_q_prev is not None:
+            bq, bqp = s.body_q, self._body_q_prev
+            cmds.append(lambda: wp.copy(bqp, bq))
+        cmds.append(self.check_stability)
+        return cmds
+
+    def _record_sweep(self, launch, xpbd, inv_dt2: float, use_lam: int, blend: float) -> None:
+        m, n, s = self.model, self.num_envs, self.state
+        lam = self._lam
+        if m.tether_count:
+            launch(xpbd.solve_tethers, (n, m.tether_count),
+                   [m.tether_particle, m.tether_anchor, m.tether_max, m.particle_inv_mass], [s.particle_q])
+        off = m.edge_color_offsets
+        for c in range(len(off) - 1):
+            launch(xpbd.solve_edges, (n, off[c + 1] - off[c]),
+                   [off[c], m.edge_indices, m.edge_rest, m.edge_compliance, m.particle_inv_mass, inv_dt2, use_lam,
+                    lam.get("edge", self._dummy_f)], [s.particle_q])
+        off = m.tet_color_offsets
+        for c in range(len(off) - 1):
+            launch(xpbd.solve_tets, (n, off[c + 1] - off[c]),
+                   [off[c], m.tet_indices, m.tet_inv_rest, m.tet_params, m.particle_inv_mass, inv_dt2, use_lam,
+                    lam.get("tet", self._dummy_v2)], [s.particle_q])
+        off = m.hinge_color_offsets
+        for c in range(len(off) - 1):
+            launch(xpbd.solve_hinges, (n, off[c + 1] - off[c]),
+                   [off[c], m.hinge_indices, m.hinge_rest, m.hinge_compliance, m.particle_inv_mass, inv_dt2, use_lam,
+                    lam.get("hinge", self._dummy_f)], [s.particle_q])
+        off = m.segment_color_offsets
+        for c in range(len(off) - 1):
+            launch(xpbd.solve_stretch_shear, (n, off[c + 1] - off[c]),
+                   [off[c], m.segment_particles, m.segment_rest, m.segment_compliance, m.segment_inv_inertia,
+                    m.particle_inv_mass, inv_dt2, use_lam, lam.get("segment", self._dummy_v3)],
+                   [s.particle_q, s.segment_q])
+        off = m.bend_color_offsets
+        for c in range(len(off) - 1):
+            launch(xpbd.solve_bend_twist, (n, off[c + 1] - off[c]),
+                   [off[c], m.bend_segments, m.bend_rest, m.bend_compliance, m.segment_inv_inertia, inv_dt2, use_lam,
+                    lam.get("bend", self._dummy_v3)], [s.segment_q])
+        if m.attachment_capacity:
+            bq = s.body_q if s.body_q is not None else self._dummy_tf()
+            bqp = self._body_q_prev if self._body_q_prev is not None else bq
+            launch(xpbd.solve_attachments, n,
+                   [s.attach_particle, s.attach_body, s.attach_offset, s.attach_compliance, bqp, bq, blend,
+                    m.particle_inv_mass, inv_dt2], [s.particle_q])
+
+    def _dummy_tf(self) -> wp.array:
+        if not hasattr(self, "_dummy_tf_arr"):
+            self._dummy_tf_arr = wp.zeros((1, 1), dtype=wp.transform, device=self.device)
+        return self._dummy_tf_arr
+
+    def check_stability(self) -> None:
+        """Flag envs with NaN or speed above ``model.max_speed``; optionally reset just those envs."""
+        m = self.model
+        if m.particle_count == 0:
+            return
+        from lapwarp.kernels import xpbd
+
+        self._unstable_now.zero_()
+        wp.launch(xpbd.check_particles, dim=(self.num_envs, m.particle_count),
+                  inputs=[self.state.particle_q, self.state.particle_qd, float(m.max_speed)],
+                  outputs=[self._unstable_now], device=self.device)
+        wp.launch(xpbd.merge_flags, dim=self.num_envs, inputs=[self._unstable_now], outputs=[self.unstable],
+                  device=self.device)
+        if self.auto_reset_unstable:
+            self._restore(self._unstable_now)
+
+    # ------------------------------------------------------------------------------------------------
+    def _restore(self, env_mask: wp.array) -> None:
+        init = self.initial_state
+        for name, arr in self.state.arrays().items():
+            src = getattr(init, name)
+            if src is None or arr.ndim != 2 or arr.shape[1] == 0:
+                continue
+            wp.launch(world_kernels.copy_masked_2d, dim=arr.shape, inputs=[env_mask, src], outputs=[arr],
+                      device=self.device)
+        if self._body_q_prev is not None:
+            wp.launch(world_kernels.copy_masked_2d, dim=self._body_q_prev.shape, inputs=[env_mask, init.body_q],
+                      outputs=[self._body_q_prev], device=self.device)
 
     def reset(self, env_mask: wp.array) -> None:
         """Restore the initial physical state of the envs whose ``env_mask`` entry is non-zero, in place."""
-        wp.launch(world_kernels.clear_masked_flags, dim=self.num_envs, inputs=[env_mask], outputs=[self.unstable],
+        self._restore(env_mask)
+        wp.launch(world_kernels.clear_masked_int, dim=self.num_envs, inputs=[env_mask], outputs=[self.unstable],
                   device=self.device)
+
+    def reset_all(self) -> None:
+        """Reset every env (host-side convenience; allocates a mask)."""
+        self.reset(wp.ones(self.num_envs, dtype=wp.int32, device=self.device))
+
+    # ------------------------------------------------------------------------------------------------
+    def simulate(self, duration: float, dt: float) -> None:
+        """Run ``round(duration / dt)`` steps of ``dt`` (host-side convenience for scripts and tests)."""
+        for _ in range(int(round(duration / dt))):
+            self.step(dt)
+
+    def positions(self, obj=None) -> np.ndarray:
+        """Particle positions as a ``(num_envs, n, 3)`` NumPy array (of one SceneObject if given). Syncs."""
+        q = self.state.particle_q.numpy()
+        return q if obj is None else q[:, obj.particles]
+
+    def state_bytes_per_env(self) -> int:
+        """Bytes of dynamic per-env data: state arrays plus solver scratch (excludes shared topology)."""
+        total = sum(a.capacity for a in self.state.arrays().values())
+        total += sum(a.capacity for a in self.initial_state.arrays().values())
+        for a in (self._q_prev, self._sq_prev, self._body_q_prev, *self._lam.values()):
+            if a is not None:
+                total += a.capacity
+        return total // max(1, self.num_envs)

@@ -1,0 +1,14 @@
+"""Procedural assets: tet grids, hollow cylinders, voxelised organs, cloth grids, rod polylines and loops."""
+
+from lapwarp.assets.meshes import (
+    box_tets,
+    cloth_grid,
+    hollow_cylinder_tets,
+    rod_circle,
+    rod_polyline,
+    tet_surface,
+    voxel_tets,
+)
+
+__all__ = ["box_tets", "cloth_grid", "hollow_cylinder_tets", "rod_circle", "rod_polyline", "tet_surface",
+           "voxel_tets"]

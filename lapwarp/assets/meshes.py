@@ -1,0 +1,169 @@
+"""Procedural meshes for the deformable objects of the tasks (NumPy in, NumPy out, SI units).
+
+Tet meshes come from hexahedral grids split into 6 tets per cell (Kuhn / Freudenthal subdivision,
+conforming across cells), as SOFA's Hexa2TetraTopologicalMapping does for the LapGym scenes. Every
+tet generator returns ``(vertices (n, 3) float64, tets (T, 4) int64)``; ``tet_surface`` gives the
+outward boundary triangles used for rendering and contact (``SceneBuilder.add_tet_mesh`` computes the
+same). Sizes follow sofa_env's mesh budgets (sofa_env-facts section 11).
+"""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+
+__all__ = [
+    "box_tets",
+    "cloth_grid",
+    "hollow_cylinder_tets",
+    "rod_circle",
+    "rod_polyline",
+    "tet_surface",
+    "voxel_tets",
+]
+
+# Kuhn subdivision of the unit cube: one tet per permutation of the axes, all sharing the 000-111 diagonal
+_KUHN = []
+for perm in itertools.permutations(range(3)):
+    c = [0, 0, 0]
+    path = [tuple(c)]
+    for a in perm:
+        c[a] = 1
+        path.append(tuple(c))
+    _KUHN.append(path)
+_KUHN = np.asarray(_KUHN)  # (6, 4, 3) corner offsets
+
+
+def _hex_grid_tets(cells: np.ndarray, node_id) -> np.ndarray:
+    """Tets of the given ``(m, 3)`` integer cells; ``node_id(i, j, k)`` maps corner indices to vertex ids."""
+    corners = cells[:, None, None, :] + _KUHN[None]  # (m, 6, 4, 3)
+    return node_id(corners[..., 0], corners[..., 1], corners[..., 2]).reshape(-1, 4)
+
+
+def box_tets(size=(0.1, 0.1, 0.1), cells=(4, 4, 4), origin=(0.0, 0.0, 0.0)):
+    """Tetrahedralised box (block, slab, beam) of ``cells`` hexahedra, 6 tets each.
+
+    Args:
+        size: extents along x, y, z in m.
+        cells: number of cells along x, y, z.
+        origin: position of the minimum corner.
+    """
+    nx, ny, nz = (int(c) for c in cells)
+    g = np.stack(np.meshgrid(np.arange(nx + 1), np.arange(ny + 1), np.arange(nz + 1), indexing="ij"), axis=-1)
+    verts = g.reshape(-1, 3) * (np.asarray(size, dtype=np.float64) / np.array([nx, ny, nz])) + np.asarray(origin)
+    cl = np.stack(np.meshgrid(np.arange(nx), np.arange(ny), np.arange(nz), indexing="ij"), axis=-1).reshape(-1, 3)
+    tets = _hex_grid_tets(cl, lambda i, j, k: (i * (ny + 1) + j) * (nz + 1) + k)
+    return verts, tets
+
+
+def hollow_cylinder_tets(inner_radius=0.005, outer_radius=0.025, height=0.03, radial=2, angular=10, vertical=10,
+                         origin=(0.0, 0.0, 0.0)):
+    """Tetrahedralised hollow cylinder (ThreadInHole's hole, LigatingLoop's cavity) along +z.
+
+    ``radial`` x ``angular`` x ``vertical`` are node counts as in sofa_env's Cavity discretisation
+    (2 x 10 x 10 gives 200 nodes, 90 hexahedra, 540 tets; 2 x 15 x 25 gives 750 nodes, 2,160 tets).
+    """
+    r = np.linspace(inner_radius, outer_radius, radial)
+    a = np.linspace(0.0, 2.0 * np.pi, angular, endpoint=False)
+    z = np.linspace(0.0, height, vertical)
+    R, A, Z = np.meshgrid(r, a, z, indexing="ij")
+    verts = np.stack([R * np.cos(A), R * np.sin(A), Z], axis=-1).reshape(-1, 3) + np.asarray(origin)
+    cl = np.stack(np.meshgrid(np.arange(radial - 1), np.arange(angular), np.arange(vertical - 1), indexing="ij"),
+                  axis=-1).reshape(-1, 3)
+    tets = _hex_grid_tets(cl, lambda i, j, k: (i * angular + j % angular) * vertical + k)
+    return verts, tets
+
+
+def voxel_tets(surface, pitch: float, fill: bool = True):
+    """Tetrahedralise a closed surface (organ-like shape) on a voxel grid.
+
+    Args:
+        surface: a ``trimesh.Trimesh`` or a ``(vertices, faces)`` pair; must be watertight.
+        pitch: voxel edge length in m (the liver/gallbladder budgets need ~100-400 nodes).
+        fill: include interior voxels (a solid), not only the shell.
+    """
+    import trimesh
+
+    mesh = surface if isinstance(surface, trimesh.Trimesh) else trimesh.Trimesh(*surface, process=True)
+    vox = mesh.voxelized(pitch)
+    if fill:
+        vox = vox.fill()
+    idx = np.asarray(vox.sparse_indices)  # (m, 3) occupied voxel indices
+    if len(idx) == 0:
+        raise ValueError("no voxel inside the surface: reduce the pitch")
+    # voxel centres -> cell min corners in world coordinates
+    centres = np.asarray(vox.indices_to_points(idx))
+    dims = idx.max(axis=0) + 2
+    corners = idx[:, None, None, :] + _KUHN[None]
+    lin = (corners[..., 0] * dims[1] + corners[..., 1]) * dims[2] + corners[..., 2]
+    used, tets = np.unique(lin.reshape(-1, 4), return_inverse=True)
+    tets = tets.reshape(-1, 4)
+    ci = np.stack(np.unravel_index(used, tuple(dims)), axis=1)
+    origin = centres[0] - 0.5 * pitch - idx[0] * pitch
+    verts = origin + ci * pitch
+    return verts, tets
+
+
+def tet_surface(tets: np.ndarray, vertices: np.ndarray | None = None) -> np.ndarray:
+    """Boundary triangles of a tet mesh, wound outwards when ``vertices`` is given (else as positive tets)."""
+    t = np.asarray(tets, dtype=np.int64).copy()
+    if vertices is not None:
+        x = np.asarray(vertices)
+        det = np.linalg.det(np.stack([x[t[:, i]] - x[t[:, 0]] for i in (1, 2, 3)], axis=2))
+        neg = det < 0
+        t[neg, 1], t[neg, 2] = t[neg, 2].copy(), t[neg, 1].copy()
+    faces = np.concatenate([t[:, [1, 2, 3]], t[:, [0, 3, 2]], t[:, [0, 1, 3]], t[:, [0, 2, 1]]])
+    _, idx, cnt = np.unique(np.sort(faces, axis=1), axis=0, return_index=True, return_counts=True)
+    return faces[np.sort(idx[cnt == 1])]
+
+
+def cloth_grid(nx=40, ny=40, size_x=0.075, size_y=0.075, plane: str = "xy", origin=(0.0, 0.0, 0.0)):
+    """Regular ``nx`` x ``ny`` vertex cloth with one diagonal per quad (PrecisionCutting: 40 x 40 over
+    75 mm gives 1,600 vertices and 3,042 triangles, like SOFA's RegularGrid).
+
+    Args:
+        plane: ``"xy"`` (horizontal sheet, normal +z) or ``"xz"`` (vertical sheet, rows go up in z).
+        origin: position of vertex 0 (the minimum corner).
+
+    Returns:
+        ``(vertices (nx*ny, 3), triangles (2 (nx-1)(ny-1), 3))``, vertex ``j * nx + i`` at column i, row j.
+    """
+    u = np.linspace(0.0, size_x, nx)
+    v = np.linspace(0.0, size_y, ny)
+    U, V = np.meshgrid(u, v, indexing="xy")
+    zeros = np.zeros_like(U)
+    if plane == "xy":
+        verts = np.stack([U, V, zeros], axis=-1).reshape(-1, 3)
+    elif plane == "xz":
+        verts = np.stack([U, zeros, V], axis=-1).reshape(-1, 3)
+    else:
+        raise ValueError("plane must be 'xy' or 'xz'")
+    verts = verts + np.asarray(origin, dtype=np.float64)
+    i, j = np.meshgrid(np.arange(nx - 1), np.arange(ny - 1), indexing="xy")
+    a = (j * nx + i).ravel()
+    b, c, d = a + 1, a + nx, a + nx + 1
+    tris = np.concatenate([np.stack([a, b, d], 1), np.stack([a, d, c], 1)])
+    return verts, tris
+
+
+def rod_polyline(points, num_points: int) -> np.ndarray:
+    """``num_points`` points evenly spaced by arc length along a polyline (threads, ropes)."""
+    p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    seg = np.linalg.norm(np.diff(p, axis=0), axis=1)
+    s = np.concatenate([[0.0], np.cumsum(seg)])
+    t = np.linspace(0.0, s[-1], num_points)
+    return np.stack([np.interp(t, s, p[:, k]) for k in range(3)], axis=1)
+
+
+def rod_circle(radius: float, num_points: int, center=(0.0, 0.0, 0.0), normal=(0.0, 0.0, 1.0)) -> np.ndarray:
+    """``num_points`` points on a circle (PickAndPlace's torus: 30 on r = 14 mm; LigatingLoop's loop: 50
+    on r = 15 mm), for ``SceneBuilder.add_rod(..., closed=True)``; the first point is not repeated."""
+    n = np.asarray(normal, dtype=np.float64)
+    n = n / np.linalg.norm(n)
+    ref = np.array([1.0, 0.0, 0.0]) if abs(n[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    e1 = np.cross(n, ref)
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(n, e1)
+    a = np.linspace(0.0, 2.0 * np.pi, num_points, endpoint=False)
+    return np.asarray(center) + radius * (np.cos(a)[:, None] * e1 + np.sin(a)[:, None] * e2)

@@ -1,0 +1,528 @@
+"""XPBD solver kernels: integration, constraint projection (distance, dihedral bending, stable
+co-rotated FEM tetrahedra, tethers, attachments, Cosserat rods), velocity update, stability check.
+
+Every kernel launches with the env first, ``dim=(num_envs, count)`` and ``env, i = wp.tid()``. Shared
+topology is indexed with the local constraint index ``i``; per-env parameters ``p`` with leading
+dimension 1 or ``num_envs`` are read as ``p[env % p.shape[0], i]``. Constraint kernels take the
+``start`` of their graph colour so one launch per colour touches disjoint particles (no atomics).
+
+XPBD (Macklin et al. 2016) with compliance ``alpha`` in SI units: ``alpha_t = alpha / dt^2`` and
+``dlambda = (-C - alpha_t * lambda) / (sum w |grad C|^2 + alpha_t)``. With one iteration per substep
+``lambda`` starts at zero and is not stored (``use_lambda = 0``); with more iterations it is
+accumulated in per-env arrays so the result stays compliance-consistent.
+"""
+
+import warp as wp
+
+wp.set_module_options({"enable_backward": False})
+
+
+# ----------------------------------------------------------------------------------------------------
+# particles
+# ----------------------------------------------------------------------------------------------------
+
+
+@wp.kernel
+def integrate_particles(
+    inv_mass: wp.array2d(dtype=float),
+    damping: wp.array2d(dtype=float),
+    gravity: wp.vec3,
+    dt: float,
+    q: wp.array2d(dtype=wp.vec3),
+    qd: wp.array2d(dtype=wp.vec3),
+    q_prev_out: wp.array2d(dtype=wp.vec3),
+):
+    env, i = wp.tid()
+    x = q[env, i]
+    q_prev_out[env, i] = x
+    w = inv_mass[env % inv_mass.shape[0], i]
+    if w == 0.0:
+        qd[env, i] = wp.vec3(0.0)
+        return
+    d = damping[env % damping.shape[0], i]
+    # implicit damping factor 1 / (1 + d dt): unconditionally stable for any rate d
+    v = (qd[env, i] + gravity * dt) / (1.0 + d * dt)
+    qd[env, i] = v
+    q[env, i] = x + v * dt
+
+
+@wp.kernel
+def update_particle_velocities(
+    q: wp.array2d(dtype=wp.vec3), q_prev: wp.array2d(dtype=wp.vec3), inv_dt: float, qd_out: wp.array2d(dtype=wp.vec3)
+):
+    env, i = wp.tid()
+    qd_out[env, i] = (q[env, i] - q_prev[env, i]) * inv_dt
+
+
+@wp.kernel
+def check_particles(
+    q: wp.array2d(dtype=wp.vec3), qd: wp.array2d(dtype=wp.vec3), max_speed: float, flags_out: wp.array(dtype=wp.int32)
+):
+    env, i = wp.tid()
+    v2 = wp.length_sq(qd[env, i])
+    x2 = wp.length_sq(q[env, i])
+    # written so that NaN fails both comparisons and is flagged
+    if not (v2 <= max_speed * max_speed) or not (x2 < 1.0e12):
+        flags_out[env] = 1
+
+
+@wp.kernel
+def merge_flags(flags: wp.array(dtype=wp.int32), sticky_out: wp.array(dtype=wp.int32)):
+    env = wp.tid()
+    if flags[env] != 0:
+        sticky_out[env] = 1
+
+
+# ----------------------------------------------------------------------------------------------------
+# distance constraints (edges)
+# ----------------------------------------------------------------------------------------------------
+
+
+@wp.kernel
+def solve_edges(
+    start: int,
+    indices: wp.array(dtype=wp.vec2i),
+    rest: wp.array(dtype=float),
+    compliance: wp.array2d(dtype=float),
+    inv_mass: wp.array2d(dtype=float),
+    inv_dt2: float,
+    use_lambda: int,
+    lam: wp.array2d(dtype=float),
+    q: wp.array2d(dtype=wp.vec3),
+):
+    env, t = wp.tid()
+    c = start + t
+    ij = indices[c]
+    pe = env % inv_mass.shape[0]
+    wi = inv_mass[pe, ij[0]]
+    wj = inv_mass[pe, ij[1]]
+    w = wi + wj
+    if w == 0.0:
+        return
+    xi = q[env, ij[0]]
+    xj = q[env, ij[1]]
+    d = xi - xj
+    length = wp.length(d)
+    if length < 1.0e-12:
+        return
+    n = d / length
+    C = length - rest[c]
+    alpha = compliance[env % compliance.shape[0], c] * inv_dt2
+    l0 = float(0.0)
+    if use_lambda != 0:
+        l0 = lam[env, c]
+    dl = (-C - alpha * l0) / (w + alpha)
+    if use_lambda != 0:
+        lam[env, c] = l0 + dl
+    q[env, ij[0]] = xi + n * (wi * dl)
+    q[env, ij[1]] = xj - n * (wj * dl)
+
+
+# ----------------------------------------------------------------------------------------------------
+# dihedral bending (Bridson et al. 2003 gradients)
+# ----------------------------------------------------------------------------------------------------
+
+
+@wp.kernel
+def solve_hinges(
+    start: int,
+    indices: wp.array(dtype=wp.vec4i),
+    rest: wp.array(dtype=float),
+    compliance: wp.array2d(dtype=float),
+    inv_mass: wp.array2d(dtype=float),
+    inv_dt2: float,
+    use_lambda: int,
+    lam: wp.array2d(dtype=float),
+    q: wp.array2d(dtype=wp.vec3),
+):
+    env, t = wp.tid()
+    c = start + t
+    h = indices[c]
+    pe = env % inv_mass.shape[0]
+    w1 = inv_mass[pe, h[0]]
+    w2 = inv_mass[pe, h[1]]
+    w3 = inv_mass[pe, h[2]]
+    w4 = inv_mass[pe, h[3]]
+    x1 = q[env, h[0]]
+    x2 = q[env, h[1]]
+    x3 = q[env, h[2]]
+    x4 = q[env, h[3]]
+    n1 = wp.cross(x3 - x1, x4 - x1)
+    n2 = wp.cross(x4 - x2, x3 - x2)
+    l1 = wp.length_sq(n1)
+    l2 = wp.length_sq(n2)
+    e = x4 - x3
+    el = wp.length(e)
+    if l1 < 1.0e-20 or l2 < 1.0e-20 or el < 1.0e-10:
+        return
+    e_hat = e / el
+    # signed angle via atan2 (robust near flat, unlike acos of the cosine)
+    m1 = n1 / wp.sqrt(l1)
+    m2 = n2 / wp.sqrt(l2)
+    angle = wp.atan2(wp.dot(wp.cross(m1, m2), e_hat), wp.dot(m1, m2))
+    n1 = n1 / l1
+    n2 = n2 / l2
+    g1 = n1 * el
+    g2 = n2 * el
+    g3 = n1 * wp.dot(x1 - x4, e_hat) + n2 * wp.dot(x2 - x4, e_hat)
+    g4 = n1 * wp.dot(x3 - x1, e_hat) + n2 * wp.dot(x3 - x2, e_hat)
+    # Bridson's gradients are of -angle in our sign convention; flip so C = angle - rest
+    g1 = -g1
+    g2 = -g2
+    g3 = -g3
+    g4 = -g4
+    wsum = w1 * wp.length_sq(g1) + w2 * wp.length_sq(g2) + w3 * wp.length_sq(g3) + w4 * wp.length_sq(g4)
+    alpha = compliance[env % compliance.shape[0], c] * inv_dt2
+    if wsum + alpha < 1.0e-20:
+        return
+    C = angle - rest[c]
+    # wrap to (-pi, pi] so a hinge passing through +-pi does not snap
+    if C > wp.pi:
+        C = C - 2.0 * wp.pi
+    if C < -wp.pi:
+        C = C + 2.0 * wp.pi
+    l0 = float(0.0)
+    if use_lambda != 0:
+        l0 = lam[env, c]
+    dl = (-C - alpha * l0) / (wsum + alpha)
+    if use_lambda != 0:
+        lam[env, c] = l0 + dl
+    q[env, h[0]] = x1 + g1 * (w1 * dl)
+    q[env, h[1]] = x2 + g2 * (w2 * dl)
+    q[env, h[2]] = x3 + g3 * (w3 * dl)
+    q[env, h[3]] = x4 + g4 * (w4 * dl)
+
+
+# ----------------------------------------------------------------------------------------------------
+# tetrahedra: co-rotated FEM as two coupled XPBD constraints, deviatoric |F - R| and volume det F - 1
+# ----------------------------------------------------------------------------------------------------
+
+
+@wp.func
+def mat_col(m: wp.mat33, j: int):
+    return wp.vec3(m[0, j], m[1, j], m[2, j])
+
+
+@wp.func
+def polar_rotation(F: wp.mat33):
+    """Rotation R of the polar decomposition F = R S via SVD, with reflections removed (inverted tets)."""
+    U = wp.mat33()
+    sig = wp.vec3()
+    V = wp.mat33()
+    wp.svd3(F, U, sig, V)
+    if wp.determinant(U) * wp.determinant(V) < 0.0:
+        # flip the direction of the smallest singular value
+        k = int(0)
+        if sig[1] < sig[k]:
+            k = 1
+        if sig[2] < sig[k]:
+            k = 2
+        for r in range(3):
+            U[r, k] = -U[r, k]
+    return U * wp.transpose(V)
+
+
+@wp.kernel
+def solve_tets(
+    start: int,
+    indices: wp.array(dtype=wp.vec4i),
+    inv_rest: wp.array(dtype=wp.mat33),
+    params: wp.array2d(dtype=wp.vec3),
+    inv_mass: wp.array2d(dtype=float),
+    inv_dt2: float,
+    use_lambda: int,
+    lam: wp.array2d(dtype=wp.vec2),
+    q: wp.array2d(dtype=wp.vec3),
+):
+    env, t = wp.tid()
+    c = start + t
+    k = indices[c]
+    pe = env % inv_mass.shape[0]
+    w0 = inv_mass[pe, k[0]]
+    w1 = inv_mass[pe, k[1]]
+    w2 = inv_mass[pe, k[2]]
+    w3 = inv_mass[pe, k[3]]
+    x0 = q[env, k[0]]
+    x1 = q[env, k[1]]
+    x2 = q[env, k[2]]
+    x3 = q[env, k[3]]
+    Dm_inv = inv_rest[c]
+    F = wp.matrix_from_cols(x1 - x0, x2 - x0, x3 - x0) * Dm_inv
+    p = params[env % params.shape[0], c]
+    # Energy V (mu |F - R|^2 + lambda/2 (det F - 1)^2) = C_D^2 / (2 alpha_D) + C_H^2 / (2 alpha_H): both
+    # constraints vanish at rest, so stiff materials (alpha / dt^2 << w |grad C|^2) stay stable.
+    R = polar_rotation(F)
+    FR = F - R
+    C_D = wp.sqrt(wp.ddot(FR, FR))
+    f1 = mat_col(F, 0)
+    f2 = mat_col(F, 1)
+    f3 = mat_col(F, 2)
+    C_H = wp.determinant(F) - 1.0
+    DmT = wp.transpose(Dm_inv)
+    GD = wp.mat33(0.0)
+    if C_D > 1.0e-9:
+        GD = FR * (1.0 / C_D) * DmT
+    GH = wp.matrix_from_cols(wp.cross(f2, f3), wp.cross(f3, f1), wp.cross(f1, f2)) * DmT
+    d1 = mat_col(GD, 0)
+    d2 = mat_col(GD, 1)
+    d3 = mat_col(GD, 2)
+    d0 = -(d1 + d2 + d3)
+    h1 = mat_col(GH, 0)
+    h2 = mat_col(GH, 1)
+    h3 = mat_col(GH, 2)
+    h0 = -(h1 + h2 + h3)
+    aD = p[0] * inv_dt2
+    hydro = p[1] >= 0.0  # alpha_H < 0 marks lambda = 0 (nu = 0): no volume term
+    aH = wp.max(p[1], 0.0) * inv_dt2
+    A11 = w0 * wp.dot(d0, d0) + w1 * wp.dot(d1, d1) + w2 * wp.dot(d2, d2) + w3 * wp.dot(d3, d3)
+    lD = float(0.0)
+    lH = float(0.0)
+    if use_lambda != 0:
+        lv = lam[env, c]
+        lD = lv[0]
+        lH = lv[1]
+    b1 = -C_D - aD * lD
+    dlD = float(0.0)
+    dlH = float(0.0)
+    if hydro:
+        A22 = w0 * wp.dot(h0, h0) + w1 * wp.dot(h1, h1) + w2 * wp.dot(h2, h2) + w3 * wp.dot(h3, h3)
+        A12 = w0 * wp.dot(d0, h0) + w1 * wp.dot(d1, h1) + w2 * wp.dot(d2, h2) + w3 * wp.dot(d3, h3)
+        # Gram determinant A11 A22 - A12^2 as A22 |d - proj_h d|^2 (no cancellation when nearly parallel)
+        gram = float(0.0)
+        if A22 > 0.0:
+            s = A12 / A22
+            r0 = d0 - h0 * s
+            r1 = d1 - h1 * s
+            r2 = d2 - h2 * s
+            r3 = d3 - h3 * s
+            gram = A22 * (w0 * wp.dot(r0, r0) + w1 * wp.dot(r1, r1) + w2 * wp.dot(r2, r2) + w3 * wp.dot(r3, r3))
+        det = gram + A11 * aH + A22 * aD + aD * aH
+        if det < 1.0e-30:
+            return
+        b2 = -C_H - aH * lH
+        dlD = ((A22 + aH) * b1 - A12 * b2) / det
+        dlH = ((A11 + aD) * b2 - A12 * b1) / det
+    else:
+        if A11 + aD < 1.0e-30:
+            return
+        dlD = b1 / (A11 + aD)
+    if use_lambda != 0:
+        lam[env, c] = wp.vec2(lD + dlD, lH + dlH)
+    q[env, k[0]] = x0 + (d0 * dlD + h0 * dlH) * w0
+    q[env, k[1]] = x1 + (d1 * dlD + h1 * dlH) * w1
+    q[env, k[2]] = x2 + (d2 * dlD + h2 * dlH) * w2
+    q[env, k[3]] = x3 + (d3 * dlD + h3 * dlH) * w3
+
+
+# ----------------------------------------------------------------------------------------------------
+# tethers (long-range attachments) and attachments to kinematic bodies
+# ----------------------------------------------------------------------------------------------------
+
+
+@wp.kernel
+def solve_tethers(
+    particle: wp.array(dtype=wp.int32),
+    anchor: wp.array(dtype=wp.int32),
+    max_dist: wp.array(dtype=float),
+    inv_mass: wp.array2d(dtype=float),
+    q: wp.array2d(dtype=wp.vec3),
+):
+    env, t = wp.tid()
+    i = particle[t]
+    if inv_mass[env % inv_mass.shape[0], i] == 0.0:
+        return
+    a = q[env, anchor[t]]
+    d = q[env, i] - a
+    length = wp.length(d)
+    m = max_dist[t]
+    # unilateral: only pulls back particles beyond their rest geodesic distance from the anchor
+    if length > m:
+        q[env, i] = a + d * (m / length)
+
+
+@wp.func
+def interpolate_transform(a: wp.transform, b: wp.transform, s: float):
+    p = wp.transform_get_translation(a) * (1.0 - s) + wp.transform_get_translation(b) * s
+    r = wp.quat_slerp(wp.transform_get_rotation(a), wp.transform_get_rotation(b), s)
+    return wp.transform(p, r)
+
+
+@wp.kernel
+def solve_attachments(
+    attach_particle: wp.array2d(dtype=wp.int32),
+    attach_body: wp.array2d(dtype=wp.int32),
+    attach_offset: wp.array2d(dtype=wp.vec3),
+    attach_compliance: wp.array2d(dtype=float),
+    body_q_prev: wp.array2d(dtype=wp.transform),
+    body_q: wp.array2d(dtype=wp.transform),
+    blend: float,
+    inv_mass: wp.array2d(dtype=float),
+    inv_dt2: float,
+    q: wp.array2d(dtype=wp.vec3),
+):
+    # one thread per env walks its few slots in order: several slots may hold the same particle
+    env = wp.tid()
+    pe = env % inv_mass.shape[0]
+    for s in range(attach_particle.shape[1]):
+        i = attach_particle[env, s]
+        if i < 0:
+            continue
+        w = inv_mass[pe, i]
+        if w == 0.0:
+            continue
+        b = attach_body[env, s]
+        target = attach_offset[env, s]
+        if b >= 0:
+            # the body pose moves linearly across the substeps of one step, not in one jump
+            tf = interpolate_transform(body_q_prev[env, b], body_q[env, b], blend)
+            target = wp.transform_point(tf, target)
+        x = q[env, i]
+        alpha = attach_compliance[env, s] * inv_dt2
+        q[env, i] = x + (target - x) * (w / (w + alpha))
+
+
+# ----------------------------------------------------------------------------------------------------
+# Cosserat rods: positions + one quaternion per segment (Kugelstadt & Schoemer 2016)
+# ----------------------------------------------------------------------------------------------------
+
+
+@wp.kernel
+def integrate_segments(
+    inv_inertia: wp.array2d(dtype=float),
+    segment_damping: wp.array2d(dtype=float),
+    dt: float,
+    sq: wp.array2d(dtype=wp.quat),
+    sqd: wp.array2d(dtype=wp.vec3),
+    sq_prev_out: wp.array2d(dtype=wp.quat),
+):
+    env, s = wp.tid()
+    r = sq[env, s]
+    sq_prev_out[env, s] = r
+    if inv_inertia[env % inv_inertia.shape[0], s] == 0.0:
+        sqd[env, s] = wp.vec3(0.0)
+        return
+    d = segment_damping[env % segment_damping.shape[0], s]
+    om = sqd[env, s] / (1.0 + d * dt)
+    sqd[env, s] = om
+    # isotropic scalar inertia: no gyroscopic term
+    dq = wp.quat(om[0], om[1], om[2], 0.0) * r
+    sq[env, s] = wp.normalize(wp.quat(r[0] + 0.5 * dt * dq[0], r[1] + 0.5 * dt * dq[1], r[2] + 0.5 * dt * dq[2],
+                                      r[3] + 0.5 * dt * dq[3]))
+
+
+@wp.kernel
+def update_segment_velocities(
+    sq: wp.array2d(dtype=wp.quat), sq_prev: wp.array2d(dtype=wp.quat), inv_dt: float, sqd_out: wp.array2d(dtype=wp.vec3)
+):
+    env, s = wp.tid()
+    dq = sq[env, s] * wp.quat_inverse(sq_prev[env, s])
+    om = wp.vec3(dq[0], dq[1], dq[2]) * (2.0 * inv_dt)
+    if dq[3] < 0.0:
+        om = -om
+    sqd_out[env, s] = om
+
+
+@wp.func
+def quat_add_scaled(a: wp.quat, b: wp.quat, s: float):
+    return wp.quat(a[0] + b[0] * s, a[1] + b[1] * s, a[2] + b[2] * s, a[3] + b[3] * s)
+
+
+@wp.kernel
+def solve_stretch_shear(
+    start: int,
+    particles: wp.array(dtype=wp.vec3i),
+    rest: wp.array(dtype=float),
+    compliance: wp.array2d(dtype=wp.vec3),
+    inv_inertia: wp.array2d(dtype=float),
+    inv_mass: wp.array2d(dtype=float),
+    inv_dt2: float,
+    use_lambda: int,
+    lam: wp.array2d(dtype=wp.vec3),
+    q: wp.array2d(dtype=wp.vec3),
+    sq: wp.array2d(dtype=wp.quat),
+):
+    env, t = wp.tid()
+    c = start + t
+    ij = particles[c]
+    s = ij[2]
+    pe = env % inv_mass.shape[0]
+    w0 = inv_mass[pe, ij[0]]
+    w1 = inv_mass[pe, ij[1]]
+    wq = inv_inertia[env % inv_inertia.shape[0], s]
+    p0 = q[env, ij[0]]
+    p1 = q[env, ij[1]]
+    r = sq[env, s]
+    L = rest[c]
+    d3 = wp.quat_rotate(r, wp.vec3(0.0, 0.0, 1.0))
+    # strain Gamma = (p1 - p0) / L - d3 and its generalised inverse mass (w0 + w1) / L^2 + 4 wq
+    gamma_w = (p1 - p0) / L - d3
+    wsum = (w0 + w1) / (L * L) + 4.0 * wq
+    a = compliance[env % compliance.shape[0], c] * inv_dt2
+    # solve per material axis (shear x, shear y, stretch z) with its own compliance
+    gamma_m = wp.quat_rotate_inv(r, gamma_w)
+    l0 = wp.vec3(0.0)
+    if use_lambda != 0:
+        l0 = lam[env, c]
+    dl = wp.vec3(
+        (-gamma_m[0] - a[0] * l0[0]) / (wsum + a[0]),
+        (-gamma_m[1] - a[1] * l0[1]) / (wsum + a[1]),
+        (-gamma_m[2] - a[2] * l0[2]) / (wsum + a[2]),
+    )
+    if use_lambda != 0:
+        lam[env, c] = l0 + dl
+    corr = wp.quat_rotate(r, dl)  # = -(scaled Gamma) in world frame
+    q[env, ij[0]] = p0 - corr * (w0 / L)
+    q[env, ij[1]] = p1 + corr * (w1 / L)
+    if wq > 0.0:
+        # dq = 2 wq (Gamma_s q e3_bar) with Gamma_s = -corr; q e3_bar = (q.z, -q.y, q.x, -q.w) as (w, x, y, z)
+        qe3b = wp.quat(-r[1], r[0], -r[3], r[2])
+        dq = wp.quat(-corr[0], -corr[1], -corr[2], 0.0) * qe3b
+        sq[env, s] = wp.normalize(quat_add_scaled(r, dq, 2.0 * wq))
+
+
+@wp.kernel
+def solve_bend_twist(
+    start: int,
+    segments: wp.array(dtype=wp.vec2i),
+    rest: wp.array(dtype=wp.quat),
+    compliance: wp.array2d(dtype=wp.vec3),
+    inv_inertia: wp.array2d(dtype=float),
+    inv_dt2: float,
+    use_lambda: int,
+    lam: wp.array2d(dtype=wp.vec3),
+    sq: wp.array2d(dtype=wp.quat),
+):
+    env, t = wp.tid()
+    b = start + t
+    ab = segments[b]
+    pe = env % inv_inertia.shape[0]
+    wa = inv_inertia[pe, ab[0]]
+    wb = inv_inertia[pe, ab[1]]
+    wsum = wa + wb
+    if wsum == 0.0:
+        return
+    qa = sq[env, ab[0]]
+    qb = sq[env, ab[1]]
+    om = wp.quat_inverse(qa) * qb  # Darboux quaternion in qa's material frame
+    r0 = rest[b]
+    om_minus = wp.vec4(om[0] - r0[0], om[1] - r0[1], om[2] - r0[2], om[3] - r0[3])
+    om_plus = wp.vec4(om[0] + r0[0], om[1] + r0[1], om[2] + r0[2], om[3] + r0[3])
+    C = wp.vec3(om_minus[0], om_minus[1], om_minus[2])
+    # q and -q are the same rotation: take the nearer representative of the rest Darboux vector
+    if wp.length_sq(om_minus) > wp.length_sq(om_plus):
+        C = wp.vec3(om_plus[0], om_plus[1], om_plus[2])
+    a = compliance[env % compliance.shape[0], b] * inv_dt2
+    l0 = wp.vec3(0.0)
+    if use_lambda != 0:
+        l0 = lam[env, b]
+    dl = wp.vec3(
+        (-C[0] - a[0] * l0[0]) / (wsum + a[0]),
+        (-C[1] - a[1] * l0[1]) / (wsum + a[1]),
+        (-C[2] - a[2] * l0[2]) / (wsum + a[2]),
+    )
+    if use_lambda != 0:
+        lam[env, b] = l0 + dl
+    # PBD library form with omega_corr = -dlambda: dqa = wa qb omega, dqb = -wb qa omega
+    oc = wp.quat(-dl[0], -dl[1], -dl[2], 0.0)
+    sq[env, ab[0]] = wp.normalize(quat_add_scaled(qa, qb * oc, wa))
+    sq[env, ab[1]] = wp.normalize(quat_add_scaled(qb, qa * oc, -wb))
