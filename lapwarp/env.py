@@ -117,6 +117,13 @@ class BatchedEnv(VecEnv):
     def _apply_actions(self, actions: wp.array2d) -> None:
         """Turn sanitised normalised actions ``(num_envs, action_dim)`` into per-physics-step commands."""
 
+    def visual_scene(self):
+        """The ``lapwarp.visuals.VisualScene`` renderers and exporters draw (camera and objects)."""
+        raise ValueError(f"{type(self).__name__} does not describe its visuals yet")
+
+    def update_visuals(self) -> None:
+        """Bring the per-env visual transforms/points of ``visual_scene()`` up to date (launches only)."""
+
     def _before_physics_step(self) -> None:
         """Per physics step (frame skip) work before ``World.step``; nothing by default."""
 

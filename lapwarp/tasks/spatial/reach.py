@@ -20,6 +20,7 @@ from lapwarp.env import BatchedEnv
 from lapwarp.instruments import discrete_action_table
 from lapwarp.kernels.random import rand_uniform_vec3
 from lapwarp.model import Model
+from lapwarp.visuals import CameraSpec, VisualObject, VisualScene, cylinder_mesh, sphere_mesh
 from lapwarp.world import World
 
 wp.set_module_options({"enable_backward": False})
@@ -240,6 +241,23 @@ def observe_reach(
         critic_out[env, 9] = wp.length(t - p) * inv_diagonal
 
 
+@wp.kernel
+def update_reach_visuals(
+    ee_pos: wp.array(dtype=wp.vec3),
+    target_pos: wp.array(dtype=wp.vec3),
+    rcm: wp.vec3,
+    transforms_out: wp.array2d(dtype=wp.transform),
+):
+    """Instances: 0 end-effector sphere, 1 shaft (its tip at the end effector, pointing away from the RCM),
+    2 target sphere."""
+    env = wp.tid()
+    p = ee_pos[env]
+    axis = wp.normalize(p - rcm)
+    transforms_out[env, 0] = wp.transform(p, wp.quat_identity())
+    transforms_out[env, 1] = wp.transform(p, wp.quat_between_vectors(wp.vec3(0.0, 0.0, 1.0), axis))
+    transforms_out[env, 2] = wp.transform(target_pos[env], wp.quat_identity())
+
+
 # ---------------------------------------------------------------------------- env
 class ReachEnv(BatchedEnv):
     """LapGym's ReachEnv, batched. See ``ReachConfig`` for the parameters.
@@ -265,6 +283,7 @@ class ReachEnv(BatchedEnv):
         self.step_delta = wp.zeros(n, dtype=wp.vec3, device=dev)
         self._ws_low, self._ws_high = wp.vec3(*cfg.workspace_low), wp.vec3(*cfg.workspace_high)
         self.workspace_diagonal = float(np.linalg.norm(np.subtract(cfg.workspace_high, cfg.workspace_low)))
+        self._visual_scene: VisualScene | None = None
         return world
 
     def _action_dim(self) -> int:
@@ -315,6 +334,41 @@ class ReachEnv(BatchedEnv):
                   inputs=[self.ee_position, self.target_position, self._ws_low, self._ws_high,
                           1.0 / self.workspace_diagonal, int(self.cfg.privileged_critic)],
                   outputs=[self.obs_frame, critic], device=self.wp_device)
+
+    # ------------------------------------------------------------------ visuals
+    def visual_scene(self) -> VisualScene:
+        """End-effector sphere (grey), instrument shaft from the RCM side (dark grey), target sphere (green).
+
+        Camera: at ``camera_position`` looking along -Z with +Y up (sofa_env's identity orientation), vertical
+        FoV ``camera_fov_deg`` (42 degrees), near 0.01 m, far 2 m.
+        """
+        if self._visual_scene is None:
+            cfg, n, dev = self.cfg, self.num_envs, self.wp_device
+            self.visual_transforms = wp.zeros((n, 3), dtype=wp.transform, device=dev)
+            sphere_v, sphere_f = sphere_mesh(cfg.sphere_radius)
+            shaft_v, shaft_f = cylinder_mesh(0.004, 0.12)
+            shaft_v[:, 2] -= cfg.sphere_radius  # the shaft ends at the sphere's surface
+            instance = [self.visual_transforms[:, k:k + 1] for k in range(3)]
+            poses = wp.array([wp.transform(wp.vec3(*cfg.camera_position), wp.quat_identity())] * n,
+                             dtype=wp.transform, device=dev)
+            self._visual_scene = VisualScene(
+                camera=CameraSpec(poses=poses, fov_deg=cfg.camera_fov_deg, near=0.01, far=2.0),
+                objects=[
+                    VisualObject("end_effector", "rigid", (0.8, 0.8, 0.8), 1, sphere_v, sphere_f, instance[0]),
+                    VisualObject("shaft", "rigid", (0.3, 0.3, 0.35), 2, shaft_v, shaft_f, instance[1]),
+                    VisualObject("target", "rigid", (0.1, 0.8, 0.2), 3, sphere_v, sphere_f, instance[2]),
+                ],
+                background=(0.05, 0.05, 0.08),
+            )
+            self.update_visuals()
+        return self._visual_scene
+
+    def update_visuals(self) -> None:
+        if self._visual_scene is None:
+            return
+        wp.launch(update_reach_visuals, dim=self.num_envs,
+                  inputs=[self.ee_position, self.target_position, wp.vec3(*self.cfg.rcm_position)],
+                  outputs=[self.visual_transforms], device=self.wp_device)
 
     # ------------------------------------------------------------------ privileged access (experts, tests)
     def privileged_state(self) -> dict[str, torch.Tensor]:
