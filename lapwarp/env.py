@@ -180,18 +180,53 @@ class BatchedEnv(VecEnv):
             self.critic_frame = wp.zeros((n, self._critic_observation_dim()), dtype=wp.float32, device=dev)
             self.critic_stack = self.critic_frame if stack == 1 else wp.zeros(
                 (n, stack * self._critic_observation_dim()), dtype=wp.float32, device=dev)
+        self.uses_images = self.cfg.observation_type != "STATE"
+        if self.uses_images:
+            self._allocate_image_buffers()
+        policy_stack = self.image_stack if self.uses_images else self.obs_stack
         if self.keep_final_observations:
-            self.final_obs = wp.zeros_like(self.obs_stack)
+            self.final_obs = wp.zeros_like(policy_stack)
 
         # zero-copy torch views of the buffers users and rsl-rl read
         self._t = {name: wp.to_torch(getattr(self, name)) for name in (
             "actions_in", "discrete_in", "features", "weights", "reward", "terminated", "truncated", "done",
             "episode_length", "success", "last_episode_success", "finished_episodes", "last_episode_return",
             "last_episode_length", "nonfinite_actions", "clipped_actions", "obs_stack")}
+        if self.uses_images:
+            self._t["image_stack"] = wp.to_torch(self.image_stack)
         if self.keep_final_observations:
             self._t["final_obs"] = wp.to_torch(self.final_obs)
         if self.cfg.privileged_critic:
             self._t["critic_stack"] = wp.to_torch(self.critic_stack)
+
+    def _allocate_image_buffers(self) -> None:
+        """Camera, image frame ``(N, C, H, W)`` in [0, 1] and its stack ``(N, S*C, H, W)`` (newest last)."""
+        from lapwarp.scene_render import SceneRenderer  # the rasteriser compiles only for image tasks
+
+        n, dev = self.num_envs, self.wp_device
+        height, width = self.cfg.image_shape
+        self.image_channels = {"RGB": 3, "RGBD": 4, "DEPTH": 1}[self.cfg.observation_type]
+        self.camera = SceneRenderer(self.visual_scene(), n, width, height, dev, outputs=("rgb", "depth"))
+        self._camera_rgb = wp.from_torch(self.camera.rgb)
+        self._camera_depth = wp.from_torch(self.camera.depth)
+        c, s = self.image_channels, self.cfg.frame_stack
+        self.image_frame = wp.zeros((n, c, height, width), dtype=wp.float32, device=dev)
+        self.image_stack = self.image_frame if s == 1 else wp.zeros((n, s * c, height, width), dtype=wp.float32,
+                                                                     device=dev)
+
+    def _observe_images(self, push_mode: int) -> None:
+        self.update_visuals()
+        self.camera.render()
+        kind = self.cfg.observation_type
+        height, width = self.cfg.image_shape
+        wp.launch(env_kernels.write_image_frame, dim=(self.num_envs, height, width),
+                  inputs=[self._camera_rgb, self._camera_depth, int(kind != "DEPTH"), int(kind != "RGB"),
+                          1.0 / self.camera.scene.camera.far], outputs=[self.image_frame], device=self.wp_device)
+        if self.cfg.frame_stack > 1:
+            flat = self.image_frame.reshape((self.num_envs, -1))
+            wp.launch(env_kernels.push_observation_frame, dim=flat.shape,
+                      inputs=[flat, self.reset_mask, self.cfg.frame_stack, int(push_mode)],
+                      outputs=[self.image_stack.reshape((self.num_envs, -1))], device=self.wp_device)
 
     # ------------------------------------------------------------------ VecEnv API
     @property
@@ -204,9 +239,18 @@ class BatchedEnv(VecEnv):
         # rsl-rl assigns random lengths at start (init_at_random_ep_len): copy into our buffer, keep the view.
         self._t["episode_length"].copy_(torch.as_tensor(value).to(self._t["episode_length"]))
 
+    @property
+    def policy_group(self) -> str:
+        """Name of the observation group the policy reads: ``policy`` (STATE) or ``image`` (camera types)."""
+        return "image" if self.uses_images else "policy"
+
     def get_observations(self) -> TensorDict:
-        """Current observation groups (clones): ``policy`` and, with ``privileged_critic``, ``critic``."""
-        groups = {"policy": self._t["obs_stack"].clone()}
+        """Current observation groups (clones): ``policy`` (STATE) or ``image`` ``(N, S*C, H, W)`` in [0, 1]
+        (RGB / RGBD / DEPTH), and ``critic`` (privileged state) with ``privileged_critic``."""
+        if self.uses_images:
+            groups = {"image": self._t["image_stack"].clone()}
+        else:
+            groups = {"policy": self._t["obs_stack"].clone()}
         if self.cfg.privileged_critic:
             groups["critic"] = self._t["critic_stack"].clone()
         return TensorDict(groups, batch_size=[self.num_envs], device=self.device)
@@ -295,7 +339,7 @@ class BatchedEnv(VecEnv):
             # observe before the reset: the stack gets the final frame for every env, then the reset envs
             # alone get their first frame (PUSH_MASKED_ONLY) so no env is shifted twice.
             self._observe(env_kernels.PUSH_SHIFT_ONLY)
-            wp.copy(self.final_obs, self.obs_stack)
+            wp.copy(self.final_obs, self.image_stack if self.uses_images else self.obs_stack)
             self._reset_and_observe(env_kernels.PUSH_MASKED_ONLY)
         else:
             self._reset_and_observe(env_kernels.PUSH_ALL)
@@ -311,6 +355,8 @@ class BatchedEnv(VecEnv):
     def _observe(self, push_mode: int) -> None:
         """Write the newest frames and push them onto the frame stacks."""
         self._compute_observations()
+        if self.uses_images:
+            self._observe_images(push_mode)
         if self.cfg.frame_stack == 1:
             return
         pairs = [(self.obs_frame, self.obs_stack)]
@@ -356,8 +402,33 @@ class BatchedEnv(VecEnv):
     # ------------------------------------------------------------------ conveniences
     @property
     def observation_dim(self) -> int:
-        """Size of the flattened ``policy`` observation (frames included)."""
+        """Size of the flattened STATE ``policy`` observation (frames included)."""
         return self.obs_stack.shape[1]
+
+    @property
+    def observation_shape(self) -> tuple[int, ...]:
+        """Shape of one env's policy observation: ``(D,)`` for STATE, ``(S*C, H, W)`` for images."""
+        return tuple(self.image_stack.shape[1:]) if self.uses_images else (self.obs_stack.shape[1],)
+
+    def render_rgb(self, width: int | None = None, height: int | None = None) -> torch.Tensor:
+        """RGB images of every env for people, uint8 ``(num_envs, 3, H, W)`` (default: 256 x 256).
+
+        Uses its own camera buffers, so it never disturbs image observations; the first call per size compiles
+        and allocates (not meant for the training loop).
+        """
+        from lapwarp.scene_render import SceneRenderer
+
+        height = height or 256
+        width = width or height
+        key = (width, height)
+        if getattr(self, "_human_camera_key", None) != key:
+            self._human_camera = SceneRenderer(self.visual_scene(), self.num_envs, width, height, self.wp_device,
+                                               outputs=("rgb",))
+            self._human_camera_key = key
+        with self._torch_stream_scope():
+            self.update_visuals()
+            self._human_camera.render()
+        return self._human_camera.rgb.clone()
 
     def close(self) -> None:
         """Release the captured graph (buffers are freed with the env)."""

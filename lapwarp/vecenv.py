@@ -21,8 +21,8 @@ from lapwarp.registry import make
 
 
 def _spaces(env: BatchedEnv) -> tuple[gym.spaces.Space, gym.spaces.Space]:
-    low, high = env._observation_bounds()
-    obs_space = gym.spaces.Box(low=np.float32(low), high=np.float32(high), shape=(env.observation_dim,),
+    low, high = (0.0, 1.0) if env.uses_images else env._observation_bounds()
+    obs_space = gym.spaces.Box(low=np.float32(low), high=np.float32(high), shape=env.observation_shape,
                                dtype=np.float32)
     if env.is_discrete:
         act_space = gym.spaces.Discrete(2 * env.action_dim + 1)
@@ -54,7 +54,7 @@ class LapwarpGymEnv(gym.Env):
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         super().reset(seed=seed)
         obs, _ = self.env.reset(seed=seed)
-        return obs["policy"][0].cpu().numpy(), {}
+        return obs[self.env.policy_group][0].cpu().numpy(), {}
 
     def step(self, action):
         if self.env.is_discrete:
@@ -68,7 +68,7 @@ class LapwarpGymEnv(gym.Env):
             # the batched env has already auto-reset; gymnasium wants the last observation of the episode
             observation = extras["final_observations"][0]
         else:
-            observation = obs["policy"][0]
+            observation = obs[self.env.policy_group][0]
         info = {"is_success": bool(self.env._t["success"][0])}
         return observation.cpu().numpy(), float(reward[0]), terminated, truncated, info
 
@@ -88,7 +88,7 @@ class LapwarpVectorEnv(VectorEnv):
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         obs, _ = self.env.reset(seed=seed)
-        return obs["policy"].cpu().numpy(), {}
+        return obs[self.env.policy_group].cpu().numpy(), {}
 
     def step(self, actions):
         dtype = torch.int64 if self.env.is_discrete else torch.float32
@@ -99,7 +99,7 @@ class LapwarpVectorEnv(VectorEnv):
         if done.any():
             infos["final_obs"] = extras["final_observations"].cpu().numpy()
             infos["_final_obs"] = done.cpu().numpy()
-        return obs["policy"].cpu().numpy(), reward.cpu().numpy(), terminated, truncated, infos
+        return obs[self.env.policy_group].cpu().numpy(), reward.cpu().numpy(), terminated, truncated, infos
 
     def close_extras(self, **kwargs: Any) -> None:
         self.env.close()

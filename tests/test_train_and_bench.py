@@ -42,8 +42,9 @@ def test_paper_preset_matches_the_paper_table():
 
 
 def test_linear_schedule_decays_to_zero(device):
-    import lapwarp
     from rsl_rl.runners import OnPolicyRunner
+
+    import lapwarp
 
     cfg, _ = ppo.preset_config("paper", num_envs=2, max_iterations=4)
     cfg["num_steps_per_env"] = 4
@@ -63,3 +64,17 @@ def test_bench_env_writes_json(device, tmp_path):
     report = json.loads(out.read_text())
     assert [r["num_envs"] for r in report["results"]] == [1, 1, 8, 8]
     assert all(r["env_steps_per_s"] > 0 for r in report["results"])
+
+
+def test_ppo_trains_from_rgb_images(device, tmp_path, capsys):
+    args = ["--device", device, "--preset", "cpu", "--obs", "rgb", "--num-envs", "4", "--max-iterations", "1",
+            "--eval-envs", "2", "--log-dir", str(tmp_path)]
+    assert ppo.main(args) == 0
+    assert "evaluation on 2 episodes" in capsys.readouterr().out
+
+
+def test_image_preset_uses_the_papers_cnn():
+    cfg, _ = ppo.preset_config("paper", num_envs=8, max_iterations=10)
+    cfg = ppo.use_images(cfg)
+    assert cfg["actor"]["class_name"] == "CNNModel" and cfg["obs_groups"]["actor"] == ["image"]
+    assert cfg["actor"]["cnn_cfg"]["kernel_size"] == [8, 4, 3] and cfg["actor"]["cnn_cfg"]["stride"] == [4, 2, 1]

@@ -61,6 +61,23 @@ def mlp(activation: str, init_std: float | None = None) -> dict:
     return model
 
 
+# The paper's image encoder (NatureCNN: 32/64/64 channels, kernels 8/4/3, strides 4/2/1), then FC 512 and the
+# state heads' 256-256 (SB3's DoubleNatureCNN with net_arch [256, 256]).
+NATURE_CNN = {"output_channels": [32, 64, 64], "kernel_size": [8, 4, 3], "stride": [4, 2, 1], "activation": "relu"}
+
+
+def use_images(train_cfg: dict, privileged_critic: bool = False) -> dict:
+    """Switch a preset's MLPs to CNN models reading the ``image`` group (the critic may read ``critic``)."""
+    for role in ("actor", "critic"):
+        model = train_cfg[role]
+        model.update(class_name="CNNModel", cnn_cfg=dict(NATURE_CNN), hidden_dims=[512, 256, 256])
+    train_cfg["obs_groups"] = {"actor": ["image"], "critic": ["critic"] if privileged_critic else ["image"]}
+    if privileged_critic:
+        train_cfg["critic"].update(class_name="MLPModel", hidden_dims=[256, 256])
+        train_cfg["critic"].pop("cnn_cfg")
+    return train_cfg
+
+
 def preset_config(name: str, num_envs: int, max_iterations: int) -> tuple[dict, dict]:
     """(rsl-rl train config, env overrides) of a preset."""
     if name == "paper":
@@ -150,6 +167,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--device", default="cuda:0" if torch.cuda.is_available() else "cpu")
     parser.add_argument("--preset", choices=["paper", "gpu", "cpu"], default=None,
                         help="hyper-parameter preset (default: gpu on CUDA, cpu otherwise)")
+    parser.add_argument("--obs", choices=["state", "rgb", "rgbd", "depth"], default="state",
+                        help="observation type (images use the paper's NatureCNN encoders)")
     parser.add_argument("--num-envs", type=int, default=None)
     parser.add_argument("--max-iterations", type=int, default=None)
     parser.add_argument("--seed", type=int, default=0)
@@ -169,6 +188,9 @@ def main(argv: list[str] | None = None) -> int:
     torch.manual_seed(args.seed)
     train_cfg, env_overrides = preset_config(preset, num_envs, iterations)
     train_cfg["seed"] = args.seed
+    if args.obs != "state":
+        env_overrides["observation_type"] = args.obs.upper()
+        use_images(train_cfg)
 
     env = lapwarp.make(args.task, num_envs=num_envs, device=args.device, seed=args.seed, **env_overrides)
     run_dir = None if args.play else os.path.join(

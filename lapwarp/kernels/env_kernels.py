@@ -161,3 +161,32 @@ def push_observation_frame(
         for s in range(num_frames - 1):
             stack[env, s * dim + d] = stack[env, (s + 1) * dim + d]
         stack[env, (num_frames - 1) * dim + d] = value
+
+
+@wp.kernel
+def gather_transform_columns(
+    src: wp.array2d(dtype=wp.transform), column_offset: int, dst: wp.array2d(dtype=wp.transform)
+):
+    """Copy an object's per-env instance transforms into its columns of the renderer's instance array."""
+    env, k = wp.tid()
+    dst[env, column_offset + k] = src[env, k]
+
+
+@wp.kernel
+def write_image_frame(
+    rgb: wp.array4d(dtype=wp.uint8),
+    depth: wp.array4d(dtype=wp.float32),
+    use_rgb: int,
+    use_depth: int,
+    inv_far: float,
+    frame_out: wp.array4d(dtype=wp.float32),
+):
+    """Renderer outputs -> observation frame (num_envs, C, H, W) in [0, 1]: RGB / 255, then depth / far."""
+    env, r, c = wp.tid()
+    ch = int(0)
+    if use_rgb != 0:
+        for k in range(3):
+            frame_out[env, k, r, c] = float(rgb[env, k, r, c]) / 255.0
+        ch = 3
+    if use_depth != 0:
+        frame_out[env, ch, r, c] = wp.min(depth[env, 0, r, c] * inv_far, 1.0)

@@ -270,7 +270,7 @@ class ReachEnv(BatchedEnv):
     task_name = "Reach"
     reward_features = REACH_FEATURES
     default_reward_weights = REACH_WEIGHTS
-    supported_observations = ("STATE",)
+    supported_observations = ("STATE", "RGB", "RGBD", "DEPTH")
     cfg: ReachConfig
 
     def _build(self) -> World:
