@@ -60,6 +60,7 @@ def bench_one(task: str, num_envs: int, device: str, seconds: float, invalid_act
         "env_steps_per_s": steps * num_envs / elapsed, "step_ms": 1e3 * elapsed / steps,
         "invalid_actions": invalid_actions, "frame_skip": env.cfg.frame_skip, "time_step": env.cfg.time_step,
         "observation_type": env.cfg.observation_type, "cuda_graph": env._use_cuda_graph,
+        "resolution": list(env.cfg.image_shape) if env.uses_images else None,
     }
     env.close()
     return result
@@ -73,16 +74,29 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seconds", type=float, default=2.0, help="timed seconds per point")
     parser.add_argument("--invalid-actions", choices=["zero", "raise"], default="zero")
     parser.add_argument("--both-nan-modes", action="store_true", help="also time invalid_actions='raise'")
+    parser.add_argument("--obs", choices=["STATE", "RGB", "RGBD", "DEPTH"], default="STATE")
+    parser.add_argument("--image-size", type=int, default=64, help="square image side for image observations")
+    parser.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
+                        help="extra config overrides, values parsed as JSON (e.g. sphere_radius=0.02)")
     parser.add_argument("--out", default=None, help="JSON output path")
     args = parser.parse_args(argv)
 
     wp.config.quiet = True
     modes = ["zero", "raise"] if args.both_nan_modes else [args.invalid_actions]
+    overrides = {"observation_type": args.obs}
+    if args.obs != "STATE":
+        overrides["image_shape"] = (args.image_size, args.image_size)
+    for item in args.set:
+        key, _, value = item.partition("=")
+        try:
+            overrides[key] = json.loads(value)
+        except json.JSONDecodeError:
+            overrides[key] = value
     results = []
     print(f"{'task':<10} {'num_envs':>9} {'nan mode':>8} {'env-steps/s':>14} {'step ms':>9}")
     for n in args.num_envs:
         for mode in modes:
-            r = bench_one(args.task, n, args.device, args.seconds, mode, {})
+            r = bench_one(args.task, n, args.device, args.seconds, mode, overrides)
             results.append(r)
             print(f"{r['task']:<10} {n:>9} {mode:>8} {r['env_steps_per_s']:>14,.0f} {r['step_ms']:>9.3f}", flush=True)
     report = {"benchmark": "env_step", "regime": "env step only, random actions", "device": args.device,
