@@ -253,7 +253,8 @@ class SceneBuilder:
                 a spring of stiffness ``Y * (area of its triangles) / length^2`` (Van Gelder 1998); on a
                 regular grid this is within ~25% of the continuum membrane.
             bend_stiffness: flexural rigidity ``E t^3 / (12 (1 - nu^2))``, N m (scalar or per env); 0 adds
-                no hinges. Hinge stiffness is ``3 D |e|^2 / (4 (A1 + A2))`` (discrete shells).
+                no hinges. Hinge stiffness is ``D |e|^2 / (A1 + A2)``: a regular grid bent into a cylinder
+                of curvature k then stores the continuum energy ``D k^2 / 2`` per area (checked in tests).
             damping: linear velocity damping rate, 1/s.
             fixed: bool mask or local indices of pinned vertices.
             tethers: add long-range attachments (Kim et al. 2012) from every free vertex to its nearest
@@ -300,7 +301,7 @@ class SceneBuilder:
                 aa, bb = he_opp[h0], he_opp[h1]
                 hinges.append((aa, bb, cc, dd))
                 rest.append(_dihedral_angle(x[aa], x[bb], x[cc], x[dd]))
-                geom.append(4.0 * (area[he_tri[h0]] + area[he_tri[h1]]) / (3.0 * length[e] ** 2))
+                geom.append((area[he_tri[h0]] + area[he_tri[h1]]) / length[e] ** 2)
             if hinges:
                 self._hinges.indices.append(np.asarray(hinges, dtype=np.int64) + off)
                 self._hinges.rest.append(np.asarray(rest))
@@ -525,9 +526,9 @@ class SceneBuilder:
         if offset is None:
             x = self._pos_all()[particle]
             if body >= 0:
-                tf = wp.transform(*[float(v) for v in self._bodies[body][1][:3]],
-                                  wp.quat(*[float(v) for v in self._bodies[body][1][3:]]))
-                offset = np.asarray(wp.transform_point(wp.transform_inverse(tf), wp.vec3(*x)))
+                pose = [float(v) for v in self._bodies[body][1]]
+                tf = wp.transform(wp.vec3(*pose[:3]), wp.quat(*pose[3:]))
+                offset = np.asarray(wp.transform_point(wp.transform_inverse(tf), wp.vec3(*[float(c) for c in x])))
             else:
                 offset = x
         self._attachments.append((int(particle), int(body), np.asarray(offset, dtype=np.float64), float(compliance)))

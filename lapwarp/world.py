@@ -77,11 +77,11 @@ class World:
     # ------------------------------------------------------------------------------------------------
     def _alloc_scratch(self) -> None:
         m, n, dev = self.model, self.num_envs, self.device
-        self._q_prev = None
+        self._q_pred = None
         self._sq_prev = None
         self._body_q_prev = None
         if m.particle_count:
-            self._q_prev = wp.zeros((n, m.particle_count), dtype=wp.vec3, device=dev)
+            self._q_pred = wp.zeros((n, m.particle_count), dtype=wp.vec3, device=dev)
         if m.segment_count:
             self._sq_prev = wp.zeros((n, m.segment_count), dtype=wp.quat, device=dev)
         if self.state.body_q is not None:
@@ -155,7 +155,7 @@ class World:
         lam = self._lam
         for sub in range(self.substeps):
             launch(xpbd.integrate_particles, (n, m.particle_count),
-                   [m.particle_inv_mass, m.particle_damping, m.gravity, h, s.particle_q, s.particle_qd], [self._q_prev])
+                   [m.particle_inv_mass, m.particle_damping, m.gravity, h, s.particle_q, s.particle_qd], [self._q_pred])
             if m.segment_count:
                 launch(xpbd.integrate_segments, (n, m.segment_count),
                        [m.segment_inv_inertia, m.segment_damping, h, s.segment_q, s.segment_qd], [self._sq_prev])
@@ -163,7 +163,7 @@ class World:
                 cmds.append(arr.zero_)
             for _ in range(iters):
                 self._record_sweep(launch, xpbd, inv_dt2, use_lam, (sub + 1) / self.substeps)
-            launch(xpbd.update_particle_velocities, (n, m.particle_count), [s.particle_q, self._q_prev, 1.0 / h],
+            launch(xpbd.update_particle_velocities, (n, m.particle_count), [s.particle_q, self._q_pred, 1.0 / h],
                    [s.particle_qd])
             if m.segment_count:
                 launch(xpbd.update_segment_velocities, (n, m.segment_count), [s.segment_q, self._sq_prev, 1.0 / h],
@@ -264,15 +264,15 @@ class World:
             self.step(dt)
 
     def positions(self, obj=None) -> np.ndarray:
-        """Particle positions as a ``(num_envs, n, 3)`` NumPy array (of one SceneObject if given). Syncs."""
-        q = self.state.particle_q.numpy()
+        """Particle positions as a ``(num_envs, n, 3)`` NumPy copy (of one SceneObject if given). Syncs."""
+        q = np.array(self.state.particle_q.numpy(), copy=True)  # .numpy() is a view on CPU
         return q if obj is None else q[:, obj.particles]
 
     def state_bytes_per_env(self) -> int:
         """Bytes of dynamic per-env data: state arrays plus solver scratch (excludes shared topology)."""
         total = sum(a.capacity for a in self.state.arrays().values())
         total += sum(a.capacity for a in self.initial_state.arrays().values())
-        for a in (self._q_prev, self._sq_prev, self._body_q_prev, *self._lam.values()):
+        for a in (self._q_pred, self._sq_prev, self._body_q_prev, *self._lam.values()):
             if a is not None:
                 total += a.capacity
         return total // max(1, self.num_envs)

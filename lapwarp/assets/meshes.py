@@ -86,23 +86,40 @@ def voxel_tets(surface, pitch: float, fill: bool = True):
     import trimesh
 
     mesh = surface if isinstance(surface, trimesh.Trimesh) else trimesh.Trimesh(*surface, process=True)
-    vox = mesh.voxelized(pitch)
-    if fill:
-        vox = vox.fill()
-    idx = np.asarray(vox.sparse_indices)  # (m, 3) occupied voxel indices
-    if len(idx) == 0:
-        raise ValueError("no voxel inside the surface: reduce the pitch")
-    # voxel centres -> cell min corners in world coordinates
-    centres = np.asarray(vox.indices_to_points(idx))
-    dims = idx.max(axis=0) + 2
-    corners = idx[:, None, None, :] + _KUHN[None]
-    lin = (corners[..., 0] * dims[1] + corners[..., 1]) * dims[2] + corners[..., 2]
+    lo, hi = mesh.bounds
+    dims = np.maximum(np.ceil((hi - lo) / pitch).astype(int), 1)
+    origin = 0.5 * (lo + hi) - 0.5 * dims * pitch
+    cells = np.stack(np.meshgrid(*[np.arange(d) for d in dims], indexing="ij"), axis=-1).reshape(-1, 3)
+    centres = origin + (cells + 0.5) * pitch
+    # a voxel belongs to the solid when its centre is inside (volume error O(pitch) at the surface)
+    inside = _winding_number(np.asarray(mesh.vertices), np.asarray(mesh.faces), centres) > 0.5
+    if not fill:
+        raise NotImplementedError("only solid voxelisation is supported")
+    cells = cells[inside]
+    if len(cells) == 0:
+        raise ValueError("no voxel centre inside the surface: reduce the pitch")
+    nd = dims + 1
+    corners = cells[:, None, None, :] + _KUHN[None]
+    lin = (corners[..., 0] * nd[1] + corners[..., 1]) * nd[2] + corners[..., 2]
     used, tets = np.unique(lin.reshape(-1, 4), return_inverse=True)
     tets = tets.reshape(-1, 4)
-    ci = np.stack(np.unravel_index(used, tuple(dims)), axis=1)
-    origin = centres[0] - 0.5 * pitch - idx[0] * pitch
-    verts = origin + ci * pitch
+    verts = origin + np.stack(np.unravel_index(used, tuple(nd)), axis=1) * pitch
     return verts, tets
+
+
+def _winding_number(verts: np.ndarray, faces: np.ndarray, points: np.ndarray, chunk: int = 2048) -> np.ndarray:
+    """Generalised winding number of closed triangle surfaces at ``points`` (Van Oosterom solid angles)."""
+    out = np.empty(len(points))
+    tri = verts[faces]  # (F, 3, 3)
+    for s in range(0, len(points), chunk):
+        r = tri[None, :, :, :] - points[s:s + chunk, None, None, :]  # (P, F, 3, 3)
+        a, b, c = r[..., 0, :], r[..., 1, :], r[..., 2, :]
+        la, lb, lc = (np.linalg.norm(x, axis=-1) for x in (a, b, c))
+        num = np.einsum("pfi,pfi->pf", a, np.cross(b, c))
+        den = (la * lb * lc + np.einsum("pfi,pfi->pf", a, b) * lc + np.einsum("pfi,pfi->pf", b, c) * la
+               + np.einsum("pfi,pfi->pf", c, a) * lb)
+        out[s:s + chunk] = np.arctan2(num, den).sum(axis=1) / (2.0 * np.pi)
+    return out
 
 
 def tet_surface(tets: np.ndarray, vertices: np.ndarray | None = None) -> np.ndarray:

@@ -30,28 +30,33 @@ def integrate_particles(
     dt: float,
     q: wp.array2d(dtype=wp.vec3),
     qd: wp.array2d(dtype=wp.vec3),
-    q_prev_out: wp.array2d(dtype=wp.vec3),
+    q_pred_out: wp.array2d(dtype=wp.vec3),
 ):
     env, i = wp.tid()
     x = q[env, i]
-    q_prev_out[env, i] = x
     w = inv_mass[env % inv_mass.shape[0], i]
     if w == 0.0:
         qd[env, i] = wp.vec3(0.0)
+        q_pred_out[env, i] = x
         return
     d = damping[env % damping.shape[0], i]
-    # implicit damping factor 1 / (1 + d dt): unconditionally stable for any rate d
-    v = (qd[env, i] + gravity * dt) / (1.0 + d * dt)
+    # implicit damping factor 1 / (1 + d dt) on the old velocity only: stable for any rate d, and it does
+    # not scale gravity, so a static equilibrium does not depend on the damping
+    v = qd[env, i] / (1.0 + d * dt) + gravity * dt
     qd[env, i] = v
-    q[env, i] = x + v * dt
+    xp = x + v * dt
+    q[env, i] = xp
+    q_pred_out[env, i] = xp
 
 
 @wp.kernel
 def update_particle_velocities(
-    q: wp.array2d(dtype=wp.vec3), q_prev: wp.array2d(dtype=wp.vec3), inv_dt: float, qd_out: wp.array2d(dtype=wp.vec3)
+    q: wp.array2d(dtype=wp.vec3), q_pred: wp.array2d(dtype=wp.vec3), inv_dt: float, qd: wp.array2d(dtype=wp.vec3)
 ):
+    # v = (x - x_prev) / h written as v_pred + (x - x_pred) / h: only the small constraint correction is
+    # divided by h, so float32 rounding of large coordinates does not leak into the velocity
     env, i = wp.tid()
-    qd_out[env, i] = (q[env, i] - q_prev[env, i]) * inv_dt
+    qd[env, i] = qd[env, i] + (q[env, i] - q_pred[env, i]) * inv_dt
 
 
 @wp.kernel
