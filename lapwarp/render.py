@@ -115,6 +115,18 @@ class _Object:
 
 
 @dataclass
+class _Mesh:
+    vertices: np.ndarray  # (V, 3) float32
+    faces: np.ndarray  # (F, 3) int32, reordered into spatially coherent clusters
+    normals: np.ndarray  # (V, 3) float32
+    vertex_colors: np.ndarray | None
+    raster_split: int
+    cluster_bounds: np.ndarray  # (K, 4) bounding sphere (centre, radius) per cluster
+    cluster_cones: np.ndarray  # (K, 4) normal cone (unit axis, half-angle in radians; >= pi/2: never culled)
+    face_cluster: np.ndarray  # (F,) cluster of each (reordered) face
+
+
+@dataclass
 class _Deformable:
     faces: np.ndarray
     num_vertices: int
@@ -249,6 +261,45 @@ def _vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
         np.add.at(n, faces[:, k], fn)
     length = np.linalg.norm(n, axis=1, keepdims=True)
     return np.where(length > 0, n / np.maximum(length, 1e-30), 0.0)
+
+
+CLUSTER_SIZE = 32  # triangles per culling cluster of a rigid mesh
+
+
+def _morton_order(points: np.ndarray) -> np.ndarray:
+    """Indices sorting points along a 3-D Morton (Z-order) curve of their bounding box."""
+    lo, hi = points.min(0), points.max(0)
+    q = ((points - lo) / np.maximum(hi - lo, 1e-12) * 1023).astype(np.uint64)
+    code = np.zeros(len(points), np.uint64)
+    for bit in range(10):
+        for axis in range(3):
+            code |= ((q[:, axis] >> np.uint64(bit)) & np.uint64(1)) << np.uint64(3 * bit + axis)
+    return np.argsort(code, kind="stable")
+
+
+def _build_clusters(v: np.ndarray, f: np.ndarray, double_sided: bool):
+    """Reorders faces into spatially coherent groups of ``CLUSTER_SIZE`` and computes, per group, a bounding
+    sphere (frustum culling) and a normal cone (whole-cluster back-face culling; never for double-sided)."""
+    f = f[_morton_order(v[f].mean(1))]
+    fn = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+    length = np.linalg.norm(fn, axis=1, keepdims=True)
+    fn = np.where(length > 0, fn / np.maximum(length, 1e-30), 0.0)
+    k = -(-len(f) // CLUSTER_SIZE)
+    bounds, cones = np.zeros((k, 4)), np.zeros((k, 4))
+    for c in range(k):
+        cf = f[c * CLUSTER_SIZE : (c + 1) * CLUSTER_SIZE]
+        pts = v[np.unique(cf)]
+        centre = 0.5 * (pts.min(0) + pts.max(0))
+        bounds[c] = [*centre, np.linalg.norm(pts - centre, axis=1).max() * (1 + 1e-5) + 1e-7]
+        n = fn[c * CLUSTER_SIZE : (c + 1) * CLUSTER_SIZE]
+        n = n[np.linalg.norm(n, axis=1) > 0]
+        axis = n.sum(0)
+        if double_sided or len(n) == 0 or np.linalg.norm(axis) < 1e-6:
+            cones[c] = [0.0, 0.0, 1.0, np.pi]
+            continue
+        axis /= np.linalg.norm(axis)
+        cones[c] = [*axis, np.arccos(np.clip(n @ axis, -1.0, 1.0)).max() + 1e-4]
+    return f, bounds.astype(np.float32), cones.astype(np.float32), np.arange(len(f)) // CLUSTER_SIZE
 
 
 def _check_faces(faces, num_vertices: int) -> np.ndarray:
@@ -416,7 +467,12 @@ class Renderer:
         if vc is not None:
             flags |= raster.FLAG_VERTEX_COLORS
         normals = _vertex_normals(v, f)
-        self._meshes.append((v.astype(np.float32), f, normals.astype(np.float32), vc, int(raster_split)))
+        f, bounds, cones, face_cluster = _build_clusters(v, f, double_sided)
+        self._meshes.append(
+            _Mesh(
+                v.astype(np.float32), f, normals.astype(np.float32), vc, int(raster_split), bounds, cones, face_cluster
+            )
+        )
         self._mesh_defaults.append((color, int(seg_id), int(flags)))
         return MeshHandle(len(self._meshes) - 1, len(v), len(f))
 
@@ -555,20 +611,28 @@ class Renderer:
         n, h, w = self.num_envs, self.height, self.width
 
         # Rigid: vertices of all meshes concatenated; triangles of all instances first in the id space.
-        mesh_vert_begin = np.cumsum([0] + [len(m[0]) for m in self._meshes])
+        mesh_vert_begin = np.cumsum([0] + [len(m.vertices) for m in self._meshes])
         tri_vidx, tri_obj, slot_tri, slot_split = [], [], [], []
+        tri_cluster, cluster_inst, cluster_bounds, cluster_cones = [], [], [], []
         self._inst_tri_begin = []
-        num_tris = 0
-        for obj_index in self._instances:
+        num_tris = num_clusters = 0
+        for inst, obj_index in enumerate(self._instances):
             obj = self._objects[obj_index]
-            _, faces, _, _, split = self._meshes[obj.mesh]
+            mesh = self._meshes[obj.mesh]
+            faces, split = mesh.faces, mesh.raster_split
             self._inst_tri_begin.append(num_tris)
             tri_vidx.append(faces + mesh_vert_begin[obj.mesh])
             tri_obj.append(np.full(len(faces), obj_index))
+            tri_cluster.append(mesh.face_cluster + num_clusters)
+            cluster_inst.append(np.full(len(mesh.cluster_bounds), inst))
+            cluster_bounds.append(mesh.cluster_bounds)
+            cluster_cones.append(mesh.cluster_cones)
             tris = np.arange(num_tris, num_tris + len(faces))
             slot_tri.append(np.repeat(tris, split))
             slot_split.append(np.tile(np.arange(split) | (split << 16), len(faces)))
             num_tris += len(faces)
+            num_clusters += len(mesh.cluster_bounds)
+        self.num_clusters = num_clusters
         self.num_rigid_triangles = num_tris
         # Deformables: vertices concatenated into one per-env buffer, triangles after the rigid ones.
         vert_begin = 0
@@ -602,15 +666,33 @@ class Renderer:
         self._obj_color = wp.array(colors, dtype=wp.vec3, device=dev)
         self._obj_visible = wp.ones((n, len(objs)), dtype=wp.int32, device=dev)
 
+        self._tri_cluster = arr(np.concatenate(tri_cluster).astype(np.int32) if tri_cluster else [], wp.int32)
+        self._cluster_inst = arr(np.concatenate(cluster_inst).astype(np.int32) if cluster_inst else [], wp.int32)
+        self._cluster_bounds = arr(np.concatenate(cluster_bounds) if cluster_bounds else [], wp.vec4)
+        self._cluster_cones = arr(np.concatenate(cluster_cones) if cluster_cones else [], wp.vec4)
+        self._cluster_draw = wp.zeros((n, max(num_clusters, 1)), dtype=wp.int32, device=dev)
         if self._meshes:
-            self._rigid_verts = arr(np.concatenate([m[0] for m in self._meshes]), wp.vec3)
-            self._rigid_normals = arr(np.concatenate([m[2] for m in self._meshes]), wp.vec3)
+            self._rigid_verts = arr(np.concatenate([m.vertices for m in self._meshes]), wp.vec3)
+            self._rigid_normals = arr(np.concatenate([m.normals for m in self._meshes]), wp.vec3)
             self._rigid_colors = arr(
-                np.concatenate([m[3] if m[3] is not None else np.ones_like(m[0]) for m in self._meshes]), wp.vec3
+                np.concatenate(
+                    [m.vertex_colors if m.vertex_colors is not None else np.ones_like(m.vertices) for m in self._meshes]
+                ),
+                wp.vec3,
             )
         else:
             self._rigid_verts = self._rigid_normals = self._rigid_colors = wp.zeros(1, dtype=wp.vec3, device=dev)
         num_inst = len(self._instances)
+        bounds = []
+        for obj_index in self._instances:
+            v = self._meshes[self._objects[obj_index].mesh].vertices
+            centre = 0.5 * (v.min(0) + v.max(0))
+            bounds.append([*centre, np.linalg.norm(v - centre, axis=1).max() * (1 + 1e-5) + 1e-7])
+        self._inst_bounds = arr(np.asarray(bounds, np.float32), wp.vec4)
+        self._inst_obj = arr(np.asarray(self._instances, np.int32), wp.int32)
+        # Local-to-view matrices per (env, instance) and the world-to-view matrix in the last column.
+        self._views = wp.zeros((n, num_inst + 1), dtype=wp.mat44, device=dev)
+        self._inst_draw = wp.zeros((n, max(num_inst, 1)), dtype=wp.int32, device=dev)
         ident = np.tile(np.array([0, 0, 0, 0, 0, 0, 1], dtype=np.float32), (n, max(num_inst, 1), 1))
         self._inst_xf = wp.array(ident, dtype=wp.transform, device=dev)
         self._cam_xf = wp.array(ident[:, 0].copy(), dtype=wp.transform, device=dev)
@@ -658,9 +740,9 @@ class Renderer:
     def _build_raycast(self):
         dev = self.device
         self._rc_meshes = []
-        for v, faces, _, _, _ in self._meshes:
-            points = wp.array(v, dtype=wp.vec3, device=dev)
-            indices = wp.array(faces.ravel(), dtype=wp.int32, device=dev)
+        for m in self._meshes:
+            points = wp.array(m.vertices, dtype=wp.vec3, device=dev)
+            indices = wp.array(m.faces.ravel(), dtype=wp.int32, device=dev)
             self._rc_meshes.append((wp.Mesh(points=points, indices=indices), points, indices))
         meshes = [self._rc_meshes[self._objects[o].mesh][0].id for o in self._instances]
         self._rc_inst_mesh = wp.array(np.array(meshes, dtype=np.uint64), dtype=wp.uint64, device=dev)
@@ -888,10 +970,18 @@ class Renderer:
                     device=dev,
                 )
 
+        tan_x, tan_y = 0.5 * self.width / self.focal, 0.5 * self.height / self.focal
+        wp.launch(
+            raster.prepare_views,
+            dim=(n, num_inst + 1),
+            inputs=[cam, inst, self._inst_obj, self._inst_bounds, self._obj_visible, tan_x, tan_y, self.near, self.far],
+            outputs=[self._views, self._inst_draw],
+            device=dev,
+        )
         if self.method == "raster":
-            self._raster(cam, inst, masks)
+            self._raster(masks)
         else:
-            self._raycast(cam, inst, masks)
+            self._raycast(masks)
 
         wp.launch(
             raster.shade_visibility,
@@ -910,8 +1000,7 @@ class Renderer:
                 self._def_points,
                 self._def_normals,
                 self._def_colors,
-                cam,
-                inst,
+                self._views,
                 self.focal,
                 self.cx,
                 self.cy,
@@ -928,7 +1017,7 @@ class Renderer:
             device=dev,
         )
 
-    def _raster(self, cam, inst, masks):
+    def _raster(self, masks):
         n, dev = self.num_envs, self.device
         common = [
             self.focal,
@@ -941,6 +1030,24 @@ class Renderer:
             int(self.early_depth_test),
         ]
         if self._num_slots:
+            tan_x, tan_y = 0.5 * self.width / self.focal, 0.5 * self.height / self.focal
+            wp.launch(
+                raster.cull_clusters,
+                dim=(n, self.num_clusters),
+                inputs=[
+                    self._cluster_inst,
+                    self._cluster_bounds,
+                    self._cluster_cones,
+                    self._views,
+                    self._inst_draw,
+                    tan_x,
+                    tan_y,
+                    self.near,
+                    self.far,
+                ],
+                outputs=[self._cluster_draw],
+                device=dev,
+            )
             wp.launch(
                 raster.rasterize_rigid,
                 dim=(n, self._num_slots),
@@ -949,12 +1056,12 @@ class Renderer:
                     self._slot_split,
                     self._tri_obj,
                     self._tri_vidx,
+                    self._tri_cluster,
                     self._obj_inst,
                     self._obj_flags,
                     self._rigid_verts,
-                    self._obj_visible,
-                    cam,
-                    inst,
+                    self._views,
+                    self._cluster_draw,
                     *common,
                 ],
                 outputs=[self._vbuf],
@@ -977,14 +1084,14 @@ class Renderer:
                     self._def_points,
                     mask,
                     self._obj_visible,
-                    cam,
+                    self._views,
                     *common,
                 ],
                 outputs=[self._vbuf],
                 device=dev,
             )
 
-    def _raycast(self, cam, inst, masks):
+    def _raycast(self, masks):
         n, dev = self.num_envs, self.device
         def_mesh = 0
         if self._rc_def_tris:
@@ -1010,6 +1117,7 @@ class Renderer:
                 self._rc_inst_mesh,
                 self._rc_inst_obj,
                 self._rc_inst_tri,
+                self._inst_draw,
                 wp.uint64(def_mesh),
                 self._rc_def_tris,
                 self.num_rigid_triangles,
@@ -1017,8 +1125,7 @@ class Renderer:
                 self._tri_obj,
                 self._obj_flags,
                 self._obj_visible,
-                cam,
-                inst,
+                self._views,
                 self.focal,
                 self.cx,
                 self.cy,

@@ -176,6 +176,31 @@ def test_back_faces_culled_unless_double_sided(device):
     assert numpy(r.rgb)[0, :, 4, 4].min() > 200
 
 
+def test_cluster_culling_changes_nothing_but_work(device):
+    """Whole clusters of a closed single-sided mesh are culled (back-facing or off-screen) without changing
+    the image: a double-sided copy (never cluster back-face culled) renders identically."""
+    s = trimesh.creation.icosphere(subdivisions=4, radius=0.5)
+    images = []
+    for double in (False, True):
+        r = Renderer(2, 24, 24, fov=40.0, near=0.1, far=10.0, device=device)
+        r.add_instance(r.add_mesh(s.vertices, s.faces, seg_id=1, double_sided=double))
+        r.finalize()
+        # env 0: sphere in view; env 1: sphere half out of the image on the right.
+        r.set_camera_poses(IDENTITY)
+        r.set_instance_transforms(np.stack([pose((0, 0, -3.0)), pose((1.1, 0, -3.0))])[:, None])
+        r.render()
+        images.append((numpy(r.depth), numpy(r.segmentation), numpy(r.rgb)))
+        drawn = r._cluster_draw.numpy()
+        if not double:
+            culled = 1 - drawn.mean(1)
+            assert 0.25 < culled[0] < 0.6  # 58% of the sphere faces away; cones are conservative
+            assert culled[1] > culled[0] + 0.1  # and more clusters are culled when half off-screen
+        else:
+            assert drawn[0].all()
+    for a, b in zip(images[0], images[1], strict=True):
+        assert np.array_equal(a, b)
+
+
 def test_near_plane_clipping(device):
     w, h, fov, near = 24, 24, 60.0, 0.5
     renders = []

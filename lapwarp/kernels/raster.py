@@ -54,13 +54,15 @@ def key_triangle(key: wp.uint64) -> int:
 
 
 @wp.func
-def edge_function(a: wp.vec2, b: wp.vec2, p: wp.vec2) -> float:
-    # Evaluated with the endpoints in a canonical order so that the two triangles sharing an edge get
-    # exactly opposite values: a pixel centre on a shared edge is then covered by at least one of them
-    # (no cracks in watertight meshes), whatever the rounding.
+def edge_coefficients(a: wp.vec2, b: wp.vec2) -> wp.vec3:
+    """``(A, B, C)`` with ``A x + B y + C`` the signed edge function of the directed edge a -> b."""
+    # Built from the endpoints in a canonical order and negated for the other direction: the two
+    # triangles sharing an edge get exactly opposite values at every pixel centre, so a centre on a
+    # shared edge is covered by at least one of them (no cracks in watertight meshes), whatever the
+    # rounding.
     if a[0] < b[0] or (a[0] == b[0] and a[1] < b[1]):
-        return (b[0] - a[0]) * (p[1] - a[1]) - (b[1] - a[1]) * (p[0] - a[0])
-    return -((a[0] - b[0]) * (p[1] - b[1]) - (a[1] - b[1]) * (p[0] - b[0]))
+        return wp.vec3(a[1] - b[1], b[0] - a[0], a[0] * b[1] - a[1] * b[0])
+    return -wp.vec3(b[1] - a[1], a[0] - b[0], b[0] * a[1] - b[1] * a[0])
 
 
 @wp.func
@@ -89,39 +91,44 @@ def fill_triangle(
     sa = wp.vec2(cx + focal * a[0] / za, cy - focal * a[1] / za)
     sb = wp.vec2(cx + focal * b[0] / zb, cy - focal * b[1] / zb)
     sc = wp.vec2(cx + focal * c[0] / zc, cy - focal * c[1] / zc)
-    area = edge_function(sa, sb, sc)
+    ea = edge_coefficients(sb, sc)
+    eb = edge_coefficients(sc, sa)
+    ec = edge_coefficients(sa, sb)
+    area = ec[0] * sc[0] + ec[1] * sc[1] + ec[2]
     # With rows growing downwards, a triangle wound counter-clockwise in view space (front face,
-    # outward normal towards the camera) has a negative signed area here.
-    if area == 0.0:
+    # outward normal towards the camera) has a negative signed area here. NaN vertices fail both tests.
+    if not (area < 0.0 or area > 0.0):
         return
     if cull_back != 0 and area > 0.0:
         return
-    # Pixel centres at +0.5: the covered index range of [lo, hi] is [ceil(lo - 0.5), floor(hi - 0.5)].
-    x0 = wp.max(int(wp.ceil(wp.min(wp.min(sa[0], sb[0]), sc[0]) - 0.5)), 0)
-    x1 = wp.min(int(wp.floor(wp.max(wp.max(sa[0], sb[0]), sc[0]) - 0.5)), width - 1)
-    y0 = wp.max(int(wp.ceil(wp.min(wp.min(sa[1], sb[1]), sc[1]) - 0.5)), 0)
-    y1 = wp.min(int(wp.floor(wp.max(wp.max(sa[1], sb[1]), sc[1]) - 0.5)), height - 1)
+    # Pixel centres at +0.5: the covered index range of [lo, hi] is [ceil(lo - 0.5), floor(hi - 0.5)];
+    # clamped as floats first so that far-off vertices cannot overflow the int conversion.
+    x0 = int(wp.ceil(wp.max(wp.min(wp.min(sa[0], sb[0]), sc[0]) - 0.5, 0.0)))
+    x1 = int(wp.floor(wp.min(wp.max(wp.max(sa[0], sb[0]), sc[0]) - 0.5, float(width - 1))))
+    y0 = int(wp.ceil(wp.max(wp.min(wp.min(sa[1], sb[1]), sc[1]) - 0.5, 0.0)))
+    y1 = int(wp.floor(wp.min(wp.max(wp.max(sa[1], sb[1]), sc[1]) - 0.5, float(height - 1))))
     if x0 > x1 or y0 > y1:
         return
-    sign = 1.0
     if area < 0.0:
-        sign = -1.0
-    inv_area = 1.0 / area
-    iza = 1.0 / za
-    izb = 1.0 / zb
-    izc = 1.0 / zc
+        # Exact negation keeps the neighbour symmetry; inside is then "all three >= 0".
+        ea = -ea
+        eb = -eb
+        ec = -ec
+    # 1/z is affine in screen space (perspective-correct depth): plane coefficients from the barycentrics.
+    inv_area = 1.0 / wp.abs(area)
+    iz = (ea * (1.0 / za) + eb * (1.0 / zb) + ec * (1.0 / zc)) * inv_area
     lo = wp.uint64(wp.uint32(tri))
     # Big triangles are split over `nparts` threads that take interleaved rows of the bounding box.
     for y in range(y0 + part, y1 + 1, nparts):
         py = float(y) + 0.5
+        ra = ea[1] * py + ea[2]
+        rb = eb[1] * py + eb[2]
+        rc = ec[1] * py + ec[2]
+        rz = iz[1] * py + iz[2]
         for x in range(x0, x1 + 1):
-            p = wp.vec2(float(x) + 0.5, py)
-            wa = edge_function(sb, sc, p)
-            wb = edge_function(sc, sa, p)
-            wc = edge_function(sa, sb, p)
-            if wa * sign >= 0.0 and wb * sign >= 0.0 and wc * sign >= 0.0:
-                # 1/z is affine in screen space: perspective-correct depth.
-                depth = 1.0 / ((wa * iza + wb * izb + wc * izc) * inv_area)
+            px = float(x) + 0.5
+            if ea[0] * px + ra >= 0.0 and eb[0] * px + rb >= 0.0 and ec[0] * px + rc >= 0.0:
+                depth = 1.0 / (iz[0] * px + rz)
                 if depth <= far:
                     key = (wp.uint64(wp.cast(depth, wp.uint32)) << wp.uint64(32)) | lo
                     # Early depth test: keys only ever decrease, so even a stale read that is already
@@ -205,18 +212,133 @@ def raster_view_triangle(
         fill_triangle(vbuf, env, p0, v1, v2, tri, cull_back, part, nparts, focal, cx, cy, far, width, height, early_z)
 
 
+@wp.func
+def inverse_rigid_vector(m: wp.mat44, v: wp.vec3) -> wp.vec3:
+    """``v`` moved by the inverse of the rigid matrix ``m`` (rotation part only): ``R^T v``."""
+    return wp.vec3(
+        m[0, 0] * v[0] + m[1, 0] * v[1] + m[2, 0] * v[2],
+        m[0, 1] * v[0] + m[1, 1] * v[1] + m[2, 1] * v[2],
+        m[0, 2] * v[0] + m[1, 2] * v[1] + m[2, 2] * v[2],
+    )
+
+
+@wp.func
+def inverse_rigid_point(m: wp.mat44, p: wp.vec3) -> wp.vec3:
+    """``p`` moved by the inverse of the rigid matrix ``m``: ``R^T (p - t)``."""
+    return inverse_rigid_vector(m, p - wp.vec3(m[0, 3], m[1, 3], m[2, 3]))
+
+
+@wp.func
+def transform_matrix(t: wp.transform) -> wp.mat44:
+    r = wp.quat_to_matrix(wp.transform_get_rotation(t))
+    p = wp.transform_get_translation(t)
+    # fmt: off
+    return wp.mat44(
+        r[0, 0], r[0, 1], r[0, 2], p[0],
+        r[1, 0], r[1, 1], r[1, 2], p[1],
+        r[2, 0], r[2, 1], r[2, 2], p[2],
+        0.0, 0.0, 0.0, 1.0,
+    )
+    # fmt: on
+
+
+@wp.kernel
+def prepare_views(
+    cam_xf: wp.array(dtype=wp.transform),
+    inst_xf: wp.array2d(dtype=wp.transform),
+    inst_obj: wp.array(dtype=wp.int32),
+    inst_bounds: wp.array(dtype=wp.vec4),
+    obj_visible: wp.array2d(dtype=wp.int32),
+    tan_x: float,
+    tan_y: float,
+    near: float,
+    far: float,
+    views_out: wp.array2d(dtype=wp.mat44),
+    inst_draw_out: wp.array2d(dtype=wp.int32),
+):
+    """One thread per (env, instance column, plus one): local-to-view matrices of every rigid instance and,
+    in the last column, the world-to-view matrix; ``inst_draw_out`` is 0 for instances that are hidden or
+    whose bounding sphere lies outside the view frustum, so their triangle threads stop at once."""
+    env, i = wp.tid()
+    cam_inv = wp.transform_inverse(cam_xf[env])
+    num_inst = views_out.shape[1] - 1
+    if i == num_inst:
+        views_out[env, i] = transform_matrix(cam_inv)
+        return
+    if i >= inst_obj.shape[0]:
+        return
+    view = wp.transform_multiply(cam_inv, inst_xf[env, i])
+    views_out[env, i] = transform_matrix(view)
+    bound = inst_bounds[i]
+    c = wp.transform_point(view, wp.vec3(bound[0], bound[1], bound[2]))
+    r = bound[3]
+    draw = obj_visible[env, inst_obj[i]] != 0 and not sphere_outside_frustum(c, r, tan_x, tan_y, near, far)
+    inst_draw_out[env, i] = int(draw)
+
+
+@wp.func
+def sphere_outside_frustum(c: wp.vec3, r: float, tan_x: float, tan_y: float, near: float, far: float) -> bool:
+    """Whether a view-space sphere lies entirely outside the view frustum (conservative)."""
+    if -c[2] + r < near or -c[2] - r > far:
+        return True
+    # Signed distances to the four side planes (outward normals).
+    sx = 1.0 / wp.sqrt(1.0 + tan_x * tan_x)
+    sy = 1.0 / wp.sqrt(1.0 + tan_y * tan_y)
+    if (c[0] + c[2] * tan_x) * sx > r or (-c[0] + c[2] * tan_x) * sx > r:
+        return True
+    return (c[1] + c[2] * tan_y) * sy > r or (-c[1] + c[2] * tan_y) * sy > r
+
+
+@wp.kernel
+def cull_clusters(
+    cluster_inst: wp.array(dtype=wp.int32),
+    cluster_bounds: wp.array(dtype=wp.vec4),
+    cluster_cones: wp.array(dtype=wp.vec4),
+    views: wp.array2d(dtype=wp.mat44),
+    inst_draw: wp.array2d(dtype=wp.int32),
+    tan_x: float,
+    tan_y: float,
+    near: float,
+    far: float,
+    cluster_draw_out: wp.array2d(dtype=wp.int32),
+):
+    """One thread per (env, cluster of 32 triangles of a rigid instance): 0 when the instance is not drawn,
+    when the cluster's bounding sphere is outside the frustum, or when its normal cone proves every triangle
+    back-facing from this camera (single-sided meshes), so that its triangle threads stop at once."""
+    env, k = wp.tid()
+    inst = cluster_inst[k]
+    draw = inst_draw[env, inst] != 0
+    if draw:
+        view = views[env, inst]
+        bound = cluster_bounds[k]
+        c = wp.transform_point(view, wp.vec3(bound[0], bound[1], bound[2]))
+        r = bound[3]
+        if sphere_outside_frustum(c, r, tan_x, tan_y, near, far):
+            draw = False
+        cone = cluster_cones[k]
+        dist = wp.length(c)
+        if draw and cone[3] < 0.5 * wp.pi and dist > r:
+            # All normals within cone[3] of the axis, all points within asin(r / dist) of the direction to
+            # the centre: every triangle faces away when the two angles leave the axis beyond 90 degrees.
+            axis = wp.transform_vector(view, wp.vec3(cone[0], cone[1], cone[2]))
+            spread = cone[3] + wp.asin(r / dist)
+            if spread < 0.5 * wp.pi and wp.dot(axis, c) > dist * wp.sin(spread):
+                draw = False
+    cluster_draw_out[env, k] = int(draw)
+
+
 @wp.kernel
 def rasterize_rigid(
     slot_tri: wp.array(dtype=wp.int32),
     slot_split: wp.array(dtype=wp.int32),
     tri_obj: wp.array(dtype=wp.int32),
     tri_vidx: wp.array(dtype=wp.vec3i),
+    tri_cluster: wp.array(dtype=wp.int32),
     obj_inst: wp.array(dtype=wp.int32),
     obj_flags: wp.array(dtype=wp.int32),
     rigid_verts: wp.array(dtype=wp.vec3),
-    obj_visible: wp.array2d(dtype=wp.int32),
-    cam_xf: wp.array(dtype=wp.transform),
-    inst_xf: wp.array2d(dtype=wp.transform),
+    views: wp.array2d(dtype=wp.mat44),
+    cluster_draw: wp.array2d(dtype=wp.int32),
     focal: float,
     cx: float,
     cy: float,
@@ -231,11 +353,11 @@ def rasterize_rigid(
     part of it for meshes made of few large triangles (``slot_split = part | nparts << 16``)."""
     env, s = wp.tid()
     tri = slot_tri[s]
-    obj = tri_obj[tri]
-    if obj_visible[env, obj] == 0:
+    if cluster_draw[env, tri_cluster[tri]] == 0:
         return
+    obj = tri_obj[tri]
     split = slot_split[s]
-    view = wp.transform_multiply(wp.transform_inverse(cam_xf[env]), inst_xf[env, obj_inst[obj]])
+    view = views[env, obj_inst[obj]]
     idx = tri_vidx[tri]
     a = wp.transform_point(view, rigid_verts[idx[0]])
     b = wp.transform_point(view, rigid_verts[idx[1]])
@@ -256,7 +378,7 @@ def rasterize_deformable(
     def_points: wp.array2d(dtype=wp.vec3),
     active: wp.array2d(dtype=wp.int32),
     obj_visible: wp.array2d(dtype=wp.int32),
-    cam_xf: wp.array(dtype=wp.transform),
+    views: wp.array2d(dtype=wp.mat44),
     focal: float,
     cx: float,
     cy: float,
@@ -276,7 +398,7 @@ def rasterize_deformable(
     if active[env % active.shape[0], f] == 0:
         return
     tri = tri_begin + f
-    view = wp.transform_inverse(cam_xf[env])
+    view = views[env, views.shape[1] - 1]
     idx = tri_vidx[tri]
     a = wp.transform_point(view, def_points[env, idx[0]])
     b = wp.transform_point(view, def_points[env, idx[1]])
@@ -297,7 +419,7 @@ def rasterize_deformable_u8(
     def_points: wp.array2d(dtype=wp.vec3),
     active: wp.array2d(dtype=wp.uint8),
     obj_visible: wp.array2d(dtype=wp.int32),
-    cam_xf: wp.array(dtype=wp.transform),
+    views: wp.array2d(dtype=wp.mat44),
     focal: float,
     cx: float,
     cy: float,
@@ -316,7 +438,7 @@ def rasterize_deformable_u8(
     if active[env % active.shape[0], f] == wp.uint8(0):
         return
     tri = tri_begin + f
-    view = wp.transform_inverse(cam_xf[env])
+    view = views[env, views.shape[1] - 1]
     idx = tri_vidx[tri]
     a = wp.transform_point(view, def_points[env, idx[0]])
     b = wp.transform_point(view, def_points[env, idx[1]])
@@ -347,8 +469,7 @@ def shade_visibility(
     def_points: wp.array2d(dtype=wp.vec3),
     def_normals: wp.array2d(dtype=wp.vec3),
     def_colors: wp.array(dtype=wp.vec3),
-    cam_xf: wp.array(dtype=wp.transform),
-    inst_xf: wp.array2d(dtype=wp.transform),
+    views: wp.array2d(dtype=wp.mat44),
     focal: float,
     cx: float,
     cy: float,
@@ -388,44 +509,29 @@ def shade_visibility(
         return
     idx = tri_vidx[tri]
     flags = obj_flags[obj]
-    view = wp.transform_inverse(cam_xf[env])
+    is_rigid = obj_kind[obj] == KIND_RIGID
+    # Shade in the object's own frame (mesh-local for rigid instances, world for deformables): the pixel ray
+    # is moved there once instead of moving three vertices and three normals into view space. Lambert with a
+    # head light is invariant under that rigid motion.
+    view = views[env, views.shape[1] - 1]
+    if is_rigid:
+        view = views[env, obj_inst[obj]]
+    d_view = wp.vec3((float(x) + 0.5 - cx) / focal, -(float(y) + 0.5 - cy) / focal, -1.0)
+    d = inverse_rigid_vector(view, d_view)
+    o = inverse_rigid_point(view, wp.vec3(0.0, 0.0, 0.0))
     a = wp.vec3()
     b = wp.vec3()
     c = wp.vec3()
-    na = wp.vec3()
-    nb = wp.vec3()
-    nc = wp.vec3()
-    ca = wp.vec3(1.0, 1.0, 1.0)
-    cb = wp.vec3(1.0, 1.0, 1.0)
-    cc = wp.vec3(1.0, 1.0, 1.0)
-    if obj_kind[obj] == KIND_RIGID:
-        view = wp.transform_multiply(view, inst_xf[env, obj_inst[obj]])
-        a = wp.transform_point(view, rigid_verts[idx[0]])
-        b = wp.transform_point(view, rigid_verts[idx[1]])
-        c = wp.transform_point(view, rigid_verts[idx[2]])
-        if (flags & FLAG_SMOOTH) != 0:
-            na = wp.transform_vector(view, rigid_normals[idx[0]])
-            nb = wp.transform_vector(view, rigid_normals[idx[1]])
-            nc = wp.transform_vector(view, rigid_normals[idx[2]])
-        if (flags & FLAG_VERTEX_COLORS) != 0:
-            ca = rigid_colors[idx[0]]
-            cb = rigid_colors[idx[1]]
-            cc = rigid_colors[idx[2]]
+    if is_rigid:
+        a = rigid_verts[idx[0]]
+        b = rigid_verts[idx[1]]
+        c = rigid_verts[idx[2]]
     else:
-        a = wp.transform_point(view, def_points[env, idx[0]])
-        b = wp.transform_point(view, def_points[env, idx[1]])
-        c = wp.transform_point(view, def_points[env, idx[2]])
-        if (flags & FLAG_SMOOTH) != 0:
-            na = wp.transform_vector(view, def_normals[env, idx[0]])
-            nb = wp.transform_vector(view, def_normals[env, idx[1]])
-            nc = wp.transform_vector(view, def_normals[env, idx[2]])
-        if (flags & FLAG_VERTEX_COLORS) != 0:
-            ca = def_colors[idx[0]]
-            cb = def_colors[idx[1]]
-            cc = def_colors[idx[2]]
-    # Perspective-correct barycentrics of the pixel ray (origin at the camera) through the triangle
-    # (Moller-Trumbore); robust for triangles clipped at the near plane, unlike screen-space weights.
-    d = wp.vec3((float(x) + 0.5 - cx) / focal, -(float(y) + 0.5 - cy) / focal, -1.0)
+        a = def_points[env, idx[0]]
+        b = def_points[env, idx[1]]
+        c = def_points[env, idx[2]]
+    # Perspective-correct barycentrics of the pixel ray through the triangle (Moller-Trumbore); robust for
+    # triangles clipped at the near plane, unlike screen-space weights.
     e1 = b - a
     e2 = c - a
     pvec = wp.cross(d, e2)
@@ -434,20 +540,28 @@ def shade_visibility(
     v = float(1.0 / 3.0)
     if det != 0.0:
         inv_det = 1.0 / det
-        tvec = -a
+        tvec = o - a
         u = wp.clamp(wp.dot(tvec, pvec) * inv_det, 0.0, 1.0)
         v = wp.clamp(wp.dot(d, wp.cross(tvec, e1)) * inv_det, 0.0, 1.0 - u)
     w = 1.0 - u - v
     ng = wp.cross(e1, e2)
     n = ng
     if (flags & FLAG_SMOOTH) != 0:
-        n = w * na + u * nb + v * nc
+        if is_rigid:
+            n = w * rigid_normals[idx[0]] + u * rigid_normals[idx[1]] + v * rigid_normals[idx[2]]
+        else:
+            n = w * def_normals[env, idx[0]] + u * def_normals[env, idx[1]] + v * def_normals[env, idx[2]]
     # A visible back face (double-sided surface) is lit from its own side.
     if wp.dot(ng, d) > 0.0:
         n = -n
-    light = -wp.normalize(d)
-    lambert = wp.max(wp.dot(wp.normalize(n), light), 0.0)
-    albedo = wp.cw_mul(obj_color[env, obj], w * ca + u * cb + v * cc)
+    albedo = obj_color[env, obj]
+    if (flags & FLAG_VERTEX_COLORS) != 0:
+        if is_rigid:
+            vc = w * rigid_colors[idx[0]] + u * rigid_colors[idx[1]] + v * rigid_colors[idx[2]]
+        else:
+            vc = w * def_colors[idx[0]] + u * def_colors[idx[1]] + v * def_colors[idx[2]]
+        albedo = wp.cw_mul(albedo, vc)
+    lambert = wp.max(-wp.dot(n, d) / wp.sqrt(wp.dot(n, n) * wp.dot(d, d) + 1.0e-30), 0.0)
     col = albedo * (ambient + diffuse * lambert)
     rgb_out[env, 0, y, x] = to_u8(col[0])
     rgb_out[env, 1, y, x] = to_u8(col[1])

@@ -5,7 +5,8 @@ both back-ends share ``raster.shade_visibility`` and produce identical output la
 pass differs. Acceleration structures (built by ``lapwarp/render.py``):
 
 * rigid meshes: one ``wp.Mesh`` per mesh in its local frame, shared by all envs; each pixel ray is moved
-  into every instance's local frame with that env's instance transform (no per-env copies, no refit);
+  into every instance's local frame with that env's view matrix (no per-env copies, no refit); instances
+  culled by the shared ``raster.prepare_views`` pass (hidden, outside the frustum) are skipped;
 * deformable surfaces: one grouped ``wp.Mesh`` over all envs' deformable triangles (group = env, env-major
   face order) built on the renderer's deformable vertex buffer and refit once per frame, so that every
   ray only traverses its own env's subtree.
@@ -16,7 +17,7 @@ Rays start at the near plane and use a direction whose view-space z component is
 
 import warp as wp
 
-from lapwarp.kernels.raster import EMPTY_KEY, FLAG_DOUBLE_SIDED, pack_key
+from lapwarp.kernels.raster import EMPTY_KEY, FLAG_DOUBLE_SIDED, inverse_rigid_point, inverse_rigid_vector, pack_key
 
 wp.set_module_options({"enable_backward": False})
 
@@ -30,6 +31,7 @@ def raycast_visibility(
     inst_mesh: wp.array(dtype=wp.uint64),
     inst_obj: wp.array(dtype=wp.int32),
     inst_tri_begin: wp.array(dtype=wp.int32),
+    inst_draw: wp.array2d(dtype=wp.int32),
     def_mesh: wp.uint64,
     def_tris_per_env: int,
     def_tri_begin: int,
@@ -37,8 +39,7 @@ def raycast_visibility(
     tri_obj: wp.array(dtype=wp.int32),
     obj_flags: wp.array(dtype=wp.int32),
     obj_visible: wp.array2d(dtype=wp.int32),
-    cam_xf: wp.array(dtype=wp.transform),
-    inst_xf: wp.array2d(dtype=wp.transform),
+    views: wp.array2d(dtype=wp.mat44),
     focal: float,
     cx: float,
     cy: float,
@@ -46,22 +47,24 @@ def raycast_visibility(
     far: float,
     vbuf_out: wp.array3d(dtype=wp.uint64),
 ):
-    """One thread per (env, row, col): closest hit over all rigid instances and the env's deformables."""
+    """One thread per (env, row, col): closest hit over all rigid instances and the env's deformables.
+
+    ``views``/``inst_draw`` come from ``raster.prepare_views`` (shared with the rasteriser): instances that
+    are hidden or outside the frustum are skipped, like the rasteriser skips them."""
     env, y, x = wp.tid()
-    cam = cam_xf[env]
     d = wp.vec3((float(x) + 0.5 - cx) / focal, -(float(y) + 0.5 - cy) / focal, -1.0)
     best = far
     best_tri = int(-1)
     for i in range(inst_mesh.shape[0]):
-        obj = inst_obj[i]
-        if obj_visible[env, obj] == 0:
+        if inst_draw[env, i] == 0:
             continue
-        to_local = wp.transform_multiply(wp.transform_inverse(inst_xf[env, i]), cam)
-        dl = wp.transform_vector(to_local, d)
+        obj = inst_obj[i]
+        view = views[env, i]
+        dl = inverse_rigid_vector(view, d)
         t0 = near
         cull = (obj_flags[obj] & FLAG_DOUBLE_SIDED) == 0
         for _k in range(MAX_RECASTS):
-            o = wp.transform_point(to_local, t0 * d)
+            o = inverse_rigid_point(view, t0 * d)
             q = wp.mesh_query_ray(inst_mesh[i], o, dl, best - t0)
             if not q.result:
                 break
@@ -73,10 +76,11 @@ def raycast_visibility(
             break
     if def_tris_per_env > 0:
         root = wp.mesh_get_group_root(def_mesh, env)
-        dw = wp.transform_vector(cam, d)
+        view = views[env, views.shape[1] - 1]
+        dw = inverse_rigid_vector(view, d)
         t0 = near
         for _k in range(MAX_RECASTS):
-            o = wp.transform_point(cam, t0 * d)
+            o = inverse_rigid_point(view, t0 * d)
             q = wp.mesh_query_ray(def_mesh, o, dw, best - t0, root)
             if not q.result:
                 break
