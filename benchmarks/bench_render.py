@@ -161,17 +161,22 @@ def kernel_breakdown(step, device) -> dict[str, float]:
     return {k: round(v, 4) for k, v in sorted(out.items(), key=lambda kv: -kv[1])}
 
 
-def time_step(step, device, warmup: int, iters: int) -> float:
-    """Seconds per step (graph replay on CUDA)."""
+def time_step(step, device, warmup: int, iters: int) -> tuple[float, bool]:
+    """Seconds per step and whether a CUDA graph was replayed (falls back to eager launches, reported, if the
+    capture fails)."""
     for _ in range(warmup):
         step()
     wp.synchronize_device(device)
     graph = None
     if device.is_cuda:
-        with wp.ScopedCapture(device=device) as capture:
-            step()
-        graph = capture.graph
-        wp.capture_launch(graph)
+        try:
+            with wp.ScopedCapture(device=device) as capture:
+                step()
+            graph = capture.graph
+            wp.capture_launch(graph)
+        except Exception as exc:
+            print(f"  CUDA graph capture failed ({type(exc).__name__}: {exc}); timing eager launches")
+            graph = None
     wp.synchronize_device(device)
     t0 = time.perf_counter()
     for _ in range(iters):
@@ -180,7 +185,7 @@ def time_step(step, device, warmup: int, iters: int) -> float:
         else:
             step()
     wp.synchronize_device(device)
-    return (time.perf_counter() - t0) / iters
+    return (time.perf_counter() - t0) / iters, graph is not None
 
 
 def main() -> None:
@@ -228,7 +233,7 @@ def main() -> None:
                 sub = args
             try:
                 renderer, step = SCENES[scene](n, args.res, device, method, sub, **opts)
-                seconds = time_step(step, device, args.warmup, iters)
+                seconds, graphed = time_step(step, device, args.warmup, iters)
                 breakdown = kernel_breakdown(step, device) if device.is_cuda else {}
             except Exception as exc:  # keep going: report the failure (e.g. out of memory) in the table
                 print(f"{scene:6s} {method:8s} {variant:13s} {n:7d}   failed: {type(exc).__name__}: {exc}")
@@ -253,6 +258,7 @@ def main() -> None:
                     "triangles_per_env": renderer.num_triangles,
                     "ms_per_step": seconds * 1e3,
                     "frames_per_s": fps,
+                    "cuda_graph": graphed,
                     "kernel_ms": breakdown,
                 }
             )

@@ -21,10 +21,15 @@ the image; pixel ``(r, c)`` covers the continuous image coordinates ``[r, r + 1)
 in). Front faces are wound counter-clockwise seen from outside (trimesh/OpenGL); single-sided objects
 have their back faces culled.
 
-Two visibility back-ends share the scene description and the shading pass: ``method="raster"`` (the
-visibility-buffer rasteriser in ``kernels/raster.py``) and ``method="raycast"`` (a Warp BVH ray caster in
-``kernels/raycast.py``, the baseline). For the ray caster only, a single-sided object's back face is
-stepped over a bounded number of times (``MAX_RECASTS``) per ray.
+Per frame, :meth:`Renderer.render` launches: vertex copies / tube generation / smooth normals for
+deformables; ``prepare_views`` (per env and rigid instance: local-to-view matrix, instance frustum culling);
+the visibility pass; ``shade_visibility`` (per pixel: outputs, and clearing the visibility buffer for the
+next frame). Two visibility back-ends share everything else: ``method="raster"`` (``kernels/raster.py``:
+``cull_clusters`` rejects groups of 32 triangles of rigid meshes that are outside the frustum, cover no
+pixel centre or face away, then a thread per triangle writes atomic-min keys of packed depth and triangle
+id) and ``method="raycast"`` (``kernels/raycast.py``, the BVH baseline; its grouped deformable BVH is built
+by its first render, so render once before capturing a graph). For the ray caster only, a single-sided
+object's back face is stepped over a bounded number of times (``MAX_RECASTS``) per ray.
 """
 
 from __future__ import annotations
@@ -628,8 +633,11 @@ class Renderer:
             cluster_bounds.append(mesh.cluster_bounds)
             cluster_cones.append(mesh.cluster_cones)
             tris = np.arange(num_tris, num_tris + len(faces))
-            slot_tri.append(np.repeat(tris, split))
-            slot_split.append(np.tile(np.arange(split) | (split << 16), len(faces)))
+            # Slots padded to whole warps (tri -1: no work) so that, with clusters of 32 triangles, a warp
+            # holds exactly one cluster: a culled cluster is an idle warp rather than divergent lanes.
+            pad = -(len(faces) * split) % 32
+            slot_tri.append(np.concatenate([np.repeat(tris, split), np.full(pad, -1)]))
+            slot_split.append(np.concatenate([np.tile(np.arange(split) | (split << 16), len(faces)), np.zeros(pad)]))
             num_tris += len(faces)
             num_clusters += len(mesh.cluster_bounds)
         self.num_clusters = num_clusters
@@ -1042,8 +1050,13 @@ class Renderer:
                     self._inst_draw,
                     tan_x,
                     tan_y,
+                    self.focal,
+                    self.cx,
+                    self.cy,
                     self.near,
                     self.far,
+                    self.width,
+                    self.height,
                 ],
                 outputs=[self._cluster_draw],
                 device=dev,

@@ -289,6 +289,32 @@ def sphere_outside_frustum(c: wp.vec3, r: float, tan_x: float, tan_y: float, nea
     return (c[1] + c[2] * tan_y) * sy > r or (-c[1] + c[2] * tan_y) * sy > r
 
 
+@wp.func
+def sphere_misses_pixel_centres(
+    c: wp.vec3, r: float, focal: float, cx: float, cy: float, near: float, width: int, height: int
+) -> bool:
+    """Whether a view-space sphere (in front of the near plane) covers no pixel centre: its conservative
+    screen box (x / z and y / z over the sphere's bounding box) contains none. Prunes sub-pixel clusters of
+    finely tessellated meshes far from the camera."""
+    z0 = -c[2] - r
+    if z0 < near:
+        return False
+    z1 = -c[2] + r
+    xa = c[0] - r
+    xb = c[0] + r
+    ya = c[1] - r
+    yb = c[1] + r
+    col0 = cx + focal * wp.min(xa / z0, xa / z1)
+    col1 = cx + focal * wp.max(xb / z0, xb / z1)
+    row0 = cy - focal * wp.max(yb / z0, yb / z1)
+    row1 = cy - focal * wp.min(ya / z0, ya / z1)
+    x0 = wp.ceil(wp.max(col0 - 0.5, 0.0))
+    x1 = wp.floor(wp.min(col1 - 0.5, float(width - 1)))
+    y0 = wp.ceil(wp.max(row0 - 0.5, 0.0))
+    y1 = wp.floor(wp.min(row1 - 0.5, float(height - 1)))
+    return x0 > x1 or y0 > y1
+
+
 @wp.kernel
 def cull_clusters(
     cluster_inst: wp.array(dtype=wp.int32),
@@ -298,13 +324,19 @@ def cull_clusters(
     inst_draw: wp.array2d(dtype=wp.int32),
     tan_x: float,
     tan_y: float,
+    focal: float,
+    cx: float,
+    cy: float,
     near: float,
     far: float,
+    width: int,
+    height: int,
     cluster_draw_out: wp.array2d(dtype=wp.int32),
 ):
     """One thread per (env, cluster of 32 triangles of a rigid instance): 0 when the instance is not drawn,
-    when the cluster's bounding sphere is outside the frustum, or when its normal cone proves every triangle
-    back-facing from this camera (single-sided meshes), so that its triangle threads stop at once."""
+    when the cluster's bounding sphere is outside the frustum or covers no pixel centre, or when its normal
+    cone proves every triangle back-facing from this camera (single-sided meshes), so that its triangle
+    threads stop at once."""
     env, k = wp.tid()
     inst = cluster_inst[k]
     draw = inst_draw[env, inst] != 0
@@ -314,6 +346,8 @@ def cull_clusters(
         c = wp.transform_point(view, wp.vec3(bound[0], bound[1], bound[2]))
         r = bound[3]
         if sphere_outside_frustum(c, r, tan_x, tan_y, near, far):
+            draw = False
+        elif sphere_misses_pixel_centres(c, r, focal, cx, cy, near, width, height):
             draw = False
         cone = cluster_cones[k]
         dist = wp.length(c)
@@ -350,9 +384,12 @@ def rasterize_rigid(
     vbuf_out: wp.array3d(dtype=wp.uint64),
 ):
     """One thread per (env, slot); a slot is one triangle of one rigid instance, or one row-interleaved
-    part of it for meshes made of few large triangles (``slot_split = part | nparts << 16``)."""
+    part of it for meshes made of few large triangles (``slot_split = part | nparts << 16``), or padding
+    (``slot_tri = -1``)."""
     env, s = wp.tid()
     tri = slot_tri[s]
+    if tri < 0:
+        return
     if cluster_draw[env, tri_cluster[tri]] == 0:
         return
     obj = tri_obj[tri]
