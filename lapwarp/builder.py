@@ -473,12 +473,19 @@ class SceneBuilder:
         G = _per_env(shear_modulus if shear_modulus is not None else E / 2.0, "shear_modulus")
         I_b = np.pi * radius**4 / 4.0
         J = np.pi * radius**4 / 2.0
-        # stretch-shear: energy 0.5 l (G A g1^2 + G A g2^2 + E A g3^2) -> compliance 1/(k A l) per axis
-        ss_geom = np.stack([1.0 / (area * L)] * 3, axis=1)
+        # stretch-shear: energy 0.5 l (G A g1^2 + G A g2^2 + E A g3^2) -> compliance 1/(k A l) per axis.
+        # The stretch axis is solved as a distance constraint on the segment (compliance l / (E A)) instead:
+        # along d3 it lets a lagging orientation stretch the rod sideways at few iterations; a negative
+        # z compliance tells the stretch-shear kernel to skip that axis.
+        ss_geom = np.stack([1.0 / (area * L), 1.0 / (area * L), -1.0 / (area * L)], axis=1)
+        self._edges.indices.append(seg + off)
+        self._edges.rest.append(L)
+        self._edges.geom.append(L / area)
         P = max(len(E), len(G))
         Eb = np.broadcast_to(E, (P,))
         Gb = np.broadcast_to(G, (P,))
         ss_scale = np.stack([1.0 / Gb, 1.0 / Gb, 1.0 / Eb], axis=1)[:, None, :]
+        self._edges.scale.append((1.0 / Eb)[:, None])
         self._segments.indices.append(np.concatenate([seg + off, (np.arange(nseg) + self._nseg)[:, None]], axis=1))
         self._segments.rest.append(L)
         self._segments.geom.append(ss_geom)

@@ -459,29 +459,34 @@ def solve_stretch_shear(
     r = sq[env, s]
     L = rest[c]
     d3 = wp.quat_rotate(r, wp.vec3(0.0, 0.0, 1.0))
-    # strain Gamma = (p1 - p0) / L - d3 and its generalised inverse mass (w0 + w1) / L^2 + 4 wq
+    # strain Gamma = (p1 - p0) / L - d3, solved per material axis (shear x, shear y, stretch z) with its
+    # own compliance. Generalised inverse mass: (w0 + w1) / L^2 from the positions plus 4 wq = 1 / I from
+    # the orientation for the shear axes only (rotating d3 cannot change the stretch along d3).
     gamma_w = (p1 - p0) / L - d3
-    wsum = (w0 + w1) / (L * L) + 4.0 * wq
+    wp_sum = (w0 + w1) / (L * L)
+    wsh = wp_sum + 4.0 * wq
+    if wp_sum + wsh == 0.0:
+        return
     a = compliance[env % compliance.shape[0], c] * inv_dt2
-    # solve per material axis (shear x, shear y, stretch z) with its own compliance
     gamma_m = wp.quat_rotate_inv(r, gamma_w)
     l0 = wp.vec3(0.0)
     if use_lambda != 0:
         l0 = lam[env, c]
-    dl = wp.vec3(
-        (-gamma_m[0] - a[0] * l0[0]) / (wsum + a[0]),
-        (-gamma_m[1] - a[1] * l0[1]) / (wsum + a[1]),
-        (-gamma_m[2] - a[2] * l0[2]) / (wsum + a[2]),
-    )
+    dz = float(0.0)
+    if a[2] >= 0.0 and wp_sum + a[2] > 0.0:
+        dz = (-gamma_m[2] - a[2] * l0[2]) / (wp_sum + a[2])
+    dl = wp.vec3((-gamma_m[0] - a[0] * l0[0]) / (wsh + a[0]), (-gamma_m[1] - a[1] * l0[1]) / (wsh + a[1]), dz)
     if use_lambda != 0:
         lam[env, c] = l0 + dl
     corr = wp.quat_rotate(r, dl)  # = -(scaled Gamma) in world frame
     q[env, ij[0]] = p0 - corr * (w0 / L)
     q[env, ij[1]] = p1 + corr * (w1 / L)
     if wq > 0.0:
-        # dq = 2 wq (Gamma_s q e3_bar) with Gamma_s = -corr; q e3_bar = (q.z, -q.y, q.x, -q.w) as (w, x, y, z)
+        # dq = 2 wq (Gamma_s q e3_bar) with Gamma_s = -(shear part of corr); q e3_bar = (q.z, -q.y, q.x, -q.w)
+        # as (w, x, y, z)
         qe3b = wp.quat(-r[1], r[0], -r[3], r[2])
-        dq = wp.quat(-corr[0], -corr[1], -corr[2], 0.0) * qe3b
+        cs = wp.quat_rotate(r, wp.vec3(dl[0], dl[1], 0.0))
+        dq = wp.quat(-cs[0], -cs[1], -cs[2], 0.0) * qe3b
         sq[env, s] = wp.normalize(quat_add_scaled(r, dq, 2.0 * wq))
 
 
