@@ -23,4 +23,15 @@ def _register_gymnasium() -> None:
 
 _register_gymnasium()
 
-__all__ = ["__version__", "list_tasks", "make"]
+
+
+def __getattr__(name: str):
+    # SceneBuilder imports the physics kernels' Python modules; load it only when asked for.
+    if name == "SceneBuilder":
+        from lapwarp.builder import SceneBuilder
+
+        return SceneBuilder
+    raise AttributeError(f"module 'lapwarp' has no attribute {name!r}")
+
+
+__all__ = ["SceneBuilder", "__version__", "list_tasks", "make"]
