@@ -93,6 +93,7 @@ class World:
         self._alloc_lambdas()
         self._cmds: list = []
         self._cmd_key = None
+        self.solvers: list = []
 
     def _alloc_lambdas(self) -> None:
         """Multiplier arrays exist only when iterations > 1 (with one sweep lambda starts at 0)."""
@@ -109,6 +110,18 @@ class World:
         ):
             if count:
                 self._lam[name] = wp.zeros((n, count), dtype=dtype, device=dev)
+
+    def add_solver(self, solver) -> None:
+        """Plug an extra constraint system (contact, grasping, ...) into every substep sweep.
+
+        ``solver.record_sweep(world, launch, substep_dt)`` is called while a step is recorded, once per sweep
+        of every substep, after the built-in constraint groups; it must only ``launch(kernel, dim, inputs,
+        outputs)`` (which records the launch for replay, so it ends up in the env's CUDA graph). An optional
+        ``solver.record_substep_end(world, launch, substep_dt)`` runs after the velocity update of each substep
+        (e.g. for velocity-level friction or restitution). Systems never reallocate after being added.
+        """
+        self.solvers.append(solver)
+        self._cmd_key = None
 
     def set_iterations(self, iterations: int) -> None:
         """Change the sweeps per substep (allocates multipliers; not inside a captured graph)."""
@@ -163,6 +176,8 @@ class World:
                 cmds.append(arr.zero_)
             for _ in range(iters):
                 self._record_sweep(launch, xpbd, inv_dt2, use_lam, (sub + 1) / self.substeps)
+                for solver in self.solvers:
+                    solver.record_sweep(self, launch, h)
             launch(xpbd.update_particle_velocities, (n, m.particle_count), [s.particle_q, self._q_pred, 1.0 / h],
                    [s.particle_qd])
             if m.segment_count:
