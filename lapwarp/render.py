@@ -733,6 +733,7 @@ class Renderer:
 
         # Visibility buffer, cleared once here and afterwards by the shading pass itself.
         self._vbuf = wp.full((n, h, w), value=wp.uint64(0xFFFFFFFFFFFFFFFF), dtype=wp.uint64, device=dev)
+        self._vbuf_flat = self._vbuf.flatten()  # the rasteriser indexes it flat: fewer registers
         empty4 = {"rgb": wp.uint8, "depth": wp.float32, "segmentation": wp.int32}
         chans = {"rgb": 3, "depth": 1, "segmentation": 1}
         self._out = {}
@@ -1077,7 +1078,7 @@ class Renderer:
                     self._cluster_draw,
                     *common,
                 ],
-                outputs=[self._vbuf],
+                outputs=[self._vbuf_flat],
                 device=dev,
             )
         for k, d in enumerate(self._deformables):
@@ -1100,7 +1101,7 @@ class Renderer:
                     self._views,
                     *common,
                 ],
-                outputs=[self._vbuf],
+                outputs=[self._vbuf_flat],
                 device=dev,
             )
 

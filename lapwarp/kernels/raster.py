@@ -2,11 +2,14 @@
 
 The renderer front-end (``lapwarp/render.py``) owns the arrays; this module owns the GPU work:
 
+* ``prepare_views`` / ``cull_clusters``: per env, local-to-view matrices of the rigid instances and a draw
+  flag per instance and per cluster of 32 triangles (frustum, no pixel centre covered, normal cone).
 * ``rasterize_rigid`` / ``rasterize_deformable``: a thread per (env, triangle slot) projects one triangle
-  with the env's own camera, clips it against the near plane and writes, for every covered pixel centre,
-  an atomic minimum of a packed 64-bit key ``(depth float bits << 32) | triangle id`` into the visibility
-  buffer ``vbuf (num_envs, H, W)``. Positive float bits order like the floats, so the minimum key is the
-  nearest fragment, with ties broken by the lower triangle id (deterministic).
+  with the env's own camera (homogeneous rasterisation: no clipping into sub-triangles, near plane as a
+  per-pixel test) and writes, for every covered pixel centre, an atomic minimum of a packed 64-bit key
+  ``(depth float bits << 32) | triangle id`` into the visibility buffer ``vbuf (num_envs, H, W)``.
+  Positive float bits order like the floats, so the minimum key is the nearest fragment, with ties broken
+  by the lower triangle id (deterministic).
 * ``shade_visibility``: a thread per (env, pixel) decodes the key, re-fetches the winning triangle,
   shades it (Lambert, ambient + head light at the camera) and writes RGB / depth / segmentation, then
   resets the key so the next frame needs no separate clear pass.
@@ -54,99 +57,45 @@ def key_triangle(key: wp.uint64) -> int:
 
 
 @wp.func
-def edge_coefficients(a: wp.vec2, b: wp.vec2) -> wp.vec3:
-    """``(A, B, C)`` with ``A x + B y + C`` the signed edge function of the directed edge a -> b."""
+def homogeneous(p: wp.vec3, focal: float, cx: float, cy: float) -> wp.vec3:
+    """2-D homogeneous image coordinates ``(col * w, row * w, w)`` of a view-space point, ``w = -z``."""
+    w = -p[2]
+    return wp.vec3(cx * w + focal * p[0], cy * w - focal * p[1], w)
+
+
+@wp.func
+def edge_coefficients(a: wp.vec3, b: wp.vec3) -> wp.vec3:
+    """``(A, B, C)`` of the homogeneous edge function ``A col + B row + C`` of the directed edge a -> b."""
     # Built from the endpoints in a canonical order and negated for the other direction: the two
     # triangles sharing an edge get exactly opposite values at every pixel centre, so a centre on a
     # shared edge is covered by at least one of them (no cracks in watertight meshes), whatever the
     # rounding.
-    if a[0] < b[0] or (a[0] == b[0] and a[1] < b[1]):
-        return wp.vec3(a[1] - b[1], b[0] - a[0], a[0] * b[1] - a[1] * b[0])
-    return -wp.vec3(b[1] - a[1], a[0] - b[0], b[0] * a[1] - b[1] * a[0])
+    if a[0] < b[0] or (a[0] == b[0] and (a[1] < b[1] or (a[1] == b[1] and a[2] < b[2]))):
+        return wp.cross(a, b)
+    return -wp.cross(b, a)
 
 
 @wp.func
-def fill_triangle(
-    vbuf: wp.array3d(dtype=wp.uint64),
-    env: int,
-    a: wp.vec3,
-    b: wp.vec3,
-    c: wp.vec3,
-    tri: int,
-    cull_back: int,
-    part: int,
-    nparts: int,
-    focal: float,
-    cx: float,
-    cy: float,
-    far: float,
-    width: int,
-    height: int,
-    early_z: int,
-):
-    """Rasterises a view-space triangle whose vertices all lie at or beyond the near plane."""
-    za = -a[2]
-    zb = -b[2]
-    zc = -c[2]
-    sa = wp.vec2(cx + focal * a[0] / za, cy - focal * a[1] / za)
-    sb = wp.vec2(cx + focal * b[0] / zb, cy - focal * b[1] / zb)
-    sc = wp.vec2(cx + focal * c[0] / zc, cy - focal * c[1] / zc)
-    ea = edge_coefficients(sb, sc)
-    eb = edge_coefficients(sc, sa)
-    ec = edge_coefficients(sa, sb)
-    area = ec[0] * sc[0] + ec[1] * sc[1] + ec[2]
-    # With rows growing downwards, a triangle wound counter-clockwise in view space (front face,
-    # outward normal towards the camera) has a negative signed area here. NaN vertices fail both tests.
-    if not (area < 0.0 or area > 0.0):
-        return
-    if cull_back != 0 and area > 0.0:
-        return
-    # Pixel centres at +0.5: the covered index range of [lo, hi] is [ceil(lo - 0.5), floor(hi - 0.5)];
-    # clamped as floats first so that far-off vertices cannot overflow the int conversion.
-    x0 = int(wp.ceil(wp.max(wp.min(wp.min(sa[0], sb[0]), sc[0]) - 0.5, 0.0)))
-    x1 = int(wp.floor(wp.min(wp.max(wp.max(sa[0], sb[0]), sc[0]) - 0.5, float(width - 1))))
-    y0 = int(wp.ceil(wp.max(wp.min(wp.min(sa[1], sb[1]), sc[1]) - 0.5, 0.0)))
-    y1 = int(wp.floor(wp.min(wp.max(wp.max(sa[1], sb[1]), sc[1]) - 0.5, float(height - 1))))
-    if x0 > x1 or y0 > y1:
-        return
-    if area < 0.0:
-        # Exact negation keeps the neighbour symmetry; inside is then "all three >= 0".
-        ea = -ea
-        eb = -eb
-        ec = -ec
-    # 1/z is affine in screen space (perspective-correct depth): plane coefficients from the barycentrics.
-    inv_area = 1.0 / wp.abs(area)
-    iz = (ea * (1.0 / za) + eb * (1.0 / zb) + ec * (1.0 / zc)) * inv_area
-    lo = wp.uint64(wp.uint32(tri))
-    # Big triangles are split over `nparts` threads that take interleaved rows of the bounding box.
-    for y in range(y0 + part, y1 + 1, nparts):
-        py = float(y) + 0.5
-        ra = ea[1] * py + ea[2]
-        rb = eb[1] * py + eb[2]
-        rc = ec[1] * py + ec[2]
-        rz = iz[1] * py + iz[2]
-        for x in range(x0, x1 + 1):
-            px = float(x) + 0.5
-            if ea[0] * px + ra >= 0.0 and eb[0] * px + rb >= 0.0 and ec[0] * px + rc >= 0.0:
-                depth = 1.0 / (iz[0] * px + rz)
-                if depth <= far:
-                    key = (wp.uint64(wp.cast(depth, wp.uint32)) << wp.uint64(32)) | lo
-                    # Early depth test: keys only ever decrease, so even a stale read that is already
-                    # below our key proves the fragment hidden and saves the atomic.
-                    if early_z == 0 or key < vbuf[env, y, x]:
-                        wp.atomic_min(vbuf, env, y, x, key)
+def bbox_include(box: wp.vec4, h: wp.vec3) -> wp.vec4:
+    """Grows a screen box ``(col_min, row_min, col_max, row_max)`` by a homogeneous point with ``w > 0``."""
+    inv_w = 1.0 / h[2]
+    col = h[0] * inv_w
+    row = h[1] * inv_w
+    return wp.vec4(wp.min(box[0], col), wp.min(box[1], row), wp.max(box[2], col), wp.max(box[3], row))
 
 
 @wp.func
 def clip_point(inside: wp.vec3, outside: wp.vec3, near: float) -> wp.vec3:
-    # Always interpolated from the inside endpoint, so neighbours sharing the edge get the same point.
-    t = (-near - inside[2]) / (outside[2] - inside[2])
+    """Homogeneous point where the edge crosses the near plane ``w = near`` (homogeneous coordinates are
+    linear in view space). Always interpolated from the inside endpoint, so that the neighbour sharing the
+    edge gets the same point."""
+    t = (near - inside[2]) / (outside[2] - inside[2])
     return inside + t * (outside - inside)
 
 
 @wp.func
 def raster_view_triangle(
-    vbuf: wp.array3d(dtype=wp.uint64),
+    vbuf: wp.array(dtype=wp.uint64),
     env: int,
     a: wp.vec3,
     b: wp.vec3,
@@ -164,52 +113,93 @@ def raster_view_triangle(
     height: int,
     early_z: int,
 ):
-    """Culls a view-space triangle against near/far, clips it at the near plane and rasterises it."""
-    ina = -a[2] >= near
-    inb = -b[2] >= near
-    inc = -c[2] >= near
-    if -a[2] > far and -b[2] > far and -c[2] > far:
+    """Rasterises a view-space triangle into the flat visibility buffer of ``env``.
+
+    Homogeneous rasterisation (Olano & Greer 1997): edge functions of the 2-D homogeneous vertices are
+    valid for triangles crossing the camera plane, so there is no clipping into sub-triangles; the near
+    plane only bounds the pixel box (from the clipped polygon) and is a per-pixel depth test. For pixel
+    centre ``p``, ``e_i(p) = det * b_i / w(p)`` (``b_i`` the barycentrics), hence the inside test "all
+    ``e_i >= 0``" (after orienting by ``sign(det)``, which also rejects the mirror image behind the camera)
+    and the perspective-correct depth ``w(p) = |det| / sum_i e_i(p)``.
+    """
+    ha = homogeneous(a, focal, cx, cy)
+    hb = homogeneous(b, focal, cx, cy)
+    hc = homogeneous(c, focal, cx, cy)
+    if ha[2] > far and hb[2] > far and hc[2] > far:
         return
-    n_in = int(ina) + int(inb) + int(inc)
-    if n_in == 0:
+    ina = ha[2] >= near
+    inb = hb[2] >= near
+    inc = hc[2] >= near
+    if not (ina or inb or inc):
         return
-    # Up to two triangles (p0, p1, p2) and (p0, p2, p3) remain after clipping; one fill_triangle call site
-    # keeps the inlined code small.
-    p0 = a
-    p1 = b
-    p2 = c
-    p3 = c
-    count = 1
-    if n_in < 3:
-        # Rotate (cyclically, keeping the winding) so that p is the vertex alone on its side of the plane.
-        p = a
-        q = b
-        r = c
-        if (n_in == 1 and inb) or (n_in == 2 and not inb):
-            p = b
-            q = c
-            r = a
-        elif (n_in == 1 and inc) or (n_in == 2 and not inc):
-            p = c
-            q = a
-            r = b
-        if n_in == 1:
-            p0 = p
-            p1 = clip_point(p, q, near)
-            p2 = clip_point(p, r, near)
+    # Screen box of the part in front of the near plane: the vertices in front and the crossing points.
+    box = wp.vec4(1.0e30, 1.0e30, -1.0e30, -1.0e30)
+    if ina:
+        box = bbox_include(box, ha)
+    if inb:
+        box = bbox_include(box, hb)
+    if inc:
+        box = bbox_include(box, hc)
+    if ina != inb:
+        if ina:
+            box = bbox_include(box, clip_point(ha, hb, near))
         else:
-            p0 = clip_point(q, p, near)
-            p1 = q
-            p2 = r
-            p3 = clip_point(r, p, near)
-            count = 2
-    for k in range(count):
-        v1 = p1
-        v2 = p2
-        if k == 1:
-            v1 = p2
-            v2 = p3
-        fill_triangle(vbuf, env, p0, v1, v2, tri, cull_back, part, nparts, focal, cx, cy, far, width, height, early_z)
+            box = bbox_include(box, clip_point(hb, ha, near))
+    if inb != inc:
+        if inb:
+            box = bbox_include(box, clip_point(hb, hc, near))
+        else:
+            box = bbox_include(box, clip_point(hc, hb, near))
+    if inc != ina:
+        if inc:
+            box = bbox_include(box, clip_point(hc, ha, near))
+        else:
+            box = bbox_include(box, clip_point(ha, hc, near))
+    # Pixel centres at +0.5: the covered index range of [lo, hi] is [ceil(lo - 0.5), floor(hi - 0.5)];
+    # clamped as floats first so that far-off vertices cannot overflow the int conversion.
+    x0 = int(wp.ceil(wp.max(box[0] - 0.5, 0.0)))
+    y0 = int(wp.ceil(wp.max(box[1] - 0.5, 0.0)))
+    x1 = int(wp.floor(wp.min(box[2] - 0.5, float(width - 1))))
+    y1 = int(wp.floor(wp.min(box[3] - 0.5, float(height - 1))))
+    if x0 > x1 or y0 > y1:
+        return
+    ea = edge_coefficients(hb, hc)
+    eb = edge_coefficients(hc, ha)
+    ec = edge_coefficients(ha, hb)
+    # det = focal^2 * dot(a, normal): negative for a front face (counter-clockwise seen from the camera).
+    # NaN vertices fail both comparisons.
+    det = wp.dot(ha, ea)
+    if not (det < 0.0 or det > 0.0):
+        return
+    if cull_back != 0 and det > 0.0:
+        return
+    if det < 0.0:
+        # Orient by sign(det); exact negation keeps the neighbour symmetry. Inside is "all three >= 0".
+        ea = -ea
+        eb = -eb
+        ec = -ec
+    es = ea + eb + ec
+    adet = wp.abs(det)
+    lo = wp.uint64(wp.uint32(tri))
+    base = env * height * width
+    # Big triangles are split over `nparts` threads that take interleaved rows of the bounding box.
+    for y in range(y0 + part, y1 + 1, nparts):
+        py = float(y) + 0.5
+        ra = ea[1] * py + ea[2]
+        rb = eb[1] * py + eb[2]
+        rc = ec[1] * py + ec[2]
+        rs = es[1] * py + es[2]
+        for x in range(x0, x1 + 1):
+            px = float(x) + 0.5
+            if ea[0] * px + ra >= 0.0 and eb[0] * px + rb >= 0.0 and ec[0] * px + rc >= 0.0:
+                depth = adet / (es[0] * px + rs)
+                if depth >= near and depth <= far:
+                    key = (wp.uint64(wp.cast(depth, wp.uint32)) << wp.uint64(32)) | lo
+                    pix = base + y * width + x
+                    # Early depth test: keys only ever decrease, so even a stale read that is already
+                    # below our key proves the fragment hidden and saves the atomic.
+                    if early_z == 0 or key < vbuf[pix]:
+                        wp.atomic_min(vbuf, pix, key)
 
 
 @wp.func
@@ -381,7 +371,7 @@ def rasterize_rigid(
     width: int,
     height: int,
     early_z: int,
-    vbuf_out: wp.array3d(dtype=wp.uint64),
+    vbuf_out: wp.array(dtype=wp.uint64),
 ):
     """One thread per (env, slot); a slot is one triangle of one rigid instance, or one row-interleaved
     part of it for meshes made of few large triangles (``slot_split = part | nparts << 16``), or padding
@@ -424,7 +414,7 @@ def rasterize_deformable(
     width: int,
     height: int,
     early_z: int,
-    vbuf_out: wp.array3d(dtype=wp.uint64),
+    vbuf_out: wp.array(dtype=wp.uint64),
 ):
     """One thread per (env, face * nparts + part) of one deformable surface; ``active`` is
     ``(1 or num_envs, F)`` and faces with ``active == 0`` (cut) are skipped."""
@@ -465,7 +455,7 @@ def rasterize_deformable_u8(
     width: int,
     height: int,
     early_z: int,
-    vbuf_out: wp.array3d(dtype=wp.uint64),
+    vbuf_out: wp.array(dtype=wp.uint64),
 ):
     """``rasterize_deformable`` for uint8/bool ``active`` masks."""
     env, s = wp.tid()
