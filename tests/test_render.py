@@ -201,11 +201,34 @@ def test_cluster_culling_changes_nothing_but_work(device):
         assert np.array_equal(a, b)
 
 
-def test_raster_split_renders_identically(device):
-    """Splitting triangles over several row-interleaved threads only changes who writes which pixel."""
+def test_shared_edges_through_pixel_centres_leave_no_cracks(device):
+    """A grid whose vertices and diagonals pass exactly through pixel centres: every centre on a shared edge
+    must be covered by one of the two triangles (canonical edge functions), so the backdrop never shows."""
+    w, h, fov = 16, 12, 50.0
+    f = focal_length(fov, h)
+    cols = np.arange(-1.5, w + 2.0, 2.0)  # pixel-centre coordinates, every other pixel
+    rows = np.arange(-1.5, h + 2.0, 2.0)
+    nx, ny = len(cols), len(rows)
+    cc, rr = np.meshgrid(cols, rows)
+    # Rows of the cloth grid must go along +y for counter-clockwise faces: flip the image rows.
+    pts = np.stack([(cc - w / 2) / f, -(rr - h / 2) / f, -np.ones_like(cc)], -1)[::-1].reshape(-1, 3)
+    r = Renderer(1, w, h, fov=fov, near=0.05, far=10.0, device=device)
+    r.add_instance(r.add_mesh(*quad(10.0), seg_id=1))
+    sheet = r.add_deformable(cloth_grid_faces(nx, ny), nx * ny, seg_id=2, double_sided=False)
+    r.finalize()
+    r.set_camera_poses(IDENTITY)
+    r.set_instance_transforms(pose((0, 0, -2.0))[None, None])
+    r.render(deformable_points={sheet: torch.from_numpy(pts[None].astype(np.float32))})
+    assert (numpy(r.segmentation) == 2).all()
+    assert np.allclose(numpy(r.depth), 1.0, rtol=1e-5)
+
+
+def test_raster_split_and_early_depth_test_render_identically(device):
+    """Splitting triangles over several row-interleaved threads, or skipping atomics for fragments already
+    hidden, only changes who writes which pixel."""
     outputs = []
-    for split in (1, 3):
-        r = Renderer(2, 20, 16, fov=50.0, near=0.05, far=10.0, device=device)
+    for split, early_z in ((1, False), (3, False), (1, True)):
+        r = Renderer(2, 20, 16, fov=50.0, near=0.05, far=10.0, device=device, early_depth_test=early_z)
         r.add_instance(r.add_mesh(*quad(1.0), seg_id=1, raster_split=split))
         sheet = r.add_deformable(cloth_grid_faces(4, 4), 16, seg_id=2, raster_split=split)
         r.finalize()
@@ -215,8 +238,9 @@ def test_raster_split_renders_identically(device):
         r.render(deformable_points={sheet: torch.from_numpy(pts)})
         outputs.append((numpy(r.depth), numpy(r.segmentation), numpy(r.rgb)))
         assert {1, 2} <= set(np.unique(outputs[-1][1]))
-    for a, b in zip(*outputs, strict=True):
-        assert np.array_equal(a, b)
+    for other in outputs[1:]:
+        for a, b in zip(outputs[0], other, strict=True):
+            assert np.array_equal(a, b)
 
 
 def test_near_plane_clipping(device):
