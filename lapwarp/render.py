@@ -506,7 +506,7 @@ class Renderer:
         self._instances.append(len(self._objects) - 1)
         return InstanceHandle(obj.instance, len(self._objects) - 1, mesh)
 
-    def _add_deformable(self, faces, num_vertices, color, seg_id, double_sided, smooth, vertex_colors, split, tube):
+    def _add_deformable(self, faces, num_vertices, color, seg_id, double_sided, smooth, vertex_colors, split):
         self._check_open()
         if num_vertices < 3:
             raise ValueError(f"num_vertices must be >= 3, got {num_vertices}")
@@ -556,7 +556,7 @@ class Renderer:
             raster_split: Threads per triangle (see :meth:`add_mesh`).
         """
         index, obj, f = self._add_deformable(
-            faces, num_vertices, color, seg_id, double_sided, smooth, vertex_colors, raster_split, None
+            faces, num_vertices, color, seg_id, double_sided, smooth, vertex_colors, raster_split
         )
         return DeformableHandle(index, obj, int(num_vertices), len(f))
 
@@ -594,9 +594,7 @@ class Renderer:
             faces.append(np.stack([np.full(sides, start), (ring + 1) % sides, ring], -1))
             faces.append(np.stack([np.full(sides, end), last + ring, last + (ring + 1) % sides], -1))
             num_vertices += 2
-        index, obj, f = self._add_deformable(
-            np.concatenate(faces), num_vertices, color, seg_id, False, True, None, 1, None
-        )
+        index, obj, f = self._add_deformable(np.concatenate(faces), num_vertices, color, seg_id, False, True, None, 1)
         handle = TubeHandle(index, obj, num_vertices, len(f), int(num_nodes), float(radius), int(sides), bool(caps))
         self._deformables[index].tube = handle
         return handle
