@@ -10,6 +10,7 @@ Stage layout (``<id>`` is the env index in the batch)::
 
     /World                                   Xform, the default prim
       /World/Prototypes                      class prim (abstract, not drawn): one Mesh per rigid object
+                                             (absent with ``share_meshes=False``: geometry inline instead)
       /World/env_<id>                        Xform translated by the env's grid origin (physics runs at 0)
         /World/env_<id>/camera               Camera, time-sampled translate + orient
         /World/env_<id>/<rigid>              Xform, time-sampled translate + orient (one instance), or
@@ -110,13 +111,18 @@ class UsdRecorder:
         origins: explicit env origins ``(len(env_ids), 3)`` in metres instead of the grid.
         up_axis: "Y" (default, the camera convention) or "Z"; stage metadata and the grid plane.
         hide_cut_faces: how faces with ``face_active == 0`` disappear: "holes" (default) writes time-sampled
-            ``holeIndices``, keeping the topology fixed (usdview/Hydra, Omniverse and USD-based importers honour
-            it); "topology" instead writes time-sampled ``faceVertexCounts``/``faceVertexIndices`` of the active
-            faces only, for tools that ignore hole indices.
+            ``holeIndices``, the UsdGeomMesh attribute for removed faces, keeping the topology (and anything
+            indexed by face) fixed; Hydra-based viewers (usdview, Omniverse) honour it. "topology" instead writes
+            time-sampled ``faceVertexCounts``/``faceVertexIndices`` of the active faces only, which any tool that
+            reads animated meshes shows correctly, at the cost of varying topology.
+        share_meshes: store each rigid mesh once under ``/World/Prototypes`` and reference it from every instance
+            (default); ``False`` writes the geometry inline in every instance, for tools that do not compose
+            references.
     """
 
     def __init__(self, env, path: str | Path, env_ids: Sequence[int] = (0,), spacing: float | None = None,
-                 origins: np.ndarray | None = None, up_axis: str = "Y", hide_cut_faces: str = "holes"):
+                 origins: np.ndarray | None = None, up_axis: str = "Y", hide_cut_faces: str = "holes",
+                 share_meshes: bool = True):
         self._pxr = _import_pxr()
         Gf, Sdf, Usd, UsdGeom, Vt = self._pxr
         self.path = Path(path)
@@ -135,6 +141,7 @@ class UsdRecorder:
         self.env_ids = ids
         self.up_axis = up_axis
         self.hide_cut_faces = hide_cut_faces
+        self.share_meshes = bool(share_meshes)
         self.dt = float(env.dt)
         self.scene: VisualScene = env.visual_scene()
         self.num_frames = 0
@@ -158,7 +165,8 @@ class UsdRecorder:
         world = UsdGeom.Xform.Define(self.stage, "/World")
         self.stage.SetDefaultPrim(world.GetPrim())
         self._object_names = self._unique_names(self.scene.objects)
-        self._define_prototypes()
+        if self.share_meshes:
+            self._define_prototypes()
         self._env_paths = [f"/World/env_{i}" for i in ids]
         self._ops: dict[str, tuple] = {}  # prim path -> (translate op, orient op)
         self._prims: dict[str, object] = {}  # prim path -> schema object of a time-varying gprim
@@ -189,19 +197,22 @@ class UsdRecorder:
 
     def _define_prototypes(self) -> None:
         """Rigid meshes once, under an abstract class prim that viewers do not draw; instances reference them."""
-        Gf, Sdf, Usd, UsdGeom, Vt = self._pxr
         self.stage.CreateClassPrim("/World/Prototypes")
         self._prototype_paths: dict[int, str] = {}
         for k, obj in enumerate(self.scene.objects):
-            if obj.kind != "rigid":
-                continue
-            path = f"/World/Prototypes/{self._object_names[k]}"
-            mesh = UsdGeom.Mesh.Define(self.stage, path)
-            self._write_static_mesh(mesh, obj.vertices, obj.faces, double_sided=False)
-            mesh.CreateExtentAttr(Vt.Vec3fArray([Gf.Vec3f(*obj.vertices.min(0).tolist()),
-                                                 Gf.Vec3f(*obj.vertices.max(0).tolist())]))
-            mesh.CreateDisplayColorPrimvar(UsdGeom.Tokens.constant).Set(self._color(obj))
-            self._prototype_paths[k] = path
+            if obj.kind == "rigid":
+                path = f"/World/Prototypes/{self._object_names[k]}"
+                self._define_rigid_mesh(path, obj)
+                self._prototype_paths[k] = path
+
+    def _define_rigid_mesh(self, path: str, obj: VisualObject):
+        Gf, Sdf, Usd, UsdGeom, Vt = self._pxr
+        mesh = UsdGeom.Mesh.Define(self.stage, path)
+        self._write_static_mesh(mesh, obj.vertices, obj.faces, double_sided=False)
+        mesh.CreateExtentAttr(Vt.Vec3fArray([Gf.Vec3f(*obj.vertices.min(0).tolist()),
+                                             Gf.Vec3f(*obj.vertices.max(0).tolist())]))
+        mesh.CreateDisplayColorPrimvar(UsdGeom.Tokens.constant).Set(self._color(obj))
+        return mesh
 
     def _write_static_mesh(self, mesh, vertices: np.ndarray, faces: np.ndarray, double_sided: bool) -> None:
         Gf, Sdf, Usd, UsdGeom, Vt = self._pxr
@@ -242,8 +253,11 @@ class UsdRecorder:
                     inst = path if count == 1 else f"{path}/instance_{j}"
                     if count > 1:
                         self._define_xform(inst)
-                    mesh = UsdGeom.Mesh.Define(self.stage, f"{inst}/mesh")
-                    mesh.GetPrim().GetReferences().AddInternalReference(self._prototype_paths[k])
+                    if self.share_meshes:
+                        mesh = UsdGeom.Mesh.Define(self.stage, f"{inst}/mesh")
+                        mesh.GetPrim().GetReferences().AddInternalReference(self._prototype_paths[k])
+                    else:
+                        self._define_rigid_mesh(f"{inst}/mesh", obj)
                 imageable = root
             elif obj.kind == "deformable":
                 mesh = UsdGeom.Mesh.Define(self.stage, path)

@@ -129,6 +129,21 @@ def test_recording_does_not_change_the_rollout(device, tmp_path):
                                recorded.ee_position.numpy()[1], atol=1e-6)
 
 
+def test_inline_meshes_without_references(device, tmp_path):
+    env = lapwarp.make("Reach", num_envs=1, device=device)
+    path = tmp_path / "inline.usda"
+    record_rollout(env, None, 2, path, share_meshes=False)
+    _assert_valid(path)
+    stage = Usd.Stage.Open(str(path))
+    assert not stage.GetPrimAtPath("/World/Prototypes").IsValid()
+    prim = stage.GetPrimAtPath("/World/env_0/target/mesh")
+    assert not prim.HasAuthoredReferences()
+    obj = next(o for o in env.visual_scene().objects if o.name == "target")
+    np.testing.assert_allclose(np.array(UsdGeom.Mesh(prim).GetPointsAttr().Get()), obj.vertices, atol=1e-7)
+    assert UsdGeom.Mesh(stage.GetPrimAtPath("/World/env_0/end_effector/mesh")).GetDisplayColorPrimvar().Get()[0] \
+        == Gf.Vec3f(0.8, 0.8, 0.8)
+
+
 # ---------------------------------------------------------------------------- deformables and rods
 class FakeDeformableEnv:
     """A minimal env exposing only what the recorder needs: a quad cloth (2 triangles) and a 5-node rod.
