@@ -169,6 +169,7 @@ class SceneBuilder:
         self._seg_damping: list[tuple[slice, np.ndarray]] = []
         self._seg_fixed: list[np.ndarray] = []
         self._nseg = 0
+        self._rod_stretch = _Group()  # rows (particle_start, segment_start, segment_count, closed), one per rod
         self._bodies: list[tuple[str, np.ndarray]] = []
         self._attachments: list[tuple[int, int, np.ndarray, float]] = []
 
@@ -474,18 +475,23 @@ class SceneBuilder:
         I_b = np.pi * radius**4 / 4.0
         J = np.pi * radius**4 / 2.0
         # stretch-shear: energy 0.5 l (G A g1^2 + G A g2^2 + E A g3^2) -> compliance 1/(k A l) per axis.
-        # The stretch axis is solved as a distance constraint on the segment (compliance l / (E A)) instead:
-        # along d3 it lets a lagging orientation stretch the rod sideways at few iterations; a negative
-        # z compliance tells the stretch-shear kernel to skip that axis.
+        # The stretch axis is solved as a segment distance constraint (compliance l / (E A)) by the direct
+        # per-rod chain solver (kernels/rods.py), exact along the whole rod in one sweep; along d3 a lagging
+        # orientation would stretch the rod sideways. A negative z compliance tells the stretch-shear kernel
+        # to skip that axis.
         ss_geom = np.stack([1.0 / (area * L), 1.0 / (area * L), -1.0 / (area * L)], axis=1)
-        self._edges.indices.append(seg + off)
-        self._edges.rest.append(L)
-        self._edges.geom.append(L / area)
         P = max(len(E), len(G))
         Eb = np.broadcast_to(E, (P,))
         Gb = np.broadcast_to(G, (P,))
         ss_scale = np.stack([1.0 / Gb, 1.0 / Gb, 1.0 / Eb], axis=1)[:, None, :]
-        self._edges.scale.append((1.0 / Eb)[:, None])
+        self._rod_stretch.indices.append(np.array([[off, self._nseg, nseg, int(closed)]], dtype=np.int64))
+        # rest lengths as the kernel measures them (float32 differences of float32 coordinates), so a rod at
+        # rest has C = 0 exactly instead of rounding residuals that the global solve spreads along the rod
+        x32 = x.astype(np.float32)
+        d32 = x32[seg[:, 1]] - x32[seg[:, 0]]
+        self._rod_stretch.rest.append(np.sqrt(d32[:, 0] * d32[:, 0] + d32[:, 1] * d32[:, 1] + d32[:, 2] * d32[:, 2]))
+        self._rod_stretch.geom.append(L / area)
+        self._rod_stretch.scale.append((1.0 / Eb)[:, None])
         self._segments.indices.append(np.concatenate([seg + off, (np.arange(nseg) + self._nseg)[:, None]], axis=1))
         self._segments.rest.append(L)
         self._segments.geom.append(ss_geom)
@@ -691,6 +697,17 @@ class SceneBuilder:
             sq = np.concatenate(self._seg_q).astype(f32)
             state.segment_q = wp.array(np.ascontiguousarray(np.broadcast_to(sq, (N, S, 4))), dtype=wp.quat, device=dev)
             state.segment_qd = wp.zeros((N, S), dtype=wp.vec3, device=dev)
+            # direct stretch solve: one row per rod, per-segment data in insertion order
+            rows = np.concatenate(self._rod_stretch.indices).astype(np.int32)
+            model.rod_count = len(rows)
+            model.rod_particle_start = wp.array(rows[:, 0], dtype=wp.int32, device=dev)
+            model.rod_segment_start = wp.array(rows[:, 1], dtype=wp.int32, device=dev)
+            model.rod_segment_count = wp.array(rows[:, 2], dtype=wp.int32, device=dev)
+            model.rod_closed = wp.array(rows[:, 3], dtype=wp.int32, device=dev)
+            model.rod_stretch_rest = wp.array(np.concatenate(self._rod_stretch.rest).astype(f32), dtype=float,
+                                              device=dev)
+            model.rod_stretch_compliance = wp.array(build_comp(self._rod_stretch, np.arange(S)), dtype=float,
+                                                    device=dev)
             if self._bends.count():
                 bidx = np.concatenate(self._bends.indices)
                 border, boffs = color_graph(bidx)

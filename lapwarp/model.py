@@ -114,6 +114,15 @@ class Model:
     bend_rest: wp.array | None = None  # (B,) quat rest Darboux quaternion
     bend_compliance: wp.array2d | None = None  # (P, B) vec3 bend-twist compliance, material frame
     bend_color_offsets: list = field(default_factory=lambda: [0])
+    # direct stretch solve (kernels/rods.py): one (env, rod) thread solves the rod's chain of segment
+    # distance constraints exactly; per-segment arrays in insertion order (SceneObject.segments)
+    rod_count: int = 0
+    rod_particle_start: wp.array | None = None  # (R,) int32 first particle (node 0) of the rod
+    rod_segment_start: wp.array | None = None  # (R,) int32 first segment of the rod
+    rod_segment_count: wp.array | None = None  # (R,) int32 segments (nodes: +1 open, +0 closed)
+    rod_closed: wp.array | None = None  # (R,) int32 1 = closed loop (cyclic system)
+    rod_stretch_rest: wp.array | None = None  # (S,) segment rest length m
+    rod_stretch_compliance: wp.array2d | None = None  # (P, S) l / (E A), m/N
 
     # kinematic bodies (instrument jaws) and attachments ---------------------------------------------
     body_count: int = 0

@@ -6,7 +6,8 @@ can be captured into a CUDA graph by the env that owns the World.
 
 One ``step(dt)`` runs ``substeps`` XPBD substeps of ``dt / substeps`` (Macklin et al. 2019, "Small
 Steps"); each substep predicts positions (gravity, damping), runs ``iterations`` Gauss-Seidel sweeps
-over the graph colours of every constraint group, and derives velocities from the position change.
+over the graph colours of every constraint group (rod stretch: one exact chain solve per rod per sweep),
+and derives velocities from the position change.
 After the substeps a stability check flags envs with NaN or runaway speed in ``unstable`` (sticky
 until that env is reset) and, when ``auto_reset_unstable`` is set, restores only those envs.
 """
@@ -82,8 +83,16 @@ class World:
         self._body_q_prev = None
         if m.particle_count:
             self._q_pred = wp.zeros((n, m.particle_count), dtype=wp.vec3, device=dev)
+        self._rod_scratch = ()
         if m.segment_count:
             self._sq_prev = wp.zeros((n, m.segment_count), dtype=wp.quat, device=dev)
+            # direct rod stretch solve: modified super-diagonal, right-hand side / dl, loop correction
+            self._rod_scratch = tuple(wp.zeros((n, m.segment_count), dtype=float, device=dev) for _ in range(3))
+            # transverse filter, per rod node (a rod has at most segments + 1 nodes): super-diagonal, rhs, base
+            nn = m.segment_count + m.rod_count
+            self._rod_scratch += (wp.zeros((n, nn), dtype=float, device=dev),
+                                  wp.zeros((n, nn), dtype=wp.vec3, device=dev),
+                                  wp.zeros((n, nn), dtype=wp.vec3, device=dev))
         if self.state.body_q is not None:
             self._body_q_prev = wp.clone(self.state.body_q)
         self._dummy_f = wp.zeros((1, 1), dtype=float, device=dev)
@@ -107,6 +116,7 @@ class World:
             ("tet", m.tet_count, wp.vec2),
             ("segment", m.segment_count, wp.vec3),
             ("bend", m.bend_count, wp.vec3),
+            ("rod", m.segment_count if m.rod_count else 0, float),
         ):
             if count:
                 self._lam[name] = wp.zeros((n, count), dtype=dtype, device=dev)
@@ -221,6 +231,14 @@ class World:
             launch(xpbd.solve_bend_twist, (n, off[c + 1] - off[c]),
                    [off[c], m.bend_segments, m.bend_rest, m.bend_compliance, m.segment_inv_inertia, inv_dt2, use_lam,
                     lam.get("bend", self._dummy_v3)], [s.segment_q])
+        if m.rod_count:
+            # after shear and bend-twist so every sweep ends with the rods at their length
+            from lapwarp.kernels import rods
+
+            launch(rods.solve_rod_stretch, (n, m.rod_count),
+                   [m.rod_particle_start, m.rod_segment_start, m.rod_segment_count, m.rod_closed, m.rod_stretch_rest,
+                    m.rod_stretch_compliance, m.particle_inv_mass, inv_dt2, use_lam, lam.get("rod", self._dummy_f),
+                    *self._rod_scratch], [s.particle_q])
         if m.attachment_capacity:
             bq = s.body_q if s.body_q is not None else self._dummy_tf()
             bqp = self._body_q_prev if self._body_q_prev is not None else bq
@@ -287,7 +305,7 @@ class World:
         """Bytes of dynamic per-env data: state arrays plus solver scratch (excludes shared topology)."""
         total = sum(a.capacity for a in self.state.arrays().values())
         total += sum(a.capacity for a in self.initial_state.arrays().values())
-        for a in (self._q_pred, self._sq_prev, self._body_q_prev, *self._lam.values()):
+        for a in (self._q_pred, self._sq_prev, self._body_q_prev, *self._rod_scratch, *self._lam.values()):
             if a is not None:
                 total += a.capacity
         return total // max(1, self.num_envs)

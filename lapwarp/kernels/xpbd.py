@@ -485,7 +485,16 @@ def solve_stretch_shear(
         # dq = 2 wq (Gamma_s q e3_bar) with Gamma_s = -(shear part of corr); q e3_bar = (q.z, -q.y, q.x, -q.w)
         # as (w, x, y, z)
         qe3b = wp.quat(-r[1], r[0], -r[3], r[2])
-        cs = wp.quat_rotate(r, wp.vec3(dl[0], dl[1], 0.0))
+        # The frame also turns d3 towards the unit edge direction along the stretch axis (z moves no particle:
+        # stretch is the direct rod solve's job). Without this term |Gamma_xy|^2 = sin^2(theta) has a stable
+        # minimum with d3 anti-parallel to the edge: flipped segments stuck there and the bend-twist
+        # constraints of their neighbours spun the frames at the 2 / h velocity limit. Near alignment the
+        # z term turns nothing (first order), so the shear response is unchanged.
+        e_len = wp.length(p1 - p0)
+        dzr = float(0.0)
+        if e_len > 1.0e-12:
+            dzr = (1.0 - wp.dot(p1 - p0, d3) / e_len) / (4.0 * wq + a[0])
+        cs = wp.quat_rotate(r, wp.vec3(dl[0], dl[1], dzr))
         dq = wp.quat(-cs[0], -cs[1], -cs[2], 0.0) * qe3b
         sq[env, s] = wp.normalize(quat_add_scaled(r, dq, 2.0 * wq))
 
