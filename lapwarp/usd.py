@@ -153,7 +153,7 @@ class UsdRecorder:
         device = getattr(env, "device", None) or str(self.scene.camera.poses.device)
         self._torch_device = torch.device(str(device))
         self._index = torch.as_tensor(ids, dtype=torch.long, device=self._torch_device)
-        self._stream = None
+        self._streams: dict[int, wp.Stream] = {}  # torch stream handle -> Warp stream
 
         self.stage = Usd.Stage.CreateInMemory()
         UsdGeom.SetStageUpAxis(self.stage, UsdGeom.Tokens.y if up_axis == "Y" else UsdGeom.Tokens.z)
@@ -284,9 +284,11 @@ class UsdRecorder:
         """On CUDA, launch ``update_visuals`` on torch's current stream, where the env's step and our gathers run."""
         if self._torch_device.type != "cuda":
             return wp.ScopedDevice(str(self._torch_device))
-        if self._stream is None:
-            self._stream = wp.stream_from_torch(torch.cuda.current_stream(self._torch_device))
-        return wp.ScopedStream(self._stream)
+        current = torch.cuda.current_stream(self._torch_device)
+        stream = self._streams.get(current.cuda_stream)
+        if stream is None:
+            stream = self._streams[current.cuda_stream] = wp.stream_from_torch(current)
+        return wp.ScopedStream(stream)
 
     def _gather(self, array: wp.array) -> np.ndarray:
         """Rows ``env_ids`` of a per-env array: selected on the device, then only those rows copied to the host."""
