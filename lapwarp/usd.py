@@ -58,8 +58,8 @@ def _import_pxr():
 def grid_origins(count: int, spacing: float, up_axis: str = "Y") -> np.ndarray:
     """Origins ``(count, 3)`` of ``count`` envs on a near-square grid in the plane normal to ``up_axis``.
 
-    Row-major: slot k sits in column ``k % ncols`` along +X and row ``k // ncols`` along the other horizontal
-    axis (+Z when Y is up, -Y when Z is up, so rows run away from a default front view in both cases).
+    Row-major: slot k sits in column ``k % ncols`` along +X and row ``k // ncols`` along ``up x X`` (-Z when Y is
+    up, +Y when Z is up), i.e. rows recede from a viewer in the default front view of either convention.
     """
     if count < 1:
         raise ValueError(f"count must be positive, got {count}")
@@ -68,9 +68,9 @@ def grid_origins(count: int, spacing: float, up_axis: str = "Y") -> np.ndarray:
     origins = np.zeros((count, 3))
     origins[:, 0] = (k % ncols) * spacing
     if up_axis == "Y":
-        origins[:, 2] = (k // ncols) * spacing
+        origins[:, 2] = -(k // ncols) * spacing
     else:
-        origins[:, 1] = -(k // ncols) * spacing
+        origins[:, 1] = (k // ncols) * spacing
     return origins
 
 
@@ -78,12 +78,6 @@ def _safe_name(name: str) -> str:
     """A valid USD prim name from an object name (identifiers only; a leading digit gets an underscore)."""
     out = re.sub(r"[^A-Za-z0-9_]", "_", name) or "_"
     return "_" + out if out[0].isdigit() else out
-
-
-def _row_view(array: wp.array) -> torch.Tensor:
-    """A torch view of a Warp array whose first axis is the env (``wp.transform`` / ``wp.vec3`` rows become
-    trailing float axes)."""
-    return wp.to_torch(array)
 
 
 class UsdRecorder:
@@ -147,6 +141,8 @@ class UsdRecorder:
         self.num_frames = 0
         self._closed = False
         self._spacing = spacing
+        self.spacing: float | None = spacing  # resolved by the first record() when None (automatic)
+        self.origins: np.ndarray | None = None  # (len(env_ids), 3) env origins, set by the first record()
         self._origins = None if origins is None else np.asarray(origins, dtype=np.float64)
         if self._origins is not None and self._origins.shape != (len(ids), 3):
             raise ValueError(f"origins must have shape ({len(ids)}, 3), got {self._origins.shape}")
@@ -292,7 +288,8 @@ class UsdRecorder:
 
     def _gather(self, array: wp.array) -> np.ndarray:
         """Rows ``env_ids`` of a per-env array: selected on the device, then only those rows copied to the host."""
-        return _row_view(array).index_select(0, self._index).cpu().numpy()
+        # wp.to_torch is a zero-copy view; wp.transform / wp.vec3 elements become a trailing axis of 7 / 3 floats
+        return wp.to_torch(array).index_select(0, self._index).cpu().numpy()
 
     def _set_pose(self, path: str, pose: np.ndarray, time: float) -> None:
         Gf = self._pxr[0]

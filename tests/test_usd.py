@@ -243,15 +243,15 @@ def test_deformable_and_rod_samples(device, tmp_path, hide):
 
 
 def test_grid_origins_and_up_axis(device, tmp_path):
-    np.testing.assert_allclose(grid_origins(5, 2.0, "Y"), [[0, 0, 0], [2, 0, 0], [4, 0, 0], [0, 0, 2], [2, 0, 2]])
-    np.testing.assert_allclose(grid_origins(3, 1.0, "Z"), [[0, 0, 0], [1, 0, 0], [0, -1, 0]])
+    np.testing.assert_allclose(grid_origins(5, 2.0, "Y"), [[0, 0, 0], [2, 0, 0], [4, 0, 0], [0, 0, -2], [2, 0, -2]])
+    np.testing.assert_allclose(grid_origins(3, 1.0, "Z"), [[0, 0, 0], [1, 0, 0], [0, 1, 0]])
     env = FakeDeformableEnv(device)
     path = tmp_path / "z.usda"
     with UsdRecorder(env, path, env_ids=(2, 0, 1), spacing=1.0, up_axis="Z") as rec:
         rec.record()
     stage = Usd.Stage.Open(str(path))
     assert UsdGeom.GetStageUpAxis(stage) == UsdGeom.Tokens.z
-    np.testing.assert_allclose(_world_translation(stage, "/World/env_1", 0), [0, -1, 0])  # third slot: row 1
+    np.testing.assert_allclose(_world_translation(stage, "/World/env_1", 0), [0, 1, 0])  # third slot: row 1
 
 
 def test_automatic_spacing_separates_envs(device, tmp_path):
