@@ -68,6 +68,10 @@ class World:
         self.substeps = int(substeps)
         self.iterations = int(iterations)
         self.auto_reset_unstable = bool(auto_reset_unstable)
+        # Newton steps of the direct rod stretch solve per sweep: the second one, linearised after the first,
+        # removes what the first leaves on curved rods (its transverse filter keeps kinks stable but is not
+        # exact in length where the rod bends); its residual is small, so its tension filter barely acts
+        self.rod_newton_steps = 2
         self.rng = wp.empty(self.num_envs, dtype=wp.uint32, device=self.device)
         self.unstable = wp.zeros(self.num_envs, dtype=wp.int32, device=self.device)
         self._unstable_now = wp.zeros(self.num_envs, dtype=wp.int32, device=self.device)
@@ -86,8 +90,8 @@ class World:
         self._rod_scratch = ()
         if m.segment_count:
             self._sq_prev = wp.zeros((n, m.segment_count), dtype=wp.quat, device=dev)
-            # direct rod stretch solve: modified super-diagonal, right-hand side / dl, loop correction
-            self._rod_scratch = tuple(wp.zeros((n, m.segment_count), dtype=float, device=dev) for _ in range(3))
+            # lambda of the Newton steps, modified super-diagonal, right-hand side / dl, loop correction
+            self._rod_scratch = tuple(wp.zeros((n, m.segment_count), dtype=float, device=dev) for _ in range(4))
             # transverse filter, per rod node (a rod has at most segments + 1 nodes): super-diagonal, rhs, base
             nn = m.segment_count + m.rod_count
             self._rod_scratch += (wp.zeros((n, nn), dtype=float, device=dev),
@@ -154,7 +158,7 @@ class World:
         """
         if self.model.particle_count == 0:
             return
-        key = (float(dt), self.substeps, self.iterations)
+        key = (float(dt), self.substeps, self.iterations, self.rod_newton_steps)
         if self._cmd_key != key:
             self._cmds = self._record_step(float(dt))
             self._cmd_key = key
@@ -237,8 +241,8 @@ class World:
 
             launch(rods.solve_rod_stretch, (n, m.rod_count),
                    [m.rod_particle_start, m.rod_segment_start, m.rod_segment_count, m.rod_closed, m.rod_stretch_rest,
-                    m.rod_stretch_compliance, m.particle_inv_mass, inv_dt2, use_lam, lam.get("rod", self._dummy_f),
-                    *self._rod_scratch], [s.particle_q])
+                    m.rod_stretch_compliance, m.particle_inv_mass, inv_dt2, use_lam, self.rod_newton_steps,
+                    lam.get("rod", self._dummy_f), *self._rod_scratch], [s.particle_q])
         if m.attachment_capacity:
             bq = s.body_q if s.body_q is not None else self._dummy_tf()
             bqp = self._body_q_prev if self._body_q_prev is not None else bq

@@ -59,7 +59,9 @@ def solve_rod_stretch(
     inv_mass: wp.array2d(dtype=float),
     inv_dt2: float,
     use_lambda: int,
+    newton_steps: int,
     lam: wp.array2d(dtype=float),
+    scratch_l: wp.array2d(dtype=float),
     scratch_c: wp.array2d(dtype=float),
     scratch_d: wp.array2d(dtype=float),
     scratch_e: wp.array2d(dtype=float),
@@ -73,161 +75,167 @@ def solve_rod_stretch(
     s0 = rod_segment_start[r]
     m = rod_segment_count[r]
     nodes = m + 1
-    cyclic = int(0)
+    closed3 = int(0)
     if rod_closed[r] != 0:
         nodes = m
         if m >= 3:
-            cyclic = 1
+            closed3 = 1
     pe = env % inv_mass.shape[0]
     ce = env % compliance.shape[0]
 
-    # ---- forward elimination (Thomas); for a loop also the second right-hand side u --------------------
-    x_first = q[env, p0]
-    w_first = inv_mass[pe, p0]
-    n_cur, len_cur = segment_dir(x_first, q[env, p0 + (1 % nodes)])
-    # closing segment m-1 (node m-1 -> node 0) and its coupling s = A_{m-1,0} for a loop
-    n_last = wp.vec3(0.0)
-    g = float(0.0)
-    s = float(0.0)
-    if cyclic != 0:
-        n_last, len_last = segment_dir(q[env, p0 + m - 1], x_first)
-        s = -w_first * wp.dot(n_last, n_cur)
-        if s == 0.0:
-            cyclic = 0  # no corner coupling (node 0 pinned): a plain tridiagonal system
-    w_k = w_first  # inverse mass of node k
-    c_prev = float(0.0)  # modified super-diagonal c'_{k-1}
-    d_prev = float(0.0)  # modified right-hand side d'_{k-1}
-    e_prev = float(0.0)  # modified second right-hand side (Sherman-Morrison u)
-    a_k = float(0.0)  # sub-diagonal A_{k,k-1}
-    for k in range(m):
-        k1 = k + 1
-        if k1 == nodes:
-            k1 = 0
-        w_k1 = inv_mass[pe, p0 + k1]
-        # look one segment ahead for the super-diagonal A_{k,k+1}
-        n_next = wp.vec3(0.0)
-        len_next = float(0.0)
-        c_k = float(0.0)
-        if k + 1 < m:
-            k2 = k + 2
-            if k2 >= nodes:
-                k2 = k2 - nodes
-            n_next, len_next = segment_dir(q[env, p0 + k1], q[env, p0 + k2])
-            c_k = -w_k1 * wp.dot(n_cur, n_next)
-        alpha = compliance[ce, s0 + k] * inv_dt2
-        b_k = w_k + w_k1 + alpha
-        rhs = rest[s0 + k] - len_cur  # -C_k
-        if use_lambda != 0:
-            rhs = rhs - alpha * lam[env, s0 + k]
-        u_k = float(0.0)
+    for it in range(newton_steps):
+        cyclic = closed3
+        # ---- forward elimination (Thomas); for a loop also the second right-hand side u --------------------
+        x_first = q[env, p0]
+        w_first = inv_mass[pe, p0]
+        n_cur, len_cur = segment_dir(x_first, q[env, p0 + (1 % nodes)])
+        # closing segment m-1 (node m-1 -> node 0) and its coupling s = A_{m-1,0} for a loop
+        n_last = wp.vec3(0.0)
+        g = float(0.0)
+        s = float(0.0)
         if cyclic != 0:
-            if k == 0:
-                g = -b_k
-                b_k = b_k - g
-                u_k = g
-            if k == m - 1:
-                b_k = b_k - s * s / g
-                u_k = s
-        if b_k <= 0.0:
-            # both nodes pinned and rigid: the row is empty, keep this segment out of the solve
-            b_k = 1.0
-            rhs = 0.0
-        denom = b_k - a_k * c_prev
-        inv = 1.0 / denom
-        c_prev = c_k * inv
-        d_prev = (rhs - a_k * d_prev) * inv
-        e_prev = (u_k - a_k * e_prev) * inv
-        scratch_c[env, s0 + k] = c_prev
-        scratch_d[env, s0 + k] = d_prev
-        if cyclic != 0:
-            scratch_e[env, s0 + k] = e_prev
-        a_k = c_k
-        n_cur = n_next
-        len_cur = len_next
-        w_k = w_k1
-
-    # ---- back substitution, dl overwrites scratch_d (and z overwrites scratch_e for a loop) --------------
-    y_next = float(0.0)
-    z_next = float(0.0)
-    for kk in range(m):
-        k = m - 1 - kk
-        c = scratch_c[env, s0 + k]
-        y_next = scratch_d[env, s0 + k] - c * y_next
-        scratch_d[env, s0 + k] = y_next
-        if cyclic != 0:
-            z_next = scratch_e[env, s0 + k] - c * z_next
-            scratch_e[env, s0 + k] = z_next
-    if cyclic != 0:
-        # y_next, z_next now hold y_0, z_0; v = (1, 0, .., 0, s / g)
-        vy = y_next + (s / g) * scratch_d[env, s0 + m - 1]
-        vz = z_next + (s / g) * scratch_e[env, s0 + m - 1]
-        f = vy / (1.0 + vz)
+            n_last, len_last = segment_dir(q[env, p0 + m - 1], x_first)
+            s = -w_first * wp.dot(n_last, n_cur)
+            if s == 0.0:
+                cyclic = 0  # no corner coupling (node 0 pinned): a plain tridiagonal system
+        w_k = w_first  # inverse mass of node k
+        c_prev = float(0.0)  # modified super-diagonal c'_{k-1}
+        d_prev = float(0.0)  # modified right-hand side d'_{k-1}
+        e_prev = float(0.0)  # modified second right-hand side (Sherman-Morrison u)
+        a_k = float(0.0)  # sub-diagonal A_{k,k-1}
         for k in range(m):
-            scratch_d[env, s0 + k] = scratch_d[env, s0 + k] - f * scratch_e[env, s0 + k]
+            k1 = k + 1
+            if k1 == nodes:
+                k1 = 0
+            w_k1 = inv_mass[pe, p0 + k1]
+            # look one segment ahead for the super-diagonal A_{k,k+1}
+            n_next = wp.vec3(0.0)
+            len_next = float(0.0)
+            c_k = float(0.0)
+            if k + 1 < m:
+                k2 = k + 2
+                if k2 >= nodes:
+                    k2 = k2 - nodes
+                n_next, len_next = segment_dir(q[env, p0 + k1], q[env, p0 + k2])
+                c_k = -w_k1 * wp.dot(n_cur, n_next)
+            alpha = compliance[ce, s0 + k] * inv_dt2
+            b_k = w_k + w_k1 + alpha
+            rhs = rest[s0 + k] - len_cur  # -C_k
+            # lambda of this sweep so far: earlier sweeps (iterations > 1) plus the earlier Newton step
+            rhs = rhs - alpha * (lam[env, s0 + k] * float(use_lambda) + scratch_l[env, s0 + k] * float(it))
+            u_k = float(0.0)
+            if cyclic != 0:
+                if k == 0:
+                    g = -b_k
+                    b_k = b_k - g
+                    u_k = g
+                if k == m - 1:
+                    b_k = b_k - s * s / g
+                    u_k = s
+            if b_k <= 0.0:
+                # both nodes pinned and rigid: the row is empty, keep this segment out of the solve
+                b_k = 1.0
+                rhs = 0.0
+            denom = b_k - a_k * c_prev
+            inv = 1.0 / denom
+            c_prev = c_k * inv
+            d_prev = (rhs - a_k * d_prev) * inv
+            e_prev = (u_k - a_k * e_prev) * inv
+            scratch_c[env, s0 + k] = c_prev
+            scratch_d[env, s0 + k] = d_prev
+            if cyclic != 0:
+                scratch_e[env, s0 + k] = e_prev
+            a_k = c_k
+            n_cur = n_next
+            len_cur = len_next
+            w_k = w_k1
 
-    # ---- corrections dx_j = w_j (n_{j-1} dl_{j-1} - n_j dl_j), normals from the positions before this solve.
-    # Applied as is, the transverse part of dx is an explicit diffusion of kinks, d <- d + r Lap(d) with
-    # r = w Lambda / l (Lambda = -dl the tension impulse of the substep): unstable once r > 1/2, i.e. when the
-    # tension impulse moves a node by more than half a segment (a hanging 100-segment rod at 20 substeps
-    # has r ~ 12 near the top; Tournier et al. 2015 "Stable Constrained Dynamics" describe the same
-    # instability). The transverse part is therefore filtered implicitly, (I - r Lap) y = dx_perp: the
-    # geometric-stiffness term of the tension, solved per rod as one more tridiagonal system (vec3
-    # right-hand side). Smooth transverse modes (a swinging rope) pass almost unchanged, the zigzag mode is
-    # damped by 1 / (1 + 4 r); the component along the local tangent (what keeps the lengths) is untouched.
-    # For a loop the coupling across the closing segment is left explicit (open-chain filter).
-    x_cur = x_first
-    n_prev = wp.vec3(0.0)
-    dl_prev = float(0.0)
-    k_prev = float(0.0)  # w-free tension weight Lambda / l of segment j - 1
-    if cyclic != 0:
-        n_prev = n_last
-        dl_prev = scratch_d[env, s0 + m - 1]
-    cn_prev = float(0.0)
-    dn_prev = wp.vec3(0.0)
-    nb = s0 + r  # node scratch offset: a rod has at most segment_count + 1 nodes
-    for j in range(nodes):
-        n_j = wp.vec3(0.0)
-        dl_j = float(0.0)
-        k_j = float(0.0)
-        x_next = wp.vec3(0.0)
-        if j < m:
-            jn = j + 1
-            if jn == nodes:
-                x_next = x_first  # closing segment of a loop: node 0 as it was before the update
-            else:
-                x_next = q[env, p0 + jn]
-            n_j, len_j = segment_dir(x_cur, x_next)
-            dl_j = scratch_d[env, s0 + j]
-            if use_lambda != 0:
-                lam[env, s0 + j] = lam[env, s0 + j] + dl_j
-            if j + 1 < nodes and len_j > 1.0e-12:
-                k_j = wp.max(-dl_j, 0.0) / len_j
-        w_j = inv_mass[pe, p0 + j]
-        dx = (n_prev * dl_prev - n_j * dl_j) * w_j
-        t = n_prev + n_j
-        tl = wp.length(t)
-        par = wp.vec3(0.0)
-        if tl > 1.0e-12:
-            t = t / tl
-            par = t * wp.dot(dx, t)
-        lo = -w_j * k_prev
-        up = -w_j * k_j
-        if j == 0:
-            lo = 0.0  # open-chain filter (also for loops, see above)
-        denom = 1.0 - lo - up - lo * cn_prev
-        inv = 1.0 / denom
-        cn_prev = up * inv
-        dn_prev = (dx - par - dn_prev * lo) * inv
-        node_c[env, nb + j] = cn_prev
-        node_d[env, nb + j] = dn_prev
-        node_par[env, nb + j] = par + x_cur
-        x_cur = x_next
-        n_prev = n_j
-        dl_prev = dl_j
-        k_prev = k_j
-    y = wp.vec3(0.0)
-    for jj in range(nodes):
-        j = nodes - 1 - jj
-        y = node_d[env, nb + j] - y * node_c[env, nb + j]
-        if inv_mass[pe, p0 + j] > 0.0:
-            q[env, p0 + j] = node_par[env, nb + j] + y
+        # ---- back substitution, dl overwrites scratch_d (and z overwrites scratch_e for a loop) --------------
+        y_next = float(0.0)
+        z_next = float(0.0)
+        for kk in range(m):
+            k = m - 1 - kk
+            c = scratch_c[env, s0 + k]
+            y_next = scratch_d[env, s0 + k] - c * y_next
+            scratch_d[env, s0 + k] = y_next
+            if cyclic != 0:
+                z_next = scratch_e[env, s0 + k] - c * z_next
+                scratch_e[env, s0 + k] = z_next
+        if cyclic != 0:
+            # y_next, z_next now hold y_0, z_0; v = (1, 0, .., 0, s / g)
+            vy = y_next + (s / g) * scratch_d[env, s0 + m - 1]
+            vz = z_next + (s / g) * scratch_e[env, s0 + m - 1]
+            f = vy / (1.0 + vz)
+            for k in range(m):
+                scratch_d[env, s0 + k] = scratch_d[env, s0 + k] - f * scratch_e[env, s0 + k]
+
+        # ---- corrections dx_j = w_j (n_{j-1} dl_{j-1} - n_j dl_j), normals from the positions before this solve.
+        # Applied as is, the transverse part of dx is an explicit diffusion of kinks, d <- d + r Lap(d) with
+        # r = w Lambda / l (Lambda = -dl the tension impulse of the substep): unstable once r > 1/2, i.e. when the
+        # tension impulse moves a node by more than half a segment (a hanging 100-segment rod at 20 substeps
+        # has r ~ 12 near the top; Tournier et al. 2015 "Stable Constrained Dynamics" describe the same
+        # instability). The transverse part is therefore filtered implicitly, (I - r Lap) y = dx_perp: the
+        # geometric-stiffness term of the tension, solved per rod as one more tridiagonal system (vec3
+        # right-hand side). Smooth transverse modes (a swinging rope) pass almost unchanged, the zigzag mode is
+        # damped by 1 / (1 + 4 r); the component along the local tangent (what keeps the lengths) is untouched.
+        # For a loop the coupling across the closing segment is left explicit (open-chain filter).
+        x_cur = x_first
+        n_prev = wp.vec3(0.0)
+        dl_prev = float(0.0)
+        k_prev = float(0.0)  # w-free tension weight Lambda / l of segment j - 1
+        if cyclic != 0:
+            n_prev = n_last
+            dl_prev = scratch_d[env, s0 + m - 1]
+        cn_prev = float(0.0)
+        dn_prev = wp.vec3(0.0)
+        nb = s0 + r  # node scratch offset: a rod has at most segment_count + 1 nodes
+        for j in range(nodes):
+            n_j = wp.vec3(0.0)
+            dl_j = float(0.0)
+            k_j = float(0.0)
+            x_next = wp.vec3(0.0)
+            if j < m:
+                jn = j + 1
+                if jn == nodes:
+                    x_next = x_first  # closing segment of a loop: node 0 as it was before the update
+                else:
+                    x_next = q[env, p0 + jn]
+                n_j, len_j = segment_dir(x_cur, x_next)
+                dl_j = scratch_d[env, s0 + j]
+                if it == 0:
+                    scratch_l[env, s0 + j] = dl_j
+                else:
+                    scratch_l[env, s0 + j] = scratch_l[env, s0 + j] + dl_j
+                if use_lambda != 0 and it == newton_steps - 1:
+                    lam[env, s0 + j] = lam[env, s0 + j] + scratch_l[env, s0 + j]
+                if j + 1 < nodes and len_j > 1.0e-12:
+                    k_j = wp.max(-dl_j, 0.0) / len_j
+            w_j = inv_mass[pe, p0 + j]
+            dx = (n_prev * dl_prev - n_j * dl_j) * w_j
+            t = n_prev + n_j
+            tl = wp.length(t)
+            par = wp.vec3(0.0)
+            if tl > 1.0e-12:
+                t = t / tl
+                par = t * wp.dot(dx, t)
+            lo = -w_j * k_prev
+            up = -w_j * k_j
+            if j == 0:
+                lo = 0.0  # open-chain filter (also for loops, see above)
+            denom = 1.0 - lo - up - lo * cn_prev
+            inv = 1.0 / denom
+            cn_prev = up * inv
+            dn_prev = (dx - par - dn_prev * lo) * inv
+            node_c[env, nb + j] = cn_prev
+            node_d[env, nb + j] = dn_prev
+            node_par[env, nb + j] = par + x_cur
+            x_cur = x_next
+            n_prev = n_j
+            dl_prev = dl_j
+            k_prev = k_j
+        y = wp.vec3(0.0)
+        for jj in range(nodes):
+            j = nodes - 1 - jj
+            y = node_d[env, nb + j] - y * node_c[env, nb + j]
+            if inv_mass[pe, p0 + j] > 0.0:
+                q[env, p0 + j] = node_par[env, nb + j] + y
