@@ -25,6 +25,7 @@ import lapwarp
 USAGE_ERROR = 2  # argparse's exit status for bad arguments; used for invalid settings too
 RUN_ERROR = 1
 USD_ENVS = 4  # ``--usd`` records envs 0..min(num_envs, USD_ENVS) - 1
+IMAGE_ENVS = 64  # ``--save-images`` tiles at most this many envs (the first ones), so the PNG stays viewable
 BENCH_SCRIPT = Path(__file__).resolve().parent.parent / "benchmarks" / "bench_env.py"
 
 
@@ -239,18 +240,25 @@ def cmd_run(args: argparse.Namespace, out: TextIO, err: TextIO) -> int:
 
     progress = ProgressBar(args.steps, err, enabled=args.progress if args.progress is not None else err.isatty())
     start = time.perf_counter()
-    for step in range(args.steps):
-        obs, rewards, dones, _ = env.step(policy(obs))
-        episodes += dones.sum()
-        successes += (last_success * dones).sum()
-        return_sum += (last_return * dones).sum()
-        length_sum += (last_length * dones).sum()
-        reward_sum += rewards.sum()
-        if recorder is not None:
-            recorder.record()
-        if progress.enabled:
-            elapsed = time.perf_counter() - start
-            progress.update(step + 1, f"{(step + 1) * env.num_envs / max(elapsed, 1e-9):,.0f} env-steps/s")
+    try:
+        for step in range(args.steps):
+            obs, rewards, dones, _ = env.step(policy(obs))
+            episodes += dones.sum()
+            successes += (last_success * dones).sum()
+            return_sum += (last_return * dones).sum()
+            length_sum += (last_length * dones).sum()
+            reward_sum += rewards.sum()
+            if recorder is not None:
+                recorder.record()
+            if progress.enabled:
+                # on a GPU this is the launch rate (no sync per step); the summary's figure is synchronised
+                elapsed = time.perf_counter() - start
+                progress.update(step + 1, f"{(step + 1) * env.num_envs / max(elapsed, 1e-9):,.0f} env-steps/s")
+    except KeyboardInterrupt:
+        progress.close()
+        if recorder is not None:  # keep what was recorded: the file is written only on close
+            err.write(f"lapwarp: saved {recorder.num_frames} time samples to {recorder.close()}\n")
+        raise
     if env.device.startswith("cuda"):
         torch.cuda.synchronize(env.device)
     elapsed = time.perf_counter() - start
@@ -291,10 +299,10 @@ def _save_images(env, path: Path, size: int) -> str:
         raise CliError(f"rendering is not available: {exc}", RUN_ERROR) from None
     if not hasattr(env, "render_rgb"):
         raise CliError(f"rendering is not available for {type(env).__name__}", RUN_ERROR)
-    images = env.render_rgb(size, size)
+    images = env.render_rgb(size, size)[:IMAGE_ENVS]
     path.parent.mkdir(parents=True, exist_ok=True)
     grid = save_image_grid(images, path)
-    return f"{path} ({env.num_envs} envs, {size}x{size} each, grid {grid.shape[1]}x{grid.shape[0]})"
+    return f"{path} ({len(images)} envs, {size}x{size} each, grid {grid.shape[1]}x{grid.shape[0]})"
 
 
 # ---------------------------------------------------------------------------- bench
@@ -350,7 +358,8 @@ def build_parser() -> argparse.ArgumentParser:
                      help="square image side in pixels for image observations (default: the task's) and for "
                           "--save-images (default 128)")
     run.add_argument("--save-images", metavar="PNG", default=None,
-                     help="after the run, render every env and save the images as one PNG grid")
+                     help=f"after the run, render the envs (the first {IMAGE_ENVS} at most) and save the images "
+                          "as one PNG grid")
     run.add_argument("--usd", metavar="FILE", default=None,
                      help=f"record envs 0..{USD_ENVS - 1} (at most) to a .usda/.usd/.usdc file, one time sample "
                           "per step")

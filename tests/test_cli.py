@@ -82,6 +82,31 @@ def test_run_writes_usd(capsys, device, tmp_path):
     assert stage.GetEndTimeCode() == 3.0  # time codes 0 (after reset) .. 3
 
 
+def test_interrupted_run_keeps_the_recording(capsys, device, tmp_path, monkeypatch):
+    pytest.importorskip("pxr")
+    from pxr import Usd
+
+    make_policy = cli._make_policy
+
+    def interrupting_policy(env, name, seed):
+        policy, calls = make_policy(env, name, seed), []
+
+        def act(obs):
+            calls.append(1)
+            if len(calls) == 3:
+                raise KeyboardInterrupt  # Ctrl-C during the third step
+            return policy(obs)
+
+        return act
+
+    monkeypatch.setattr(cli, "_make_policy", interrupting_policy)
+    path = tmp_path / "partial.usda"
+    status, _, err = run_cli(capsys, "run", "Reach", "--num-envs", "2", "--steps", "10", "--device", device,
+                             "--usd", str(path))
+    assert status == 130 and "interrupted" in err and "saved 3 time samples" in err
+    assert Usd.Stage.Open(str(path)).GetEndTimeCode() == 2.0  # reset state + 2 completed steps
+
+
 def test_run_rgb_observations_and_image_grid(capsys, device, tmp_path):
     from lapwarp.imaging import read_png
 
