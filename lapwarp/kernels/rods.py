@@ -122,7 +122,12 @@ def solve_rod_stretch(
             b_k = w_k + w_k1 + alpha
             rhs = rest[s0 + k] - len_cur  # -C_k
             # lambda of this sweep so far: earlier sweeps (iterations > 1) plus the earlier Newton step
-            rhs = rhs - alpha * (lam[env, s0 + k] * float(use_lambda) + scratch_l[env, s0 + k] * float(it))
+            lam_k = float(0.0)
+            if use_lambda != 0:
+                lam_k = lam[env, s0 + k]
+            if it > 0:
+                lam_k = lam_k + scratch_l[env, s0 + k]
+            rhs = rhs - alpha * lam_k
             u_k = float(0.0)
             if cyclic != 0:
                 if k == 0:
