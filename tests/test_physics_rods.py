@@ -55,7 +55,8 @@ def test_hanging_100_segment_rod_keeps_length(device):
 
 def test_hanging_closed_loop_keeps_length(device):
     # PickAndPlace's torus (30 segments on r = 14 mm, r_cs = 3.5 mm, E = 1e5 Pa) in a vertical plane, hanging
-    # from its top node (cyclic system, Sherman-Morrison). Elastic strain ~0.4 %. Measured: 0.5 % worst.
+    # from its top node (cyclic system, Sherman-Morrison). Elastic strain ~0.4 %. Measured: 1.5 % worst during
+    # the kicked swing, 0.49 % at the end. Bound 2 % / 1 %.
     pts = rod_circle(0.014, 30, normal=(0.0, 1.0, 0.0))
     top = int(np.argmax(pts[:, 2]))
     b = SceneBuilder()
@@ -99,8 +100,8 @@ def test_rod_cantilever_converges_to_euler_bernoulli(device):
 def test_soft_rope_catenary(device):
     # Rope of length S = 1 m (40 segments, r = 0.3 mm, E = 1e8 Pa) pinned at both ends D = 0.8 m apart,
     # straight at rest: bending length (E I / (rho A g))^(1/3) = 2.8 cm << S, axial strain rho g a / E
-    # ~ 4e-5, so the inextensible catenary sag a (cosh(D / 2a) - 1) = 0.2722 m applies. Lumped masses:
-    # O(1/N^2) ~ 0.1 %. Tolerance 1.5 %.
+    # ~ 4e-5, so the inextensible catenary sag a (cosh(D / 2a) - 1) = 0.2654 m applies. Measured 0.2655 m (+0.01 %).
+    # Tolerance 1.5 % (lumped masses O(1/N^2) ~ 0.1 %).
     S, D, n = 1.0, 0.8, 41
     seg = S / (n - 1)
     half = (n - 1) // 2
@@ -162,7 +163,7 @@ def test_rods_at_rest_stay_at_rest(device):
 @pytest.mark.parametrize("closed", [False, True])
 def test_violently_stretched_rod_recovers(device, closed):
     # A rod / loop scaled 3x about its centre (every segment 200 % too long) must stay finite and get back
-    # to its length: measured < 0.5 % after 1 s. Bound 2 %.
+    # to its length: measured 5e-6 (rod) and 4e-5 (loop) after 1 s. Bound 2 %.
     if closed:
         pts = rod_circle(0.014, 30)
     else:
