@@ -1,0 +1,401 @@
+"""Contact for a World: particles and rod segments against analytic and mesh colliders, particle-particle
+contact (deformable vs deformable, rod self-contact), Coulomb friction and per-env contact reports.
+
+A :class:`ContactSystem` is described on the host (shapes, particle groups, self-contact sets) and then
+``finalize()``-d once: it allocates fixed-capacity device arrays and registers itself with
+``world.add_solver``. From then on every substep sweep of ``world.step`` also runs its recorded launches, so
+contact is part of the env's captured graph and never syncs with the host.
+
+Shapes are shared by all envs. A shape is either static (``body=-1``, placed by ``transform`` in the env
+frame; physics runs at the origin in every env) or rides on a kinematic body ``state.body_q[env, body]`` with
+``transform`` as its offset in the body frame. Kinds: sphere, capsule (axis = local z), box, plane (the
+half-space below the local xy plane), cylinder (axis = local z) and static triangle meshes (one ``wp.Mesh``
+shared by all envs, closed and wound outwards).
+
+Reports (see ``docs/contact.md``): ``report_count[env, pair]`` = contacts found in the last substep of the
+last ``world.step`` and ``report_force[env, pair]`` = summed normal force averaged over that step (N), for
+each (shape, particle group) pair and each self-contact set. They are cleared by the first sweep of every
+``world.step`` (a launch inside the recorded step), so after a step they describe exactly that step.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import warp as wp
+
+from lapwarp.kernels import contact as ck
+
+_KINDS = {"sphere": 0, "capsule": 1, "box": 2, "plane": 3, "cylinder": 4, "mesh": 5}
+
+
+def _transform(tf) -> wp.transform:
+    if tf is None:
+        return wp.transform_identity()
+    if isinstance(tf, wp.transform):
+        return tf
+    v = [float(c) for c in np.asarray(tf, dtype=np.float64).reshape(-1)]
+    if len(v) == 3:
+        return wp.transform(wp.vec3(*v), wp.quat_identity())
+    if len(v) == 7:
+        return wp.transform(wp.vec3(*v[:3]), wp.quat(*v[3:]))
+    raise ValueError(f"transform must be (px, py, pz) or (px, py, pz, qx, qy, qz, qw), got {len(v)} values")
+
+
+@dataclass
+class Shape:
+    """One collider (host description)."""
+
+    name: str
+    kind: str
+    params: tuple
+    body: int
+    transform: wp.transform
+    thickness: float
+    mu_static: float
+    mu_kinetic: float
+    groups: tuple | None  # particle group ids it collides with (None: all)
+    mesh: wp.Mesh | None = None
+
+
+@dataclass
+class ParticleGroup:
+    """A set of particles that collide with shapes (rod nodes, cloth vertices, tet surface vertices)."""
+
+    name: str
+    particles: np.ndarray  # global particle indices
+    radius: float
+    segments: np.ndarray | None  # (S, 2) global node indices of rod segments for segment-level contact
+
+
+class ContactSystem:
+    """Contact between the particles of a World and colliders, plus particle-particle contact.
+
+    Args:
+        world: the World whose particles collide (its ``state.body_q`` poses the body-mounted shapes).
+        capacity: contact records kept per env per step (``contacts()``); more raise ``overflow[env]``.
+        report_margin: distance (m) below contact at which a particle counts as touching in the reports and
+            the contact records (a resting particle sits exactly at the contact distance).
+
+    Attributes (after ``finalize``):
+        report_count: ``(num_envs, num_pairs)`` int32 contacts per pair in the last substep of the last step.
+        report_force: ``(num_envs, num_pairs)`` float32 summed normal force per pair, averaged over the step (N).
+        contact_count: ``(num_envs,)`` int32 contact records of the last step (clamped to ``capacity``).
+        contact_particle, contact_shape: ``(num_envs, capacity)`` int32 records (particle, shape index).
+        contact_normal: ``(num_envs, capacity)`` vec3 world normal pointing from the shape to the particle.
+        contact_depth: ``(num_envs, capacity)`` float penetration before projection (m, > -report_margin).
+        overflow: ``(num_envs,)`` int32, 1 when the records of that env did not fit in ``capacity``.
+        pair_names: name of every report column, ``"shape/group"`` or the self-contact set's name.
+    """
+
+    def __init__(self, world, capacity: int = 64, report_margin: float = 1.0e-4):
+        self.world = world
+        self.device = world.device
+        self.num_envs = world.num_envs
+        self.capacity = int(capacity)
+        self.report_margin = float(report_margin)
+        self.shapes: list[Shape] = []
+        self.groups: list[ParticleGroup] = []
+        self.self_sets: list[dict] = []
+        self.pair_names: list[str] = []
+        self._finalized = False
+        self._sweep = 0  # position of the next record_sweep call in the recorded step (substep, iteration)
+
+    # ------------------------------------------------------------------------------------------------
+    # description
+    # ------------------------------------------------------------------------------------------------
+    def add_particle_group(self, particles, radius: float, name: str | None = None, segments=None) -> int:
+        """Particles that collide with the shapes, as spheres of ``radius`` (m).
+
+        Args:
+            particles: a ``SceneObject`` (all its particles) or global particle indices / a slice.
+            radius: contact radius of each particle (rod radius, half the cloth thickness), m.
+            name: report name (defaults to the object's name).
+            segments: for rods, ``True`` (the object's edges) or ``(S, 2)`` node pairs: sphere and capsule
+                shapes then also collide with the segment interiors, so a thin tool cannot slip between nodes.
+
+        Returns:
+            The group id.
+        """
+        self._check_open()
+        seg = None
+        if hasattr(particles, "particle_start"):
+            obj = particles
+            name = name or obj.name
+            if segments is True:
+                seg = np.asarray(obj.edges, dtype=np.int64)
+            idx = np.arange(obj.particle_start, obj.particle_start + obj.particle_count)
+        elif isinstance(particles, slice):
+            idx = np.arange(particles.start, particles.stop)
+        else:
+            idx = np.asarray(particles, dtype=np.int64).reshape(-1)
+        if seg is None and segments is not None and segments is not True and segments is not False:
+            seg = np.asarray(segments, dtype=np.int64).reshape(-1, 2)
+        self.groups.append(ParticleGroup(name or f"group{len(self.groups)}", idx, float(radius), seg))
+        return len(self.groups) - 1
+
+    def add_shape(self, kind: str, params=(0.0, 0.0, 0.0), body: int = -1, transform=None, thickness: float = 0.0,
+                  mu_static: float = 0.5, mu_kinetic: float | None = None, groups=None, name: str | None = None,
+                  mesh: wp.Mesh | None = None) -> int:
+        """Add a collider; prefer the typed helpers (``add_sphere`` ...). Returns the shape id.
+
+        Args:
+            kind: ``sphere``, ``capsule``, ``box``, ``plane``, ``cylinder`` or ``mesh``.
+            params: kind-specific sizes, m (see the helpers).
+            body: kinematic body index (``SceneBuilder.add_body``) or -1 for a static shape in the env frame.
+            transform: pose in the body frame (or env frame), ``(px, py, pz[, qx, qy, qz, qw])``.
+            thickness: contact thickness of this object, m (added to the particle radius).
+            mu_static, mu_kinetic: Coulomb friction coefficients (kinetic defaults to static).
+            groups: particle group ids this shape collides with (default: all).
+            name: report name.
+            mesh: the ``wp.Mesh`` of a mesh shape.
+        """
+        self._check_open()
+        if kind not in _KINDS:
+            raise ValueError(f"kind {kind!r} is not one of {sorted(_KINDS)}")
+        p = tuple(float(v) for v in np.broadcast_to(np.asarray(params, dtype=np.float64).reshape(-1), (3,)))
+        mu_k = mu_static if mu_kinetic is None else mu_kinetic
+        if mu_k > mu_static + 1e-12:
+            raise ValueError(f"mu_kinetic {mu_k} must not exceed mu_static {mu_static}")
+        self.shapes.append(Shape(name or f"{kind}{len(self.shapes)}", kind, p, int(body), _transform(transform),
+                                 float(thickness), float(mu_static), float(mu_k),
+                                 None if groups is None else tuple(int(g) for g in np.atleast_1d(groups)), mesh))
+        return len(self.shapes) - 1
+
+    def add_sphere(self, radius: float, **kw) -> int:
+        """Sphere of ``radius`` (m) centred at the shape origin."""
+        return self.add_shape("sphere", (radius, 0.0, 0.0), **kw)
+
+    def add_capsule(self, radius: float, half_height: float, **kw) -> int:
+        """Capsule: points within ``radius`` of the local z segment ``[-half_height, half_height]`` (m)."""
+        return self.add_shape("capsule", (radius, half_height, 0.0), **kw)
+
+    def add_box(self, half_extents, **kw) -> int:
+        """Box with ``half_extents`` (hx, hy, hz), m."""
+        return self.add_shape("box", tuple(half_extents), **kw)
+
+    def add_plane(self, **kw) -> int:
+        """Half-space below the local xy plane (normal = local +z); orient it with ``transform``."""
+        return self.add_shape("plane", (0.0, 0.0, 0.0), **kw)
+
+    def add_cylinder(self, radius: float, half_height: float, **kw) -> int:
+        """Flat-capped cylinder about the local z axis."""
+        return self.add_shape("cylinder", (radius, half_height, 0.0), **kw)
+
+    def add_mesh(self, vertices, faces, **kw) -> int:
+        """Static triangle mesh shared by all envs (closed, outward winding): one ``wp.Mesh`` (BVH) for all."""
+        v = np.ascontiguousarray(np.asarray(vertices, dtype=np.float32).reshape(-1, 3))
+        f = np.ascontiguousarray(np.asarray(faces, dtype=np.int32).reshape(-1))
+        mesh = wp.Mesh(points=wp.array(v, dtype=wp.vec3, device=self.device),
+                       indices=wp.array(f, dtype=wp.int32, device=self.device))
+        return self.add_shape("mesh", mesh=mesh, **kw)
+
+    def add_particle_contact(self, members, skip_links: int = 2, mu_static: float = 0.3,
+                             mu_kinetic: float | None = None, name: str = "self") -> int:
+        """Particle-particle contact among ``members`` (deformable vs deformable and self-contact).
+
+        Args:
+            members: list of ``(object_or_indices, radius)``; a rod object is a chain: its nodes closer than
+                ``skip_links`` links along the rod (cyclically for closed rods) do not collide with each other.
+            skip_links: neighbours along a chain that never collide (they touch at rest); ``radius * 2`` should
+                not exceed ``(skip_links + 1)`` segment lengths.
+            mu_static, mu_kinetic: friction between the particles.
+            name: report column name.
+
+        Returns:
+            The index of the set.
+        """
+        self._check_open()
+        parts, radii, chain, pos, length = [], [], [], [], []
+        for c, (obj, radius) in enumerate(members):
+            if hasattr(obj, "particle_start"):
+                idx = np.arange(obj.particle_start, obj.particle_start + obj.particle_count)
+                is_chain = obj.kind == "rod"
+                closed = bool(obj.closed)
+            else:
+                idx = np.asarray(obj, dtype=np.int64).reshape(-1)
+                is_chain, closed = False, False
+            parts.append(idx)
+            radii.append(np.full(len(idx), float(radius)))
+            chain.append(np.full(len(idx), c if is_chain else -1))
+            pos.append(np.arange(len(idx)))
+            length.append(np.full(len(idx), len(idx) if closed else 0))
+        mu_k = mu_static if mu_kinetic is None else mu_kinetic
+        self.self_sets.append(dict(name=name, particles=np.concatenate(parts), radius=np.concatenate(radii),
+                                   chain=np.concatenate(chain), pos=np.concatenate(pos),
+                                   length=np.concatenate(length), skip=int(skip_links), mu=(mu_static, mu_k)))
+        return len(self.self_sets) - 1
+
+    def _check_open(self) -> None:
+        if self._finalized:
+            raise RuntimeError("the ContactSystem is finalized; describe everything before finalize()")
+
+    # ------------------------------------------------------------------------------------------------
+    # build
+    # ------------------------------------------------------------------------------------------------
+    def finalize(self) -> ContactSystem:
+        """Allocate the device arrays and register with ``world.add_solver``. Returns self."""
+        self._check_open()
+        dev, n = self.device, self.num_envs
+        S, G = len(self.shapes), len(self.groups)
+        pair = -np.ones((max(S, 1), max(G, 1)), dtype=np.int32)
+        names = []
+        for s, sh in enumerate(self.shapes):
+            for g in range(G):
+                if sh.groups is None or g in sh.groups:
+                    pair[s, g] = len(names)
+                    names.append(f"{sh.name}/{self.groups[g].name}")
+        self._self_pair = []
+        for ss in self.self_sets:
+            self._self_pair.append(len(names))
+            names.append(ss["name"])
+        self.pair_names = names
+        self.num_pairs = len(names)
+
+        def arr(a, dtype):
+            return wp.array(a, dtype=dtype, device=dev)
+
+        self.shape_kind = arr(np.array([_KINDS[s.kind] for s in self.shapes] or [0], np.int32), wp.int32)
+        self.shape_body = arr(np.array([s.body for s in self.shapes] or [-1], np.int32), wp.int32)
+        self.shape_local = wp.array([s.transform for s in self.shapes] or [wp.transform_identity()],
+                                    dtype=wp.transform, device=dev)
+        self.shape_params = arr(np.array([s.params for s in self.shapes] or [(0, 0, 0)], np.float32), wp.vec3)
+        self.shape_mesh = arr(np.array([s.mesh.id if s.mesh is not None else 0 for s in self.shapes] or [0],
+                                       np.uint64), wp.uint64)
+        self.shape_thickness = arr(np.array([s.thickness for s in self.shapes] or [0], np.float32), float)
+        self.shape_mu = arr(np.array([(s.mu_static, s.mu_kinetic) for s in self.shapes] or [(0, 0)], np.float32),
+                            wp.vec2)
+        if S == 0:  # no shapes: the kernels loop over nothing
+            self.shape_kind = wp.zeros(0, dtype=wp.int32, device=dev)
+        self.pair_index = arr(pair, wp.int32)
+
+        cp = [g.particles for g in self.groups]
+        self.cp_particle = arr(np.concatenate(cp).astype(np.int32) if cp else np.zeros(0, np.int32), wp.int32)
+        self.cp_group = arr(np.concatenate([np.full(len(g.particles), k) for k, g in enumerate(self.groups)])
+                            .astype(np.int32) if cp else np.zeros(0, np.int32), wp.int32)
+        self.cp_radius = arr(np.concatenate([np.full(len(g.particles), g.radius) for g in self.groups])
+                             .astype(np.float32) if cp else np.zeros(0, np.float32), float)
+
+        # rod segments, graph-coloured so one launch per colour touches disjoint nodes
+        from lapwarp.builder import color_graph
+
+        segs, sgrp, srad = [], [], []
+        for k, g in enumerate(self.groups):
+            if g.segments is not None:
+                segs.append(g.segments)
+                sgrp.append(np.full(len(g.segments), k))
+                srad.append(np.full(len(g.segments), g.radius))
+        self.seg_color_offsets = [0]
+        if segs:
+            seg_all = np.concatenate(segs)
+            order, self.seg_color_offsets = color_graph(seg_all)
+            self.seg_nodes = arr(seg_all[order].astype(np.int32), wp.vec2i)
+            self.seg_group = arr(np.concatenate(sgrp)[order].astype(np.int32), wp.int32)
+            self.seg_radius = arr(np.concatenate(srad)[order].astype(np.float32), float)
+
+        self._self_arrays = []
+        for k, ss in enumerate(self.self_sets):
+            m = len(ss["particles"])
+            self._self_arrays.append(dict(
+                particle=arr(ss["particles"].astype(np.int32), wp.int32),
+                radius=arr(ss["radius"].astype(np.float32), float),
+                chain=arr(ss["chain"].astype(np.int32), wp.int32),
+                pos=arr(ss["pos"].astype(np.int32), wp.int32),
+                length=arr(ss["length"].astype(np.int32), wp.int32),
+                pair=arr(np.full(m, self._self_pair[k], np.int32), wp.int32),
+                delta=wp.zeros((n, m), dtype=wp.vec3, device=dev),
+                count=m, skip=ss["skip"], mu=wp.vec2(*ss["mu"])))
+
+        P = max(self.num_pairs, 1)
+        self.report_count = wp.zeros((n, P), dtype=wp.int32, device=dev)
+        self.report_force = wp.zeros((n, P), dtype=float, device=dev)
+        cap = max(self.capacity, 1)
+        self.contact_count = wp.zeros(n, dtype=wp.int32, device=dev)
+        self.contact_particle = wp.full((n, cap), -1, dtype=wp.int32, device=dev)
+        self.contact_shape = wp.full((n, cap), -1, dtype=wp.int32, device=dev)
+        self.contact_normal = wp.zeros((n, cap), dtype=wp.vec3, device=dev)
+        self.contact_depth = wp.zeros((n, cap), dtype=float, device=dev)
+        self.overflow = wp.zeros(n, dtype=wp.int32, device=dev)
+        self._dummy_tf = wp.zeros((1, 1), dtype=wp.transform, device=dev)
+        self._finalized = True
+        self.world.add_solver(self)
+        return self
+
+    # ------------------------------------------------------------------------------------------------
+    # World hooks (recorded into the step)
+    # ------------------------------------------------------------------------------------------------
+    def _substep_position(self, world) -> tuple[int, int]:
+        iters = max(1, world.iterations)
+        sub, it = divmod(self._sweep, iters)
+        self._sweep += 1
+        if self._sweep >= iters * world.substeps:
+            self._sweep = 0
+        return sub, it
+
+    def body_arrays(self, world) -> tuple:
+        """(previous-step, current) body pose arrays as the World interpolates them for attachments."""
+        s = world.state
+        if s.body_q is None:
+            return self._dummy_tf, self._dummy_tf
+        prev = world._body_q_prev if world._body_q_prev is not None else s.body_q
+        return prev, s.body_q
+
+    def record_sweep(self, world, launch, h: float) -> None:
+        """Record the contact projections of one sweep (called by the World while it records a step)."""
+        sub, it = self._substep_position(world)
+        n, s = self.num_envs, world.state
+        S = world.substeps
+        iters = max(1, world.iterations)
+        if sub == 0 and it == 0:
+            launch(ck.clear_reports, n, [], [self.report_count, self.report_force, self.contact_count, self.overflow])
+        report = 1 if (sub == S - 1 and it == iters - 1) else 0
+        blend_prev, blend = sub / S, (sub + 1) / S
+        # impulse m * dx / h summed over the sweeps, divided by the step duration -> mean force over the step
+        force_scale = 1.0 / (h * h * S)
+        bqp, bq = self.body_arrays(world)
+        m = world.model
+        shapes = [self.shape_kind, self.shape_body, self.shape_local, self.shape_params]
+        if len(self.cp_particle):
+            launch(ck.collide_particles, (n, len(self.cp_particle)),
+                   [self.cp_particle, self.cp_group, self.cp_radius, *shapes, self.shape_mesh, self.shape_thickness,
+                    self.shape_mu, self.pair_index, bqp, bq, blend_prev, blend, m.particle_inv_mass, world._q_pred,
+                    s.particle_qd, h, force_scale, report, self.report_margin],
+                   [s.particle_q, self.report_count, self.report_force, self.contact_count, self.contact_particle,
+                    self.contact_shape, self.contact_normal, self.contact_depth, self.overflow])
+        off = self.seg_color_offsets
+        for c in range(len(off) - 1):
+            launch(ck.collide_segments, (n, off[c + 1] - off[c]),
+                   [self.seg_nodes, self.seg_group, self.seg_radius, off[c], *shapes, self.shape_thickness,
+                    self.shape_mu, self.pair_index, bqp, bq, blend_prev, blend, m.particle_inv_mass, world._q_pred,
+                    s.particle_qd, h, force_scale], [s.particle_q, self.report_force])
+        for a in self._self_arrays:
+            launch(ck.collide_particle_pairs, (n, a["count"]),
+                   [a["particle"], a["radius"], a["chain"], a["pos"], a["length"], a["pair"], a["skip"], a["mu"],
+                    m.particle_inv_mass, world._q_pred, s.particle_qd, h, force_scale, report],
+                   [s.particle_q, a["delta"], self.report_count, self.report_force])
+            launch(ck.apply_particle_deltas, (n, a["count"]), [a["particle"], a["delta"]], [s.particle_q])
+        if report:
+            launch(ck.clamp_contact_count, n, [self.capacity], [self.contact_count])
+
+    def clear_reports(self) -> None:
+        """Zero the reports now (``world.step`` already does this at its start; for use outside a step)."""
+        wp.launch(ck.clear_reports, dim=self.num_envs, inputs=[],
+                  outputs=[self.report_count, self.report_force, self.contact_count, self.overflow], device=self.device)
+
+    # ------------------------------------------------------------------------------------------------
+    # host helpers (sync; for tests and scripts)
+    # ------------------------------------------------------------------------------------------------
+    def pair(self, shape: int | str, group: int | str) -> int:
+        """Report column of a (shape, group) pair (ids or names)."""
+        sname = self.shapes[shape].name if isinstance(shape, int) else shape
+        gname = self.groups[group].name if isinstance(group, int) else group
+        return self.pair_names.index(f"{sname}/{gname}")
+
+    def counts(self) -> np.ndarray:
+        """``report_count`` as a NumPy copy ``(num_envs, num_pairs)``."""
+        return self.report_count.numpy()[:, : self.num_pairs].copy()
+
+    def forces(self) -> np.ndarray:
+        """``report_force`` as a NumPy copy ``(num_envs, num_pairs)``, N."""
+        return self.report_force.numpy()[:, : self.num_pairs].copy()

@@ -1,0 +1,440 @@
+"""Contact kernels: particles and rod segments against signed distance fields, particle-particle contact,
+contact reports and grasping.
+
+Every kernel launches env-first (``env, i = wp.tid()``). Collider shapes are shared by all envs; a shape on a
+kinematic body reads its pose from ``body_q[env, body]`` interpolated across the substeps of one step exactly
+like the attachments of :mod:`lapwarp.kernels.xpbd` (``blend`` = fraction of the step done at the end of this
+substep, ``blend_prev`` at its start), so a tool sweeps through the substeps instead of jumping once per step.
+
+Projection (position-based, Macklin et al. 2014 "Unified particle physics"): a particle of radius ``r`` at
+signed distance ``d`` from a shape with thickness ``t`` is pushed out along the SDF normal by
+``pen = r + t - d``. Coulomb friction acts on the tangential displacement of the particle relative to the
+shape's surface point during this substep: static (the displacement is removed) when it is below
+``mu_s * pen``, kinetic (shortened by ``mu_k * pen``) otherwise. The velocity update of the World then turns
+these position changes into velocities, so friction and non-penetration hold at the velocity level too.
+
+Reports: per env and per (shape, particle group) pair, ``counts`` (contacts in the last substep of the step)
+and ``force`` (summed normal force averaged over the step, N) are accumulated with atomics per env only.
+"""
+
+import warp as wp
+
+wp.set_module_options({"enable_backward": False})
+
+SHAPE_SPHERE = wp.constant(0)
+SHAPE_CAPSULE = wp.constant(1)
+SHAPE_BOX = wp.constant(2)
+SHAPE_PLANE = wp.constant(3)
+SHAPE_CYLINDER = wp.constant(4)
+SHAPE_MESH = wp.constant(5)
+
+
+# ----------------------------------------------------------------------------------------------------
+# signed distance functions, shape-local frame; return (normal, distance) packed as vec4
+# ----------------------------------------------------------------------------------------------------
+
+
+@wp.func
+def safe_normalize(v: wp.vec3, fallback: wp.vec3):
+    n = wp.length(v)
+    if n > 1.0e-12:
+        return v / n
+    return fallback
+
+
+@wp.func
+def sdf_local(kind: int, params: wp.vec3, mesh: wp.uint64, p: wp.vec3, max_dist: float):
+    """Signed distance and outward normal of a shape at local point ``p`` (vec4: nx, ny, nz, d)."""
+    up = wp.vec3(0.0, 0.0, 1.0)
+    if kind == SHAPE_SPHERE:
+        n = safe_normalize(p, up)
+        return wp.vec4(n[0], n[1], n[2], wp.length(p) - params[0])
+    if kind == SHAPE_CAPSULE:
+        # axis along local z, params = (radius, half height of the axis segment, -)
+        c = wp.vec3(0.0, 0.0, wp.clamp(p[2], -params[1], params[1]))
+        n = safe_normalize(p - c, wp.vec3(1.0, 0.0, 0.0))
+        return wp.vec4(n[0], n[1], n[2], wp.length(p - c) - params[0])
+    if kind == SHAPE_BOX:
+        q = wp.vec3(wp.abs(p[0]) - params[0], wp.abs(p[1]) - params[1], wp.abs(p[2]) - params[2])
+        qm = wp.max(q[0], wp.max(q[1], q[2]))
+        if qm > 0.0:
+            o = wp.vec3(wp.max(q[0], 0.0) * wp.sign(p[0]), wp.max(q[1], 0.0) * wp.sign(p[1]),
+                        wp.max(q[2], 0.0) * wp.sign(p[2]))
+            n = safe_normalize(o, up)
+            return wp.vec4(n[0], n[1], n[2], wp.length(o))
+        # inside: leave through the nearest face
+        if q[0] >= q[1] and q[0] >= q[2]:
+            return wp.vec4(wp.sign(p[0]), 0.0, 0.0, qm)
+        if q[1] >= q[2]:
+            return wp.vec4(0.0, wp.sign(p[1]), 0.0, qm)
+        return wp.vec4(0.0, 0.0, wp.sign(p[2]), qm)
+    if kind == SHAPE_PLANE:
+        # half-space below the local xy plane; params unused
+        return wp.vec4(0.0, 0.0, 1.0, p[2])
+    if kind == SHAPE_CYLINDER:
+        # axis along local z, params = (radius, half height, -)
+        rho = wp.sqrt(p[0] * p[0] + p[1] * p[1])
+        radial = wp.vec3(1.0, 0.0, 0.0)
+        if rho > 1.0e-12:
+            radial = wp.vec3(p[0] / rho, p[1] / rho, 0.0)
+        axial = wp.vec3(0.0, 0.0, wp.sign(p[2]))
+        dr = rho - params[0]
+        dz = wp.abs(p[2]) - params[1]
+        if dr > 0.0 and dz > 0.0:
+            n = safe_normalize(radial * dr + axial * dz, up)
+            return wp.vec4(n[0], n[1], n[2], wp.sqrt(dr * dr + dz * dz))
+        if dr > dz:
+            return wp.vec4(radial[0], radial[1], radial[2], dr)
+        return wp.vec4(axial[0], axial[1], axial[2], dz)
+    if kind == SHAPE_MESH:
+        # closed meshes: inside/outside from the normal at the closest point (angle-weighted at edges)
+        res = wp.mesh_query_point_sign_normal(mesh, p, max_dist)
+        if res.result:
+            cp = wp.mesh_eval_position(mesh, res.face, res.u, res.v)
+            delta = p - cp
+            dist = wp.length(delta)
+            fn = wp.mesh_eval_face_normal(mesh, res.face)
+            n = fn
+            if dist > 1.0e-9:
+                n = delta / dist * res.sign
+            return wp.vec4(n[0], n[1], n[2], dist * res.sign)
+    return wp.vec4(0.0, 0.0, 1.0, 1.0e6)
+
+
+@wp.func
+def interpolate_transform(a: wp.transform, b: wp.transform, s: float):
+    p = wp.transform_get_translation(a) * (1.0 - s) + wp.transform_get_translation(b) * s
+    r = wp.quat_slerp(wp.transform_get_rotation(a), wp.transform_get_rotation(b), s)
+    return wp.transform(p, r)
+
+
+@wp.func
+def shape_pose(body: int, local: wp.transform, env: int, body_q_prev: wp.array2d(dtype=wp.transform),
+               body_q: wp.array2d(dtype=wp.transform), blend: float):
+    if body < 0:
+        return local
+    return wp.transform_multiply(interpolate_transform(body_q_prev[env, body], body_q[env, body], blend), local)
+
+
+@wp.func
+def record_contact(env: int, particle: int, shape: int, normal: wp.vec3, depth: float,
+                   contact_count: wp.array(dtype=wp.int32), contact_particle: wp.array2d(dtype=wp.int32),
+                   contact_shape: wp.array2d(dtype=wp.int32), contact_normal: wp.array2d(dtype=wp.vec3),
+                   contact_depth: wp.array2d(dtype=float), overflow: wp.array(dtype=wp.int32)):
+    slot = wp.atomic_add(contact_count, env, 1)
+    if slot < contact_particle.shape[1]:
+        contact_particle[env, slot] = particle
+        contact_shape[env, slot] = shape
+        contact_normal[env, slot] = normal
+        contact_depth[env, slot] = depth
+    else:
+        overflow[env] = 1
+
+
+@wp.func
+def friction_correction(rel: wp.vec3, n: wp.vec3, pen: float, mu: wp.vec2):
+    """Positional Coulomb friction: the correction that cancels (static) or shortens (kinetic) the tangential
+    part of the relative displacement ``rel`` of this substep."""
+    t = rel - n * wp.dot(rel, n)
+    lt = wp.length(t)
+    if lt <= mu[0] * pen:
+        return -t
+    if lt > 0.0:
+        return -t * wp.min(mu[1] * pen / lt, 1.0)
+    return wp.vec3(0.0)
+
+
+# ----------------------------------------------------------------------------------------------------
+# particles against shapes
+# ----------------------------------------------------------------------------------------------------
+
+
+@wp.kernel
+def collide_particles(
+    cp_particle: wp.array(dtype=wp.int32),
+    cp_group: wp.array(dtype=wp.int32),
+    cp_radius: wp.array(dtype=float),
+    shape_kind: wp.array(dtype=wp.int32),
+    shape_body: wp.array(dtype=wp.int32),
+    shape_local: wp.array(dtype=wp.transform),
+    shape_params: wp.array(dtype=wp.vec3),
+    shape_mesh: wp.array(dtype=wp.uint64),
+    shape_thickness: wp.array(dtype=float),
+    shape_mu: wp.array(dtype=wp.vec2),
+    pair_index: wp.array2d(dtype=wp.int32),
+    body_q_prev: wp.array2d(dtype=wp.transform),
+    body_q: wp.array2d(dtype=wp.transform),
+    blend_prev: float,
+    blend: float,
+    inv_mass: wp.array2d(dtype=float),
+    q_pred: wp.array2d(dtype=wp.vec3),
+    qd: wp.array2d(dtype=wp.vec3),
+    h: float,
+    force_scale: float,
+    report: int,
+    report_margin: float,
+    q: wp.array2d(dtype=wp.vec3),
+    report_count: wp.array2d(dtype=wp.int32),
+    report_force: wp.array2d(dtype=float),
+    contact_count: wp.array(dtype=wp.int32),
+    contact_particle: wp.array2d(dtype=wp.int32),
+    contact_shape: wp.array2d(dtype=wp.int32),
+    contact_normal: wp.array2d(dtype=wp.vec3),
+    contact_depth: wp.array2d(dtype=float),
+    overflow: wp.array(dtype=wp.int32),
+):
+    env, k = wp.tid()
+    i = cp_particle[k]
+    w = inv_mass[env % inv_mass.shape[0], i]
+    if w == 0.0:
+        return
+    g = cp_group[k]
+    r = cp_radius[k]
+    x = q[env, i]
+    # start of this substep: the World predicted q_pred = x0 + v h and keeps v in qd until the velocity update
+    x0 = q_pred[env, i] - qd[env, i] * h
+    for s in range(shape_kind.shape[0]):
+        pair = pair_index[s, g]
+        if pair < 0:
+            continue
+        reach = r + shape_thickness[s]
+        tf = shape_pose(shape_body[s], shape_local[s], env, body_q_prev, body_q, blend)
+        pl = wp.transform_point(wp.transform_inverse(tf), x)
+        nd = sdf_local(shape_kind[s], shape_params[s], shape_mesh[s], pl, reach + report_margin + 1.0e-3)
+        d = nd[3]
+        pen = reach - d
+        if report != 0 and pen > -report_margin:
+            wp.atomic_add(report_count, env, pair, 1)
+            record_contact(env, i, s, wp.transform_vector(tf, wp.vec3(nd[0], nd[1], nd[2])), pen, contact_count,
+                           contact_particle, contact_shape, contact_normal, contact_depth, overflow)
+        if pen <= 0.0:
+            continue
+        n = wp.transform_vector(tf, wp.vec3(nd[0], nd[1], nd[2]))
+        x = x + n * pen
+        # where the touched surface point was at the start of the substep (moving tools drag particles along)
+        tf0 = shape_pose(shape_body[s], shape_local[s], env, body_q_prev, body_q, blend_prev)
+        xs0 = wp.transform_point(tf0, wp.transform_point(wp.transform_inverse(tf), x))
+        x = x + friction_correction((x - x0) - (x - xs0), n, pen, shape_mu[s])
+        wp.atomic_add(report_force, env, pair, pen / w * force_scale)
+    q[env, i] = x
+
+
+# ----------------------------------------------------------------------------------------------------
+# rod segments (capsules) against spheres and capsules: thin tools between rod nodes
+# ----------------------------------------------------------------------------------------------------
+
+
+@wp.func
+def closest_segment_segment(p1: wp.vec3, q1: wp.vec3, p2: wp.vec3, q2: wp.vec3):
+    """Parameters (s, t) in [0, 1] of the closest points of segments p1q1 and p2q2 (Ericson 5.1.9)."""
+    d1 = q1 - p1
+    d2 = q2 - p2
+    r = p1 - p2
+    a = wp.dot(d1, d1)
+    e = wp.dot(d2, d2)
+    f = wp.dot(d2, r)
+    s = float(0.0)
+    t = float(0.0)
+    eps = 1.0e-14
+    if a <= eps and e <= eps:
+        return wp.vec2(0.0, 0.0)
+    if a <= eps:
+        t = wp.clamp(f / e, 0.0, 1.0)
+        return wp.vec2(0.0, t)
+    c = wp.dot(d1, r)
+    if e <= eps:
+        s = wp.clamp(-c / a, 0.0, 1.0)
+        return wp.vec2(s, 0.0)
+    b = wp.dot(d1, d2)
+    denom = a * e - b * b
+    if denom > eps * a * e:
+        s = wp.clamp((b * f - c * e) / denom, 0.0, 1.0)
+    t = (b * s + f) / e
+    if t < 0.0:
+        t = 0.0
+        s = wp.clamp(-c / a, 0.0, 1.0)
+    elif t > 1.0:
+        t = 1.0
+        s = wp.clamp((b - c) / a, 0.0, 1.0)
+    return wp.vec2(s, t)
+
+
+@wp.kernel
+def collide_segments(
+    seg_nodes: wp.array(dtype=wp.vec2i),
+    seg_group: wp.array(dtype=wp.int32),
+    seg_radius: wp.array(dtype=float),
+    start: int,
+    shape_kind: wp.array(dtype=wp.int32),
+    shape_body: wp.array(dtype=wp.int32),
+    shape_local: wp.array(dtype=wp.transform),
+    shape_params: wp.array(dtype=wp.vec3),
+    shape_thickness: wp.array(dtype=float),
+    shape_mu: wp.array(dtype=wp.vec2),
+    pair_index: wp.array2d(dtype=wp.int32),
+    body_q_prev: wp.array2d(dtype=wp.transform),
+    body_q: wp.array2d(dtype=wp.transform),
+    blend_prev: float,
+    blend: float,
+    inv_mass: wp.array2d(dtype=float),
+    q_pred: wp.array2d(dtype=wp.vec3),
+    qd: wp.array2d(dtype=wp.vec3),
+    h: float,
+    force_scale: float,
+    q: wp.array2d(dtype=wp.vec3),
+    report_force: wp.array2d(dtype=float),
+):
+    # one launch per colour of segments (segments of one colour share no node): no write races
+    env, k0 = wp.tid()
+    k = start + k0
+    a = seg_nodes[k][0]
+    b = seg_nodes[k][1]
+    pe = env % inv_mass.shape[0]
+    wa = inv_mass[pe, a]
+    wb = inv_mass[pe, b]
+    if wa + wb == 0.0:
+        return
+    g = seg_group[k]
+    xa = q[env, a]
+    xb = q[env, b]
+    for s in range(shape_kind.shape[0]):
+        kind = shape_kind[s]
+        pair = pair_index[s, g]
+        if pair < 0 or kind > SHAPE_CAPSULE:
+            continue
+        tf = shape_pose(shape_body[s], shape_local[s], env, body_q_prev, body_q, blend)
+        hh = float(0.0)
+        if kind == SHAPE_CAPSULE:
+            hh = shape_params[s][1]
+        c0 = wp.transform_point(tf, wp.vec3(0.0, 0.0, -hh))
+        c1 = wp.transform_point(tf, wp.vec3(0.0, 0.0, hh))
+        st = closest_segment_segment(xa, xb, c0, c1)
+        u = st[0]
+        # the nodes themselves are handled by collide_particles; here only the segment interior
+        if u <= 0.0 or u >= 1.0:
+            continue
+        p = xa * (1.0 - u) + xb * u
+        c = c0 * (1.0 - st[1]) + c1 * st[1]
+        n = safe_normalize(p - c, wp.vec3(0.0, 0.0, 1.0))
+        pen = seg_radius[k] + shape_params[s][0] + shape_thickness[s] - wp.length(p - c)
+        if pen <= 0.0:
+            continue
+        # point correction distributed to the nodes with barycentric weights (Mueller et al. 2020)
+        wsum = (1.0 - u) * (1.0 - u) * wa + u * u * wb
+        # friction on the relative motion of the contact point during this substep
+        pa0 = q_pred[env, a] - qd[env, a] * h
+        pb0 = q_pred[env, b] - qd[env, b] * h
+        tf0 = shape_pose(shape_body[s], shape_local[s], env, body_q_prev, body_q, blend_prev)
+        c_0 = wp.transform_point(tf0, wp.transform_point(wp.transform_inverse(tf), c))
+        rel = (p + n * pen - (pa0 * (1.0 - u) + pb0 * u)) - (c - c_0)
+        dp = n * pen + friction_correction(rel, n, pen, shape_mu[s])
+        xa = xa + dp * ((1.0 - u) * wa / wsum)
+        xb = xb + dp * (u * wb / wsum)
+        wp.atomic_add(report_force, env, pair, pen / wsum * force_scale)
+    q[env, a] = xa
+    q[env, b] = xb
+
+
+# ----------------------------------------------------------------------------------------------------
+# particle-particle contact (deformable vs deformable, rod self-contact), Jacobi with averaging
+# ----------------------------------------------------------------------------------------------------
+
+
+@wp.kernel
+def collide_particle_pairs(
+    sp_particle: wp.array(dtype=wp.int32),
+    sp_radius: wp.array(dtype=float),
+    sp_chain: wp.array(dtype=wp.int32),
+    sp_chain_pos: wp.array(dtype=wp.int32),
+    sp_chain_len: wp.array(dtype=wp.int32),
+    sp_pair: wp.array(dtype=wp.int32),
+    skip_links: int,
+    mu: wp.vec2,
+    inv_mass: wp.array2d(dtype=float),
+    q_pred: wp.array2d(dtype=wp.vec3),
+    qd: wp.array2d(dtype=wp.vec3),
+    h: float,
+    force_scale: float,
+    report: int,
+    q: wp.array2d(dtype=wp.vec3),
+    delta: wp.array2d(dtype=wp.vec3),
+    report_count: wp.array2d(dtype=wp.int32),
+    report_force: wp.array2d(dtype=float),
+):
+    # brute force over the (small) contact set of one env: a rod of <= ~100 nodes costs fewer tests than a
+    # hash-grid build + query per env, and envs never see each other's particles
+    env, k = wp.tid()
+    i = sp_particle[k]
+    pe = env % inv_mass.shape[0]
+    wi = inv_mass[pe, i]
+    if wi == 0.0:
+        delta[env, k] = wp.vec3(0.0)
+        return
+    xi = q[env, i]
+    xi0 = q_pred[env, i] - qd[env, i] * h
+    acc = wp.vec3(0.0)
+    cnt = int(0)
+    for m in range(sp_particle.shape[0]):
+        if m == k:
+            continue
+        if sp_chain[m] == sp_chain[k] and sp_chain[k] >= 0:
+            gap = wp.abs(sp_chain_pos[m] - sp_chain_pos[k])
+            ln = sp_chain_len[k]
+            if ln > 0:
+                gap = wp.min(gap, ln - gap)  # closed loop: cyclic distance along the chain
+            if gap <= skip_links:
+                continue
+        j = sp_particle[m]
+        xj = q[env, j]
+        dvec = xi - xj
+        dist = wp.length(dvec)
+        pen = sp_radius[k] + sp_radius[m] - dist
+        if pen <= 0.0:
+            continue
+        wj = inv_mass[pe, j]
+        n = safe_normalize(dvec, wp.vec3(0.0, 0.0, 1.0))
+        share = wi / (wi + wj)
+        corr = n * (pen * share)
+        xj0 = q_pred[env, j] - qd[env, j] * h
+        rel = (xi - xi0) - (xj - xj0)
+        corr = corr + friction_correction(rel, n, pen, mu) * share
+        acc = acc + corr
+        cnt += 1
+        if sp_pair[k] >= 0:
+            # each pair is seen from both sides: half the force per side
+            wp.atomic_add(report_force, env, sp_pair[k], 0.5 * pen / (wi + wj) * force_scale)
+            if report != 0:
+                wp.atomic_add(report_count, env, sp_pair[k], 1)
+    if cnt > 0:
+        acc = acc / float(cnt)
+    delta[env, k] = acc
+
+
+@wp.kernel
+def apply_particle_deltas(sp_particle: wp.array(dtype=wp.int32), delta: wp.array2d(dtype=wp.vec3),
+                          q: wp.array2d(dtype=wp.vec3)):
+    env, k = wp.tid()
+    i = sp_particle[k]
+    q[env, i] = q[env, i] + delta[env, k]
+
+
+# ----------------------------------------------------------------------------------------------------
+# reports
+# ----------------------------------------------------------------------------------------------------
+
+
+@wp.kernel
+def clear_reports(report_count: wp.array2d(dtype=wp.int32), report_force: wp.array2d(dtype=float),
+                  contact_count: wp.array(dtype=wp.int32), overflow: wp.array(dtype=wp.int32)):
+    env = wp.tid()
+    for p in range(report_count.shape[1]):
+        report_count[env, p] = 0
+        report_force[env, p] = 0.0
+    contact_count[env] = 0
+    overflow[env] = 0
+
+
+@wp.kernel
+def clamp_contact_count(capacity: int, contact_count: wp.array(dtype=wp.int32)):
+    env = wp.tid()
+    contact_count[env] = wp.min(contact_count[env], capacity)
