@@ -8,7 +8,6 @@ import math
 import numpy as np
 import pytest
 import trimesh
-import warp as wp
 
 from lapwarp.assets import box_tets, cloth_grid, rod_circle, rod_polyline
 from lapwarp.builder import SceneBuilder
@@ -170,7 +169,7 @@ def test_contact_counts_match_hand_built_scene_and_envs_are_isolated(device):
     def build(with_tool):
         b = SceneBuilder()
         pts = np.array([[0.0, 0, 0.002], [0.01, 0, 0.002], [0.05, 0, 0.05], [0.1, 0, 0.012]])
-        p = b.add_particles(pts, mass=0.01)
+        b.add_particles(pts, mass=0.01)
         b.fix_particles([2])
         tool = b.add_body("tool", pose=(0.05, 0, 0.5, 0, 0, 0, 1))
         w = b.finalize(num_envs=2, device=device, substeps=10)
