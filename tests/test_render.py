@@ -29,6 +29,11 @@ GOLDEN = Path(__file__).parent / "data" / "render_golden.png"
 IDENTITY = np.array([0, 0, 0, 0, 0, 0, 1], dtype=np.float32)
 
 
+
+def on_device(device: str, array: np.ndarray) -> torch.Tensor:
+    """A torch tensor of ``array`` on the renderer's device (the renderer rejects tensors on other devices)."""
+    return torch.from_numpy(np.ascontiguousarray(array)).to(device)
+
 def quad(half: float, z: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """Square in the z plane, front face towards +z (counter-clockwise seen from +z)."""
     v = np.array([[-half, -half, z], [half, -half, z], [half, half, z], [-half, half, z]], dtype=np.float32)
@@ -218,7 +223,7 @@ def test_shared_edges_through_pixel_centres_leave_no_cracks(device):
     r.finalize()
     r.set_camera_poses(IDENTITY)
     r.set_instance_transforms(pose((0, 0, -2.0))[None, None])
-    r.render(deformable_points={sheet: torch.from_numpy(pts[None].astype(np.float32))})
+    r.render(deformable_points={sheet: on_device(device, pts[None].astype(np.float32))})
     assert (numpy(r.segmentation) == 2).all()
     assert np.allclose(numpy(r.depth), 1.0, rtol=1e-5)
 
@@ -235,7 +240,7 @@ def test_raster_split_and_early_depth_test_render_identically(device):
         r.set_camera_poses(look_at([[0, 0, 3.0], [0.5, 0.3, 2.5]], [[0, 0, 0]] * 2))
         r.set_instance_transforms(np.stack([pose((0.2, 0, -0.5), (1, 1, 0), 30.0)] * 2)[:, None])
         pts = np.stack([cloth_points(4, 0.6, 0.3), cloth_points(4, 0.5, 0.2, (0.2, 0.1))])
-        r.render(deformable_points={sheet: torch.from_numpy(pts)})
+        r.render(deformable_points={sheet: on_device(device, pts)})
         outputs.append((numpy(r.depth), numpy(r.segmentation), numpy(r.rgb)))
         assert {1, 2} <= set(np.unique(outputs[-1][1]))
     for other in outputs[1:]:
@@ -322,7 +327,7 @@ def test_project_points_matches_rasterised_markers(device):
     r.add_instance(r.add_mesh(*quad(1.0)))
     r.finalize()
     r.set_camera_poses(cams)
-    dev = numpy(r.project_points(torch.from_numpy(points)))
+    dev = numpy(r.project_points(on_device(device, points)))
     assert np.allclose(dev, proj, rtol=1e-4, atol=1e-3)
 
 
@@ -365,8 +370,8 @@ def test_cut_triangles_disappear(device, mask_dtype):
         r.set_camera_poses(IDENTITY)
         r.set_instance_transforms(pose((0, 0, -3.0))[None, None].repeat(2, 0))
         # Slightly off-centre so that no pixel centre lies exactly on the diagonal (a tie either way).
-        pts = torch.from_numpy(np.tile(quad(2.0, -2.0)[0] + [0.013, 0.007, 0.0], (2, 1, 1)).astype(np.float32))
-        mask = torch.ones((2, 2), dtype=mask_dtype)
+        pts = on_device(device, np.tile(quad(2.0, -2.0)[0] + [0.013, 0.007, 0.0], (2, 1, 1)).astype(np.float32))
+        mask = torch.ones((2, 2), dtype=mask_dtype, device=device)
         mask[1, 0] = 0  # cut the lower-right triangle in env 1 only
         r.render(deformable_points={sheet: pts}, active_masks={sheet: mask})
         results[method] = (numpy(r.segmentation)[:, 0], numpy(r.depth)[:, 0])
@@ -393,7 +398,7 @@ def test_per_env_geometry_and_cameras_are_isolated(device):
     xf[:, 0, 3:] = cams[:, 3:]  # face the env's own camera
     pts = np.stack([cloth_points(3, 1.0, -40.0), cloth_points(3, 0.5, 0.0), cloth_points(3, 1.0, 40.0)])
     pts[1] = pts[1][:, [2, 1, 0]]  # env 1: the sheet in the x=0 plane, facing its camera on +x
-    r.render(instance_transforms=torch.from_numpy(xf), deformable_points={sheet: torch.from_numpy(pts)})
+    r.render(instance_transforms=on_device(device, xf), deformable_points={sheet: on_device(device, pts)})
     seg = numpy(r.segmentation)[:, 0]
     assert set(np.unique(seg[0])) == {-1, 1}
     assert set(np.unique(seg[1])) == {-1, 2}
@@ -412,7 +417,7 @@ def test_tube_width_and_orientation(device):
     r.finalize()
     r.set_camera_poses(IDENTITY)
     nodes = np.stack([np.linspace(-2, 2, 6), np.zeros(6), np.full(6, -dist)], -1)[None].astype(np.float32)
-    r.render(tube_nodes={tube: torch.from_numpy(nodes)})
+    r.render(tube_nodes={tube: on_device(device, nodes)})
     seg = numpy(r.segmentation)[0, 0]
     column = seg[:, w // 2] == 3
     expected = 2 * radius * focal_length(fov, h) / dist
@@ -496,9 +501,9 @@ def golden_scene(device, method: str = "raster") -> Renderer:
     tt = np.linspace(0, 1, 10)
     nodes = np.stack([0.6 * tt - 0.3, -0.35 + 0.08 * np.sin(8 * tt), 0.25 + 0 * tt], -1)[None].repeat(2, 0)
     r.render(
-        deformable_points={cloth: torch.from_numpy(pts.astype(np.float32))},
-        active_masks={cloth: torch.from_numpy(mask)},
-        tube_nodes={tube: torch.from_numpy(nodes.astype(np.float32))},
+        deformable_points={cloth: on_device(device, pts.astype(np.float32))},
+        active_masks={cloth: on_device(device, mask)},
+        tube_nodes={tube: on_device(device, nodes.astype(np.float32))},
     )
     return r
 
