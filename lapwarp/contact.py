@@ -77,6 +77,8 @@ class ContactSystem:
         capacity: contact records kept per env per step (``contacts()``); more raise ``overflow[env]``.
         report_margin: distance (m) below contact at which a particle counts as touching in the reports and
             the contact records (a resting particle sits exactly at the contact distance).
+        body_ignore_mask: allocate ``ignore_bodies`` ``(num_envs, particle_count)`` int32: bit ``b`` set for a
+            particle makes it pass through the shapes of body ``b`` (grasping sets it for held particles).
 
     Attributes (after ``finalize``):
         report_count: ``(num_envs, num_pairs)`` int32 contacts per pair in the last substep of the last step.
@@ -89,8 +91,9 @@ class ContactSystem:
         pair_names: name of every report column, ``"shape/group"`` or the self-contact set's name.
     """
 
-    def __init__(self, world, capacity: int = 64, report_margin: float = 1.0e-4):
+    def __init__(self, world, capacity: int = 64, report_margin: float = 1.0e-4, body_ignore_mask: bool = False):
         self.world = world
+        self.body_ignore_mask = bool(body_ignore_mask)
         self.device = world.device
         self.num_envs = world.num_envs
         self.capacity = int(capacity)
@@ -318,6 +321,10 @@ class ContactSystem:
         self.contact_depth = wp.zeros((n, cap), dtype=float, device=dev)
         self.overflow = wp.zeros(n, dtype=wp.int32, device=dev)
         self._dummy_tf = wp.zeros((1, 1), dtype=wp.transform, device=dev)
+        if self.body_ignore_mask:
+            self.ignore_bodies = wp.zeros((n, max(self.world.model.particle_count, 1)), dtype=wp.int32, device=dev)
+        else:
+            self.ignore_bodies = wp.zeros((1, 1), dtype=wp.int32, device=dev)
         self._finalized = True
         self.world.add_solver(self)
         return self
@@ -360,7 +367,8 @@ class ContactSystem:
             launch(ck.collide_particles, (n, len(self.cp_particle)),
                    [self.cp_particle, self.cp_group, self.cp_radius, *shapes, self.shape_mesh, self.shape_thickness,
                     self.shape_mu, self.pair_index, bqp, bq, blend_prev, blend, m.particle_inv_mass, world._q_pred,
-                    s.particle_qd, h, force_scale, report, self.report_margin],
+                    s.particle_qd, h, force_scale, report, self.report_margin, self.ignore_bodies,
+                    int(self.body_ignore_mask)],
                    [s.particle_q, self.report_count, self.report_force, self.contact_count, self.contact_particle,
                     self.contact_shape, self.contact_normal, self.contact_depth, self.overflow])
         off = self.seg_color_offsets
@@ -368,7 +376,8 @@ class ContactSystem:
             launch(ck.collide_segments, (n, off[c + 1] - off[c]),
                    [self.seg_nodes, self.seg_group, self.seg_radius, off[c], *shapes, self.shape_thickness,
                     self.shape_mu, self.pair_index, bqp, bq, blend_prev, blend, m.particle_inv_mass, world._q_pred,
-                    s.particle_qd, h, force_scale], [s.particle_q, self.report_force])
+                    s.particle_qd, h, force_scale, self.ignore_bodies, int(self.body_ignore_mask)],
+                   [s.particle_q, self.report_force])
         for a in self._self_arrays:
             launch(ck.collide_particle_pairs, (n, a["count"]),
                    [a["particle"], a["radius"], a["chain"], a["pos"], a["length"], a["pair"], a["skip"], a["mu"],

@@ -173,6 +173,8 @@ def collide_particles(
     force_scale: float,
     report: int,
     report_margin: float,
+    ignore_bodies: wp.array2d(dtype=wp.int32),
+    use_ignore: int,
     q: wp.array2d(dtype=wp.vec3),
     report_count: wp.array2d(dtype=wp.int32),
     report_force: wp.array2d(dtype=float),
@@ -193,9 +195,15 @@ def collide_particles(
     x = q[env, i]
     # start of this substep: the World predicted q_pred = x0 + v h and keeps v in qd until the velocity update
     x0 = q_pred[env, i] - qd[env, i] * h
+    ignore = int(0)
+    if use_ignore != 0:
+        ignore = ignore_bodies[env, i]
     for s in range(shape_kind.shape[0]):
         pair = pair_index[s, g]
         if pair < 0:
+            continue
+        # grasped particles do not collide with the jaws holding them (bit b = body b)
+        if shape_body[s] >= 0 and ((ignore >> shape_body[s]) & 1) != 0:
             continue
         reach = r + shape_thickness[s]
         tf = shape_pose(shape_body[s], shape_local[s], env, body_q_prev, body_q, blend)
@@ -281,6 +289,8 @@ def collide_segments(
     qd: wp.array2d(dtype=wp.vec3),
     h: float,
     force_scale: float,
+    ignore_bodies: wp.array2d(dtype=wp.int32),
+    use_ignore: int,
     q: wp.array2d(dtype=wp.vec3),
     report_force: wp.array2d(dtype=float),
 ):
@@ -297,10 +307,15 @@ def collide_segments(
     g = seg_group[k]
     xa = q[env, a]
     xb = q[env, b]
+    ignore = int(0)
+    if use_ignore != 0:
+        ignore = ignore_bodies[env, a] | ignore_bodies[env, b]
     for s in range(shape_kind.shape[0]):
         kind = shape_kind[s]
         pair = pair_index[s, g]
         if pair < 0 or kind > SHAPE_CAPSULE:
+            continue
+        if shape_body[s] >= 0 and ((ignore >> shape_body[s]) & 1) != 0:
             continue
         tf = shape_pose(shape_body[s], shape_local[s], env, body_q_prev, body_q, blend)
         hh = float(0.0)
@@ -438,3 +453,247 @@ def clear_reports(report_count: wp.array2d(dtype=wp.int32), report_force: wp.arr
 def clamp_contact_count(capacity: int, contact_count: wp.array(dtype=wp.int32)):
     env = wp.tid()
     contact_count[env] = wp.min(contact_count[env], capacity)
+
+
+# ----------------------------------------------------------------------------------------------------
+# grasping: attachments written into the per-env slots of state.attach_* (see lapwarp/grasping.py)
+# ----------------------------------------------------------------------------------------------------
+
+
+@wp.func
+def release_slots(env: int, slot_start: int, slots: int, jaw_mask: int, attach_particle: wp.array2d(dtype=wp.int32),
+                  ignore_bodies: wp.array2d(dtype=wp.int32), use_ignore: int):
+    for k in range(slots):
+        i = attach_particle[env, slot_start + k]
+        if i >= 0 and use_ignore != 0:
+            ignore_bodies[env, i] = ignore_bodies[env, i] & (~jaw_mask)
+        attach_particle[env, slot_start + k] = -1
+
+
+@wp.func
+def in_jaw_cone(pl: wp.vec3, angle: float, jaw_length: float, margin: float):
+    """Local tip-frame point between the jaws: within the jaw length and inside the opening angle (+ margin)."""
+    if pl[2] < -margin or pl[2] > jaw_length + margin:
+        return False
+    if wp.abs(pl[0]) > margin:
+        return False
+    return wp.abs(pl[1]) <= wp.max(pl[2], 0.0) * wp.tan(angle) + margin
+
+
+@wp.kernel
+def update_grasp(
+    jaw_angle_deg: wp.array(dtype=float),
+    grasp_threshold: float,
+    release_threshold: float,
+    shaft: int,
+    jaw_a: int,
+    jaw_b: int,
+    jaw_length: float,
+    cone_margin: float,
+    max_offset: float,
+    slot_start: int,
+    slots: int,
+    compliance: float,
+    graspable: wp.array(dtype=wp.int32),
+    particle_segment: wp.array(dtype=wp.int32),
+    shape_body: wp.array(dtype=wp.int32),
+    contact_count: wp.array(dtype=wp.int32),
+    contact_particle: wp.array2d(dtype=wp.int32),
+    contact_shape: wp.array2d(dtype=wp.int32),
+    body_q: wp.array2d(dtype=wp.transform),
+    q: wp.array2d(dtype=wp.vec3),
+    segment_q: wp.array2d(dtype=wp.quat),
+    use_ignore: int,
+    grasped: wp.array(dtype=wp.int32),
+    lost_grasp: wp.array(dtype=wp.int32),
+    attach_particle: wp.array2d(dtype=wp.int32),
+    attach_body: wp.array2d(dtype=wp.int32),
+    attach_offset: wp.array2d(dtype=wp.vec3),
+    attach_compliance: wp.array2d(dtype=float),
+    grasp_delta: wp.array2d(dtype=wp.quat),
+    ignore_bodies: wp.array2d(dtype=wp.int32),
+):
+    env = wp.tid()
+    lost_grasp[env] = 0
+    angle = jaw_angle_deg[env]
+    jaw_mask = (1 << jaw_a) | (1 << jaw_b)
+    tip = body_q[env, shaft]
+    if grasped[env] != 0:
+        far = int(0)
+        for k in range(slots):
+            i = attach_particle[env, slot_start + k]
+            if i >= 0:
+                if wp.length(q[env, i] - wp.transform_point(tip, attach_offset[env, slot_start + k])) > max_offset:
+                    far = 1
+        if angle >= release_threshold or far != 0:
+            release_slots(env, slot_start, slots, jaw_mask, attach_particle, ignore_bodies, use_ignore)
+            grasped[env] = 0
+            lost_grasp[env] = far
+        return
+    if angle >= grasp_threshold:
+        return
+    n = wp.min(contact_count[env], contact_particle.shape[1])
+    has_a = int(0)
+    has_b = int(0)
+    for c in range(n):
+        if graspable[contact_particle[env, c]] == 0:
+            continue
+        b = shape_body[contact_shape[env, c]]
+        if b == jaw_a:
+            has_a = 1
+        if b == jaw_b:
+            has_b = 1
+    if has_a == 0 or has_b == 0:
+        return
+    inv_tip = wp.transform_inverse(tip)
+    rad = angle * (wp.pi / 180.0)
+    got = int(0)
+    for k in range(slots):
+        best = int(-1)
+        best_d = float(1.0e9)
+        for c in range(n):
+            i = contact_particle[env, c]
+            b = shape_body[contact_shape[env, c]]
+            if graspable[i] == 0 or (b != jaw_a and b != jaw_b):
+                continue
+            taken = int(0)
+            for m in range(k):
+                if attach_particle[env, slot_start + m] == i:
+                    taken = 1
+            if taken != 0:
+                continue
+            pl = wp.transform_point(inv_tip, q[env, i])
+            if not in_jaw_cone(pl, rad, jaw_length, cone_margin):
+                continue
+            # nearest to the jaws' mid-plane
+            d = wp.abs(pl[1]) + wp.abs(pl[0])
+            if d < best_d:
+                best_d = d
+                best = i
+        if best < 0:
+            break
+        s = slot_start + k
+        attach_particle[env, s] = best
+        attach_body[env, s] = shaft
+        attach_offset[env, s] = wp.transform_point(inv_tip, q[env, best])
+        attach_compliance[env, s] = compliance
+        seg = particle_segment[best]
+        if seg >= 0:
+            grasp_delta[env, k] = wp.mul(wp.quat_inverse(wp.transform_get_rotation(tip)), segment_q[env, seg])
+        if use_ignore != 0:
+            ignore_bodies[env, best] = ignore_bodies[env, best] | jaw_mask
+        got += 1
+    if got > 0:
+        grasped[env] = 1
+
+
+@wp.kernel
+def hold_grasped_orientations(
+    shaft: int,
+    slot_start: int,
+    particle_segment: wp.array(dtype=wp.int32),
+    attach_particle: wp.array2d(dtype=wp.int32),
+    grasp_delta: wp.array2d(dtype=wp.quat),
+    body_q_prev: wp.array2d(dtype=wp.transform),
+    body_q: wp.array2d(dtype=wp.transform),
+    blend: float,
+    segment_q: wp.array2d(dtype=wp.quat),
+):
+    # a grasped rod frame turns with the jaw: its segment orientation is projected onto jaw rotation * delta
+    env, k = wp.tid()
+    i = attach_particle[env, slot_start + k]
+    if i < 0:
+        return
+    seg = particle_segment[i]
+    if seg < 0:
+        return
+    tf = interpolate_transform(body_q_prev[env, shaft], body_q[env, shaft], blend)
+    segment_q[env, seg] = wp.normalize(wp.mul(wp.transform_get_rotation(tf), grasp_delta[env, k]))
+
+
+@wp.kernel
+def start_grasp(
+    env_mask: wp.array(dtype=wp.int32),
+    particle: int,
+    shaft: int,
+    jaw_mask: int,
+    slot_start: int,
+    slots: int,
+    compliance: float,
+    particle_segment: wp.array(dtype=wp.int32),
+    body_q: wp.array2d(dtype=wp.transform),
+    q: wp.array2d(dtype=wp.vec3),
+    segment_q: wp.array2d(dtype=wp.quat),
+    use_ignore: int,
+    grasped: wp.array(dtype=wp.int32),
+    lost_grasp: wp.array(dtype=wp.int32),
+    attach_particle: wp.array2d(dtype=wp.int32),
+    attach_body: wp.array2d(dtype=wp.int32),
+    attach_offset: wp.array2d(dtype=wp.vec3),
+    attach_compliance: wp.array2d(dtype=float),
+    grasp_delta: wp.array2d(dtype=wp.quat),
+    ignore_bodies: wp.array2d(dtype=wp.int32),
+):
+    env = wp.tid()
+    if env_mask[env] == 0:
+        return
+    release_slots(env, slot_start, slots, jaw_mask, attach_particle, ignore_bodies, use_ignore)
+    lost_grasp[env] = 0
+    grasped[env] = 0
+    if particle < 0:
+        return
+    tip = body_q[env, shaft]
+    attach_particle[env, slot_start] = particle
+    attach_body[env, slot_start] = shaft
+    attach_offset[env, slot_start] = wp.transform_point(wp.transform_inverse(tip), q[env, particle])
+    attach_compliance[env, slot_start] = compliance
+    seg = particle_segment[particle]
+    if seg >= 0:
+        grasp_delta[env, 0] = wp.mul(wp.quat_inverse(wp.transform_get_rotation(tip)), segment_q[env, seg])
+    if use_ignore != 0:
+        ignore_bodies[env, particle] = ignore_bodies[env, particle] | jaw_mask
+    grasped[env] = 1
+
+
+# ----------------------------------------------------------------------------------------------------
+# instrument bodies (lapwarp/instrument_shapes.py)
+# ----------------------------------------------------------------------------------------------------
+
+
+@wp.kernel
+def pose_instrument_bodies(
+    tip_pose: wp.array2d(dtype=wp.transform),
+    column: int,
+    jaw_angle_deg: wp.array(dtype=float),
+    bodies: wp.vec3i,
+    body_q: wp.array2d(dtype=wp.transform),
+):
+    env = wp.tid()
+    tip = tip_pose[env, column]
+    body_q[env, bodies[0]] = tip
+    if bodies[1] >= 0:
+        a = jaw_angle_deg[env] * (wp.pi / 180.0)
+        body_q[env, bodies[1]] = wp.transform_multiply(
+            tip, wp.transform(wp.vec3(0.0), wp.quat_from_axis_angle(wp.vec3(1.0, 0.0, 0.0), a)))
+        body_q[env, bodies[2]] = wp.transform_multiply(
+            tip, wp.transform(wp.vec3(0.0), wp.quat_from_axis_angle(wp.vec3(1.0, 0.0, 0.0), -a)))
+
+
+@wp.kernel
+def step_jaw_angle(
+    action: wp.array2d(dtype=float),
+    column: int,
+    max_speed_deg: float,
+    dt: float,
+    low: float,
+    high: float,
+    grasped: wp.array(dtype=wp.int32),
+    use_grasped: int,
+    angle_deg: wp.array(dtype=float),
+):
+    # sofa_env: angle += a * max_speed * dt, clipped to the limits; closing is ignored while grasping
+    env = wp.tid()
+    d = wp.clamp(action[env, column], -1.0, 1.0) * max_speed_deg * dt
+    if use_grasped != 0 and grasped[env] != 0 and d < 0.0:
+        d = 0.0
+    angle_deg[env] = wp.clamp(angle_deg[env] + d, low, high)

@@ -1,0 +1,133 @@
+"""Grasping with a two-jaw instrument, per env and inside the recorded step (no host syncs).
+
+Rule (sofa_env's ArticulatedGripper, see sofa_env-facts 4.2): at the end of every ``world.step``, in an env that
+holds nothing, if the jaw angle is below ``grasp_threshold`` and the last substep found contacts of graspable
+particles with *both* jaws, the particles touching a jaw and lying inside the jaw cone (between the jaws, within
+the jaw length) that are nearest to the jaws' mid-plane (up to ``slots`` of them) are attached to the shaft body
+at their current offset: attachment slots ``[slot_start, slot_start + slots)`` of ``state.attach_*`` are written
+with a small compliance. For rod nodes the adjacent segment's orientation is held at the jaw rotation times its
+orientation at grasp time (projected in every sweep). Held particles stop colliding with the jaws (the
+ContactSystem's ``ignore_bodies`` mask), so the jaws do not squeeze them out. Opening the jaws to
+``release_threshold`` or more releases them; a held particle dragged farther than ``max_offset`` from its jaw
+target (torn out by the scene) releases the grasp and raises ``lost_grasp`` for that step.
+
+State: ``grasped`` ``(num_envs,)`` int32 (sticky), ``lost_grasp`` ``(num_envs,)`` int32 (the event of the last
+step). ``start_grasped(particle, env_mask)`` attaches a given particle at reset, as sofa_env's ``start_grasped``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+from lapwarp.kernels import contact as ck
+
+
+class GraspSystem:
+    """Grasp logic of one articulated instrument.
+
+    Args:
+        contact: the finalized ContactSystem (built with ``body_ignore_mask=True`` so held particles pass through
+            the jaws; it also provides the contact records of the last substep).
+        instrument: an articulated :class:`lapwarp.instrument_shapes.InstrumentShape` whose jaws are colliders.
+        jaw_angle_deg: ``(num_envs,)`` float32 device array of the current jaw angle (degrees), read every step.
+        groups: ContactSystem particle group ids that can be grasped (default: all).
+        grasp_threshold: jaw angle (deg) below which a grasp is attempted.
+        release_threshold: jaw angle (deg) at or above which a grasp is released (>= grasp_threshold).
+        slot_start: first attachment slot reserved for this grasper (``finalize(attachment_capacity=...)`` must
+            leave ``slot_start + slots`` slots).
+        slots: particles held at most (1 = the single nearest point, as sofa_env's rope grasp).
+        compliance: attachment compliance, m/N (small: a stiff spring).
+        cone_margin: tolerance of the jaw-cone test, m.
+        max_offset: distance (m) from the jaw target beyond which a grasp counts as lost.
+        hold_orientation: project grasped rod segments' orientations onto the jaw rotation.
+    """
+
+    def __init__(self, contact, instrument, jaw_angle_deg: wp.array, groups=None, grasp_threshold: float = 10.0,
+                 release_threshold: float = 15.0, slot_start: int = 0, slots: int = 1, compliance: float = 1.0e-6,
+                 cone_margin: float = 3.0e-3, max_offset: float = 0.01, hold_orientation: bool = True):
+        if not instrument.articulated:
+            raise ValueError(f"{instrument.kind} has no jaws")
+        if release_threshold < grasp_threshold:
+            raise ValueError("release_threshold must be >= grasp_threshold")
+        world = contact.world
+        cap = world.model.attachment_capacity
+        if slot_start < 0 or slot_start + slots > cap:
+            raise ValueError(f"slots [{slot_start}, {slot_start + slots}) exceed attachment_capacity {cap}")
+        if max(instrument.bodies) >= 31:
+            raise ValueError("the ignore mask holds bodies 0..30")
+        self.contact, self.world, self.instrument = contact, world, instrument
+        self.jaw_angle = jaw_angle_deg
+        self.grasp_threshold, self.release_threshold = float(grasp_threshold), float(release_threshold)
+        self.slot_start, self.slots, self.compliance = int(slot_start), int(slots), float(compliance)
+        self.cone_margin, self.max_offset = float(cone_margin), float(max_offset)
+        self.hold_orientation = bool(hold_orientation) and world.model.segment_count > 0
+        n, dev, m = world.num_envs, world.device, world.model
+        graspable = np.zeros(max(m.particle_count, 1), dtype=np.int32)
+        for g in (range(len(contact.groups)) if groups is None else np.atleast_1d(groups)):
+            graspable[contact.groups[int(g)].particles] = 1
+        # rod node -> an adjacent segment (node k of a rod: segment k, the last node of an open rod: the last one)
+        seg_of = -np.ones(max(m.particle_count, 1), dtype=np.int32)
+        for obj in m.objects:
+            if obj.kind == "rod":
+                k = np.arange(obj.particle_count)
+                seg_of[obj.particles] = obj.segment_start + np.minimum(k, obj.segment_count - 1)
+        self.graspable = wp.array(graspable, dtype=wp.int32, device=dev)
+        self.particle_segment = wp.array(seg_of, dtype=wp.int32, device=dev)
+        self.grasped = wp.zeros(n, dtype=wp.int32, device=dev)
+        self.lost_grasp = wp.zeros(n, dtype=wp.int32, device=dev)
+        self.grasp_delta = wp.zeros((n, self.slots), dtype=wp.quat, device=dev)
+        self._dummy_q = wp.zeros((1, 1), dtype=wp.quat, device=dev)
+        self.jaw_mask = (1 << instrument.jaw_a) | (1 << instrument.jaw_b)
+        self._sweep = 0
+        if contact not in world.solvers:
+            raise ValueError("finalize() the ContactSystem before creating the GraspSystem")
+        world.add_solver(self)
+
+    def _segq(self):
+        s = self.world.state
+        return s.segment_q if s.segment_q is not None else self._dummy_q
+
+    # World hooks ------------------------------------------------------------------------------------
+    def record_sweep(self, world, launch, h: float) -> None:
+        """Hold the orientation of grasped rod segments (every sweep); after the last sweep of the step, grasp or
+        release from the contact records that the ContactSystem (added before this system) just wrote."""
+        iters = max(1, world.iterations)
+        sub = self._sweep // iters
+        last = self._sweep == iters * world.substeps - 1
+        self._sweep = (self._sweep + 1) % (iters * world.substeps)
+        if self.hold_orientation:
+            bqp, bq = self.contact.body_arrays(world)
+            launch(ck.hold_grasped_orientations, (self.world.num_envs, self.slots),
+                   [self.instrument.shaft_body, self.slot_start, self.particle_segment, world.state.attach_particle,
+                    self.grasp_delta, bqp, bq, (sub + 1) / world.substeps], [world.state.segment_q])
+        if last:
+            self._record_update(world, launch)
+
+    def _record_update(self, world, launch) -> None:
+        s, c, ins = world.state, self.contact, self.instrument
+        launch(ck.update_grasp, world.num_envs,
+               [self.jaw_angle, self.grasp_threshold, self.release_threshold, ins.shaft_body, ins.jaw_a, ins.jaw_b,
+                float(ins.jaw_length), self.cone_margin, self.max_offset, self.slot_start, self.slots,
+                self.compliance, self.graspable, self.particle_segment, c.shape_body, c.contact_count,
+                c.contact_particle, c.contact_shape, s.body_q, s.particle_q, self._segq(), int(c.body_ignore_mask)],
+               [self.grasped, self.lost_grasp, s.attach_particle, s.attach_body, s.attach_offset, s.attach_compliance,
+                self.grasp_delta, c.ignore_bodies])
+
+    # host-side (reset time) -------------------------------------------------------------------------
+    def start_grasped(self, particle: int, env_mask: wp.array | None = None) -> None:
+        """Release the masked envs' grasps and, if ``particle >= 0``, attach that global particle to the jaws at
+        its current offset (call after ``world.reset`` and after posing the instrument)."""
+        w, c = self.world, self.contact
+        s = w.state
+        mask = env_mask if env_mask is not None else wp.ones(w.num_envs, dtype=wp.int32, device=w.device)
+        wp.launch(ck.start_grasp, dim=w.num_envs,
+                  inputs=[mask, int(particle), self.instrument.shaft_body, self.jaw_mask, self.slot_start, self.slots,
+                          self.compliance, self.particle_segment, s.body_q, s.particle_q, self._segq(),
+                          int(c.body_ignore_mask)],
+                  outputs=[self.grasped, self.lost_grasp, s.attach_particle, s.attach_body, s.attach_offset,
+                           s.attach_compliance, self.grasp_delta, c.ignore_bodies], device=w.device)
+
+    def reset(self, env_mask: wp.array) -> None:
+        """Forget the grasps of the masked envs (``world.reset`` restores the attachment slots themselves)."""
+        self.start_grasped(-1, env_mask)
