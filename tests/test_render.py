@@ -543,7 +543,7 @@ def test_point_cloud_lies_on_the_plane(device):
     cam_pts = numpy(r.point_cloud(world=False))
     assert np.allclose(-cam_pts[..., 2], numpy(r.depth).reshape(2, -1), rtol=1e-6)
     # Back-projected pixel centres project back onto themselves.
-    proj = project_points(pts, r.camera_poses.numpy()[:, None], 55.0, w, h)
+    proj = project_points(pts, numpy(r.camera_poses)[:, None], 55.0, w, h)
     rows, cols = np.divmod(np.arange(w * h), w)
     assert np.allclose(proj[..., 0], rows + 0.5, atol=1e-3) and np.allclose(proj[..., 1], cols + 0.5, atol=1e-3)
 
