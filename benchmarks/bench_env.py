@@ -81,7 +81,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", default=None, help="JSON output path")
     args = parser.parse_args(argv)
 
-    wp.config.quiet = True
+    wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)  # no per-module load lines
     modes = ["zero", "raise"] if args.both_nan_modes else [args.invalid_actions]
     overrides = {"observation_type": args.obs}
     if args.obs != "STATE":

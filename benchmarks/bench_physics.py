@@ -169,7 +169,7 @@ def main() -> None:
     p.add_argument("--out", default=None, help="write the results as JSON here")
     args = p.parse_args()
 
-    wp.config.quiet = True
+    wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)  # no per-module load lines
     wp.init()
     scenes = ["cloth", "tet", "rod"] if args.scene == "all" else [args.scene]
     results = []

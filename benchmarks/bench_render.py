@@ -207,7 +207,7 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=None, help="write results as JSON here")
     args = parser.parse_args()
 
-    wp.config.quiet = True
+    wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)  # no per-module load lines
     wp.init()
     device = wp.get_device(args.device or ("cuda:0" if wp.is_cuda_available() else "cpu"))
     iters = args.iters or (50 if device.is_cuda else 2)

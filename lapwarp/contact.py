@@ -345,7 +345,7 @@ class ContactSystem:
         s = world.state
         if s.body_q is None:
             return self._dummy_tf, self._dummy_tf
-        prev = world._body_q_prev if world._body_q_prev is not None else s.body_q
+        prev = world.body_q_previous if world.body_q_previous is not None else s.body_q
         return prev, s.body_q
 
     def record_sweep(self, world, launch, h: float) -> None:

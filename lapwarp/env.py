@@ -66,7 +66,6 @@ class BatchedEnv(VecEnv):
         if not isinstance(num_envs, int) or num_envs < 1:
             raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
         cfg.validate(self.reward_features, self.supported_observations)
-        wp.config.quiet = True
         wp.init()
         self.cfg = cfg
         self.num_envs = num_envs

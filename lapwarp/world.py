@@ -125,6 +125,12 @@ class World:
             if count:
                 self._lam[name] = wp.zeros((n, count), dtype=dtype, device=dev)
 
+    @property
+    def body_q_previous(self) -> wp.array | None:
+        """Kinematic body poses at the start of the current step ``(num_envs, bodies)``; during a step the
+        World interpolates from these to ``state.body_q`` across the substeps (None without bodies)."""
+        return self._body_q_prev
+
     def add_solver(self, solver) -> None:
         """Plug an extra constraint system (contact, grasping, ...) into every substep sweep.
 
@@ -197,6 +203,9 @@ class World:
             if m.segment_count:
                 launch(xpbd.update_segment_velocities, (n, m.segment_count), [s.segment_q, self._sq_prev, 1.0 / h],
                        [s.segment_qd])
+            for solver in self.solvers:
+                if hasattr(solver, "record_substep_end"):
+                    solver.record_substep_end(self, launch, h)
         if self._body_q_prev is not None:
             bq, bqp = s.body_q, self._body_q_prev
             cmds.append(lambda: wp.copy(bqp, bq))

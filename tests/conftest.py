@@ -17,7 +17,7 @@ def pytest_addoption(parser: pytest.Parser) -> None:
 def device(request: pytest.FixtureRequest) -> str:
     import warp as wp
 
-    wp.config.quiet = True
+    wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)  # no per-module load lines
     wp.init()
     name = request.config.getoption("--device")
     if name != "cpu" and not wp.is_cuda_available():
