@@ -136,7 +136,8 @@ class World:
 
         ``solver.record_sweep(world, launch, substep_dt)`` is called while a step is recorded, once per sweep
         of every substep, after the built-in constraint groups; it must only ``launch(kernel, dim, inputs,
-        outputs)`` (which records the launch for replay, so it ends up in the env's CUDA graph). An optional
+        outputs)`` (which records the launch for replay, so it ends up in the env's CUDA graph) or
+        ``launch(fn)`` with a plain callable that only launches device work (e.g. ``wp.Mesh.refit``). An optional
         ``solver.record_substep_end(world, launch, substep_dt)`` runs after the velocity update of each substep
         (e.g. for velocity-level friction or restitution). Systems never reallocate after being added.
         """
@@ -177,7 +178,11 @@ class World:
         m, n, dev, s = self.model, self.num_envs, self.device, self.state
         cmds: list = []
 
-        def launch(kernel, dim, inputs, outputs=()):
+        def launch(kernel, dim=None, inputs=(), outputs=()):
+            # A plain callable (e.g. ``mesh.refit``) is recorded as is: it must only launch device work.
+            if dim is None and not isinstance(kernel, wp.Kernel):
+                cmds.append(kernel)
+                return
             rec = wp.launch(kernel, dim=dim, inputs=inputs, outputs=list(outputs), device=dev, record_cmd=True)
             cmds.append(rec.launch)
 
