@@ -18,6 +18,7 @@ import ppo  # noqa: E402
 
 def test_ppo_trains_saves_resumes_and_plays(device, tmp_path, capsys):
     args = ["--task", "Reach", "--device", device, "--preset", "cpu", "--num-envs", "16", "--max-iterations", "2",
+            "--set", "sphere_radius=0.02", "distance_to_target_threshold=0.004",
             "--eval-envs", "8", "--log-dir", str(tmp_path)]
     assert ppo.main(args) == 0
     out = capsys.readouterr().out

@@ -21,6 +21,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import io
+import json
 import os
 import statistics
 import sys
@@ -169,6 +170,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="hyper-parameter preset (default: gpu on CUDA, cpu otherwise)")
     parser.add_argument("--obs", choices=["state", "rgb", "rgbd", "depth"], default="state",
                         help="observation type (images use the paper's NatureCNN encoders)")
+    parser.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
+                        help="task config overrides, values parsed as JSON (e.g. sphere_radius=0.02)")
     parser.add_argument("--num-envs", type=int, default=None)
     parser.add_argument("--max-iterations", type=int, default=None)
     parser.add_argument("--seed", type=int, default=0)
@@ -191,6 +194,14 @@ def main(argv: list[str] | None = None) -> int:
     if args.obs != "state":
         env_overrides["observation_type"] = args.obs.upper()
         use_images(train_cfg)
+    for item in args.set:
+        key, sep, value = item.partition("=")
+        if not sep:
+            parser.error(f"--set expects KEY=VALUE, got {item!r}")
+        try:
+            env_overrides[key] = json.loads(value)
+        except json.JSONDecodeError:
+            env_overrides[key] = value
 
     env = lapwarp.make(args.task, num_envs=num_envs, device=args.device, seed=args.seed, **env_overrides)
     run_dir = None if args.play else os.path.join(
