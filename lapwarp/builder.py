@@ -161,6 +161,13 @@ class SceneBuilder:
         self._hinges = _Group()
         self._tets = _Group()
         self._tethers: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        # cutting: cloth triangles / tets in insertion order and the triangles beside each edge / hinge
+        self._tris: list[np.ndarray] = []
+        self._ntri = 0
+        self._ntet = 0
+        self._edge_tris: list[np.ndarray] = []  # parallel to self._edges.indices, (m, 2) int, -1 = none
+        self._hinge_tris: list[np.ndarray] = []  # parallel to self._hinges.indices
+        self._cuttable = False
         self._segments = _Group()
         self._bends = _Group()
         self._seg_q: list[np.ndarray] = []
@@ -227,6 +234,7 @@ class SceneBuilder:
         self._edges.rest.append(np.array([rest_length]))
         self._edges.geom.append(np.ones(1))
         self._edges.scale.append(_per_env(compliance, "compliance")[:, None])
+        self._edge_tris.append(np.full((1, 2), -1, dtype=np.int64))
 
     def _pos_all(self) -> np.ndarray:
         return np.concatenate(self._pos) if self._pos else np.zeros((0, 3))
@@ -243,6 +251,7 @@ class SceneBuilder:
         fixed=None,
         tethers: bool = True,
         name: str = "cloth",
+        cuttable: bool = False,
     ) -> SceneObject:
         """Triangle cloth: edge springs for stretch/shear plus dihedral bending hinges.
 
@@ -260,8 +269,11 @@ class SceneBuilder:
             fixed: bool mask or local indices of pinned vertices.
             tethers: add long-range attachments (Kim et al. 2012) from every free vertex to its nearest
                 pinned vertex, limiting the distance to the rest distance; they stop a hanging cloth from
-                stretching under its own weight at few substeps. Disable for cloth that will be cut.
+                stretching under its own weight at few substeps. Ignored (no tethers) for cuttable cloth: a
+                tether would keep holding a piece that was cut off its pinned part.
             name: object name.
+            cuttable: its triangles get per-env active masks (``lapwarp.cutting``); an edge spring acts while one
+                of its triangles is present, a hinge while both are.
         """
         x = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
         tri = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
@@ -286,6 +298,15 @@ class SceneBuilder:
         self._edges.rest.append(length)
         self._edges.geom.append(length**2 / adj_area)
         self._edges.scale.append(1.0 / _per_env(stretch_stiffness, "stretch_stiffness")[:, None])
+        # the (one or two) triangles beside each edge, in the scene's triangle insertion order
+        etri = np.full((len(uniq), 2), -1, dtype=np.int64)
+        order_he = np.argsort(inv, kind="stable")
+        first_he = np.searchsorted(inv[order_he], np.arange(len(uniq)))
+        cnt_he = np.bincount(inv, minlength=len(uniq))
+        etri[:, 0] = he_tri[order_he[first_he]]
+        two = cnt_he >= 2
+        etri[two, 1] = he_tri[order_he[first_he[two] + 1]]
+        self._edge_tris.append(etri + self._ntri)
 
         # hinges: interior edges shared by two triangles
         bend = _per_env(bend_stiffness, "bend_stiffness")
@@ -294,9 +315,10 @@ class SceneBuilder:
             sinv = inv[order]
             first = np.searchsorted(sinv, np.arange(len(uniq)))
             cnt = np.bincount(inv, minlength=len(uniq))
-            hinges, rest, geom = [], [], []
+            hinges, rest, geom, htri = [], [], [], []
             for e in np.nonzero(cnt == 2)[0]:
                 h0, h1 = order[first[e]], order[first[e] + 1]
+                htri.append((he_tri[h0] + self._ntri, he_tri[h1] + self._ntri))
                 # c -> d in the winding of the first triangle, so flat rest gives angle 0
                 cc, dd = he[h0]
                 aa, bb = he_opp[h0], he_opp[h1]
@@ -307,18 +329,23 @@ class SceneBuilder:
                 self._hinges.indices.append(np.asarray(hinges, dtype=np.int64) + off)
                 self._hinges.rest.append(np.asarray(rest))
                 self._hinges.geom.append(np.asarray(geom))
+                self._hinge_tris.append(np.asarray(htri, dtype=np.int64))
                 with np.errstate(divide="ignore"):
                     self._hinges.scale.append(1.0 / bend[:, None])
 
         fixed_g = self._fixed_of(sl)
-        if tethers and len(fixed_g):
+        if tethers and len(fixed_g) and not cuttable:
             fl = fixed_g - off
             free = np.setdiff1d(np.arange(len(x)), fl)
             d = np.linalg.norm(x[free, None, :] - x[None, fl, :], axis=2)
             nearest = np.argmin(d, axis=1)
             self._tethers.append((free + off, fl[nearest] + off, d[np.arange(len(free)), nearest]))
         obj = SceneObject(name, "cloth", sl.start, len(x), surface_tris=(tri + off).astype(np.int32),
-                          tris=(tri + off).astype(np.int32), edges=(uniq + off).astype(np.int32), fixed=fixed_g)
+                          tris=(tri + off).astype(np.int32), edges=(uniq + off).astype(np.int32), fixed=fixed_g,
+                          element_start=self._ntri, cuttable=bool(cuttable))
+        self._tris.append(tri + off)
+        self._ntri += len(tri)
+        self._cuttable |= bool(cuttable)
         self.objects.append(obj)
         return obj
 
@@ -352,6 +379,7 @@ class SceneBuilder:
         damping=0.0,
         fixed=None,
         name: str = "tet_mesh",
+        cuttable: bool = False,
     ) -> SceneObject:
         """Volumetric FEM body (co-rotated: XPBD constraints |F - R| and det F - 1) from a tetrahedral mesh.
 
@@ -362,6 +390,7 @@ class SceneBuilder:
             damping: linear velocity damping rate, 1/s.
             fixed: bool mask or local indices of pinned vertices.
             name: object name.
+            cuttable: its tets get per-env active masks and a per-env surface (``lapwarp.cutting``).
         """
         x = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
         t = np.asarray(tets, dtype=np.int64).reshape(-1, 4).copy()
@@ -408,7 +437,10 @@ class SceneBuilder:
         _, idx, cnt = np.unique(key, axis=0, return_index=True, return_counts=True)
         surf = faces[np.sort(idx[cnt == 1])]
         obj = SceneObject(name, "tet_mesh", sl.start, len(x), surface_tris=(surf + off).astype(np.int32),
-                          tets=(t + off).astype(np.int32), fixed=self._fixed_of(sl))
+                          tets=(t + off).astype(np.int32), fixed=self._fixed_of(sl), element_start=self._ntet,
+                          cuttable=bool(cuttable))
+        self._ntet += len(t)
+        self._cuttable |= bool(cuttable)
         self.objects.append(obj)
         return obj
 
@@ -427,6 +459,7 @@ class SceneBuilder:
         fixed=None,
         fixed_orientations=None,
         name: str = "rod",
+        cuttable: bool = False,
     ) -> SceneObject:
         """Cosserat rod: centreline particles plus one orientation quaternion per segment.
 
@@ -442,6 +475,8 @@ class SceneBuilder:
             fixed_orientations: local indices of segments whose orientation is clamped (a cantilever's
                 root segment).
             name: object name.
+            cuttable: its segments get per-env active masks (``lapwarp.cutting``); a removed segment is a break
+                in the chain (no stretch, shear or bend-twist across it).
         """
         x = np.asarray(points, dtype=np.float64).reshape(-1, 3)
         m = len(x)
@@ -519,7 +554,8 @@ class SceneBuilder:
             self._bends.geom.append(np.stack([lb / (4.0 * I_b), lb / (4.0 * I_b), lb / (4.0 * J)], axis=1))
             self._bends.scale.append(np.stack([1.0 / Eb, 1.0 / Eb, 1.0 / Gb], axis=1)[:, None, :])
         obj = SceneObject(name, "rod", sl.start, m, edges=(seg + off).astype(np.int32), segment_start=self._nseg,
-                          segment_count=nseg, closed=closed, fixed=self._fixed_of(sl))
+                          segment_count=nseg, closed=closed, fixed=self._fixed_of(sl), cuttable=bool(cuttable))
+        self._cuttable |= bool(cuttable)
         self._nseg += nseg
         self.objects.append(obj)
         return obj
@@ -633,6 +669,9 @@ class SceneBuilder:
             model.edge_rest = wp.array(np.concatenate(self._edges.rest)[order].astype(f32), dtype=float, device=dev)
             model.edge_compliance = wp.array(build_comp(self._edges, order), dtype=float, device=dev)
             model.edge_color_offsets = offs
+            if self._cuttable:
+                etri = np.concatenate(self._edge_tris)[order]
+                model.edge_tris = wp.array(etri.astype(np.int32), dtype=wp.vec2i, device=dev)
         if self._hinges.count():
             idx = np.concatenate(self._hinges.indices)
             order, offs = color_graph(idx)
@@ -642,6 +681,9 @@ class SceneBuilder:
                                         device=dev)
             model.hinge_compliance = wp.array(build_comp(self._hinges, order), dtype=float, device=dev)
             model.hinge_color_offsets = offs
+            if self._cuttable:
+                htri = np.concatenate(self._hinge_tris)[order]
+                model.hinge_tris = wp.array(htri.astype(np.int32), dtype=wp.vec2i, device=dev)
         if self._tets.count():
             idx = np.concatenate(self._tets.indices)
             order, offs = color_graph(idx)
@@ -655,6 +697,21 @@ class SceneBuilder:
             model.tet_params = wp.array(np.ascontiguousarray(params[:, order].astype(f32)), dtype=wp.vec3,
                                         device=dev)
             model.tet_color_offsets = offs
+            model.tet_element = wp.array(order.astype(np.int32), dtype=wp.int32, device=dev)
+            model.tet_elements = wp.array(idx.astype(np.int32), dtype=wp.vec4i, device=dev)
+            # faces 4 t + k of tet t, wound outwards, and the tet across each face (shared topology, built once)
+            faces = np.stack([idx[:, [1, 2, 3]], idx[:, [0, 3, 2]], idx[:, [0, 1, 3]], idx[:, [0, 2, 1]]],
+                             axis=1).reshape(-1, 3)
+            _, finv = np.unique(np.sort(faces, axis=1), axis=0, return_inverse=True)
+            finv = finv.ravel()
+            forder = np.argsort(finv, kind="stable")
+            nbr = np.full(len(faces), -1, dtype=np.int64)
+            same = finv[forder[1:]] == finv[forder[:-1]]
+            a, b = forder[:-1][same], forder[1:][same]
+            nbr[a], nbr[b] = b // 4, a // 4
+            model.tet_face_indices = wp.array(faces.astype(np.int32), dtype=wp.vec3i, device=dev)
+            model.tet_face_neighbor = wp.array(nbr.astype(np.int32), dtype=wp.int32, device=dev)
+            self._tet_face_boundary = (nbr < 0).astype(np.int32)
         if self._tethers:
             tp = np.concatenate([t[0] for t in self._tethers])
             if len(np.unique(tp)) != len(tp):
@@ -717,6 +774,22 @@ class SceneBuilder:
                                            device=dev)
                 model.bend_compliance = wp.array(build_comp(self._bends, border), dtype=wp.vec3, device=dev)
                 model.bend_color_offsets = boffs
+        if self._tris:
+            tris = np.concatenate(self._tris)
+            model.tri_count = len(tris)
+            model.tri_indices = wp.array(tris.astype(np.int32), dtype=wp.vec3i, device=dev)
+        if self._cuttable:
+            # per-env active masks (all present); reset restores them with the rest of the state
+            if model.tet_count:
+                state.tet_active = wp.ones((N, model.tet_count), dtype=wp.int32, device=dev)
+                fa = np.broadcast_to(self._tet_face_boundary, (N, 4 * model.tet_count))
+                state.tet_face_active = wp.array(np.ascontiguousarray(fa), dtype=wp.int32, device=dev)
+            if model.tri_count:
+                state.tri_active = wp.ones((N, model.tri_count), dtype=wp.int32, device=dev)
+            if model.segment_count:
+                state.segment_active = wp.ones((N, model.segment_count), dtype=wp.int32, device=dev)
+            # 1 = surfaces / connectivity of this env must be recomputed: set at build and restored as 1 by reset
+            state.cut_dirty = wp.ones((N, 1), dtype=wp.int32, device=dev)
         # bodies and attachments -----------------------------------------------------------------
         model.body_count = len(self._bodies)
         model.body_names = [b[0] for b in self._bodies]

@@ -10,6 +10,12 @@ Physics fields start empty (count 0) so a purely kinematic scene such as Reach c
 
 Units are SI throughout (metres, kilograms, seconds, pascals); gravity defaults to ``(0, 0, -9.81)``.
 
+Cutting (``lapwarp.cutting``, ``docs/cutting.md``): when the scene has a cuttable object the State carries
+per-env ``active`` masks (1 = present) over tets, cloth triangles and rod segments in *insertion* order (the
+order of ``SceneObject.tets`` / ``tris`` / ``segments``); constraint groups map their colour-ordered
+constraints to those elements (``tet_element``, ``edge_tris``, ``hinge_tris``, ``segment_particles[:, 2]``) and
+skip constraints of removed elements. Scenes without cuttable objects carry no masks and pay nothing.
+
 Constraint groups are stored sorted by graph colour: ``<group>_color_offsets`` is a host list of
 ``num_colors + 1`` offsets, and constraints ``[offsets[c], offsets[c + 1])`` share no particle (or rod
 segment), so one kernel launch per colour updates them in parallel without atomics (Gauss-Seidel
@@ -44,6 +50,8 @@ class SceneObject:
     segment_count: int = 0
     closed: bool = False
     fixed: object = None  # np.ndarray of global particle indices fixed in place
+    element_start: int = 0  # first cloth triangle / tet of this object in the scene's insertion order
+    cuttable: bool = False  # its elements carry per-env active masks (lapwarp.cutting)
 
     @property
     def particles(self) -> slice:
@@ -80,6 +88,7 @@ class Model:
     edge_rest: wp.array | None = None  # (E,) rest length m
     edge_compliance: wp.array2d | None = None  # (P, E) m/N
     edge_color_offsets: list = field(default_factory=lambda: [0])
+    edge_tris: wp.array | None = None  # (E,) vec2i cloth triangles beside the edge (-1 none); cutting masks only
 
     # dihedral bending hinges (cloth) ----------------------------------------------------------------
     hinge_count: int = 0
@@ -87,6 +96,7 @@ class Model:
     hinge_rest: wp.array | None = None  # (H,) rest dihedral angle rad
     hinge_compliance: wp.array2d | None = None  # (P, H) 1/(N m)
     hinge_color_offsets: list = field(default_factory=lambda: [0])
+    hinge_tris: wp.array | None = None  # (H,) vec2i the hinge's two cloth triangles; cutting masks only
 
     # tetrahedral FEM, co-rotated (|F - R| and det F - 1 constraints) -----------------------------------
     tet_count: int = 0
@@ -94,6 +104,15 @@ class Model:
     tet_inv_rest: wp.array | None = None  # (T,) mat33 Dm^-1
     tet_params: wp.array2d | None = None  # (P, T) vec3 (alpha_dev, alpha_vol or -1, unused), 1/(Pa m^3)
     tet_color_offsets: list = field(default_factory=lambda: [0])
+    tet_element: wp.array | None = None  # (T,) int32 insertion index of each colour-ordered tet
+    tet_elements: wp.array | None = None  # (T,) vec4i tets in insertion order (global particle indices)
+    # the 4 faces of every tet in insertion order (face 4 t + k, wound outwards) and the tet across each face
+    tet_face_indices: wp.array | None = None  # (4T,) vec3i global particle indices
+    tet_face_neighbor: wp.array | None = None  # (4T,) int32 tet across the face, -1 on the boundary
+
+    # cloth triangles in insertion order (all cloth objects concatenated) ---------------------------------
+    tri_count: int = 0
+    tri_indices: wp.array | None = None  # (F,) vec3i global particle indices
 
     # long-range tethers (cloth hanging from pinned particles, Kim et al. 2012) ---------------------
     tether_count: int = 0
@@ -146,6 +165,12 @@ class State:
     attach_body: wp.array2d | None = None  # (N, C) int32 body index, -1 = world frame
     attach_offset: wp.array2d | None = None  # (N, C) vec3 target in the body frame
     attach_compliance: wp.array2d | None = None  # (N, C) float m/N
+    # cutting (only when the scene has a cuttable object; 1 = present, 0 = removed; insertion order)
+    tet_active: wp.array2d | None = None  # (N, T) int32
+    tri_active: wp.array2d | None = None  # (N, F) int32 cloth triangles (also their render face mask)
+    segment_active: wp.array2d | None = None  # (N, S) int32 rod segments
+    tet_face_active: wp.array2d | None = None  # (N, 4T) int32 tet faces on the current surface
+    cut_dirty: wp.array2d | None = None  # (N, 1) int32 surfaces/connectivity need recomputing (1 after reset)
 
     def arrays(self) -> dict:
         """All allocated arrays by name (used for reset copies and memory reports)."""

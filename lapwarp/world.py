@@ -102,6 +102,11 @@ class World:
         self._dummy_f = wp.zeros((1, 1), dtype=float, device=dev)
         self._dummy_v2 = wp.zeros((1, 1), dtype=wp.vec2, device=dev)
         self._dummy_v3 = wp.zeros((1, 1), dtype=wp.vec3, device=dev)
+        # "no cutting masks" for the constraint kernels: empty element maps / a (1, 0) mask
+        self._no_map_v2i = wp.zeros(0, dtype=wp.vec2i, device=dev)
+        self._no_map_i = wp.zeros(0, dtype=wp.int32, device=dev)
+        self._no_mask = wp.zeros((1, 0), dtype=wp.int32, device=dev)
+        self._dummy_mask = wp.zeros((1, 1), dtype=wp.int32, device=dev)
         self._lam = {}
         self._alloc_lambdas()
         self._cmds: list = []
@@ -220,6 +225,13 @@ class World:
     def _record_sweep(self, launch, xpbd, inv_dt2: float, use_lam: int, blend: float) -> None:
         m, n, s = self.model, self.num_envs, self.state
         lam = self._lam
+        # cutting masks (state arrays, restored by reset) and the maps from constraints to their elements
+        tri_mask = s.tri_active if s.tri_active is not None else self._dummy_mask
+        edge_tris = m.edge_tris if (m.edge_tris is not None and s.tri_active is not None) else self._no_map_v2i
+        hinge_tris = m.hinge_tris if (m.hinge_tris is not None and s.tri_active is not None) else self._no_map_v2i
+        tet_mask = s.tet_active if s.tet_active is not None else self._dummy_mask
+        tet_map = m.tet_element if s.tet_active is not None else self._no_map_i
+        seg_mask = s.segment_active if s.segment_active is not None else self._no_mask
         if m.tether_count:
             launch(xpbd.solve_tethers, (n, m.tether_count),
                    [m.tether_particle, m.tether_anchor, m.tether_max, m.particle_inv_mass], [s.particle_q])
@@ -227,28 +239,28 @@ class World:
         for c in range(len(off) - 1):
             launch(xpbd.solve_edges, (n, off[c + 1] - off[c]),
                    [off[c], m.edge_indices, m.edge_rest, m.edge_compliance, m.particle_inv_mass, inv_dt2, use_lam,
-                    lam.get("edge", self._dummy_f)], [s.particle_q])
+                    lam.get("edge", self._dummy_f), edge_tris, tri_mask], [s.particle_q])
         off = m.tet_color_offsets
         for c in range(len(off) - 1):
             launch(xpbd.solve_tets, (n, off[c + 1] - off[c]),
                    [off[c], m.tet_indices, m.tet_inv_rest, m.tet_params, m.particle_inv_mass, inv_dt2, use_lam,
-                    lam.get("tet", self._dummy_v2)], [s.particle_q])
+                    lam.get("tet", self._dummy_v2), tet_map, tet_mask], [s.particle_q])
         off = m.hinge_color_offsets
         for c in range(len(off) - 1):
             launch(xpbd.solve_hinges, (n, off[c + 1] - off[c]),
                    [off[c], m.hinge_indices, m.hinge_rest, m.hinge_compliance, m.particle_inv_mass, inv_dt2, use_lam,
-                    lam.get("hinge", self._dummy_f)], [s.particle_q])
+                    lam.get("hinge", self._dummy_f), hinge_tris, tri_mask], [s.particle_q])
         off = m.segment_color_offsets
         for c in range(len(off) - 1):
             launch(xpbd.solve_stretch_shear, (n, off[c + 1] - off[c]),
                    [off[c], m.segment_particles, m.segment_rest, m.segment_compliance, m.segment_inv_inertia,
-                    m.particle_inv_mass, inv_dt2, use_lam, lam.get("segment", self._dummy_v3)],
+                    m.particle_inv_mass, inv_dt2, use_lam, lam.get("segment", self._dummy_v3), seg_mask],
                    [s.particle_q, s.segment_q])
         off = m.bend_color_offsets
         for c in range(len(off) - 1):
             launch(xpbd.solve_bend_twist, (n, off[c + 1] - off[c]),
                    [off[c], m.bend_segments, m.bend_rest, m.bend_compliance, m.segment_inv_inertia, inv_dt2, use_lam,
-                    lam.get("bend", self._dummy_v3)], [s.segment_q])
+                    lam.get("bend", self._dummy_v3), seg_mask], [s.segment_q])
         if m.rod_count:
             # after shear and bend-twist so every sweep ends with the rods at their length
             from lapwarp.kernels import rods
@@ -256,7 +268,7 @@ class World:
             launch(rods.solve_rod_stretch, (n, m.rod_count),
                    [m.rod_particle_start, m.rod_segment_start, m.rod_segment_count, m.rod_closed, m.rod_stretch_rest,
                     m.rod_stretch_compliance, m.particle_inv_mass, inv_dt2, use_lam, self.rod_newton_steps,
-                    lam.get("rod", self._dummy_f), *self._rod_scratch], [s.particle_q])
+                    lam.get("rod", self._dummy_f), *self._rod_scratch, seg_mask], [s.particle_q])
         if m.attachment_capacity:
             bq = s.body_q if s.body_q is not None else self._dummy_tf()
             bqp = self._body_q_prev if self._body_q_prev is not None else bq

@@ -28,6 +28,13 @@ both nodes pinned and no compliance has an all-zero row and gets ``dl = 0``.
 Compliance ``alpha_k = L_k / (E A)`` is in SI (m/N), so the stiffness does not depend on the substep count; one
 solve per sweep is one Newton step on the nonlinear constraints (the residual is second order in the
 correction). Scratch (modified super-diagonal and right-hand sides) is preallocated per env per segment.
+
+Cutting (``lapwarp.cutting``): a removed segment (``segment_active[env, s] == 0``) is a break in the chain. Its
+row becomes the identity with a zero right-hand side (``dl = 0``) and its couplings to both neighbours are
+zeroed, so the tridiagonal system splits into independent blocks, one per remaining piece, solved by the same
+sweep; a loop cut anywhere loses its corner coupling (plain tridiagonal). In the transverse filter a removed
+segment has no tension and no direction, so the nodes beside a cut are free ends. ``segment_active`` of shape
+``(1, 0)`` means the scene has no cutting masks.
 """
 
 from __future__ import annotations
@@ -68,6 +75,7 @@ def solve_rod_stretch(
     node_c: wp.array2d(dtype=float),
     node_d: wp.array2d(dtype=wp.vec3),
     node_par: wp.array2d(dtype=wp.vec3),
+    segment_active: wp.array2d(dtype=wp.int32),
     q: wp.array2d(dtype=wp.vec3),
 ):
     env, r = wp.tid()
@@ -82,6 +90,11 @@ def solve_rod_stretch(
             closed3 = 1
     pe = env % inv_mass.shape[0]
     ce = env % compliance.shape[0]
+    masked = segment_active.shape[1] > 0
+    if masked and closed3 != 0:
+        # a loop cut at its closing corner is an open chain (cut elsewhere: blocks split inside the solve)
+        if segment_active[env, s0] == 0 or segment_active[env, s0 + m - 1] == 0:
+            closed3 = 0
 
     for it in range(newton_steps):
         cyclic = closed3
@@ -118,6 +131,12 @@ def solve_rod_stretch(
                     k2 = k2 - nodes
                 n_next, len_next = segment_dir(q[env, p0 + k1], q[env, p0 + k2])
                 c_k = -w_k1 * wp.dot(n_cur, n_next)
+            act_k = int(1)
+            if masked:
+                act_k = segment_active[env, s0 + k]
+                if k + 1 < m:
+                    if act_k == 0 or segment_active[env, s0 + k + 1] == 0:
+                        c_k = 0.0  # no coupling across a cut
             alpha = compliance[ce, s0 + k] * inv_dt2
             b_k = w_k + w_k1 + alpha
             rhs = rest[s0 + k] - len_cur  # -C_k
@@ -137,8 +156,8 @@ def solve_rod_stretch(
                 if k == m - 1:
                     b_k = b_k - s * s / g
                     u_k = s
-            if b_k <= 0.0:
-                # both nodes pinned and rigid: the row is empty, keep this segment out of the solve
+            if b_k <= 0.0 or act_k == 0:
+                # both nodes pinned and rigid (empty row) or a removed segment: keep it out of the solve, dl = 0
                 b_k = 1.0
                 rhs = 0.0
             denom = b_k - a_k * c_prev
@@ -206,6 +225,9 @@ def solve_rod_stretch(
                 else:
                     x_next = q[env, p0 + jn]
                 n_j, len_j = segment_dir(x_cur, x_next)
+                if masked:
+                    if segment_active[env, s0 + j] == 0:
+                        n_j = wp.vec3(0.0)  # a removed segment: the nodes beside it are free ends
                 dl_j = scratch_d[env, s0 + j]
                 if it == 0:
                     scratch_l[env, s0 + j] = dl_j

@@ -10,6 +10,10 @@ XPBD (Macklin et al. 2016) with compliance ``alpha`` in SI units: ``alpha_t = al
 ``dlambda = (-C - alpha_t * lambda) / (sum w |grad C|^2 + alpha_t)``. With one iteration per substep
 ``lambda`` starts at zero and is not stored (``use_lambda = 0``); with more iterations it is
 accumulated in per-env arrays so the result stays compliance-consistent.
+
+Cutting masks (``lapwarp.cutting``): constraint kernels take the per-env ``active`` masks of the elements they
+belong to and skip a constraint whose element was removed. An empty element map (length 0, scenes without
+cuttable objects) means "no masks": one branch on a uniform value, no memory traffic.
 """
 
 import warp as wp
@@ -93,10 +97,23 @@ def solve_edges(
     inv_dt2: float,
     use_lambda: int,
     lam: wp.array2d(dtype=float),
+    edge_tris: wp.array(dtype=wp.vec2i),
+    tri_active: wp.array2d(dtype=wp.int32),
     q: wp.array2d(dtype=wp.vec3),
 ):
     env, t = wp.tid()
     c = start + t
+    if edge_tris.shape[0] > 0:
+        # an edge spring of a cloth lives while one of its triangles does (springs have no triangle: -1, -1)
+        et = edge_tris[c]
+        if et[0] >= 0 or et[1] >= 0:
+            alive = int(0)
+            if et[0] >= 0:
+                alive = tri_active[env, et[0]]
+            if et[1] >= 0 and alive == 0:
+                alive = tri_active[env, et[1]]
+            if alive == 0:
+                return
     ij = indices[c]
     pe = env % inv_mass.shape[0]
     wi = inv_mass[pe, ij[0]]
@@ -138,10 +155,17 @@ def solve_hinges(
     inv_dt2: float,
     use_lambda: int,
     lam: wp.array2d(dtype=float),
+    hinge_tris: wp.array(dtype=wp.vec2i),
+    tri_active: wp.array2d(dtype=wp.int32),
     q: wp.array2d(dtype=wp.vec3),
 ):
     env, t = wp.tid()
     c = start + t
+    if hinge_tris.shape[0] > 0:
+        # a hinge bends two triangles against each other: it needs both
+        ht = hinge_tris[c]
+        if tri_active[env, ht[0]] == 0 or tri_active[env, ht[1]] == 0:
+            return
     h = indices[c]
     pe = env % inv_mass.shape[0]
     w1 = inv_mass[pe, h[0]]
@@ -237,10 +261,15 @@ def solve_tets(
     inv_dt2: float,
     use_lambda: int,
     lam: wp.array2d(dtype=wp.vec2),
+    tet_element: wp.array(dtype=wp.int32),
+    tet_active: wp.array2d(dtype=wp.int32),
     q: wp.array2d(dtype=wp.vec3),
 ):
     env, t = wp.tid()
     c = start + t
+    if tet_element.shape[0] > 0:
+        if tet_active[env, tet_element[c]] == 0:
+            return
     k = indices[c]
     pe = env % inv_mass.shape[0]
     w0 = inv_mass[pe, k[0]]
@@ -443,6 +472,7 @@ def solve_stretch_shear(
     inv_dt2: float,
     use_lambda: int,
     lam: wp.array2d(dtype=wp.vec3),
+    segment_active: wp.array2d(dtype=wp.int32),
     q: wp.array2d(dtype=wp.vec3),
     sq: wp.array2d(dtype=wp.quat),
 ):
@@ -450,6 +480,10 @@ def solve_stretch_shear(
     c = start + t
     ij = particles[c]
     s = ij[2]
+    # segment_active is (N, S) with cutting masks and (1, 0) without
+    if segment_active.shape[1] > 0:
+        if segment_active[env, s] == 0:
+            return
     pe = env % inv_mass.shape[0]
     w0 = inv_mass[pe, ij[0]]
     w1 = inv_mass[pe, ij[1]]
@@ -509,11 +543,16 @@ def solve_bend_twist(
     inv_dt2: float,
     use_lambda: int,
     lam: wp.array2d(dtype=wp.vec3),
+    segment_active: wp.array2d(dtype=wp.int32),
     sq: wp.array2d(dtype=wp.quat),
 ):
     env, t = wp.tid()
     b = start + t
     ab = segments[b]
+    if segment_active.shape[1] > 0:
+        # bend-twist couples two segments: gone with either of them
+        if segment_active[env, ab[0]] == 0 or segment_active[env, ab[1]] == 0:
+            return
     pe = env % inv_inertia.shape[0]
     wa = inv_inertia[pe, ab[0]]
     wb = inv_inertia[pe, ab[1]]
