@@ -8,6 +8,8 @@ from typing import Any
 # name -> "module:EnvClass"; the module is imported lazily so ``import lapwarp`` stays light.
 _TASKS: dict[str, str] = {
     "Reach": "lapwarp.tasks.spatial.reach:ReachEnv",
+    "SearchForPoint": "lapwarp.tasks.spatial.search_for_point:SearchForPointEnv",
+    "DeflectSpheres": "lapwarp.tasks.spatial.deflect_spheres:DeflectSpheresEnv",
 }
 
 
