@@ -1,0 +1,262 @@
+"""Cutting kernels: tool activation, element removal by carving distance, tet surface re-extraction and
+per-env connectivity (union-find) with per-label counters. See ``lapwarp.cutting`` and ``docs/cutting.md``.
+
+Elements of a ``CuttingSystem`` are one flat list over its cuttable objects (tets, cloth triangles, rod
+segments). Element ``e`` has up to four particles ``elem_nodes[e]`` (-1 padded), a kind (0 tet, 1 triangle,
+2 segment) selecting which State mask holds it, and ``elem_col[e]``, its column in that mask.
+"""
+
+import warp as wp
+
+wp.set_module_options({"enable_backward": False})
+
+KIND_TET = wp.constant(0)
+KIND_TRI = wp.constant(1)
+KIND_SEG = wp.constant(2)
+
+
+@wp.func
+def element_alive(
+    env: int,
+    kind: int,
+    col: int,
+    tet_active: wp.array2d(dtype=wp.int32),
+    tri_active: wp.array2d(dtype=wp.int32),
+    segment_active: wp.array2d(dtype=wp.int32),
+):
+    if kind == KIND_TET:
+        return tet_active[env, col]
+    if kind == KIND_TRI:
+        return tri_active[env, col]
+    return segment_active[env, col]
+
+
+@wp.func
+def element_kill(
+    env: int,
+    kind: int,
+    col: int,
+    tet_active: wp.array2d(dtype=wp.int32),
+    tri_active: wp.array2d(dtype=wp.int32),
+    segment_active: wp.array2d(dtype=wp.int32),
+):
+    if kind == KIND_TET:
+        tet_active[env, col] = 0
+    elif kind == KIND_TRI:
+        tri_active[env, col] = 0
+    else:
+        segment_active[env, col] = 0
+
+
+@wp.func
+def point_segment_distance(p: wp.vec3, a: wp.vec3, b: wp.vec3):
+    ab = b - a
+    den = wp.dot(ab, ab)
+    t = float(0.0)
+    if den > 0.0:
+        t = wp.clamp(wp.dot(p - a, ab) / den, 0.0, 1.0)
+    return wp.length(p - (a + ab * t))
+
+
+# ----------------------------------------------------------------------------------------------------
+# tool activation
+# ----------------------------------------------------------------------------------------------------
+
+
+@wp.kernel
+def hook_activation(activation: wp.array(dtype=float), deadzone: float, tool_active_out: wp.array(dtype=wp.int32)):
+    """Electrocautery: the hook cuts while its activation action exceeds the dead zone (sofa_env: 0.1)."""
+    env = wp.tid()
+    a = int(0)
+    if activation[env] > deadzone:
+        a = 1
+    tool_active_out[env] = a
+
+
+@wp.kernel
+def scissors_closing(
+    angle: wp.array(dtype=float),
+    min_closing: float,
+    angle_prev: wp.array(dtype=float),
+    tool_active_out: wp.array(dtype=wp.int32),
+):
+    """Scissors cut while their jaws close: the opening angle dropped by more than ``min_closing`` since the
+    last call (then the previous angle is updated)."""
+    env = wp.tid()
+    a = angle[env]
+    act = int(0)
+    if angle_prev[env] - a > min_closing:
+        act = 1
+    tool_active_out[env] = act
+    angle_prev[env] = a
+
+
+# ----------------------------------------------------------------------------------------------------
+# removal
+# ----------------------------------------------------------------------------------------------------
+
+
+@wp.kernel
+def cut_elements(
+    elem_nodes: wp.array(dtype=wp.vec4i),
+    elem_kind: wp.array(dtype=wp.int32),
+    elem_col: wp.array(dtype=wp.int32),
+    elem_label: wp.array(dtype=wp.int32),
+    q: wp.array2d(dtype=wp.vec3),
+    tool_a: wp.array2d(dtype=wp.vec3),
+    tool_b: wp.array2d(dtype=wp.vec3),
+    tool_radius: wp.array(dtype=float),
+    tool_active: wp.array(dtype=wp.int32),
+    carving_distance: float,
+    tet_active: wp.array2d(dtype=wp.int32),
+    tri_active: wp.array2d(dtype=wp.int32),
+    segment_active: wp.array2d(dtype=wp.int32),
+    removed: wp.array2d(dtype=wp.int32),
+    cut_happened: wp.array(dtype=wp.int32),
+    cut_dirty: wp.array2d(dtype=wp.int32),
+):
+    """Remove every live element whose centroid lies within ``radius + carving_distance`` of a tool capsule."""
+    env, e = wp.tid()
+    if tool_active[env] == 0:
+        return  # most envs most steps: one load and out
+    kind = elem_kind[e]
+    col = elem_col[e]
+    if element_alive(env, kind, col, tet_active, tri_active, segment_active) == 0:
+        return
+    nd = elem_nodes[e]
+    c = q[env, nd[0]] + q[env, nd[1]]
+    cnt = float(2.0)
+    if nd[2] >= 0:
+        c = c + q[env, nd[2]]
+        cnt = 3.0
+    if nd[3] >= 0:
+        c = c + q[env, nd[3]]
+        cnt = 4.0
+    c = c / cnt
+    hit = int(0)
+    for k in range(tool_a.shape[1]):
+        if point_segment_distance(c, tool_a[env, k], tool_b[env, k]) <= tool_radius[k] + carving_distance:
+            hit = 1
+    if hit == 0:
+        return
+    element_kill(env, kind, col, tet_active, tri_active, segment_active)
+    wp.atomic_add(removed, env, elem_label[e], 1)
+    # benign races: every writer stores the same 1
+    cut_happened[env] = 1
+    cut_dirty[env, 0] = 1
+
+
+# ----------------------------------------------------------------------------------------------------
+# surfaces
+# ----------------------------------------------------------------------------------------------------
+
+
+@wp.kernel
+def tet_surface(
+    cut_dirty: wp.array2d(dtype=wp.int32),
+    tet_active: wp.array2d(dtype=wp.int32),
+    face_neighbor: wp.array(dtype=wp.int32),
+    face_active_out: wp.array2d(dtype=wp.int32),
+):
+    """Face 4 t + k is on the surface iff tet t is present and the tet across it is absent (or none)."""
+    env, f = wp.tid()
+    if cut_dirty[env, 0] == 0:
+        return
+    on = int(0)
+    if tet_active[env, f / 4] != 0:
+        nb = face_neighbor[f]
+        on = 1
+        if nb >= 0:
+            if tet_active[env, nb] != 0:
+                on = 0
+    face_active_out[env, f] = on
+
+
+# ----------------------------------------------------------------------------------------------------
+# connectivity: union-find per env, one thread per env, only for envs whose elements changed
+# ----------------------------------------------------------------------------------------------------
+
+
+@wp.func
+def uf_find(parent: wp.array2d(dtype=wp.int32), env: int, x: int):
+    r = x
+    while parent[env, r] != r:
+        # path halving: every visited node skips to its grandparent
+        gp = parent[env, parent[env, r]]
+        parent[env, r] = gp
+        r = gp
+    return r
+
+
+@wp.kernel
+def connectivity(
+    elem_kind: wp.array(dtype=wp.int32),
+    elem_col: wp.array(dtype=wp.int32),
+    elem_label: wp.array(dtype=wp.int32),
+    elem_obj: wp.array(dtype=wp.int32),
+    pairs: wp.array(dtype=wp.vec2i),
+    label_total: wp.array(dtype=wp.int32),
+    tet_active: wp.array2d(dtype=wp.int32),
+    tri_active: wp.array2d(dtype=wp.int32),
+    segment_active: wp.array2d(dtype=wp.int32),
+    cut_dirty: wp.array2d(dtype=wp.int32),
+    component: wp.array2d(dtype=wp.int32),
+    root_bits: wp.array2d(dtype=wp.int32),
+    num_components: wp.array2d(dtype=wp.int32),
+    active_count: wp.array2d(dtype=wp.int32),
+    cut_ratio: wp.array2d(dtype=float),
+    label_links: wp.array2d(dtype=wp.int32),
+):
+    """Components of the live elements (adjacent across shared faces / edges / nodes and extra links), per object
+    counts, live elements and cut ratio per label, and which labels share a component. Clears ``cut_dirty``."""
+    env = wp.tid()
+    if cut_dirty[env, 0] == 0:
+        return
+    M = elem_kind.shape[0]
+    L = label_total.shape[0]
+    for e in range(M):
+        if element_alive(env, elem_kind[e], elem_col[e], tet_active, tri_active, segment_active) != 0:
+            component[env, e] = e
+        else:
+            component[env, e] = -1
+        root_bits[env, e] = 0
+    for p in range(pairs.shape[0]):
+        ab = pairs[p]
+        if component[env, ab[0]] >= 0 and component[env, ab[1]] >= 0:
+            ra = uf_find(component, env, ab[0])
+            rb = uf_find(component, env, ab[1])
+            # link the larger root under the smaller: labels end up as the smallest element of each component
+            if ra < rb:
+                component[env, rb] = ra
+            elif rb < ra:
+                component[env, ra] = rb
+    for o in range(num_components.shape[1]):
+        num_components[env, o] = 0
+    for la in range(L):
+        active_count[env, la] = 0
+    for e in range(M):
+        if component[env, e] >= 0:
+            r = uf_find(component, env, e)
+            component[env, e] = r
+            lab = elem_label[e]
+            active_count[env, lab] = active_count[env, lab] + 1
+            root_bits[env, r] = root_bits[env, r] | (1 << lab)
+            if r == e:
+                num_components[env, elem_obj[e]] = num_components[env, elem_obj[e]] + 1
+    for k in range(L * L):
+        label_links[env, k] = 0
+    for e in range(M):
+        bits = root_bits[env, e]
+        if bits != 0:
+            for la in range(L):
+                if (bits >> la) & 1 != 0:
+                    for lb in range(L):
+                        if (bits >> lb) & 1 != 0:
+                            label_links[env, la * L + lb] = 1
+    for la in range(L):
+        tot = label_total[la]
+        ratio = float(0.0)
+        if tot > 0:
+            ratio = 1.0 - float(active_count[env, la]) / float(tot)
+        cut_ratio[env, la] = ratio
+    cut_dirty[env, 0] = 0
