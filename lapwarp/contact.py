@@ -27,7 +27,7 @@ import warp as wp
 
 from lapwarp.kernels import contact as ck
 
-_KINDS = {"sphere": 0, "capsule": 1, "box": 2, "plane": 3, "cylinder": 4, "mesh": 5}
+_KINDS = {"sphere": 0, "capsule": 1, "box": 2, "plane": 3, "cylinder": 4, "mesh": 5, "surface": 6}
 
 
 def _transform(tf) -> wp.transform:
@@ -57,6 +57,7 @@ class Shape:
     mu_kinetic: float
     groups: tuple | None  # particle group ids it collides with (None: all)
     mesh: wp.Mesh | None = None
+    surface: dict | None = None  # deforming surface: tris (F, 3) global, owner (start, end), closed
 
 
 @dataclass
@@ -67,6 +68,7 @@ class ParticleGroup:
     particles: np.ndarray  # global particle indices
     radius: float
     segments: np.ndarray | None  # (S, 2) global node indices of rod segments for segment-level contact
+    triangles: np.ndarray | None = None  # (F, 3) global vertex indices of cloth / surface triangles
 
 
 class ContactSystem:
@@ -108,7 +110,8 @@ class ContactSystem:
     # ------------------------------------------------------------------------------------------------
     # description
     # ------------------------------------------------------------------------------------------------
-    def add_particle_group(self, particles, radius: float, name: str | None = None, segments=None) -> int:
+    def add_particle_group(self, particles, radius: float, name: str | None = None, segments=None,
+                           triangles=None) -> int:
         """Particles that collide with the shapes, as spheres of ``radius`` (m).
 
         Args:
@@ -117,17 +120,22 @@ class ContactSystem:
             name: report name (defaults to the object's name).
             segments: for rods, ``True`` (the object's edges) or ``(S, 2)`` node pairs: sphere and capsule
                 shapes then also collide with the segment interiors, so a thin tool cannot slip between nodes.
+            triangles: for cloth / tet meshes, ``True`` (the object's ``surface_tris``) or ``(F, 3)`` vertex
+                indices: sphere and capsule shapes then also collide with the triangle interiors (a tool
+                moving about its radius per substep cannot pass between the vertices of a sheet).
 
         Returns:
             The group id.
         """
         self._check_open()
-        seg = None
+        seg = tri = None
         if hasattr(particles, "particle_start"):
             obj = particles
             name = name or obj.name
             if segments is True:
                 seg = np.asarray(obj.edges, dtype=np.int64)
+            if triangles is True:
+                tri = np.asarray(obj.surface_tris, dtype=np.int64).reshape(-1, 3)
             idx = np.arange(obj.particle_start, obj.particle_start + obj.particle_count)
         elif isinstance(particles, slice):
             idx = np.arange(particles.start, particles.stop)
@@ -135,7 +143,9 @@ class ContactSystem:
             idx = np.asarray(particles, dtype=np.int64).reshape(-1)
         if seg is None and segments is not None and segments is not True and segments is not False:
             seg = np.asarray(segments, dtype=np.int64).reshape(-1, 2)
-        self.groups.append(ParticleGroup(name or f"group{len(self.groups)}", idx, float(radius), seg))
+        if tri is None and triangles is not None and triangles is not True and triangles is not False:
+            tri = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
+        self.groups.append(ParticleGroup(name or f"group{len(self.groups)}", idx, float(radius), seg, tri))
         return len(self.groups) - 1
 
     def add_shape(self, kind: str, params=(0.0, 0.0, 0.0), body: int = -1, transform=None, thickness: float = 0.0,
@@ -193,6 +203,36 @@ class ContactSystem:
         mesh = wp.Mesh(points=wp.array(v, dtype=wp.vec3, device=self.device),
                        indices=wp.array(f, dtype=wp.int32, device=self.device))
         return self.add_shape("mesh", mesh=mesh, **kw)
+
+    def add_surface(self, obj, thickness: float = 0.0, closed: bool | None = None, **kw) -> int:
+        """The deforming triangle surface of a deformable object as a collider for the *other* objects' particle
+        groups of the same env (thread through a soft hole, loop around a soft cylinder, rod on tissue).
+
+        One grouped ``wp.Mesh`` over the flat view of ``state.particle_q`` holds every env's copy of the triangles
+        (BVH group = env); it is refit (not rebuilt) before every contact sweep and queried from the env's own
+        subtree. Contact is two-way: the triangle's vertices take their mass-weighted share of the correction.
+
+        Args:
+            obj: a ``SceneObject`` with ``surface_tris`` (tet mesh surface, cloth triangles) or ``(F, 3)`` global
+                vertex indices (then its own vertices are not excluded from colliding with it).
+            thickness: extra contact distance on top of the particle radius, m.
+            closed: inside/outside from the outward winding (tet surfaces, default for tet meshes); otherwise a
+                two-sided sheet where a particle stays on the side it was at the start of the substep.
+            **kw: ``mu_static``, ``mu_kinetic``, ``groups``, ``name`` as in :meth:`add_shape`.
+        """
+        if hasattr(obj, "particle_start"):
+            tris = np.asarray(obj.surface_tris, dtype=np.int64).reshape(-1, 3)
+            owner = (obj.particle_start, obj.particle_start + obj.particle_count)
+            closed = obj.kind == "tet_mesh" if closed is None else closed
+            kw.setdefault("name", obj.name)
+        else:
+            tris = np.asarray(obj, dtype=np.int64).reshape(-1, 3)
+            owner = (0, 0)
+        if len(tris) == 0:
+            raise ValueError("the surface has no triangles")
+        sid = self.add_shape("surface", thickness=thickness, **kw)
+        self.shapes[sid].surface = dict(tris=tris, owner=owner, closed=bool(closed))
+        return sid
 
     def add_particle_contact(self, members, skip_links: int = 2, mu_static: float = 0.3,
                              mu_kinetic: float | None = None, name: str = "self") -> int:
@@ -297,6 +337,41 @@ class ContactSystem:
             self.seg_group = arr(np.concatenate(sgrp)[order].astype(np.int32), wp.int32)
             self.seg_radius = arr(np.concatenate(srad)[order].astype(np.float32), float)
 
+        # cloth / surface triangles against tool capsules, coloured like the segments
+        tris, tgrp, trad = [], [], []
+        for k, g in enumerate(self.groups):
+            if g.triangles is not None:
+                tris.append(g.triangles)
+                tgrp.append(np.full(len(g.triangles), k))
+                trad.append(np.full(len(g.triangles), g.radius))
+        self.tri_color_offsets = [0]
+        if tris:
+            tri_all = np.concatenate(tris)
+            order, self.tri_color_offsets = color_graph(tri_all)
+            self.tri_nodes = arr(tri_all[order].astype(np.int32), wp.vec3i)
+            self.tri_group = arr(np.concatenate(tgrp)[order].astype(np.int32), wp.int32)
+            self.tri_radius = arr(np.concatenate(trad)[order].astype(np.float32), float)
+
+        # deforming surfaces: one grouped wp.Mesh each over the flat (num_envs * particle_count) view of
+        # particle_q, so refit reads the live positions with no gather; BVH group = env
+        P = self.world.model.particle_count
+        self._surfaces = []
+        for sidx, sh in enumerate(self.shapes):
+            if sh.surface is None:
+                continue
+            t = sh.surface["tris"]
+            flat = (t[None, :, :] + (np.arange(n, dtype=np.int64) * P)[:, None, None]).reshape(-1)
+            mesh = wp.Mesh(points=self.world.state.particle_q.flatten(), indices=arr(flat.astype(np.int32), wp.int32),
+                           groups=arr(np.repeat(np.arange(n), len(t)).astype(np.int32), wp.int32))
+            verts = np.unique(t)
+            self._surfaces.append(dict(shape=sidx, mesh=mesh, tris=arr(t.astype(np.int32), wp.vec3i),
+                                       verts=arr(verts.astype(np.int32), wp.int32), owner=sh.surface["owner"],
+                                       closed=int(sh.surface["closed"]), thickness=sh.thickness,
+                                       mu=wp.vec2(sh.mu_static, sh.mu_kinetic)))
+        if self._surfaces:
+            self.surf_delta = wp.zeros((n, P), dtype=wp.vec3, device=dev)
+            self.surf_count = wp.zeros((n, P), dtype=wp.int32, device=dev)
+
         self._self_arrays = []
         for k, ss in enumerate(self.self_sets):
             m = len(ss["particles"])
@@ -378,6 +453,24 @@ class ContactSystem:
                     self.shape_mu, self.pair_index, bqp, bq, blend_prev, blend, m.particle_inv_mass, world._q_pred,
                     s.particle_qd, h, force_scale, self.ignore_bodies, int(self.body_ignore_mask)],
                    [s.particle_q, self.report_force])
+        off = self.tri_color_offsets
+        for c in range(len(off) - 1):
+            launch(ck.collide_triangles, (n, off[c + 1] - off[c]),
+                   [self.tri_nodes, self.tri_group, self.tri_radius, off[c], *shapes, self.shape_thickness,
+                    self.shape_mu, self.pair_index, bqp, bq, blend_prev, blend, m.particle_inv_mass, world._q_pred,
+                    s.particle_qd, h, force_scale, self.ignore_bodies, int(self.body_ignore_mask)],
+                   [s.particle_q, self.report_force])
+        for sf in self._surfaces:
+            launch(sf["mesh"].refit)  # BVH bounds of the surface as it is now (after this sweep's constraints)
+            launch(ck.collide_surface, (n, len(self.cp_particle)),
+                   [self.cp_particle, self.cp_group, self.cp_radius, sf["shape"], sf["mesh"].id, sf["tris"],
+                    sf["owner"][0], sf["owner"][1], sf["closed"], sf["thickness"], sf["mu"], self.pair_index,
+                    m.particle_inv_mass, world._q_pred, s.particle_qd, h, force_scale, report, self.report_margin],
+                   [s.particle_q, self.surf_delta, self.surf_count, self.report_count, self.report_force,
+                    self.contact_count, self.contact_particle, self.contact_shape, self.contact_normal,
+                    self.contact_depth, self.overflow])
+            launch(ck.apply_surface_deltas, (n, sf["verts"].shape[0]), [sf["verts"], self.surf_delta,
+                                                                        self.surf_count], [s.particle_q])
         for a in self._self_arrays:
             launch(ck.collide_particle_pairs, (n, a["count"]),
                    [a["particle"], a["radius"], a["chain"], a["pos"], a["length"], a["pair"], a["skip"], a["mu"],

@@ -27,6 +27,7 @@ SHAPE_BOX = wp.constant(2)
 SHAPE_PLANE = wp.constant(3)
 SHAPE_CYLINDER = wp.constant(4)
 SHAPE_MESH = wp.constant(5)
+SHAPE_SURFACE = wp.constant(6)  # deforming per-env triangle surface: collide_surface, not the SDF loop
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -200,7 +201,7 @@ def collide_particles(
         ignore = ignore_bodies[env, i]
     for s in range(shape_kind.shape[0]):
         pair = pair_index[s, g]
-        if pair < 0:
+        if pair < 0 or shape_kind[s] == SHAPE_SURFACE:
             continue
         # grasped particles do not collide with the jaws holding them (bit b = body b)
         if shape_body[s] >= 0 and ((ignore >> shape_body[s]) & 1) != 0:
@@ -348,6 +349,342 @@ def collide_segments(
         wp.atomic_add(report_force, env, pair, pen / wsum * force_scale)
     q[env, a] = xa
     q[env, b] = xb
+
+
+# ----------------------------------------------------------------------------------------------------
+# triangles: cloth / tissue-surface triangles against tool spheres and capsules, particles against the
+# deforming triangle surface of another object (grouped wp.Mesh, one BVH subtree per env)
+# ----------------------------------------------------------------------------------------------------
+
+
+@wp.func
+def closest_point_triangle(p: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3):
+    """Barycentric weights (wa, wb, wc) of the point of triangle abc closest to ``p`` (Ericson 5.1.5)."""
+    ab = b - a
+    ac = c - a
+    ap = p - a
+    d1 = wp.dot(ab, ap)
+    d2 = wp.dot(ac, ap)
+    if d1 <= 0.0 and d2 <= 0.0:
+        return wp.vec3(1.0, 0.0, 0.0)
+    bp = p - b
+    d3 = wp.dot(ab, bp)
+    d4 = wp.dot(ac, bp)
+    if d3 >= 0.0 and d4 <= d3:
+        return wp.vec3(0.0, 1.0, 0.0)
+    vc = d1 * d4 - d3 * d2
+    if vc <= 0.0 and d1 >= 0.0 and d3 <= 0.0:
+        v = d1 / (d1 - d3)
+        return wp.vec3(1.0 - v, v, 0.0)
+    cp = p - c
+    d5 = wp.dot(ab, cp)
+    d6 = wp.dot(ac, cp)
+    if d6 >= 0.0 and d5 <= d6:
+        return wp.vec3(0.0, 0.0, 1.0)
+    vb = d5 * d2 - d1 * d6
+    if vb <= 0.0 and d2 >= 0.0 and d6 <= 0.0:
+        w = d2 / (d2 - d6)
+        return wp.vec3(1.0 - w, 0.0, w)
+    va = d3 * d6 - d5 * d4
+    if va <= 0.0 and (d4 - d3) >= 0.0 and (d5 - d6) >= 0.0:
+        w = (d4 - d3) / ((d4 - d3) + (d5 - d6))
+        return wp.vec3(0.0, 1.0 - w, w)
+    denom = va + vb + vc
+    if wp.abs(denom) < 1.0e-30:  # degenerate triangle: its first vertex
+        return wp.vec3(1.0, 0.0, 0.0)
+    v = vb / denom
+    w = vc / denom
+    return wp.vec3(1.0 - v - w, v, w)
+
+
+@wp.func
+def closest_segment_triangle(p0: wp.vec3, p1: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3):
+    """Closest points of segment p0p1 and triangle abc: (s along the segment, wa, wb, wc) as a vec4.
+
+    Two disjoint convex sets are closest at a segment end or a triangle edge; a segment that pierces the
+    triangle has distance 0 at the piercing point."""
+    best = wp.vec4(0.0, 1.0, 0.0, 0.0)
+    best_d = float(1.0e30)
+    # segment ends against the triangle
+    for e in range(2):
+        p = p0
+        if e == 1:
+            p = p1
+        bw = closest_point_triangle(p, a, b, c)
+        d = wp.length_sq(p - (a * bw[0] + b * bw[1] + c * bw[2]))
+        if d < best_d:
+            best_d = d
+            best = wp.vec4(float(e), bw[0], bw[1], bw[2])
+    # segment against the three edges
+    for e in range(3):
+        u = a
+        v = b
+        if e == 1:
+            u = b
+            v = c
+        elif e == 2:
+            u = c
+            v = a
+        st = closest_segment_segment(p0, p1, u, v)
+        d = wp.length_sq((p0 + (p1 - p0) * st[0]) - (u + (v - u) * st[1]))
+        if d < best_d:
+            best_d = d
+            t = st[1]
+            if e == 0:
+                best = wp.vec4(st[0], 1.0 - t, t, 0.0)
+            elif e == 1:
+                best = wp.vec4(st[0], 0.0, 1.0 - t, t)
+            else:
+                best = wp.vec4(st[0], t, 0.0, 1.0 - t)
+    # piercing
+    n = wp.cross(b - a, c - a)
+    den = wp.dot(n, p1 - p0)
+    if wp.abs(den) > 1.0e-30:
+        s = wp.dot(n, a - p0) / den
+        if s >= 0.0 and s <= 1.0:
+            x = p0 + (p1 - p0) * s
+            bw = closest_point_triangle(x, a, b, c)
+            if wp.length_sq(x - (a * bw[0] + b * bw[1] + c * bw[2])) < 1.0e-20 * wp.max(wp.length_sq(n), 1.0e-30):
+                best = wp.vec4(s, bw[0], bw[1], bw[2])
+    return best
+
+
+@wp.kernel
+def collide_triangles(
+    tri_nodes: wp.array(dtype=wp.vec3i),
+    tri_group: wp.array(dtype=wp.int32),
+    tri_radius: wp.array(dtype=float),
+    start: int,
+    shape_kind: wp.array(dtype=wp.int32),
+    shape_body: wp.array(dtype=wp.int32),
+    shape_local: wp.array(dtype=wp.transform),
+    shape_params: wp.array(dtype=wp.vec3),
+    shape_thickness: wp.array(dtype=float),
+    shape_mu: wp.array(dtype=wp.vec2),
+    pair_index: wp.array2d(dtype=wp.int32),
+    body_q_prev: wp.array2d(dtype=wp.transform),
+    body_q: wp.array2d(dtype=wp.transform),
+    blend_prev: float,
+    blend: float,
+    inv_mass: wp.array2d(dtype=float),
+    q_pred: wp.array2d(dtype=wp.vec3),
+    qd: wp.array2d(dtype=wp.vec3),
+    h: float,
+    force_scale: float,
+    ignore_bodies: wp.array2d(dtype=wp.int32),
+    use_ignore: int,
+    q: wp.array2d(dtype=wp.vec3),
+    report_force: wp.array2d(dtype=float),
+):
+    # One launch per colour of triangles (a colour shares no vertex): a tool resting on a triangle's interior is
+    # seen even where no vertex is near it, so a capsule moving ~its radius per substep cannot slip between
+    # the vertices of a tensioned sheet (vertex-only contact let it through at 1 mm per substep).
+    env, k0 = wp.tid()
+    k = start + k0
+    tri = tri_nodes[k]
+    pe = env % inv_mass.shape[0]
+    w0 = inv_mass[pe, tri[0]]
+    w1 = inv_mass[pe, tri[1]]
+    w2 = inv_mass[pe, tri[2]]
+    if w0 + w1 + w2 == 0.0:
+        return
+    g = tri_group[k]
+    x0 = q[env, tri[0]]
+    x1 = q[env, tri[1]]
+    x2 = q[env, tri[2]]
+    ignore = int(0)
+    if use_ignore != 0:
+        ignore = ignore_bodies[env, tri[0]] | ignore_bodies[env, tri[1]] | ignore_bodies[env, tri[2]]
+    for s in range(shape_kind.shape[0]):
+        kind = shape_kind[s]
+        pair = pair_index[s, g]
+        if pair < 0 or kind > SHAPE_CAPSULE:
+            continue
+        if shape_body[s] >= 0 and ((ignore >> shape_body[s]) & 1) != 0:
+            continue
+        tf = shape_pose(shape_body[s], shape_local[s], env, body_q_prev, body_q, blend)
+        hh = float(0.0)
+        if kind == SHAPE_CAPSULE:
+            hh = shape_params[s][1]
+        c0 = wp.transform_point(tf, wp.vec3(0.0, 0.0, -hh))
+        c1 = wp.transform_point(tf, wp.vec3(0.0, 0.0, hh))
+        cl = closest_segment_triangle(c0, c1, x0, x1, x2)
+        bw = wp.vec3(cl[1], cl[2], cl[3])
+        p = x0 * bw[0] + x1 * bw[1] + x2 * bw[2]
+        c = c0 * (1.0 - cl[0]) + c1 * cl[0]
+        fn = safe_normalize(wp.cross(x1 - x0, x2 - x0), wp.vec3(0.0, 0.0, 1.0))
+        # axis touching the triangle: push to the side the tool came from (its centre at the substep start)
+        tf0 = shape_pose(shape_body[s], shape_local[s], env, body_q_prev, body_q, blend_prev)
+        side = wp.dot(p - wp.transform_get_translation(tf0), fn)
+        if side < 0.0:
+            fn = -fn
+        n = safe_normalize(p - c, fn)
+        pen = tri_radius[k] + shape_params[s][0] + shape_thickness[s] - wp.length(p - c)
+        if pen <= 0.0:
+            continue
+        wsum = bw[0] * bw[0] * w0 + bw[1] * bw[1] * w1 + bw[2] * bw[2] * w2
+        if wsum <= 0.0:
+            continue
+        # friction on the relative motion of the contact point during this substep
+        p0 = (q_pred[env, tri[0]] - qd[env, tri[0]] * h) * bw[0] + (q_pred[env, tri[1]] - qd[env, tri[1]] * h) * bw[1]
+        p0 = p0 + (q_pred[env, tri[2]] - qd[env, tri[2]] * h) * bw[2]
+        c_0 = wp.transform_point(tf0, wp.transform_point(wp.transform_inverse(tf), c))
+        rel = (p + n * pen - p0) - (c - c_0)
+        dp = n * pen + friction_correction(rel, n, pen, shape_mu[s])
+        x0 = x0 + dp * (bw[0] * w0 / wsum)
+        x1 = x1 + dp * (bw[1] * w1 / wsum)
+        x2 = x2 + dp * (bw[2] * w2 / wsum)
+        wp.atomic_add(report_force, env, pair, pen / wsum * force_scale)
+    q[env, tri[0]] = x0
+    q[env, tri[1]] = x1
+    q[env, tri[2]] = x2
+
+
+@wp.kernel
+def collide_surface(
+    cp_particle: wp.array(dtype=wp.int32),
+    cp_group: wp.array(dtype=wp.int32),
+    cp_radius: wp.array(dtype=float),
+    shape: int,
+    mesh: wp.uint64,
+    tris: wp.array(dtype=wp.vec3i),
+    owner_start: int,
+    owner_end: int,
+    closed: int,
+    thickness: float,
+    mu: wp.vec2,
+    pair_index: wp.array2d(dtype=wp.int32),
+    inv_mass: wp.array2d(dtype=float),
+    q_pred: wp.array2d(dtype=wp.vec3),
+    qd: wp.array2d(dtype=wp.vec3),
+    h: float,
+    force_scale: float,
+    report: int,
+    report_margin: float,
+    q: wp.array2d(dtype=wp.vec3),
+    surf_delta: wp.array2d(dtype=wp.vec3),
+    surf_count: wp.array2d(dtype=wp.int32),
+    report_count: wp.array2d(dtype=wp.int32),
+    report_force: wp.array2d(dtype=float),
+    contact_count: wp.array(dtype=wp.int32),
+    contact_particle: wp.array2d(dtype=wp.int32),
+    contact_shape: wp.array2d(dtype=wp.int32),
+    contact_normal: wp.array2d(dtype=wp.vec3),
+    contact_depth: wp.array2d(dtype=float),
+    overflow: wp.array(dtype=wp.int32),
+):
+    # Particles of one object against the deforming triangles of another in the same env. The grouped mesh
+    # holds every env's triangles over the flat view of state.particle_q (group = env), refit just before
+    # this launch; the query starts at this env's subtree so envs never see each other although all of them
+    # sit at the origin. Two-way: the triangle's share of the correction goes to surf_delta (averaged later).
+    env, k = wp.tid()
+    g = cp_group[k]
+    pair = pair_index[shape, g]
+    if pair < 0:
+        return
+    i = cp_particle[k]
+    if i >= owner_start and i < owner_end:
+        return  # a surface does not collide with its own vertices
+    pe = env % inv_mass.shape[0]
+    w = inv_mass[pe, i]
+    x = q[env, i]
+    reach = cp_radius[k] + thickness
+    ntri = tris.shape[0]
+    root = wp.mesh_get_group_root(mesh, env)
+    # swept query (the particle's path during this substep): a particle that crossed a surface within one
+    # substep still finds the triangle it crossed; the side / inside test below then pushes it back
+    xs = q_pred[env, i] - qd[env, i] * h
+    query = wp.bvh_query_sphere(wp.mesh_get_bvh(mesh), (x + xs) * 0.5, wp.length(x - xs) * 0.5 + reach + report_margin,
+                                root)
+    face = int(0)
+    best = int(-1)
+    best_d = float(1.0e30)
+    best_bw = wp.vec3(0.0)
+    while wp.bvh_query_next(query, face):
+        f = face - env * ntri
+        if f < 0 or f >= ntri:
+            continue
+        t = tris[f]
+        bw = closest_point_triangle(x, q[env, t[0]], q[env, t[1]], q[env, t[2]])
+        d = wp.length(x - (q[env, t[0]] * bw[0] + q[env, t[1]] * bw[1] + q[env, t[2]] * bw[2]))
+        if d < best_d:
+            best_d = d
+            best = f
+            best_bw = bw
+    if best < 0:
+        return
+    t = tris[best]
+    a = q[env, t[0]]
+    b = q[env, t[1]]
+    c = q[env, t[2]]
+    cp = a * best_bw[0] + b * best_bw[1] + c * best_bw[2]
+    fn = safe_normalize(wp.cross(b - a, c - a), wp.vec3(0.0, 0.0, 1.0))
+    side = float(1.0)
+    n = fn
+    d = best_d
+    if closed != 0:
+        # closed tissue surface wound outwards: inside when behind the closest face
+        if wp.dot(x - cp, fn) < 0.0:
+            side = -1.0
+        if best_d > 1.0e-9:
+            n = (x - cp) / best_d * side
+        d = best_d * side
+    else:
+        # open sheet: the particle belongs on the side it was at the start of the substep (it cannot be
+        # pushed through a cloth it crossed during the substep)
+        a0 = q_pred[env, t[0]] - qd[env, t[0]] * h
+        b0 = q_pred[env, t[1]] - qd[env, t[1]] * h
+        c0 = q_pred[env, t[2]] - qd[env, t[2]] * h
+        x0 = q_pred[env, i] - qd[env, i] * h
+        fn0 = wp.cross(b0 - a0, c0 - a0)
+        s0 = wp.dot(x0 - (a0 * best_bw[0] + b0 * best_bw[1] + c0 * best_bw[2]), fn0)
+        s1 = wp.dot(x - cp, fn)
+        if s0 < 0.0:
+            n = -fn
+        if best_d > 1.0e-9 and s0 * s1 >= 0.0:
+            n = (x - cp) / best_d
+            d = best_d
+        else:
+            d = -best_d
+    pen = reach - d
+    if report != 0 and pen > -report_margin:
+        wp.atomic_add(report_count, env, pair, 1)
+        record_contact(env, i, shape, n, pen, contact_count, contact_particle, contact_shape, contact_normal,
+                       contact_depth, overflow)
+    if pen <= 0.0:
+        return
+    w0 = inv_mass[pe, t[0]]
+    w1 = inv_mass[pe, t[1]]
+    w2 = inv_mass[pe, t[2]]
+    wt = best_bw[0] * best_bw[0] * w0 + best_bw[1] * best_bw[1] * w1 + best_bw[2] * best_bw[2] * w2
+    if w + wt <= 0.0:
+        return
+    # friction on the motion of the particle relative to the surface point during this substep
+    x0p = q_pred[env, i] - qd[env, i] * h
+    cp0 = (q_pred[env, t[0]] - qd[env, t[0]] * h) * best_bw[0] + (q_pred[env, t[1]] - qd[env, t[1]] * h) * best_bw[1]
+    cp0 = cp0 + (q_pred[env, t[2]] - qd[env, t[2]] * h) * best_bw[2]
+    rel = (x - x0p) - (cp - cp0)
+    dp = n * pen + friction_correction(rel, n, pen, mu)
+    q[env, i] = x + dp * (w / (w + wt))
+    for j in range(3):
+        wj = inv_mass[pe, t[j]]
+        if wj > 0.0:
+            wp.atomic_add(surf_delta, env, t[j], -dp * (best_bw[j] * wj / (w + wt)))
+            wp.atomic_add(surf_count, env, t[j], 1)
+    wp.atomic_add(report_force, env, pair, pen / (w + wt) * force_scale)
+
+
+@wp.kernel
+def apply_surface_deltas(verts: wp.array(dtype=wp.int32), surf_delta: wp.array2d(dtype=wp.vec3),
+                         surf_count: wp.array2d(dtype=wp.int32), q: wp.array2d(dtype=wp.vec3)):
+    # Jacobi with averaging: a vertex pushed by several particles moves by their mean correction
+    env, k = wp.tid()
+    i = verts[k]
+    c = surf_count[env, i]
+    if c > 0:
+        q[env, i] = q[env, i] + surf_delta[env, i] / float(c)
+        surf_delta[env, i] = wp.vec3(0.0)
+        surf_count[env, i] = 0
 
 
 # ----------------------------------------------------------------------------------------------------
