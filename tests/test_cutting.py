@@ -1,0 +1,193 @@
+"""Element-mask cutting (issue #5): hook cuts a rope, closing scissors cut a cloth along a line, a tet slab loses
+exactly the tets within the carving distance and keeps a closed surface, masked reset, env independence."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import warp as wp
+
+from lapwarp.assets import box_tets, cloth_grid
+from lapwarp.builder import SceneBuilder
+from lapwarp.cutting import CuttingSystem, cut_surface
+
+DT = 0.1
+
+
+def _rope(device, num_envs, cuttable=True):
+    b = SceneBuilder()
+    n = 21
+    pts = np.stack([np.zeros(n), np.zeros(n), -np.linspace(0.0, 0.1, n)], axis=1)
+    rope = b.add_rod(pts, radius=1e-3, youngs_modulus=1e6, damping=0.5, fixed=[0], cuttable=cuttable)
+    return b.finalize(num_envs, device, substeps=10), rope
+
+
+def test_hook_cuts_hanging_rope(device):
+    world, rope = _rope(device, 3)
+    ref, _ = _rope(device, 1, cuttable=False)
+    cut = CuttingSystem(world, carving_distance=1.2e-3, num_tools=1, tool_radius=1e-3)
+    cut.add_object(rope)
+    cut.finalize()
+    world.simulate(0.3, DT)
+    ref.simulate(0.3, DT)
+    # all-present masks change nothing: bit-exact with the same rope built without masks
+    np.testing.assert_array_equal(world.positions(rope)[1], ref.positions()[0])
+    before = world.positions(rope)
+    # hook across the rope at segment 9's midpoint; env 0 active, env 1 inside the dead zone, env 2 off
+    cut.set_tools([[0.0, -0.01, -0.0475]], [[0.0, 0.01, -0.0475]])
+    cut.hook_activation(wp.array([0.8, 0.05, -1.0], dtype=float, device=device), deadzone=0.1)
+    cut.cut()
+    act = world.state.segment_active.numpy()
+    assert act[0].tolist() == [1] * 9 + [0] + [1] * 10
+    assert act[1:].min() == 1, "an inactive hook cut something"
+    np.testing.assert_array_equal(cut.removed.numpy()[:, 0], [1, 0, 0])
+    np.testing.assert_array_equal(cut.cut_happened.numpy(), [1, 0, 0])
+    np.testing.assert_array_equal(cut.num_components.numpy()[:, 0], [2, 1, 1])
+    comp = cut.component.numpy()[0]
+    assert set(comp[:9]) == {0} and set(comp[10:]) == {10} and comp[9] == -1
+    world.simulate(0.3, DT)
+    ref.simulate(0.3, DT)
+    q = world.positions(rope)
+    # the lower piece falls freely (~0.44 m in 0.3 s), the upper one still hangs at its length
+    assert q[0, -1, 2] < before[0, -1, 2] - 0.3
+    assert abs(np.linalg.norm(q[0, 9] - q[0, 0]) - 0.045) < 1e-3
+    for e in (1, 2):
+        np.testing.assert_array_equal(q[e], ref.positions()[0])
+    assert not world.unstable.numpy().any()
+
+
+def test_scissors_cut_cloth_along_line(device):
+    b = SceneBuilder()
+    nx, h = 13, 0.005
+    v, t = cloth_grid(nx, nx, (nx - 1) * h, (nx - 1) * h, plane="xz")
+    top = np.nonzero(v[:, 2] > v[:, 2].max() - 1e-9)[0]
+    cloth = b.add_cloth(v, t, areal_density=0.2, stretch_stiffness=1e3, bend_stiffness=1e-6, damping=1.0,
+                        fixed=top, cuttable=True)
+    world = b.finalize(2, device, substeps=10)
+    z0 = 5.5 * h  # the cutting line runs through the middle of a band of quads
+    cen = v[t].mean(axis=1)
+    on = np.abs(cen[:, 2] - z0) < 0.5 * h  # both triangles of every quad of that band (centroids at z0 +- h/6)
+    assert on.sum() == 2 * (nx - 1)
+    cut = CuttingSystem(world, carving_distance=0.2e-3, num_tools=1, num_labels=2, tool_radius=0.5 * h - 0.2e-3)
+    cut.add_object(cloth, labels=on.astype(int))
+    cut.finalize()
+    angle = wp.array([0.5, 0.5], dtype=float, device=device)
+    cut.scissors_closing(angle)  # first call only stores the angle
+    ratios = []
+    x_end = (nx - 1) * h
+    for k, (x0, x1) in enumerate([(-h, 0.4 * x_end), (0.4 * x_end, x_end + h)]):
+        # env 0 closes its jaws, env 1 keeps them still; the blade lies on the line from x0 to x1
+        angle.assign(np.array([0.4 - 0.1 * k, 0.5], dtype=np.float32))
+        cut.scissors_closing(angle)
+        cut.set_tools([[x0, 0.0, z0]], [[x1, 0.0, z0]])
+        cut.cut()
+        ratios.append(cut.cut_ratio.numpy()[:, 1].copy())
+    # opening the jaws over the same blade cuts nothing
+    angle.assign(np.array([0.6, 0.6], dtype=np.float32))
+    cut.scissors_closing(angle)
+    cut.cut()
+    assert cut.removed.numpy().sum() == 0
+    assert 0.2 < ratios[0][0] < 0.8 and ratios[1][0] == 1.0, ratios
+    assert ratios[0][1] == 0.0 and ratios[1][1] == 0.0
+    act = world.state.tri_active.numpy()
+    np.testing.assert_array_equal(act[0], (~on).astype(np.int32))  # exactly the line's triangles went
+    assert act[1].min() == 1
+    np.testing.assert_array_equal(cut.active_count.numpy()[:, 0], [(~on).sum()] * 2)
+    np.testing.assert_array_equal(cut.num_components.numpy()[:, 0], [2, 1])
+    faces, fa = cut_surface(world, cloth)
+    assert faces.shape == (len(t), 3) and fa.shape == (2, len(t))
+    before = world.positions(cloth)
+    world.simulate(0.3, DT)
+    q = world.positions(cloth)
+    low = v[:, 2] < z0
+    drop = q[:, low, 2] - before[:, low, 2]
+    # the piece below the cut falls away (free fall ~0.4 m in 0.3 s); the uncut cloth of env 1 only sags
+    assert drop[0].max() < drop[1].min() - 0.2
+    assert drop[1].min() > -0.15
+    assert not world.unstable.numpy().any()
+
+
+def _closed_and_oriented(faces: np.ndarray) -> bool:
+    """Every directed edge appears once and its reverse once: a closed, consistently wound surface."""
+    e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    fwd = {tuple(x) for x in e.tolist()}
+    return len(fwd) == len(e) and all((b, a) in fwd for a, b in fwd)
+
+
+def test_tet_slab_carving_surface_and_reset(device):
+    b = SceneBuilder()
+    v, t = box_tets((0.04, 0.04, 0.01), (8, 8, 2))
+    slab = b.add_tet_mesh(v, t, density=1000.0, youngs_modulus=3e3, poisson_ratio=0.3, damping=1.0,
+                          fixed=np.nonzero(v[:, 2] < 1e-9)[0], cuttable=True)
+    world = b.finalize(2, device, substeps=5)
+    q0 = world.positions(slab)
+    surf0 = world.state.tet_face_active.numpy().copy()
+    cut = CuttingSystem(world, carving_distance=6e-3, num_tools=1)
+    cut.add_object(slab)
+    cut.finalize()
+    tip = np.array([0.02, 0.02, 0.01])  # a point tool (a = b) on the top face
+    cut.set_tools([tip], [tip], active=[1, 0])
+    cut.cut()
+    tets = slab.tets - slab.particle_start
+    d = np.linalg.norm(v[tets].mean(axis=1) - tip, axis=1)
+    expect = (d > 6e-3).astype(np.int32)
+    assert 0 < (expect == 0).sum() < len(t) // 2
+    act = world.state.tet_active.numpy()
+    np.testing.assert_array_equal(act[0], expect)
+    assert act[1].min() == 1
+    assert cut.removed.numpy()[0, 0] == (expect == 0).sum()
+    faces, fa = cut_surface(world, slab)
+    fa = fa.numpy()
+    # reference surface: faces of present tets that appear once among present tets
+    all_faces = np.stack([tets[:, [1, 2, 3]], tets[:, [0, 3, 2]], tets[:, [0, 1, 3]], tets[:, [0, 2, 1]]], axis=1)
+    live = all_faces[expect == 1].reshape(-1, 3)
+    _, inv, cnt = np.unique(np.sort(live, axis=1), axis=0, return_inverse=True, return_counts=True)
+    ref = {tuple(sorted(f)) for f in live[cnt[inv.ravel()] == 1].tolist()}
+    got = faces[fa[0] == 1]
+    assert {tuple(sorted(f)) for f in got.tolist()} == ref
+    assert _closed_and_oriented(got)
+    assert len(got) > (surf0[0] == 1).sum()  # the crater adds faces
+    np.testing.assert_array_equal(fa[1], surf0[1])
+    assert cut.num_components.numpy()[0, 0] == 1 and cut.cut_ratio.numpy()[0, 0] > 0.0
+    world.simulate(0.3, DT)
+    assert not world.unstable.numpy().any()
+    # masked reset of env 0 restores masks, surface and rest state; env 1 keeps its (moved) state
+    q1 = world.positions(slab)[1]
+    world.reset(wp.array([1, 0], dtype=wp.int32, device=device))
+    cut.refresh()
+    np.testing.assert_array_equal(world.state.tet_active.numpy()[0], np.ones(len(t), dtype=np.int32))
+    np.testing.assert_array_equal(world.state.tet_face_active.numpy(), surf0)
+    np.testing.assert_array_equal(world.positions(slab)[0], q0[0])
+    np.testing.assert_array_equal(world.positions(slab)[1], q1)
+    np.testing.assert_array_equal(cut.cut_ratio.numpy()[:, 0], [0.0, 0.0])
+
+
+def test_flap_detaches_from_connective_tissue(device):
+    """Labels + links: a cloth flap (label 0) hangs from a connective strip (label 1); cutting the strip's
+    link row through the full width detaches them."""
+    b = SceneBuilder(gravity=(0.0, 0.0, 0.0))
+    nx, h = 9, 0.005
+    v, t = cloth_grid(nx, nx, (nx - 1) * h, (nx - 1) * h, plane="xz")
+    cloth = b.add_cloth(v, t, bend_stiffness=0.0, cuttable=True)
+    world = b.finalize(1, device, substeps=2)
+    cen = v[t].mean(axis=1)
+    conn = cen[:, 2] > 5 * h  # connective tissue: the quads above the cut band
+    cut = CuttingSystem(world, carving_distance=1e-4, num_tools=1, num_labels=2, tool_radius=0.5 * h - 1e-4)
+    cut.add_object(cloth, labels=conn.astype(int))
+    cut.finalize()
+    assert cut.labels_connected(0, 1).all()
+    cut.set_tools([[-h, 0.0, 4.5 * h]], [[nx * h, 0.0, 4.5 * h]], active=[1])
+    cut.cut()
+    assert not cut.labels_connected(0, 1).any()
+    assert cut.labels_connected(1, 1).all() and cut.labels_connected(0, 0).all()
+    assert cut.removed.numpy()[0, 1] == 0 and cut.removed.numpy()[0, 0] > 0
+
+
+def test_not_cuttable_rejected(device):
+    b = SceneBuilder()
+    v, t = cloth_grid(3, 3, 0.01, 0.01)
+    b.add_cloth(v, t)
+    world = b.finalize(1, device)
+    assert world.state.tri_active is None  # no masks, no cost
+    with pytest.raises(ValueError):
+        CuttingSystem(world)
