@@ -27,6 +27,10 @@ import warp as wp
 
 from lapwarp.kernels import contact as ck
 
+# particle-particle sets with at least this many members per env use the per-env cell list (measured on CPU,
+# see docs/contact.md: brute force costs M^2 pair tests, the cell list ~27 buckets + a scan per sweep)
+GRID_THRESHOLD = 512
+
 _KINDS = {"sphere": 0, "capsule": 1, "box": 2, "plane": 3, "cylinder": 4, "mesh": 5, "surface": 6}
 
 
@@ -235,7 +239,8 @@ class ContactSystem:
         return sid
 
     def add_particle_contact(self, members, skip_links: int = 2, mu_static: float = 0.3,
-                             mu_kinetic: float | None = None, name: str = "self") -> int:
+                             mu_kinetic: float | None = None, name: str = "self", method: str = "auto",
+                             grid_threshold: int = GRID_THRESHOLD) -> int:
         """Particle-particle contact among ``members`` (deformable vs deformable and self-contact).
 
         Args:
@@ -245,6 +250,9 @@ class ContactSystem:
                 not exceed ``(skip_links + 1)`` segment lengths.
             mu_static, mu_kinetic: friction between the particles.
             name: report column name.
+            method: ``"brute"`` (every member against every other of its env), ``"grid"`` (per-env cell list of
+                cell size = the largest contact distance: members of the 27 surrounding cells only) or ``"auto"``
+                (grid from ``grid_threshold`` members on; the crossover measured on CPU, docs/contact.md).
 
         Returns:
             The index of the set.
@@ -265,9 +273,14 @@ class ContactSystem:
             pos.append(np.arange(len(idx)))
             length.append(np.full(len(idx), len(idx) if closed else 0))
         mu_k = mu_static if mu_kinetic is None else mu_kinetic
+        if method not in ("auto", "brute", "grid"):
+            raise ValueError(f"method {method!r} is not auto, brute or grid")
+        total = sum(len(p) for p in parts)
+        grid = method == "grid" or (method == "auto" and total >= grid_threshold)
         self.self_sets.append(dict(name=name, particles=np.concatenate(parts), radius=np.concatenate(radii),
                                    chain=np.concatenate(chain), pos=np.concatenate(pos),
-                                   length=np.concatenate(length), skip=int(skip_links), mu=(mu_static, mu_k)))
+                                   length=np.concatenate(length), skip=int(skip_links), mu=(mu_static, mu_k),
+                                   grid=grid))
         return len(self.self_sets) - 1
 
     def _check_open(self) -> None:
@@ -383,7 +396,16 @@ class ContactSystem:
                 length=arr(ss["length"].astype(np.int32), wp.int32),
                 pair=arr(np.full(m, self._self_pair[k], np.int32), wp.int32),
                 delta=wp.zeros((n, m), dtype=wp.vec3, device=dev),
-                count=m, skip=ss["skip"], mu=wp.vec2(*ss["mu"])))
+                count=m, skip=ss["skip"], mu=wp.vec2(*ss["mu"]), grid=ss["grid"]))
+            if ss["grid"]:
+                a = self._self_arrays[-1]
+                H = 1 << max(4, int(np.ceil(np.log2(2 * m))))  # ~2 buckets per member: few collisions
+                a.update(H=H, inv_cell=1.0 / max(2.0 * float(ss["radius"].max()), 1.0e-9),
+                         bucket_count=wp.zeros(n * H, dtype=wp.int32, device=dev),
+                         bucket_start=wp.zeros(n * H, dtype=wp.int32, device=dev),
+                         member_bucket=wp.zeros((n, m), dtype=wp.int32, device=dev),
+                         member_rank=wp.zeros((n, m), dtype=wp.int32, device=dev),
+                         sorted_member=wp.zeros(n * m, dtype=wp.int32, device=dev))
 
         P = max(self.num_pairs, 1)
         self.report_count = wp.zeros((n, P), dtype=wp.int32, device=dev)
@@ -472,10 +494,22 @@ class ContactSystem:
             launch(ck.apply_surface_deltas, (n, sf["verts"].shape[0]), [sf["verts"], self.surf_delta,
                                                                         self.surf_count], [s.particle_q])
         for a in self._self_arrays:
-            launch(ck.collide_particle_pairs, (n, a["count"]),
-                   [a["particle"], a["radius"], a["chain"], a["pos"], a["length"], a["pair"], a["skip"], a["mu"],
-                    m.particle_inv_mass, world._q_pred, s.particle_qd, h, force_scale, report],
-                   [s.particle_q, a["delta"], self.report_count, self.report_force])
+            common = [a["particle"], a["radius"], a["chain"], a["pos"], a["length"], a["pair"], a["skip"], a["mu"]]
+            tail = [m.particle_inv_mass, world._q_pred, s.particle_qd, h, force_scale, report]
+            if a["grid"]:
+                launch(a["bucket_count"].zero_)
+                launch(ck.grid_count, (n, a["count"]), [a["particle"], a["inv_cell"], a["H"], s.particle_q],
+                       [a["bucket_count"], a["member_bucket"], a["member_rank"]])
+                # one exclusive scan over every env's buckets gives global offsets (env e starts at e * M)
+                launch(lambda a=a: wp.utils.array_scan(a["bucket_count"], a["bucket_start"], inclusive=False))
+                launch(ck.grid_scatter, (n, a["count"]), [a["bucket_start"], a["member_bucket"], a["member_rank"]],
+                       [a["sorted_member"]])
+                launch(ck.collide_particle_pairs_grid, (n, a["count"]),
+                       [*common, a["inv_cell"], a["H"], a["bucket_start"], a["bucket_count"], a["sorted_member"],
+                        *tail], [s.particle_q, a["delta"], self.report_count, self.report_force])
+            else:
+                launch(ck.collide_particle_pairs, (n, a["count"]), [*common, *tail],
+                       [s.particle_q, a["delta"], self.report_count, self.report_force])
             launch(ck.apply_particle_deltas, (n, a["count"]), [a["particle"], a["delta"]], [s.particle_q])
         if report:
             launch(ck.clamp_contact_count, n, [self.capacity], [self.contact_count])

@@ -260,9 +260,11 @@ def test_rest_on_static_mesh_within_thickness(device):
     assert cs.forces()[0, 0] == pytest.approx(mass * 9.81, rel=0.02)
 
 
-def test_rod_self_contact_and_torus_on_peg(device):
+@pytest.mark.parametrize("method", ["brute", "grid"])
+def test_rod_self_contact_and_torus_on_peg(device, method):
     """A closed rod (torus, r = 3 mm) dropped over a peg cylinder stays around it (no particle inside the peg)
-    and a rod dropped onto itself keeps its nodes >= 2 r - 0.1 mm apart (self-contact)."""
+    and a rod dropped onto itself keeps its nodes >= 2 r - 0.1 mm apart (self-contact), with the brute-force
+    pair loop and with the per-env cell list."""
     b = SceneBuilder()
     torus = b.add_rod(rod_circle(0.014, 24, center=(0, 0, 0.03)), radius=0.003, youngs_modulus=1e5, closed=True,
                       damping=1.0)
@@ -275,7 +277,7 @@ def test_rod_self_contact_and_torus_on_peg(device):
     cs.add_particle_group(bar, radius=0.003, segments=True, name="bar")
     cs.add_plane(name="floor")
     cs.add_cylinder(0.005, 0.04, transform=(0, 0, 0.04), name="peg")
-    cs.add_particle_contact([(torus, 0.003), (bar, 0.003)], skip_links=2, name="rods")
+    cs.add_particle_contact([(torus, 0.003), (bar, 0.003)], skip_links=2, name="rods", method=method)
     cs.finalize()
     w.simulate(1.0, 0.1)
     x = w.positions()[0]
@@ -326,3 +328,26 @@ def test_bead_rests_on_deforming_tissue_surface_per_env(device):
     assert xb[0, 2] - xb[1, 2] == pytest.approx(0.004, abs=2.0e-5)
     assert np.allclose(cs.forces()[:, cs.pair("tissue", "bead")], 1.0e-4 * 9.81, rtol=0.01)
     assert list(cs.counts()[:, 0]) == [1, 1]
+
+
+def test_cell_list_matches_brute_force(device):
+    """One step of 300 random particles (r = 1 mm, many overlapping) per env in a 2 cm box: the per-env cell list
+    finds exactly the pairs of the brute force (same contact count, positions equal to 1e-6 m; the order of the
+    float sums differs), env 1 holds a different cloud (envs never mix)."""
+    rng = np.random.default_rng(3)
+    out = []
+    for method in ("brute", "grid"):
+        b = SceneBuilder(gravity=(0.0, 0.0, 0.0))
+        p = b.add_particles(rng.uniform(-0.01, 0.01, (300, 3)), mass=1e-3)
+        w = b.finalize(num_envs=2, device=device, substeps=2)
+        q = w.state.particle_q.numpy()
+        q[1] = np.random.default_rng(4).uniform(-0.01, 0.01, (300, 3))
+        w.state.particle_q.assign(q)
+        rng = np.random.default_rng(3)
+        cs = ContactSystem(w)
+        cs.add_particle_contact([(p, 0.001)], name="cloud", method=method)
+        cs.finalize()
+        w.step(0.01)
+        out.append((w.positions(), cs.counts()[:, 0]))
+    assert out[0][1].min() > 100 and np.array_equal(out[0][1], out[1][1])
+    assert np.abs(out[0][0] - out[1][0]).max() < 1.0e-6

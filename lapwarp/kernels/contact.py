@@ -692,6 +692,42 @@ def apply_surface_deltas(verts: wp.array(dtype=wp.int32), surf_delta: wp.array2d
 # ----------------------------------------------------------------------------------------------------
 
 
+@wp.func
+def chain_skipped(k: int, m: int, sp_chain: wp.array(dtype=wp.int32), sp_chain_pos: wp.array(dtype=wp.int32),
+                  sp_chain_len: wp.array(dtype=wp.int32), skip_links: int):
+    """Members ``k`` and ``m`` are close neighbours along one chain (they touch at rest): no contact."""
+    if m == k:
+        return True
+    if sp_chain[m] == sp_chain[k] and sp_chain[k] >= 0:
+        gap = wp.abs(sp_chain_pos[m] - sp_chain_pos[k])
+        ln = sp_chain_len[k]
+        if ln > 0:
+            gap = wp.min(gap, ln - gap)  # closed loop: cyclic distance along the chain
+        if gap <= skip_links:
+            return True
+    return False
+
+
+@wp.func
+def pair_correction(env: int, k: int, m: int, sp_particle: wp.array(dtype=wp.int32),
+                    sp_radius: wp.array(dtype=float), mu: wp.vec2, pe: int, wi: float, xi: wp.vec3, xi0: wp.vec3,
+                    inv_mass: wp.array2d(dtype=float), q_pred: wp.array2d(dtype=wp.vec3),
+                    qd: wp.array2d(dtype=wp.vec3), h: float, q: wp.array2d(dtype=wp.vec3)):
+    """Correction of member k against member m (xyz) and the penetration (w; <= 0: no contact)."""
+    j = sp_particle[m]
+    xj = q[env, j]
+    dvec = xi - xj
+    pen = sp_radius[k] + sp_radius[m] - wp.length(dvec)
+    if pen <= 0.0:
+        return wp.vec4(0.0, 0.0, 0.0, pen)
+    wj = inv_mass[pe, j]
+    n = safe_normalize(dvec, wp.vec3(0.0, 0.0, 1.0))
+    share = wi / (wi + wj)
+    xj0 = q_pred[env, j] - qd[env, j] * h
+    corr = n * (pen * share) + friction_correction((xi - xi0) - (xj - xj0), n, pen, mu) * share
+    return wp.vec4(corr[0], corr[1], corr[2], pen / (wi + wj))
+
+
 @wp.kernel
 def collide_particle_pairs(
     sp_particle: wp.array(dtype=wp.int32),
@@ -713,8 +749,8 @@ def collide_particle_pairs(
     report_count: wp.array2d(dtype=wp.int32),
     report_force: wp.array2d(dtype=float),
 ):
-    # brute force over the (small) contact set of one env: a rod of <= ~100 nodes costs fewer tests than a
-    # hash-grid build + query per env, and envs never see each other's particles
+    # brute force over the (small) contact set of one env: below ~grid_threshold members (docs/contact.md) the
+    # M^2 tests cost less than building and querying the per-env cell list, and envs never see each other
     env, k = wp.tid()
     i = sp_particle[k]
     pe = env % inv_mass.shape[0]
@@ -727,36 +763,120 @@ def collide_particle_pairs(
     acc = wp.vec3(0.0)
     cnt = int(0)
     for m in range(sp_particle.shape[0]):
-        if m == k:
+        if chain_skipped(k, m, sp_chain, sp_chain_pos, sp_chain_len, skip_links):
             continue
-        if sp_chain[m] == sp_chain[k] and sp_chain[k] >= 0:
-            gap = wp.abs(sp_chain_pos[m] - sp_chain_pos[k])
-            ln = sp_chain_len[k]
-            if ln > 0:
-                gap = wp.min(gap, ln - gap)  # closed loop: cyclic distance along the chain
-            if gap <= skip_links:
-                continue
-        j = sp_particle[m]
-        xj = q[env, j]
-        dvec = xi - xj
-        dist = wp.length(dvec)
-        pen = sp_radius[k] + sp_radius[m] - dist
-        if pen <= 0.0:
+        c = pair_correction(env, k, m, sp_particle, sp_radius, mu, pe, wi, xi, xi0, inv_mass, q_pred, qd, h, q)
+        if c[3] <= 0.0:
             continue
-        wj = inv_mass[pe, j]
-        n = safe_normalize(dvec, wp.vec3(0.0, 0.0, 1.0))
-        share = wi / (wi + wj)
-        corr = n * (pen * share)
-        xj0 = q_pred[env, j] - qd[env, j] * h
-        rel = (xi - xi0) - (xj - xj0)
-        corr = corr + friction_correction(rel, n, pen, mu) * share
-        acc = acc + corr
+        acc = acc + wp.vec3(c[0], c[1], c[2])
         cnt += 1
         if sp_pair[k] >= 0:
             # each pair is seen from both sides: half the force per side
-            wp.atomic_add(report_force, env, sp_pair[k], 0.5 * pen / (wi + wj) * force_scale)
+            wp.atomic_add(report_force, env, sp_pair[k], 0.5 * c[3] * force_scale)
             if report != 0:
                 wp.atomic_add(report_count, env, sp_pair[k], 1)
+    if cnt > 0:
+        acc = acc / float(cnt)
+    delta[env, k] = acc
+
+
+# per-env cell list (spatial hash with counting sort): all envs sit at the origin, so one wp.HashGrid would mix
+# them; instead every env owns ``H`` hash buckets in one flat array, filled by atomics, turned into offsets by
+# one exclusive scan over all envs (env e's buckets start at e * M because each env holds exactly M members)
+
+
+@wp.func
+def cell_hash(c: wp.vec3i, H: int):
+    hv = (c[0] * 73856093) ^ (c[1] * 19349663) ^ (c[2] * 83492791)
+    return hv & (H - 1)
+
+
+@wp.func
+def cell_of(x: wp.vec3, inv_cell: float):
+    return wp.vec3i(int(wp.floor(x[0] * inv_cell)), int(wp.floor(x[1] * inv_cell)), int(wp.floor(x[2] * inv_cell)))
+
+
+@wp.kernel
+def grid_count(sp_particle: wp.array(dtype=wp.int32), inv_cell: float, H: int, q: wp.array2d(dtype=wp.vec3),
+               bucket_count: wp.array(dtype=wp.int32), member_bucket: wp.array2d(dtype=wp.int32),
+               member_rank: wp.array2d(dtype=wp.int32)):
+    env, k = wp.tid()
+    b = env * H + cell_hash(cell_of(q[env, sp_particle[k]], inv_cell), H)
+    member_bucket[env, k] = b
+    member_rank[env, k] = wp.atomic_add(bucket_count, b, 1)
+
+
+@wp.kernel
+def grid_scatter(bucket_start: wp.array(dtype=wp.int32), member_bucket: wp.array2d(dtype=wp.int32),
+                 member_rank: wp.array2d(dtype=wp.int32), sorted_member: wp.array(dtype=wp.int32)):
+    env, k = wp.tid()
+    sorted_member[bucket_start[member_bucket[env, k]] + member_rank[env, k]] = k
+
+
+@wp.kernel
+def collide_particle_pairs_grid(
+    sp_particle: wp.array(dtype=wp.int32),
+    sp_radius: wp.array(dtype=float),
+    sp_chain: wp.array(dtype=wp.int32),
+    sp_chain_pos: wp.array(dtype=wp.int32),
+    sp_chain_len: wp.array(dtype=wp.int32),
+    sp_pair: wp.array(dtype=wp.int32),
+    skip_links: int,
+    mu: wp.vec2,
+    inv_cell: float,
+    H: int,
+    bucket_start: wp.array(dtype=wp.int32),
+    bucket_count: wp.array(dtype=wp.int32),
+    sorted_member: wp.array(dtype=wp.int32),
+    inv_mass: wp.array2d(dtype=float),
+    q_pred: wp.array2d(dtype=wp.vec3),
+    qd: wp.array2d(dtype=wp.vec3),
+    h: float,
+    force_scale: float,
+    report: int,
+    q: wp.array2d(dtype=wp.vec3),
+    delta: wp.array2d(dtype=wp.vec3),
+    report_count: wp.array2d(dtype=wp.int32),
+    report_force: wp.array2d(dtype=float),
+):
+    # same projection as collide_particle_pairs, over the members in the 27 cells around this one (cell size
+    # >= the largest contact distance, so nothing farther can touch)
+    env, k = wp.tid()
+    i = sp_particle[k]
+    pe = env % inv_mass.shape[0]
+    wi = inv_mass[pe, i]
+    if wi == 0.0:
+        delta[env, k] = wp.vec3(0.0)
+        return
+    xi = q[env, i]
+    xi0 = q_pred[env, i] - qd[env, i] * h
+    ci = cell_of(xi, inv_cell)
+    acc = wp.vec3(0.0)
+    cnt = int(0)
+    for nb in range(27):
+        b = env * H + cell_hash(ci + wp.vec3i(nb % 3 - 1, (nb / 3) % 3 - 1, nb / 9 - 1), H)
+        # two neighbour cells may hash to the same bucket: visit each bucket once
+        seen = int(0)
+        for pb in range(nb):
+            if env * H + cell_hash(ci + wp.vec3i(pb % 3 - 1, (pb / 3) % 3 - 1, pb / 9 - 1), H) == b:
+                seen = 1
+        if seen != 0:
+            continue
+        s0 = bucket_start[b]
+        for e in range(bucket_count[b]):
+            m = sorted_member[s0 + e]
+            if chain_skipped(k, m, sp_chain, sp_chain_pos, sp_chain_len, skip_links):
+                continue
+            c = pair_correction(env, k, m, sp_particle, sp_radius, mu, pe, wi, xi, xi0, inv_mass, q_pred, qd, h,
+                                q)
+            if c[3] <= 0.0:
+                continue
+            acc = acc + wp.vec3(c[0], c[1], c[2])
+            cnt += 1
+            if sp_pair[k] >= 0:
+                wp.atomic_add(report_force, env, sp_pair[k], 0.5 * c[3] * force_scale)
+                if report != 0:
+                    wp.atomic_add(report_count, env, sp_pair[k], 1)
     if cnt > 0:
         acc = acc / float(cnt)
     delta[env, k] = acc
