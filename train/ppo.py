@@ -73,6 +73,11 @@ def use_images(train_cfg: dict, privileged_critic: bool = False) -> dict:
         model = train_cfg[role]
         model.update(class_name="CNNModel", cnn_cfg=dict(NATURE_CNN), hidden_dims=[512, 256, 256])
     train_cfg["obs_groups"] = {"actor": ["image"], "critic": ["critic"] if privileged_critic else ["image"]}
+    alg = train_cfg["algorithm"]
+    if alg.get("schedule") == "adaptive":
+        # Measured on the H100 (Reach RGB, 1,024 envs): the KL-adaptive rate climbed to its 1e-2 ceiling and the
+        # CNN policy collapsed; a fixed small rate is the usual choice for pixel PPO.
+        alg.update(schedule="fixed", learning_rate=3e-4, desired_kl=None)
     if privileged_critic:
         train_cfg["critic"].update(class_name="MLPModel", hidden_dims=[256, 256])
         train_cfg["critic"].pop("cnn_cfg")
