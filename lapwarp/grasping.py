@@ -3,8 +3,9 @@
 Rule (sofa_env's ArticulatedGripper, see sofa_env-facts 4.2): at the end of every ``world.step``, in an env that
 holds nothing, if the jaw angle is below ``grasp_threshold`` and the last substep found contacts of graspable
 particles with *both* jaws, the particles touching a jaw and lying inside the jaw cone (between the jaws, within
-the jaw length) that are nearest to the jaws' mid-plane (up to ``slots`` of them) are attached to the shaft body
-at their current offset: attachment slots ``[slot_start, slot_start + slots)`` of ``state.attach_*`` are written
+the jaw length) that are nearest to the jaws' mid-plane (up to ``slots`` of them) are attached to the jaw body
+they touch, at their current offset in that jaw's frame (so a jaw that opens towards the release angle carries
+its particles along): attachment slots ``[slot_start, slot_start + slots)`` of ``state.attach_*`` are written
 with a small compliance. For rod nodes the adjacent segment's orientation is held at the jaw rotation times its
 orientation at grasp time (projected in every sweep). Held particles stop colliding with the jaws (the
 ContactSystem's ``ignore_bodies`` mask), so the jaws do not squeeze them out. Opening the jaws to
@@ -99,7 +100,7 @@ class GraspSystem:
         if self.hold_orientation:
             bqp, bq = self.contact.body_arrays(world)
             launch(ck.hold_grasped_orientations, (self.world.num_envs, self.slots),
-                   [self.instrument.shaft_body, self.slot_start, self.particle_segment, world.state.attach_particle,
+                   [self.slot_start, self.particle_segment, world.state.attach_particle, world.state.attach_body,
                     self.grasp_delta, bqp, bq, (sub + 1) / world.substeps], [world.state.segment_q])
         if last:
             self._record_update(world, launch)
@@ -116,13 +117,15 @@ class GraspSystem:
 
     # host-side (reset time) -------------------------------------------------------------------------
     def start_grasped(self, particle: int, env_mask: wp.array | None = None) -> None:
-        """Release the masked envs' grasps and, if ``particle >= 0``, attach that global particle to the jaws at
-        its current offset (call after ``world.reset`` and after posing the instrument)."""
+        """Release the masked envs' grasps and, if ``particle >= 0``, attach that global particle at its current
+        offset to the jaw on its side of the jaws' mid-plane (call after ``world.reset`` and after posing the
+        instrument)."""
         w, c = self.world, self.contact
         s = w.state
         mask = env_mask if env_mask is not None else wp.ones(w.num_envs, dtype=wp.int32, device=w.device)
         wp.launch(ck.start_grasp, dim=w.num_envs,
-                  inputs=[mask, int(particle), self.instrument.shaft_body, self.jaw_mask, self.slot_start, self.slots,
+                  inputs=[mask, int(particle), self.instrument.shaft_body, self.instrument.jaw_a,
+                          self.instrument.jaw_b, self.slot_start, self.slots,
                           self.compliance, self.particle_segment, s.body_q, s.particle_q, self._segq(),
                           int(c.body_ignore_mask)],
                   outputs=[self.grasped, self.lost_grasp, s.attach_particle, s.attach_body, s.attach_offset,

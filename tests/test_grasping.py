@@ -51,7 +51,8 @@ def _drive(w, ins, angle, tips, angles):
 
 @pytest.mark.parametrize("kind", ["rod", "torus"])
 def test_grasp_lift_release(device, kind):
-    """Env 0 closes on the rod/torus, lifts it 30 mm (the held point follows the jaws within 1 mm, grasped = 1),
+    """Env 0 closes on the rod/torus, grasps it with a jaw body, lifts it 30 mm (the held point follows the jaws
+    within 2 mm, grasped = 1),
     opens (released, grasped = 0) and it falls back to the floor. Env 1 closes its jaws 20 mm to the side of the
     object: no contact on both jaws -> no grasp, its object stays on the floor."""
     w, cs, gs, ins, obj, angle, grip = _scene(device, kind)
@@ -63,6 +64,7 @@ def test_grasp_lift_release(device, kind):
     assert list(gs.grasped.numpy()) == [1, 0]
     held = int(w.state.attach_particle.numpy()[0, 0])
     assert obj.particle_start <= held < obj.particle_start + obj.particle_count
+    assert int(w.state.attach_body.numpy()[0, 0]) in (ins.jaw_a, ins.jaw_b)  # held by a jaw, not the shaft
     for k in range(1, 11):  # lift 30 mm
         tips[:, 2] = hold_z + 0.003 * k
         _drive(w, ins, angle, tips, [0.0, 0.0])
@@ -93,6 +95,7 @@ def test_no_grasp_with_jaws_open(device):
     _drive(w, ins, angle, [tip], [0.0])
     gs.start_grasped(obj.particle_start + 10)
     assert gs.grasped.numpy()[0] == 1 and w.state.attach_particle.numpy()[0, 0] == obj.particle_start + 10
+    assert w.state.attach_body.numpy()[0, 0] in (ins.jaw_a, ins.jaw_b)
     _drive(w, ins, angle, [tip + [0, 0, 0.005]], [0.0])
     assert gs.grasped.numpy()[0] == 1
     # a stiffly attached node follows any jaw motion, so tear it by making the attachment soft

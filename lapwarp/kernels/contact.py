@@ -980,7 +980,8 @@ def update_grasp(
         for k in range(slots):
             i = attach_particle[env, slot_start + k]
             if i >= 0:
-                if wp.length(q[env, i] - wp.transform_point(tip, attach_offset[env, slot_start + k])) > max_offset:
+                jaw = body_q[env, attach_body[env, slot_start + k]]
+                if wp.length(q[env, i] - wp.transform_point(jaw, attach_offset[env, slot_start + k])) > max_offset:
                     far = 1
         if angle >= release_threshold or far != 0:
             release_slots(env, slot_start, slots, jaw_mask, attach_particle, ignore_bodies, use_ignore)
@@ -1007,6 +1008,7 @@ def update_grasp(
     got = int(0)
     for k in range(slots):
         best = int(-1)
+        best_b = int(-1)
         best_d = float(1.0e9)
         for c in range(n):
             i = contact_particle[env, c]
@@ -1027,16 +1029,19 @@ def update_grasp(
             if d < best_d:
                 best_d = d
                 best = i
+                best_b = b
         if best < 0:
             break
+        # held by the jaw it touches (the jaws are bodies): opening towards the release angle carries it along
         s = slot_start + k
+        jaw = body_q[env, best_b]
         attach_particle[env, s] = best
-        attach_body[env, s] = shaft
-        attach_offset[env, s] = wp.transform_point(inv_tip, q[env, best])
+        attach_body[env, s] = best_b
+        attach_offset[env, s] = wp.transform_point(wp.transform_inverse(jaw), q[env, best])
         attach_compliance[env, s] = compliance
         seg = particle_segment[best]
         if seg >= 0:
-            grasp_delta[env, k] = wp.mul(wp.quat_inverse(wp.transform_get_rotation(tip)), segment_q[env, seg])
+            grasp_delta[env, k] = wp.mul(wp.quat_inverse(wp.transform_get_rotation(jaw)), segment_q[env, seg])
         if use_ignore != 0:
             ignore_bodies[env, best] = ignore_bodies[env, best] | jaw_mask
         got += 1
@@ -1046,17 +1051,17 @@ def update_grasp(
 
 @wp.kernel
 def hold_grasped_orientations(
-    shaft: int,
     slot_start: int,
     particle_segment: wp.array(dtype=wp.int32),
     attach_particle: wp.array2d(dtype=wp.int32),
+    attach_body: wp.array2d(dtype=wp.int32),
     grasp_delta: wp.array2d(dtype=wp.quat),
     body_q_prev: wp.array2d(dtype=wp.transform),
     body_q: wp.array2d(dtype=wp.transform),
     blend: float,
     segment_q: wp.array2d(dtype=wp.quat),
 ):
-    # a grasped rod frame turns with the jaw: its segment orientation is projected onto jaw rotation * delta
+    # a grasped rod frame turns with its jaw: its segment orientation is projected onto jaw rotation * delta
     env, k = wp.tid()
     i = attach_particle[env, slot_start + k]
     if i < 0:
@@ -1064,7 +1069,8 @@ def hold_grasped_orientations(
     seg = particle_segment[i]
     if seg < 0:
         return
-    tf = interpolate_transform(body_q_prev[env, shaft], body_q[env, shaft], blend)
+    jaw = attach_body[env, slot_start + k]
+    tf = interpolate_transform(body_q_prev[env, jaw], body_q[env, jaw], blend)
     segment_q[env, seg] = wp.normalize(wp.mul(wp.transform_get_rotation(tf), grasp_delta[env, k]))
 
 
@@ -1073,7 +1079,8 @@ def start_grasp(
     env_mask: wp.array(dtype=wp.int32),
     particle: int,
     shaft: int,
-    jaw_mask: int,
+    jaw_a: int,
+    jaw_b: int,
     slot_start: int,
     slots: int,
     compliance: float,
@@ -1094,19 +1101,24 @@ def start_grasp(
     env = wp.tid()
     if env_mask[env] == 0:
         return
+    jaw_mask = (1 << jaw_a) | (1 << jaw_b)
     release_slots(env, slot_start, slots, jaw_mask, attach_particle, ignore_bodies, use_ignore)
     lost_grasp[env] = 0
     grasped[env] = 0
     if particle < 0:
         return
-    tip = body_q[env, shaft]
+    # the jaw on the particle's side of the mid-plane holds it (jaw A closes from local -y, jaw B from +y)
+    body = jaw_b
+    if wp.transform_point(wp.transform_inverse(body_q[env, shaft]), q[env, particle])[1] < 0.0:
+        body = jaw_a
+    jaw = body_q[env, body]
     attach_particle[env, slot_start] = particle
-    attach_body[env, slot_start] = shaft
-    attach_offset[env, slot_start] = wp.transform_point(wp.transform_inverse(tip), q[env, particle])
+    attach_body[env, slot_start] = body
+    attach_offset[env, slot_start] = wp.transform_point(wp.transform_inverse(jaw), q[env, particle])
     attach_compliance[env, slot_start] = compliance
     seg = particle_segment[particle]
     if seg >= 0:
-        grasp_delta[env, 0] = wp.mul(wp.quat_inverse(wp.transform_get_rotation(tip)), segment_q[env, seg])
+        grasp_delta[env, 0] = wp.mul(wp.quat_inverse(wp.transform_get_rotation(jaw)), segment_q[env, seg])
     if use_ignore != 0:
         ignore_bodies[env, particle] = ignore_bodies[env, particle] | jaw_mask
     grasped[env] = 1
