@@ -25,7 +25,8 @@ Deviations from sofa_env (deliberate): the left hook's position is used for the 
 new sphere is drawn for the left hook (sofa_env reads the right hook there, a bug); with two hooks,
 ``allow_deflection_with_instrument_shaft`` is supported (sofa_env forces it off) and means "any part of the
 matching hook touches the sphere" rather than "no contact needed"; spheres start at their gravity equilibrium, so
-no settle steps are needed after a reset.
+no settle steps are needed after a reset. As in sofa_env, deflections are measured from the spring anchor, so every
+sphere shows its gravity sag (0.49 mm with the defaults) in the inactive-deflection feature.
 """
 
 from __future__ import annotations
@@ -43,7 +44,13 @@ from lapwarp.config import EnvConfig
 from lapwarp.contact import ContactSystem
 from lapwarp.env import BatchedEnv
 from lapwarp.instrument_shapes import InstrumentShape
-from lapwarp.instruments import STATE_LIMITS_VIOLATED, WORKSPACE_VIOLATED, TPSDConfig, TPSDInstruments
+from lapwarp.instruments import (
+    STATE_LIMITS_VIOLATED,
+    WORKSPACE_VIOLATED,
+    TPSDConfig,
+    TPSDInstruments,
+    discrete_action_table,
+)
 from lapwarp.kernels.contact import closest_segment_segment
 from lapwarp.kernels.kinematics import point_to_ptsd
 from lapwarp.kernels.random import rand_uniform
@@ -666,9 +673,9 @@ class DeflectSpheresEnv(BatchedEnv):
         assert [s.shaft_body for s in self.hook_shapes] == list(range(self.num_hooks))
 
         self.contact = ContactSystem(world, capacity=16, report_margin=5.0e-4)
-        groups = [self.contact.add_particle_group([k], radius=cfg.sphere_radius, name=f"sphere{k}")
-                  for k in range(num)]
-        del groups
+        # one particle group per sphere, so the reports tell which sphere a hook touches (group k = sphere k)
+        for k in range(num):
+            self.contact.add_particle_group([k], radius=cfg.sphere_radius, name=f"sphere{k}")
         shape_hook, shape_tip = [], []
         for h, shape in enumerate(self.hook_shapes):
             ids = shape.add_colliders(self.contact, mu_static=cfg.contact_friction)
@@ -720,8 +727,6 @@ class DeflectSpheresEnv(BatchedEnv):
         deg = math.pi / 180.0
         mags = np.tile(np.asarray(self.cfg.discrete_action_magnitude) * np.array([deg, deg, deg, 1.0]),
                        self.num_hooks)
-        from lapwarp.instruments import discrete_action_table
-
         return discrete_action_table(mags)
 
     def _apply_actions(self, actions: wp.array2d) -> None:
