@@ -37,19 +37,30 @@ class LapwarpGymEnv(gym.Env):
     Args:
         task: task name (see ``lapwarp.list_tasks()``).
         device: Warp device; "cpu" by default (one scene gains nothing from a GPU).
-        render_mode: None (image rendering arrives with the rasteriser).
+        render_mode: None, or "rgb_array": ``render()`` returns the scene as an ``(H, W, 3)`` uint8 image drawn by
+            the batched rasteriser (``render_size`` pixels, square).
+        render_size: side of the ``render()`` image in pixels.
         **overrides: task config fields.
     """
 
-    metadata = {"render_modes": []}
+    metadata = {"render_modes": ["rgb_array"]}
 
-    def __init__(self, task: str = "Reach", device: str = "cpu", render_mode: str | None = None, **overrides: Any):
-        if render_mode is not None:
-            raise ValueError(f"render_mode={render_mode!r} is not supported; choose None")
+    def __init__(self, task: str = "Reach", device: str = "cpu", render_mode: str | None = None,
+                 render_size: int = 256, **overrides: Any):
+        if render_mode not in (None, "rgb_array"):
+            raise ValueError(f"render_mode={render_mode!r} is not supported; choose None or 'rgb_array'")
         self.env = make(task, num_envs=1, device=device, keep_final_observations=True, **overrides)
         self.observation_space, self.action_space = _spaces(self.env)
         self.render_mode = render_mode
-        self.metadata = {"render_modes": [], "render_fps": 1.0 / self.env.dt}
+        self.render_size = int(render_size)
+        self.metadata = {"render_modes": ["rgb_array"], "render_fps": 1.0 / self.env.dt}
+
+    def render(self):
+        """The scene as an ``(H, W, 3)`` uint8 image (``render_mode="rgb_array"``), else None."""
+        if self.render_mode != "rgb_array":
+            return None
+        image = self.env.render_rgb(self.render_size, self.render_size)[0]
+        return image.permute(1, 2, 0).cpu().numpy()
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         super().reset(seed=seed)

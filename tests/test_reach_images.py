@@ -87,3 +87,11 @@ def test_render_rgb_for_people(device, tmp_path):
     assert images.float().std() > 1.0  # not a blank image
     save_image_grid(images, tmp_path / "grid.png")
     assert (tmp_path / "grid.png").stat().st_size > 100
+
+
+def test_gymnasium_rgb_array_render(device):
+    env = gym.make("lapwarp/Reach-v0", device=device, render_mode="rgb_array", render_size=40, sphere_radius=0.02)
+    env.reset(seed=0)
+    frame = env.render()
+    assert frame.shape == (40, 40, 3) and frame.dtype == np.uint8 and frame.std() > 1.0
+    check_env(env.unwrapped)  # render check included
