@@ -33,8 +33,9 @@ _AXIS_X = (0.0, 0.70710678, 0.0, 0.70710678)  # capsule axis (local z) along wor
 LAYOUT = {
     "cloth": dict(capsule=((0.0375, 0.004, -0.04), _AXIS_X), box=((0.09, 0.01, 0.1), (0.0375, 0.02, -0.04)),
                   radius=5e-4),
-    "tet": dict(capsule=((0.02, 0.02, 0.0215), _AXIS_X), box=((0.01, 0.06, 0.05), (0.047, 0.02, 0.0)),
-                radius=0.0),
+    # the capsule indents the top 2 mm below its rest height and the prop's face touches the block's +x side
+    "tet": dict(capsule=((0.02, 0.02, 0.02 + 2.25e-3 - 2e-3), _AXIS_X),
+                box=((0.01, 0.06, 0.05), (0.045, 0.02, 0.0)), radius=0.0, thickness=2e-4),
     "rod": dict(capsule=((0.0, 0.0, -0.1), _AXIS_X), box=((0.1, 0.1, 0.02), (0.05, 0.0, -0.2)), radius=0.001),
 }
 
@@ -42,7 +43,9 @@ LAYOUT = {
 def add_contact(world, obj, scene: str, body: int) -> ContactSystem:
     lay = LAYOUT[scene]
     cs = ContactSystem(world, capacity=64)
-    cs.add_particle_group(obj, radius=lay["radius"], segments=True if scene == "rod" else None)
+    # cloth: triangle contact too, so the tool cannot pass between vertices (docs/contact.md)
+    cs.add_particle_group(obj, radius=lay["radius"], segments=True if scene == "rod" else None,
+                          triangles=True if scene == "cloth" else None)
     (pos, quat) = lay["capsule"]
     q = world.state.body_q.numpy()
     q[:, body, :3] = pos
@@ -54,7 +57,7 @@ def add_contact(world, obj, scene: str, body: int) -> ContactSystem:
     ext, centre = lay["box"]
     box = trimesh.creation.box(extents=ext)
     box.apply_translation(centre)
-    cs.add_mesh(box.vertices, box.faces, name="prop")
+    cs.add_mesh(box.vertices, box.faces, name="prop", thickness=lay.get("thickness", 0.0))
     cs.add_plane(transform=(0.0, 0.0, -0.3), name="floor")
     if scene == "rod":
         cs.add_particle_contact([(obj, 0.001)], skip_links=2, name="self")

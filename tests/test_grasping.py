@@ -52,9 +52,8 @@ def _drive(w, ins, angle, tips, angles):
 @pytest.mark.parametrize("kind", ["rod", "torus"])
 def test_grasp_lift_release(device, kind):
     """Env 0 closes on the rod/torus, grasps it with a jaw body, lifts it 30 mm (the held point follows the jaws
-    within 2 mm, grasped = 1),
-    opens (released, grasped = 0) and it falls back to the floor. Env 1 closes its jaws 20 mm to the side of the
-    object: no contact on both jaws -> no grasp, its object stays on the floor."""
+    within 2 mm, grasped = 1), opens (released, grasped = 0) and it falls back to the floor. Env 1 closes its jaws
+    20 mm to the side of the object: no contact on both jaws -> no grasp, its object stays on the floor."""
     w, cs, gs, ins, obj, angle, grip = _scene(device, kind)
     hold_z = grip[2] + 0.015  # the object sits 15 mm along the jaws
     tips = np.array([grip + [0, 0, 0.015], grip + [0, 0.02, 0.015]])

@@ -508,6 +508,13 @@ def collide_triangles(
             hh = shape_params[s][1]
         c0 = wp.transform_point(tf, wp.vec3(0.0, 0.0, -hh))
         c1 = wp.transform_point(tf, wp.vec3(0.0, 0.0, hh))
+        # cheap reject (most triangles are far from the tool): bounding sphere about the centroid vs the axis
+        cen = (x0 + x1 + x2) / 3.0
+        bound = wp.sqrt(wp.max(wp.length_sq(x0 - cen), wp.max(wp.length_sq(x1 - cen), wp.length_sq(x2 - cen))))
+        ax = c1 - c0
+        u = wp.clamp(wp.dot(cen - c0, ax) / wp.max(wp.dot(ax, ax), 1.0e-20), 0.0, 1.0)
+        if wp.length(cen - (c0 + ax * u)) > bound + tri_radius[k] + shape_params[s][0] + shape_thickness[s]:
+            continue
         cl = closest_segment_triangle(c0, c1, x0, x1, x2)
         bw = wp.vec3(cl[1], cl[2], cl[3])
         p = x0 * bw[0] + x1 * bw[1] + x2 * bw[2]
