@@ -33,7 +33,12 @@ class ReachExpert:
         return (error / step_length).clamp(-1.0, 1.0)
 
 
-_EXPERTS = {"Reach": ReachExpert}
+_EXPERTS = {
+    "Reach": ReachExpert,
+    # lives with its task (it reuses the task's inverse kinematics); imported only when asked for
+    "SearchForPoint": lambda env: __import__(
+        "lapwarp.tasks.spatial.search_for_point", fromlist=["_"]).SearchForPointExpert(env),
+}
 
 
 def make_expert(env):
