@@ -114,6 +114,7 @@ def test_random_actions_stay_finite_and_inside_limits(device):
     for _ in range(25):
         obs, reward, done, _ = env.step(torch.rand(6, 9, generator=gen) * 2 - 1)
         assert torch.isfinite(obs["policy"]).all() and torch.isfinite(reward).all()
+        assert float(obs["policy"].abs().max()) <= 3.2  # the declared observation bounds
     ptsd = env.instruments.ptsd_numpy()
     assert np.all(ptsd[:, 0] >= CAM_LOW - 1e-4) and np.all(ptsd[:, 0] <= CAM_HIGH + 1e-4)
 
@@ -234,6 +235,18 @@ def test_expert_succeeds(device, active_vision):
         successes += int((done & ~extras["time_outs"]).sum())
     assert finished >= 16
     assert successes / finished >= 0.9
+
+
+def test_discrete_expert_finishes_episodes(device):
+    env = lapwarp.make("SearchForPoint", num_envs=16, device=device, action_type="DISCRETE", seed=3)
+    expert = make_expert(env)
+    done_once = torch.zeros(16, dtype=torch.bool)
+    for _ in range(150):  # 5 deg/s and 5 mm/s steps: about 90 steps per episode
+        _, _, done, extras = env.step(expert())
+        assert not bool(extras["time_outs"].any())
+        done_once |= done.cpu()
+    assert int(done_once.sum()) >= 14
+    assert env._t["last_episode_success"][done_once].all()
 
 
 def test_rgb_shows_the_poi_where_the_pixel_feature_says(device):

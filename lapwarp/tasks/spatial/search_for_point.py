@@ -17,7 +17,8 @@ the hook activated. The anatomy is procedural (``lapwarp.assets.abdomen``); ever
 * Reward features (Table A): camera mode uses the first five and ``successful_task``; active vision uses the
   cauter features and ``successful_task`` (the other weights default to 0 there, as in the paper). The relative
   pixel distance is clipped to [0, 2] and set to 2 while the POI is behind the camera (sofa_env's value is
-  unbounded there, which makes its delta explode).
+  unbounded there, which makes its delta explode). Pixels are those of ``image_shape`` also for STATE
+  observations, as sofa_env measures them in its render resolution; the relative distance hardly depends on it.
 * POIs are precomputed once per process on the host: organ vertices for which a camera state inside the limits
   exists that centres the point at the desired distance with a clear line of sight (and, in active vision, that
   the cauter reaches inside its limits with its shaft clear of the organs). Each reset draws one per env on the
@@ -511,9 +512,11 @@ def _limit_mask(ptsd: torch.Tensor, low, high, margin=(0.5, 0.5, 0.5, 0.002)) ->
     return ((ptsd >= low) & (ptsd <= high)).all(-1)
 
 
-def poi_candidates(cfg: SearchForPointConfig) -> np.ndarray:
+def poi_candidates(cfg: SearchForPointConfig, device=None) -> np.ndarray:
     """Organ points (m) a camera state inside the limits can centre at the desired distance with a clear line of
-    sight; in active vision also reachable by the hook (inside its limits, shaft clear). Cached per geometry."""
+    sight; in active vision also reachable by the hook (inside its limits, shaft clear). Cached per geometry.
+
+    The sight lines are cast on ``device`` (the env's, so a GPU machine compiles no CPU kernels for this)."""
     key = (cfg.active_vision, cfg.target_distance_camera_poi, cfg.oblique_viewing_angle_deg, cfg.camera_rcm_position,
            cfg.camera_rcm_euler_deg, cfg.camera_state_low, cfg.camera_state_high, cfg.cauter_rcm_position,
            cfg.cauter_rcm_euler_deg, cfg.cauter_state_low, cfg.cauter_state_high)
@@ -532,7 +535,7 @@ def poi_candidates(cfg: SearchForPointConfig) -> np.ndarray:
     idx_point, idx_roll = torch.nonzero(ok, as_tuple=True)
     starts = cam_pos[idx_point, idx_roll].numpy()
     ends = pts[idx_point.numpy()]
-    dev = wp.get_device("cpu")
+    dev = wp.get_device(device)
     mesh = wp.Mesh(points=wp.array(v, dtype=wp.vec3, device=dev), indices=wp.array(f.ravel(), dtype=int, device=dev))
 
     def clear(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -584,7 +587,7 @@ class SearchForPointEnv(BatchedEnv):
         world = World(Model(num_envs=n, device=str(dev)), seed=cfg.seed)
         configs = [cfg.camera_tpsd()] + ([cfg.cauter_tpsd()] if cfg.active_vision else [])
         self.instruments = TPSDInstruments(configs, n, device=str(dev))
-        self.candidates = wp.array(poi_candidates(cfg), dtype=wp.vec3, device=dev)
+        self.candidates = wp.array(poi_candidates(cfg, dev), dtype=wp.vec3, device=dev)
         self.poi = wp.zeros(n, dtype=wp.vec3, device=dev)
         self.cauter_active = wp.zeros(n, dtype=wp.int32, device=dev)
         self.previous = wp.zeros((n, 3), dtype=wp.float32, device=dev)
@@ -609,6 +612,11 @@ class SearchForPointEnv(BatchedEnv):
 
     def _observation_dim(self) -> int:
         return 26 if self.cfg.active_vision else 14
+
+    def _observation_bounds(self) -> tuple[float, float]:
+        # positions stay within ~0.5 m of the origin, quaternions in [-1, 1], angles within their limits (spin of
+        # the camera up to +-180 deg), depths below 0.25 m: every value lies in [-3.2, 3.2]
+        return -3.2, 3.2
 
     def _discrete_action_table(self) -> np.ndarray:
         ratio = (np.asarray(self.cfg.discrete_action_magnitude) / np.asarray(self.cfg.maximum_state_velocity))
@@ -762,7 +770,10 @@ class SearchForPointExpert:
         if cfg.active_vision:
             errors.append(self._cauter_target(poi, ptsd[:, 1], rcm[:, 1]) - ptsd[:, 1])
         if env.is_discrete:
-            return self._discrete(errors)
+            action = self._discrete(errors)
+            if cfg.cauter_activation:  # switch the hook on first (row 16 = +activation); it stays on
+                action = torch.where(state["cauter_active"] == 0, torch.full_like(action, 16), action)
+            return action
         actions = [(e / (self.v_max * self.step_time)).clamp(-1.0, 1.0) for e in errors]
         if cfg.cauter_activation:
             actions.append(torch.ones(env.num_envs, 1, device=env.device))
