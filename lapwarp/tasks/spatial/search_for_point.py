@@ -39,7 +39,7 @@ from lapwarp.assets.abdomen import abdomen_parts, inside_dome, organ_mesh
 from lapwarp.config import EnvConfig
 from lapwarp.env import BatchedEnv
 from lapwarp.instruments import TPSDConfig, TPSDInstruments, discrete_action_table
-from lapwarp.kernels.kinematics import STATE_LIMITS_VIOLATED, ptsd_to_transform
+from lapwarp.kernels.kinematics import STATE_LIMITS_VIOLATED
 from lapwarp.kernels.raster import world_to_pixel
 from lapwarp.model import Model
 from lapwarp.render import focal_length
@@ -468,6 +468,7 @@ def update_search_visuals(
     marker_out: wp.array2d(dtype=wp.transform),
     cauter_out: wp.array2d(dtype=wp.transform),
 ):
+    """Per-env camera pose of the renderer, POI marker and hook transforms from the current state."""
     env = wp.tid()
     camera_out[env] = camera_pose(pose[env, 0], optic_offset)
     marker_out[env, 0] = wp.transform(poi[env], wp.quat_identity())
@@ -483,21 +484,17 @@ def check_sight_lines(
     slack: float,
     clear_out: wp.array(dtype=wp.int32),
 ):
-    """1 where the segment start -> end hits no organ before ``slack`` m short of its end (host precompute)."""
+    """1 where the segment start -> end hits no organ before ``slack`` m short of its end (POI precompute, expert)."""
     i = wp.tid()
     d = end[i] - start[i]
     length = wp.length(d)
+    if length <= slack:
+        clear_out[i] = 1
+        return
     query = wp.mesh_query_ray(mesh, start[i], d / length, length - slack)
     clear_out[i] = 1
     if query.result:
         clear_out[i] = 0
-
-
-@wp.kernel
-def compute_ptsd_poses(rcm: wp.array2d(dtype=wp.transform), ptsd: wp.array2d(dtype=wp.vec4),
-                       pose_out: wp.array2d(dtype=wp.transform)):
-    env, k = wp.tid()
-    pose_out[env, k] = ptsd_to_transform(rcm[env, k], ptsd[env, k])
 
 
 # ---------------------------------------------------------------------------- POI candidates (host, once)
@@ -505,6 +502,8 @@ _POI_CACHE: dict[tuple, np.ndarray] = {}
 
 
 def _limit_mask(ptsd: torch.Tensor, low, high, margin=(0.5, 0.5, 0.5, 0.002)) -> torch.Tensor:
+    """States (rad, m) inside limits given in deg and m, ``margin`` (deg, m) away from them: candidates must leave
+    the expert room to arrive without its last step being clipped."""
     low = torch.tensor(np.radians(low[:3]).tolist() + [low[3]], dtype=ptsd.dtype) + torch.tensor(
         np.radians(margin[:3]).tolist() + [margin[3]], dtype=ptsd.dtype)
     high = torch.tensor(np.radians(high[:3]).tolist() + [high[3]], dtype=ptsd.dtype) - torch.tensor(
