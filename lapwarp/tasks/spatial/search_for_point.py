@@ -498,7 +498,7 @@ def check_sight_lines(
 
 
 # ---------------------------------------------------------------------------- POI candidates (host, once)
-_POI_CACHE: dict[tuple, np.ndarray] = {}
+_POI_CACHE: dict[str, np.ndarray] = {}
 
 
 def _limit_mask(ptsd: torch.Tensor, low, high, margin=(0.5, 0.5, 0.5, 0.002)) -> torch.Tensor:
@@ -516,9 +516,11 @@ def poi_candidates(cfg: SearchForPointConfig, device=None) -> np.ndarray:
     sight; in active vision also reachable by the hook (inside its limits, shaft clear). Cached per geometry.
 
     The sight lines are cast on ``device`` (the env's, so a GPU machine compiles no CPU kernels for this)."""
-    key = (cfg.active_vision, cfg.target_distance_camera_poi, cfg.oblique_viewing_angle_deg, cfg.camera_rcm_position,
-           cfg.camera_rcm_euler_deg, cfg.camera_state_low, cfg.camera_state_high, cfg.cauter_rcm_position,
-           cfg.cauter_rcm_euler_deg, cfg.cauter_state_low, cfg.cauter_state_high)
+    # repr: overrides may arrive as lists (JSON from the command line), which do not hash
+    key = repr((cfg.active_vision, cfg.target_distance_camera_poi, cfg.oblique_viewing_angle_deg,
+                [list(map(float, x)) for x in (cfg.camera_rcm_position, cfg.camera_rcm_euler_deg, cfg.camera_state_low,
+                                               cfg.camera_state_high, cfg.cauter_rcm_position, cfg.cauter_rcm_euler_deg,
+                                               cfg.cauter_state_low, cfg.cauter_state_high)]))
     if key in _POI_CACHE:
         return _POI_CACHE[key]
     v, f = organ_mesh()
