@@ -1,10 +1,12 @@
 """Scripted experts: privileged-state controllers that solve each task (proof of solvability, demos).
 
-An expert is called like a policy: ``actions = expert(env)`` returns a ``(num_envs, num_actions)``
-tensor on the env's device, computed from the env's privileged state with torch ops (no host syncs).
+An expert is called like a policy: ``expert = make_expert(env); actions = expert()`` returns a
+``(num_envs, num_actions)`` tensor on the env's device, computed from privileged state with torch ops (no host syncs).
 """
 
 from __future__ import annotations
+
+import importlib
 
 import torch
 
@@ -33,11 +35,12 @@ class ReachExpert:
         return (error / step_length).clamp(-1.0, 1.0)
 
 
+# task name -> "module:Class"; experts that reuse their task's kernels live in the task module and are imported
+# only when asked for.
 _EXPERTS = {
-    "Reach": ReachExpert,
-    # lives with its task (it reuses the task's inverse kinematics); imported only when asked for
-    "SearchForPoint": lambda env: __import__(
-        "lapwarp.tasks.spatial.search_for_point", fromlist=["_"]).SearchForPointExpert(env),
+    "Reach": "lapwarp.experts:ReachExpert",
+    "DeflectSpheres": "lapwarp.tasks.spatial.deflect_spheres:DeflectSpheresExpert",
+    "SearchForPoint": "lapwarp.tasks.spatial.search_for_point:SearchForPointExpert",
 }
 
 
@@ -45,4 +48,5 @@ def make_expert(env):
     """The scripted expert of ``env``'s task."""
     if env.task_name not in _EXPERTS:
         raise ValueError(f"no expert for task {env.task_name!r}; experts exist for {sorted(_EXPERTS)}")
-    return _EXPERTS[env.task_name](env)
+    module_name, class_name = _EXPERTS[env.task_name].split(":")
+    return getattr(importlib.import_module(module_name), class_name)(env)

@@ -897,12 +897,3 @@ class DeflectSpheresExpert:
             idle = ratio.abs().max(dim=1).values < 0.5  # within half a step: no-op
             return torch.where(idle, torch.full_like(dim, 2 * ratio.shape[1]), 2 * dim + negative)
         return (error / self.step_size).clamp(-1.0, 1.0).reshape(env.num_envs, -1)
-
-
-def _register_expert() -> None:
-    from lapwarp import experts
-
-    experts._EXPERTS.setdefault("DeflectSpheres", DeflectSpheresExpert)
-
-
-_register_expert()
