@@ -75,13 +75,12 @@ def hollow_cylinder_tets(inner_radius=0.005, outer_radius=0.025, height=0.03, ra
     return verts, tets
 
 
-def voxel_tets(surface, pitch: float, fill: bool = True):
+def voxel_tets(surface, pitch: float):
     """Tetrahedralise a closed surface (organ-like shape) on a voxel grid.
 
     Args:
         surface: a ``trimesh.Trimesh`` or a ``(vertices, faces)`` pair; must be watertight.
         pitch: voxel edge length in m (the liver/gallbladder budgets need ~100-400 nodes).
-        fill: include interior voxels (a solid), not only the shell.
     """
     import trimesh
 
@@ -93,8 +92,6 @@ def voxel_tets(surface, pitch: float, fill: bool = True):
     centres = origin + (cells + 0.5) * pitch
     # a voxel belongs to the solid when its centre is inside (volume error O(pitch) at the surface)
     inside = _winding_number(np.asarray(mesh.vertices), np.asarray(mesh.faces), centres) > 0.5
-    if not fill:
-        raise NotImplementedError("only solid voxelisation is supported")
     cells = cells[inside]
     if len(cells) == 0:
         raise ValueError("no voxel centre inside the surface: reduce the pitch")
