@@ -193,6 +193,7 @@ class BatchedEnv(VecEnv):
             "last_episode_length", "nonfinite_actions", "clipped_actions", "obs_stack")}
         if self.uses_images:
             self._t["image_stack"] = wp.to_torch(self.image_stack)
+        self._t["unstable"] = wp.to_torch(self.world.unstable)
         if self.keep_final_observations:
             self._t["final_obs"] = wp.to_torch(self.final_obs)
         if self.cfg.privileged_critic:
@@ -375,7 +376,7 @@ class BatchedEnv(VecEnv):
         log["/episode/success"] = (t["last_episode_success"] * finished).sum() / num_finished
         log["/episode/return"] = (t["last_episode_return"] * finished).sum() / num_finished
         log["/episode/length"] = (t["last_episode_length"] * finished).sum() / num_finished
-        log["/env/unstable_fraction"] = wp.to_torch(self.world.unstable).float().mean()
+        log["/env/unstable_fraction"] = t["unstable"].float().mean()
         if not self.is_discrete:
             log["/action/nonfinite_fraction"] = t["nonfinite_actions"].float().mean() / self.action_dim
             log["/action/clipped_fraction"] = t["clipped_actions"].float().mean() / self.action_dim
