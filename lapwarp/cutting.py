@@ -228,10 +228,20 @@ class CuttingSystem:
             wp.launch(ck.tet_surface, dim=(w.num_envs, 4 * m.tet_count),
                       inputs=[s.cut_dirty, s.tet_active, m.tet_face_neighbor], outputs=[s.tet_face_active],
                       device=dev)
-        wp.launch(ck.connectivity, dim=w.num_envs,
-                  inputs=[self._kind, self._col, self._label, self._obj, self._pairs, self._label_total, *self._masks],
-                  outputs=[s.cut_dirty, self.component, self._root_bits, self.num_components, self.active_count,
-                           self.cut_ratio, self.label_links], device=dev)
+        N, M, P = w.num_envs, self.num_elements, self._pairs.shape[0]
+        masks = self._masks
+        wp.launch(ck.conn_init, dim=(N, M), inputs=[self._kind, self._col, *masks, s.cut_dirty],
+                  outputs=[self.component, self._root_bits, self.num_components, self.active_count,
+                           self.label_links], device=dev)
+        if P:
+            wp.launch(ck.conn_hook, dim=(N, P), inputs=[self._pairs, s.cut_dirty], outputs=[self.component],
+                      device=dev)
+        wp.launch(ck.conn_count, dim=(N, M), inputs=[self._label, self._obj, s.cut_dirty],
+                  outputs=[self.component, self._root_bits, self.num_components, self.active_count], device=dev)
+        wp.launch(ck.conn_links, dim=(N, M), inputs=[s.cut_dirty, self._root_bits], outputs=[self.label_links],
+                  device=dev)
+        wp.launch(ck.conn_finish, dim=N, inputs=[self._label_total, self.active_count, s.cut_dirty],
+                  outputs=[self.cut_ratio], device=dev)
 
     def refresh(self) -> None:
         """Recompute surfaces / connectivity / counters of envs restored by ``world.reset`` (cut_dirty = 1)

@@ -191,3 +191,56 @@ def test_not_cuttable_rejected(device):
     assert world.state.tri_active is None  # no masks, no cost
     with pytest.raises(ValueError):
         CuttingSystem(world)
+
+
+def test_connectivity_matches_sequential_union_find(device):
+    """Random removals in a cloth + a tet slab + a rope with 3 labels: the concurrent union-find gives exactly the
+    sequential result (component = smallest element of the piece, counts, label links)."""
+    b = SceneBuilder()
+    v, t = cloth_grid(9, 9, 0.02, 0.02)
+    cloth = b.add_cloth(v, t, cuttable=True)
+    tv, tt = box_tets((0.02, 0.02, 0.01), (4, 4, 2))
+    slab = b.add_tet_mesh(tv + 0.1, tt, cuttable=True)
+    rope = b.add_rod(np.stack([np.linspace(0, 0.05, 12), np.zeros(12), np.zeros(12)], 1) - 0.1, radius=1e-3,
+                     cuttable=True)
+    N = 6
+    world = b.finalize(N, device, substeps=2)
+    cut = CuttingSystem(world, num_labels=3)
+    rng = np.random.default_rng(3)
+    for o in (cloth, slab, rope):
+        n = len(o.tris) if o.kind == "cloth" else len(o.tets) if o.kind == "tet_mesh" else len(o.edges)
+        cut.add_object(o, labels=rng.integers(0, 3, n))
+    cut.add_links(0, [0, 5], 1, [3, 7])
+    cut.finalize()
+    s = world.state
+    for arr in (s.tri_active, s.tet_active, s.segment_active):
+        arr.assign((rng.random(arr.shape) > 0.35).astype(np.int32))
+    s.cut_dirty.fill_(1)
+    cut.refresh()
+    alive = np.concatenate([s.tri_active.numpy(), s.tet_active.numpy(), s.segment_active.numpy()], axis=1)
+    pairs, lab, obj = cut._pairs.numpy(), cut._label.numpy(), cut._obj.numpy()
+    comp = cut.component.numpy()
+    for env in range(N):
+        par = np.where(alive[env] != 0, np.arange(cut.num_elements), -1)
+
+        def find(x, par=par):
+            while par[x] != x:
+                x = par[x]
+            return x
+
+        for a, c in pairs:
+            if par[a] >= 0 and par[c] >= 0:
+                ra, rc = find(a), find(c)
+                par[max(ra, rc)] = min(ra, rc)
+        ref = np.array([find(e) if par[e] >= 0 else -1 for e in range(cut.num_elements)])
+        np.testing.assert_array_equal(comp[env], ref)
+        live = ref >= 0
+        np.testing.assert_array_equal(cut.active_count.numpy()[env], np.bincount(lab[live], minlength=3))
+        roots = live & (ref == np.arange(len(ref)))
+        np.testing.assert_array_equal(cut.num_components.numpy()[env], np.bincount(obj[roots], minlength=3))
+        links = np.zeros((3, 3), np.int32)
+        for r in np.nonzero(roots)[0]:
+            ls = np.unique(lab[live & (ref == r)])
+            links[np.ix_(ls, ls)] = 1
+        np.testing.assert_array_equal(cut.label_links.numpy()[env], links.reshape(-1))
+    assert s.cut_dirty.numpy().sum() == 0

@@ -1,5 +1,5 @@
 """Cutting kernels: tool activation, element removal by carving distance, tet surface re-extraction and
-per-env connectivity (union-find) with per-label counters. See ``lapwarp.cutting`` and ``docs/cutting.md``.
+per-env connectivity (concurrent union-find) with per-label counters. See ``lapwarp.cutting`` and ``docs/cutting.md``.
 
 Elements of a ``CuttingSystem`` are one flat list over its cuttable objects (tets, cloth triangles, rod
 segments). Element ``e`` has up to four particles ``elem_nodes[e]`` (-1 padded), a kind (0 tet, 1 triangle,
@@ -173,29 +173,32 @@ def tet_surface(
 
 
 # ----------------------------------------------------------------------------------------------------
-# connectivity: union-find per env, one thread per env, only for envs whose elements changed
+# connectivity: concurrent union-find over (env, element) / (env, pair) threads, only for envs whose elements
+# changed (cut_dirty). Five launches: init, hook (CAS), compress + count, label links, per-env tail.
+# Invariant: component[env, x] <= x for every live x (a root is only ever hooked under a smaller element and
+# path halving only moves a pointer to an ancestor), so every tree's root is its smallest element and any value
+# read for a parent, even a stale one, is an ancestor. Hence the result equals the sequential union-find's.
 # ----------------------------------------------------------------------------------------------------
 
 
 @wp.func
 def uf_find(parent: wp.array2d(dtype=wp.int32), env: int, x: int):
     r = x
-    while parent[env, r] != r:
-        # path halving: every visited node skips to its grandparent
-        gp = parent[env, parent[env, r]]
-        parent[env, r] = gp
+    p = parent[env, r]
+    while p != r:
+        # path halving: every visited node skips to its grandparent (an ancestor: safe under concurrency)
+        gp = parent[env, p]
+        if gp != p:
+            parent[env, r] = gp
         r = gp
+        p = parent[env, r]
     return r
 
 
 @wp.kernel
-def connectivity(
+def conn_init(
     elem_kind: wp.array(dtype=wp.int32),
     elem_col: wp.array(dtype=wp.int32),
-    elem_label: wp.array(dtype=wp.int32),
-    elem_obj: wp.array(dtype=wp.int32),
-    pairs: wp.array(dtype=wp.vec2i),
-    label_total: wp.array(dtype=wp.int32),
     tet_active: wp.array2d(dtype=wp.int32),
     tri_active: wp.array2d(dtype=wp.int32),
     segment_active: wp.array2d(dtype=wp.int32),
@@ -204,56 +207,115 @@ def connectivity(
     root_bits: wp.array2d(dtype=wp.int32),
     num_components: wp.array2d(dtype=wp.int32),
     active_count: wp.array2d(dtype=wp.int32),
-    cut_ratio: wp.array2d(dtype=float),
     label_links: wp.array2d(dtype=wp.int32),
 ):
-    """Components of the live elements (adjacent across shared faces / edges / nodes and extra links), per object
-    counts, live elements and cut ratio per label, and which labels share a component. Clears ``cut_dirty``."""
+    """Every live element its own component, removed ones -1; thread 0 of the env clears the counters."""
+    env, e = wp.tid()
+    if cut_dirty[env, 0] == 0:
+        return
+    if element_alive(env, elem_kind[e], elem_col[e], tet_active, tri_active, segment_active) != 0:
+        component[env, e] = e
+    else:
+        component[env, e] = -1
+    root_bits[env, e] = 0
+    if e == 0:
+        for o in range(num_components.shape[1]):
+            num_components[env, o] = 0
+        for la in range(active_count.shape[1]):
+            active_count[env, la] = 0
+        for k in range(label_links.shape[1]):
+            label_links[env, k] = 0
+
+
+@wp.kernel
+def conn_hook(
+    pairs: wp.array(dtype=wp.vec2i),
+    cut_dirty: wp.array2d(dtype=wp.int32),
+    component: wp.array2d(dtype=wp.int32),
+):
+    """Union the two live elements of pair ``p``: hook the larger root under the smaller one with a CAS."""
+    env, p = wp.tid()
+    if cut_dirty[env, 0] == 0:
+        return
+    ab = pairs[p]
+    if component[env, ab[0]] < 0 or component[env, ab[1]] < 0:
+        return
+    ra = uf_find(component, env, ab[0])
+    rb = uf_find(component, env, ab[1])
+    while ra != rb:
+        lo = wp.min(ra, rb)
+        hi = wp.max(ra, rb)
+        old = wp.atomic_cas(component, env, hi, hi, lo)
+        if old == hi:
+            break
+        # hi was hooked meanwhile: continue from its (coherent) new parent, a smaller element
+        nh = uf_find(component, env, old)
+        if ra == hi:
+            ra = nh
+        else:
+            rb = nh
+
+
+@wp.kernel
+def conn_count(
+    elem_label: wp.array(dtype=wp.int32),
+    elem_obj: wp.array(dtype=wp.int32),
+    cut_dirty: wp.array2d(dtype=wp.int32),
+    component: wp.array2d(dtype=wp.int32),
+    root_bits: wp.array2d(dtype=wp.int32),
+    num_components: wp.array2d(dtype=wp.int32),
+    active_count: wp.array2d(dtype=wp.int32),
+):
+    """Flatten every live element to its root and count elements per label, labels per root, roots per object."""
+    env, e = wp.tid()
+    if cut_dirty[env, 0] == 0:
+        return
+    if component[env, e] < 0:
+        return
+    r = uf_find(component, env, e)
+    component[env, e] = r
+    lab = elem_label[e]
+    wp.atomic_add(active_count, env, lab, 1)
+    wp.atomic_or(root_bits, env, r, 1 << lab)
+    if r == e:
+        wp.atomic_add(num_components, env, elem_obj[e], 1)
+
+
+@wp.kernel
+def conn_links(
+    cut_dirty: wp.array2d(dtype=wp.int32),
+    root_bits: wp.array2d(dtype=wp.int32),
+    label_links: wp.array2d(dtype=wp.int32),
+):
+    """label_links[la * L + lb] = 1 where one piece holds live elements of both labels (benign races: all store 1)."""
+    env, e = wp.tid()
+    if cut_dirty[env, 0] == 0:
+        return
+    bits = root_bits[env, e]
+    if bits == 0:
+        return
+    L = int(0)
+    while L * L < label_links.shape[1]:
+        L += 1
+    for la in range(L):
+        if (bits >> la) & 1 != 0:
+            for lb in range(L):
+                if (bits >> lb) & 1 != 0:
+                    label_links[env, la * L + lb] = 1
+
+
+@wp.kernel
+def conn_finish(
+    label_total: wp.array(dtype=wp.int32),
+    active_count: wp.array2d(dtype=wp.int32),
+    cut_dirty: wp.array2d(dtype=wp.int32),
+    cut_ratio: wp.array2d(dtype=float),
+):
+    """Cut ratio per label; clears ``cut_dirty`` (last launch of the update)."""
     env = wp.tid()
     if cut_dirty[env, 0] == 0:
         return
-    M = elem_kind.shape[0]
-    L = label_total.shape[0]
-    for e in range(M):
-        if element_alive(env, elem_kind[e], elem_col[e], tet_active, tri_active, segment_active) != 0:
-            component[env, e] = e
-        else:
-            component[env, e] = -1
-        root_bits[env, e] = 0
-    for p in range(pairs.shape[0]):
-        ab = pairs[p]
-        if component[env, ab[0]] >= 0 and component[env, ab[1]] >= 0:
-            ra = uf_find(component, env, ab[0])
-            rb = uf_find(component, env, ab[1])
-            # link the larger root under the smaller: labels end up as the smallest element of each component
-            if ra < rb:
-                component[env, rb] = ra
-            elif rb < ra:
-                component[env, ra] = rb
-    for o in range(num_components.shape[1]):
-        num_components[env, o] = 0
-    for la in range(L):
-        active_count[env, la] = 0
-    for e in range(M):
-        if component[env, e] >= 0:
-            r = uf_find(component, env, e)
-            component[env, e] = r
-            lab = elem_label[e]
-            active_count[env, lab] = active_count[env, lab] + 1
-            root_bits[env, r] = root_bits[env, r] | (1 << lab)
-            if r == e:
-                num_components[env, elem_obj[e]] = num_components[env, elem_obj[e]] + 1
-    for k in range(L * L):
-        label_links[env, k] = 0
-    for e in range(M):
-        bits = root_bits[env, e]
-        if bits != 0:
-            for la in range(L):
-                if (bits >> la) & 1 != 0:
-                    for lb in range(L):
-                        if (bits >> lb) & 1 != 0:
-                            label_links[env, la * L + lb] = 1
-    for la in range(L):
+    for la in range(label_total.shape[0]):
         tot = label_total[la]
         ratio = float(0.0)
         if tot > 0:
