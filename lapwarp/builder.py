@@ -790,6 +790,8 @@ class SceneBuilder:
                 state.segment_active = wp.ones((N, model.segment_count), dtype=wp.int32, device=dev)
             # 1 = surfaces / connectivity of this env must be recomputed: set at build and restored as 1 by reset
             state.cut_dirty = wp.ones((N, 1), dtype=wp.int32, device=dev)
+            # 0 once every element holding the particle is gone (CuttingSystem); contact skips such particles
+            state.particle_active = wp.ones((N, max(model.particle_count, 1)), dtype=wp.int32, device=dev)
         # bodies and attachments -----------------------------------------------------------------
         model.body_count = len(self._bodies)
         model.body_names = [b[0] for b in self._bodies]

@@ -73,6 +73,10 @@ class ParticleGroup:
     radius: float
     segments: np.ndarray | None  # (S, 2) global node indices of rod segments for segment-level contact
     triangles: np.ndarray | None = None  # (F, 3) global vertex indices of cloth / surface triangles
+    # cutting: mask column of each segment / triangle (-1 = never removed; triangles: >= 0 tri_active column,
+    # <= -2 tet face -2 - col of tet_face_active), None when the object is not cuttable
+    seg_col: np.ndarray | None = None
+    tri_col: np.ndarray | None = None
 
 
 class ContactSystem:
@@ -132,14 +136,20 @@ class ContactSystem:
             The group id.
         """
         self._check_open()
-        seg = tri = None
+        seg = tri = seg_col = tri_col = None
         if hasattr(particles, "particle_start"):
             obj = particles
             name = name or obj.name
             if segments is True:
                 seg = np.asarray(obj.edges, dtype=np.int64)
+                if obj.cuttable and obj.kind == "rod":
+                    seg_col = obj.segment_start + np.arange(len(seg))
             if triangles is True:
                 tri = np.asarray(obj.surface_tris, dtype=np.int64).reshape(-1, 3)
+                if obj.cuttable:
+                    tri, tri_col = self._cut_faces(obj)
+                    if obj.kind == "tet_mesh":
+                        tri_col = -2 - tri_col
             idx = np.arange(obj.particle_start, obj.particle_start + obj.particle_count)
         elif isinstance(particles, slice):
             idx = np.arange(particles.start, particles.stop)
@@ -149,7 +159,8 @@ class ContactSystem:
             seg = np.asarray(segments, dtype=np.int64).reshape(-1, 2)
         if tri is None and triangles is not None and triangles is not True and triangles is not False:
             tri = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
-        self.groups.append(ParticleGroup(name or f"group{len(self.groups)}", idx, float(radius), seg, tri))
+        self.groups.append(ParticleGroup(name or f"group{len(self.groups)}", idx, float(radius), seg, tri, seg_col,
+                                         tri_col))
         return len(self.groups) - 1
 
     def add_shape(self, kind: str, params=(0.0, 0.0, 0.0), body: int = -1, transform=None, thickness: float = 0.0,
@@ -224,8 +235,11 @@ class ContactSystem:
                 two-sided sheet where a particle stays on the side it was at the start of the substep.
             **kw: ``mu_static``, ``mu_kinetic``, ``groups``, ``name`` as in :meth:`add_shape`.
         """
+        face_col = None
         if hasattr(obj, "particle_start"):
             tris = np.asarray(obj.surface_tris, dtype=np.int64).reshape(-1, 3)
+            if obj.cuttable:
+                tris, face_col = self._cut_faces(obj)
             owner = (obj.particle_start, obj.particle_start + obj.particle_count)
             closed = obj.kind == "tet_mesh" if closed is None else closed
             kw.setdefault("name", obj.name)
@@ -235,8 +249,20 @@ class ContactSystem:
         if len(tris) == 0:
             raise ValueError("the surface has no triangles")
         sid = self.add_shape("surface", thickness=thickness, **kw)
-        self.shapes[sid].surface = dict(tris=tris, owner=owner, closed=bool(closed))
+        self.shapes[sid].surface = dict(tris=tris, owner=owner, closed=bool(closed), face_col=face_col,
+                                        kind=getattr(obj, "kind", None))
         return sid
+
+    def _cut_faces(self, obj) -> tuple[np.ndarray, np.ndarray]:
+        """Triangles of a cuttable object and their columns in its per-env face mask: a cloth's triangles
+        (``tri_active``), or *all* ``4 T`` faces of a tet mesh (``tet_face_active``: the current surface,
+        including the faces a cut opened; outward wound like ``surface_tris``)."""
+        if obj.kind == "cloth":
+            return np.asarray(obj.tris, dtype=np.int64).reshape(-1, 3), obj.element_start + np.arange(len(obj.tris))
+        if obj.kind == "tet_mesh":
+            a, b = 4 * obj.element_start, 4 * (obj.element_start + len(obj.tets))
+            return self.world.model.tet_face_indices.numpy()[a:b].astype(np.int64), np.arange(a, b)
+        raise ValueError(f"{obj.kind} objects have no triangles")
 
     def add_particle_contact(self, members, skip_links: int = 2, mu_static: float = 0.3,
                              mu_kinetic: float | None = None, name: str = "self", method: str = "auto",
@@ -349,6 +375,20 @@ class ContactSystem:
             self.seg_nodes = arr(seg_all[order].astype(np.int32), wp.vec2i)
             self.seg_group = arr(np.concatenate(sgrp)[order].astype(np.int32), wp.int32)
             self.seg_radius = arr(np.concatenate(srad)[order].astype(np.float32), float)
+        # cutting masks of segments / triangles / particles: empty maps (one uniform branch) unless cuttable
+        st = self.world.state
+        self._no_col = wp.zeros(0, dtype=wp.int32, device=dev)
+        self._no_mask = wp.zeros((1, 0), dtype=wp.int32, device=dev)
+        self._dummy_mask = wp.zeros((1, 1), dtype=wp.int32, device=dev)
+        self.seg_col = self._no_col
+        if segs and any(g.seg_col is not None for g in self.groups if g.segments is not None):
+            cols = [g.seg_col if g.seg_col is not None else np.full(len(g.segments), -1)
+                    for g in self.groups if g.segments is not None]
+            self.seg_col = arr(np.concatenate(cols)[order].astype(np.int32), wp.int32)
+        self.particle_active = st.particle_active if st.particle_active is not None else self._no_mask
+        self.seg_mask = st.segment_active if st.segment_active is not None else self._dummy_mask
+        self.tri_mask = st.tri_active if st.tri_active is not None else self._dummy_mask
+        self.face_mask = st.tet_face_active if st.tet_face_active is not None else self._dummy_mask
 
         # cloth / surface triangles against tool capsules, coloured like the segments
         tris, tgrp, trad = [], [], []
@@ -364,6 +404,11 @@ class ContactSystem:
             self.tri_nodes = arr(tri_all[order].astype(np.int32), wp.vec3i)
             self.tri_group = arr(np.concatenate(tgrp)[order].astype(np.int32), wp.int32)
             self.tri_radius = arr(np.concatenate(trad)[order].astype(np.float32), float)
+        self.tri_col = self._no_col
+        if tris and any(g.tri_col is not None for g in self.groups if g.triangles is not None):
+            cols = [g.tri_col if g.tri_col is not None else np.full(len(g.triangles), -1)
+                    for g in self.groups if g.triangles is not None]
+            self.tri_col = arr(np.concatenate(cols)[order].astype(np.int32), wp.int32)
 
         # deforming surfaces: one grouped wp.Mesh each over the flat (num_envs * particle_count) view of
         # particle_q, so refit reads the live positions with no gather; BVH group = env
@@ -377,7 +422,14 @@ class ContactSystem:
             mesh = wp.Mesh(points=self.world.state.particle_q.flatten(), indices=arr(flat.astype(np.int32), wp.int32),
                            groups=arr(np.repeat(np.arange(n), len(t)).astype(np.int32), wp.int32))
             verts = np.unique(t)
+            fc = sh.surface["face_col"]
+            if fc is None:
+                face_col, face_mask = self._no_col, self._dummy_mask
+            else:
+                face_col = arr(fc.astype(np.int32), wp.int32)
+                face_mask = self.tri_mask if sh.surface["kind"] == "cloth" else self.face_mask
             self._surfaces.append(dict(shape=sidx, mesh=mesh, tris=arr(t.astype(np.int32), wp.vec3i),
+                                       face_col=face_col, face_mask=face_mask,
                                        verts=arr(verts.astype(np.int32), wp.int32), owner=sh.surface["owner"],
                                        closed=int(sh.surface["closed"]), thickness=sh.thickness,
                                        mu=wp.vec2(sh.mu_static, sh.mu_kinetic)))
@@ -465,7 +517,7 @@ class ContactSystem:
                    [self.cp_particle, self.cp_group, self.cp_radius, *shapes, self.shape_mesh, self.shape_thickness,
                     self.shape_mu, self.pair_index, bqp, bq, blend_prev, blend, m.particle_inv_mass, world._q_pred,
                     s.particle_qd, h, force_scale, report, self.report_margin, self.ignore_bodies,
-                    int(self.body_ignore_mask)],
+                    int(self.body_ignore_mask), self.particle_active],
                    [s.particle_q, self.report_count, self.report_force, self.contact_count, self.contact_particle,
                     self.contact_shape, self.contact_normal, self.contact_depth, self.overflow])
         off = self.seg_color_offsets
@@ -473,21 +525,24 @@ class ContactSystem:
             launch(ck.collide_segments, (n, off[c + 1] - off[c]),
                    [self.seg_nodes, self.seg_group, self.seg_radius, off[c], *shapes, self.shape_thickness,
                     self.shape_mu, self.pair_index, bqp, bq, blend_prev, blend, m.particle_inv_mass, world._q_pred,
-                    s.particle_qd, h, force_scale, self.ignore_bodies, int(self.body_ignore_mask)],
+                    s.particle_qd, h, force_scale, self.ignore_bodies, int(self.body_ignore_mask), self.seg_col,
+                    self.seg_mask],
                    [s.particle_q, self.report_force])
         off = self.tri_color_offsets
         for c in range(len(off) - 1):
             launch(ck.collide_triangles, (n, off[c + 1] - off[c]),
                    [self.tri_nodes, self.tri_group, self.tri_radius, off[c], *shapes, self.shape_thickness,
                     self.shape_mu, self.pair_index, bqp, bq, blend_prev, blend, m.particle_inv_mass, world._q_pred,
-                    s.particle_qd, h, force_scale, self.ignore_bodies, int(self.body_ignore_mask)],
+                    s.particle_qd, h, force_scale, self.ignore_bodies, int(self.body_ignore_mask), self.tri_col,
+                    self.tri_mask, self.face_mask],
                    [s.particle_q, self.report_force])
         for sf in self._surfaces:
             launch(sf["mesh"].refit)  # BVH bounds of the surface as it is now (after this sweep's constraints)
             launch(ck.collide_surface, (n, len(self.cp_particle)),
                    [self.cp_particle, self.cp_group, self.cp_radius, sf["shape"], sf["mesh"].id, sf["tris"],
                     sf["owner"][0], sf["owner"][1], sf["closed"], sf["thickness"], sf["mu"], self.pair_index,
-                    m.particle_inv_mass, world._q_pred, s.particle_qd, h, force_scale, report, self.report_margin],
+                    m.particle_inv_mass, world._q_pred, s.particle_qd, h, force_scale, report, self.report_margin,
+                    sf["face_col"], sf["face_mask"], self.particle_active],
                    [s.particle_q, self.surf_delta, self.surf_count, self.report_count, self.report_force,
                     self.contact_count, self.contact_particle, self.contact_shape, self.contact_normal,
                     self.contact_depth, self.overflow])

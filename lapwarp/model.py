@@ -171,6 +171,7 @@ class State:
     segment_active: wp.array2d | None = None  # (N, S) int32 rod segments
     tet_face_active: wp.array2d | None = None  # (N, 4T) int32 tet faces on the current surface
     cut_dirty: wp.array2d | None = None  # (N, 1) int32 surfaces/connectivity need recomputing (1 after reset)
+    particle_active: wp.array2d | None = None  # (N, n) int32 0 = every element of the particle removed (no contact)
 
     def arrays(self) -> dict:
         """All allocated arrays by name (used for reset copies and memory reports)."""

@@ -176,6 +176,7 @@ def collide_particles(
     report_margin: float,
     ignore_bodies: wp.array2d(dtype=wp.int32),
     use_ignore: int,
+    particle_active: wp.array2d(dtype=wp.int32),
     q: wp.array2d(dtype=wp.vec3),
     report_count: wp.array2d(dtype=wp.int32),
     report_force: wp.array2d(dtype=float),
@@ -191,6 +192,9 @@ def collide_particles(
     w = inv_mass[env % inv_mass.shape[0], i]
     if w == 0.0:
         return
+    if particle_active.shape[1] > 0:
+        if particle_active[env, i] == 0:
+            return  # every element of the particle was cut away
     g = cp_group[k]
     r = cp_radius[k]
     x = q[env, i]
@@ -292,12 +296,20 @@ def collide_segments(
     force_scale: float,
     ignore_bodies: wp.array2d(dtype=wp.int32),
     use_ignore: int,
+    seg_col: wp.array(dtype=wp.int32),
+    segment_active: wp.array2d(dtype=wp.int32),
     q: wp.array2d(dtype=wp.vec3),
     report_force: wp.array2d(dtype=float),
 ):
     # one launch per colour of segments (segments of one colour share no node): no write races
     env, k0 = wp.tid()
     k = start + k0
+    if seg_col.shape[0] > 0:
+        # cuttable rods: a removed segment does not collide
+        sc = seg_col[k]
+        if sc >= 0:
+            if segment_active[env, sc] == 0:
+                return
     a = seg_nodes[k][0]
     b = seg_nodes[k][1]
     pe = env % inv_mass.shape[0]
@@ -473,6 +485,9 @@ def collide_triangles(
     force_scale: float,
     ignore_bodies: wp.array2d(dtype=wp.int32),
     use_ignore: int,
+    tri_col: wp.array(dtype=wp.int32),
+    tri_active: wp.array2d(dtype=wp.int32),
+    tet_face_active: wp.array2d(dtype=wp.int32),
     q: wp.array2d(dtype=wp.vec3),
     report_force: wp.array2d(dtype=float),
 ):
@@ -481,6 +496,16 @@ def collide_triangles(
     # the vertices of a tensioned sheet (vertex-only contact let it through at 1 mm per substep).
     env, k0 = wp.tid()
     k = start + k0
+    if tri_col.shape[0] > 0:
+        # cuttable objects: tri_col >= 0 is a cloth triangle (tri_active), <= -2 the tet face -2 - tri_col
+        # (tet_face_active: only faces on the current surface collide), -1 always collides
+        tc = tri_col[k]
+        if tc >= 0:
+            if tri_active[env, tc] == 0:
+                return
+        elif tc <= -2:
+            if tet_face_active[env, -2 - tc] == 0:
+                return
     tri = tri_nodes[k]
     pe = env % inv_mass.shape[0]
     w0 = inv_mass[pe, tri[0]]
@@ -568,6 +593,9 @@ def collide_surface(
     force_scale: float,
     report: int,
     report_margin: float,
+    face_col: wp.array(dtype=wp.int32),
+    face_active: wp.array2d(dtype=wp.int32),
+    particle_active: wp.array2d(dtype=wp.int32),
     q: wp.array2d(dtype=wp.vec3),
     surf_delta: wp.array2d(dtype=wp.vec3),
     surf_count: wp.array2d(dtype=wp.int32),
@@ -592,6 +620,9 @@ def collide_surface(
     i = cp_particle[k]
     if i >= owner_start and i < owner_end:
         return  # a surface does not collide with its own vertices
+    if particle_active.shape[1] > 0:
+        if particle_active[env, i] == 0:
+            return
     pe = env % inv_mass.shape[0]
     w = inv_mass[pe, i]
     x = q[env, i]
@@ -611,6 +642,10 @@ def collide_surface(
         f = face - env * ntri
         if f < 0 or f >= ntri:
             continue
+        if face_col.shape[0] > 0:
+            # cuttable surface: removed triangles / tet faces off the current surface do not collide
+            if face_active[env, face_col[f]] == 0:
+                continue
         t = tris[f]
         bw = closest_point_triangle(x, q[env, t[0]], q[env, t[1]], q[env, t[2]])
         d = wp.length(x - (q[env, t[0]] * bw[0] + q[env, t[1]] * bw[1] + q[env, t[2]] * bw[2]))

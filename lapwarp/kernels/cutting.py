@@ -172,6 +172,41 @@ def tet_surface(
     face_active_out[env, f] = on
 
 
+@wp.kernel
+def particles_clear(elem_nodes: wp.array(dtype=wp.vec4i), cut_dirty: wp.array2d(dtype=wp.int32),
+                    particle_active: wp.array2d(dtype=wp.int32)):
+    env, e = wp.tid()
+    if cut_dirty[env, 0] == 0:
+        return
+    nd = elem_nodes[e]
+    for j in range(4):
+        if nd[j] >= 0:
+            particle_active[env, nd[j]] = 0
+
+
+@wp.kernel
+def particles_mark(
+    elem_nodes: wp.array(dtype=wp.vec4i),
+    elem_kind: wp.array(dtype=wp.int32),
+    elem_col: wp.array(dtype=wp.int32),
+    tet_active: wp.array2d(dtype=wp.int32),
+    tri_active: wp.array2d(dtype=wp.int32),
+    segment_active: wp.array2d(dtype=wp.int32),
+    cut_dirty: wp.array2d(dtype=wp.int32),
+    particle_active: wp.array2d(dtype=wp.int32),
+):
+    """A particle of a cuttable element is active while one of its elements is (after ``particles_clear``)."""
+    env, e = wp.tid()
+    if cut_dirty[env, 0] == 0:
+        return
+    if element_alive(env, elem_kind[e], elem_col[e], tet_active, tri_active, segment_active) == 0:
+        return
+    nd = elem_nodes[e]
+    for j in range(4):
+        if nd[j] >= 0:
+            particle_active[env, nd[j]] = 1  # benign race: every writer stores 1
+
+
 # ----------------------------------------------------------------------------------------------------
 # connectivity: concurrent union-find over (env, element) / (env, pair) threads, only for envs whose elements
 # changed (cut_dirty). Five launches: init, hook (CAS), compress + count, label links, per-env tail.

@@ -1,0 +1,93 @@
+"""Contact ignores cut elements (issue #5): a tool passes through the gap of a cut rope / cloth that holds it in the
+uncut env, and a tet surface collider follows the cut (its opened faces collide, removed ones do not)."""
+
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+from lapwarp.assets import box_tets, cloth_grid
+from lapwarp.builder import SceneBuilder
+from lapwarp.contact import ContactSystem
+from lapwarp.cutting import CuttingSystem
+
+DT = 0.05
+
+
+def _cut(world, obj, mask, env, cols):
+    """Remove elements ``cols`` of ``mask`` in ``env`` directly and refresh derived masks (surface, particles)."""
+    m = mask.numpy().copy()
+    m[env, cols] = 0
+    mask.assign(m)
+    world.state.cut_dirty.fill_(1)
+    cut = CuttingSystem(world)
+    cut.add_object(obj)
+    cut.finalize()
+    return cut
+
+
+def test_rope_falls_through_cut_over_capsule(device):
+    b = SceneBuilder()
+    n = 21
+    pts = np.stack([np.linspace(0.0, 0.1, n), np.zeros(n), np.full(n, 4.5e-3)], axis=1)
+    rope = b.add_rod(pts, radius=1e-3, youngs_modulus=1e6, damping=0.5, cuttable=True)
+    world = b.finalize(2, device, substeps=10)
+    cs = ContactSystem(world)
+    cs.add_particle_group(rope, radius=1e-3, segments=True)
+    # static capsule (radius 3 mm) across the rope's middle (axis along y)
+    cs.add_capsule(3e-3, 0.02, transform=wp.transform((0.05, 0.0, 0.0), wp.quat_from_axis_angle(
+        wp.vec3(1.0, 0.0, 0.0), 0.5 * np.pi)), mu_static=0.5)
+    cs.finalize()
+    _cut(world, rope, world.state.segment_active, 0, [8, 9, 10, 11])  # nodes 9-11 lose every segment
+    assert world.state.particle_active.numpy()[0, 10] == 0 and world.state.particle_active.numpy()[1, 10] == 1
+    world.simulate(0.3, DT)
+    z = world.positions(rope)[..., 2]
+    assert z[1, 10] > 0.0  # uncut: the middle rests on the capsule
+    assert z[0].max() < -0.05  # cut: both pieces and the loose node fall past it
+
+
+def test_cloth_falls_through_hole_over_sphere(device):
+    b = SceneBuilder()
+    nx, h = 13, 2.5e-3
+    v, t = cloth_grid(nx, nx, (nx - 1) * h, (nx - 1) * h)
+    v = v - np.array([(nx - 1) * h / 2, (nx - 1) * h / 2, -5e-3])  # centred over the sphere, 1 mm above it
+    cloth = b.add_cloth(v, t, areal_density=0.2, stretch_stiffness=1e3, bend_stiffness=1e-6, damping=1.0,
+                        cuttable=True)
+    world = b.finalize(2, device, substeps=10)
+    cs = ContactSystem(world)
+    cs.add_particle_group(cloth, radius=2.5e-4, triangles=True)
+    cs.add_sphere(4e-3, mu_static=1.0)
+    cs.finalize()
+    cen = v[t].mean(axis=1)
+    hole = np.nonzero(np.linalg.norm(cen[:, :2], axis=1) < 8.5e-3)[0]
+    _cut(world, cloth, world.state.tri_active, 0, hole)
+    # one step (free fall: 12 mm); later the floppy uncut sheet slides off the small sphere
+    world.simulate(0.05, DT)
+    z = world.positions(cloth)[..., 2]
+    c = (nx * nx) // 2
+    assert z[1, c] > 4e-3  # uncut: the sheet rests on the sphere's top
+    assert z[0].max() < -2e-3  # cut: the sphere passes through the hole (loose vertices included)
+
+
+def test_cut_tet_surface_drops_resting_rope(device):
+    b = SceneBuilder()
+    tv, tt = box_tets((0.02, 0.02, 0.01), (4, 4, 2))
+    slab = b.add_tet_mesh(tv, tt, fixed=np.arange(len(tv)), cuttable=True)
+    top = tv[:, 2].max()
+    pts = np.stack([np.linspace(0.008, 0.012, 3), np.full(3, 0.01), np.full(3, top + 1e-3)], axis=1)
+    rope = b.add_rod(pts, radius=5e-4, youngs_modulus=1e6, damping=0.5)
+    world = b.finalize(2, device, substeps=10)
+    cs = ContactSystem(world)
+    cs.add_particle_group(rope, radius=5e-4)
+    cs.add_surface(slab, mu_static=0.0, mu_kinetic=0.0)
+    cs.finalize()
+    cen = tv[tt].mean(axis=1)
+    column = np.nonzero((np.abs(cen[:, 0] - 0.01) < 5e-3) & (np.abs(cen[:, 1] - 0.01) < 5e-3))[0]
+    _cut(world, slab, world.state.tet_active, 0, column)
+    # the opened hole walls are on the surface now, the removed tets' faces are not
+    fa = world.state.tet_face_active.numpy()
+    assert fa[0, 4 * column].sum() == 0 and fa[0].sum() > fa[1].sum()
+    world.simulate(0.3, DT)
+    z = world.positions(rope)[..., 2]
+    assert np.all(z[1] > top)  # uncut: resting on the top face
+    assert np.all(z[0] < -0.05)  # cut: falls through the hole
