@@ -16,6 +16,10 @@ Modes, env-steps/s (0.1 s per env step, ``--substeps`` substeps, one CUDA graph 
   ``CuttingSystem.cut()`` runs after every step (removal, surface, union-find connectivity and counters of every
   env, since every env cuts every step: the worst case).
 
+Split: ``masks_cost = 1 - masked / plain``, ``cut_pass_cost = 1 - cutting / masked``, ``cut_ms`` (tool kernel +
+``cut()``, every env cutting) and ``update_ms`` (``cut.refresh()`` of every env: surfaces, particle masks,
+connectivity, counters).
+
 Reset: ``world.reset(all envs) + cut.refresh()`` after cutting (cut envs) vs on a fresh world (uncut envs).
 
 Examples::
@@ -131,6 +135,22 @@ def run(scene: str, num_envs: int, device: str, substeps: int, steps: int) -> di
 
     out["cutting_env_steps_per_s"] = num_envs / timed(device, step_and_cut, steps)
     out["cutting_cost"] = 1.0 - out["cutting_env_steps_per_s"] / out["plain_env_steps_per_s"]
+    # split: masks in the constraint kernels vs the tool / cut() pass
+    out["masks_cost"] = 1.0 - out["masked_env_steps_per_s"] / out["plain_env_steps_per_s"]
+    out["cut_pass_cost"] = 1.0 - out["cutting_env_steps_per_s"] / out["masked_env_steps_per_s"]
+
+    def tool_and_cut():
+        wp.launch(sweep_tool, dim=num_envs, inputs=[counter, *path, period],
+                  outputs=[cut.tool_a, cut.tool_b, cut.tool_active], device=device)
+        cut.cut()
+        wp.launch(advance, dim=1, outputs=[counter], device=device)
+
+    def update_all():  # surfaces, particle masks, connectivity and counters of every env
+        world.state.cut_dirty.fill_(1)
+        cut.refresh()
+
+    out["cut_ms"] = 1e3 * timed(device, tool_and_cut, steps)  # removal + update, every env cutting
+    out["update_ms"] = 1e3 * timed(device, update_all, steps)  # the update part alone
     total = cut.label_total_host.sum()
     out["removed_fraction_mean"] = float(1.0 - cut.active_count.numpy()[:, 0].mean() / total)
     out["components_mean"] = float(cut.num_components.numpy()[:, 0].mean())
