@@ -213,6 +213,7 @@ def particles_mark(
 # Invariant: component[env, x] <= x for every live x (a root is only ever hooked under a smaller element and
 # path halving only moves a pointer to an ancestor), so every tree's root is its smallest element and any value
 # read for a parent, even a stale one, is an ancestor. Hence the result equals the sequential union-find's.
+# The flattening launch (conn_count) must not path-halve: there each slot is written by its own thread only.
 # ----------------------------------------------------------------------------------------------------
 
 
@@ -226,6 +227,18 @@ def uf_find(parent: wp.array2d(dtype=wp.int32), env: int, x: int):
         if gp != p:
             parent[env, r] = gp
         r = gp
+        p = parent[env, r]
+    return r
+
+
+@wp.func
+def uf_find_readonly(parent: wp.array2d(dtype=wp.int32), env: int, x: int):
+    # no path halving: used while every thread flattens its own slot, so that slot has exactly one writer
+    # (a halving store from another thread could overwrite a flattened root with an intermediate ancestor)
+    r = x
+    p = parent[env, r]
+    while p != r:
+        r = p
         p = parent[env, r]
     return r
 
@@ -307,7 +320,7 @@ def conn_count(
         return
     if component[env, e] < 0:
         return
-    r = uf_find(component, env, e)
+    r = uf_find_readonly(component, env, e)
     component[env, e] = r
     lab = elem_label[e]
     wp.atomic_add(active_count, env, lab, 1)
