@@ -87,6 +87,21 @@ def merge_flags(flags: wp.array(dtype=wp.int32), sticky_out: wp.array(dtype=wp.i
 # ----------------------------------------------------------------------------------------------------
 
 
+@wp.func
+def xpbd_scalar_multiplier_step(
+    C: float, w: float, alpha: float, use_lambda: int, lam: wp.array2d(dtype=float), env: int, c: int
+):
+    """XPBD update of one scalar constraint: returns dlambda = (-C - alpha lambda) / (w + alpha) and, with
+    multipliers kept across iterations, accumulates it into ``lam[env, c]``."""
+    l0 = float(0.0)
+    if use_lambda != 0:
+        l0 = lam[env, c]
+    dl = (-C - alpha * l0) / (w + alpha)
+    if use_lambda != 0:
+        lam[env, c] = l0 + dl
+    return dl
+
+
 @wp.kernel
 def solve_edges(
     start: int,
@@ -130,12 +145,7 @@ def solve_edges(
     n = d / length
     C = length - rest[c]
     alpha = compliance[env % compliance.shape[0], c] * inv_dt2
-    l0 = float(0.0)
-    if use_lambda != 0:
-        l0 = lam[env, c]
-    dl = (-C - alpha * l0) / (w + alpha)
-    if use_lambda != 0:
-        lam[env, c] = l0 + dl
+    dl = xpbd_scalar_multiplier_step(C, w, alpha, use_lambda, lam, env, c)
     q[env, ij[0]] = xi + n * (wi * dl)
     q[env, ij[1]] = xj - n * (wj * dl)
 
@@ -210,12 +220,7 @@ def solve_hinges(
         C = C - 2.0 * wp.pi
     if C < -wp.pi:
         C = C + 2.0 * wp.pi
-    l0 = float(0.0)
-    if use_lambda != 0:
-        l0 = lam[env, c]
-    dl = (-C - alpha * l0) / (wsum + alpha)
-    if use_lambda != 0:
-        lam[env, c] = l0 + dl
+    dl = xpbd_scalar_multiplier_step(C, wsum, alpha, use_lambda, lam, env, c)
     q[env, h[0]] = x1 + g1 * (w1 * dl)
     q[env, h[1]] = x2 + g2 * (w2 * dl)
     q[env, h[2]] = x3 + g3 * (w3 * dl)
