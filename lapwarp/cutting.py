@@ -230,10 +230,10 @@ class CuttingSystem:
                       device=dev)
         N, M, P = w.num_envs, self.num_elements, self._pairs.shape[0]
         masks = self._masks
-        wp.launch(ck.particles_clear, dim=(N, M), inputs=[self._nodes, s.cut_dirty], outputs=[s.particle_active],
-                  device=dev)
-        wp.launch(ck.particles_mark, dim=(N, M), inputs=[self._nodes, self._kind, self._col, *masks, s.cut_dirty],
-                  outputs=[s.particle_active], device=dev)
+        for live_only in (0, 1):  # clear, then mark the particles of live elements
+            wp.launch(ck.particles_set_activity, dim=(N, M),
+                      inputs=[self._nodes, self._kind, self._col, *masks, s.cut_dirty, live_only, live_only],
+                      outputs=[s.particle_active], device=dev)
         wp.launch(ck.conn_init, dim=(N, M), inputs=[self._kind, self._col, *masks, s.cut_dirty],
                   outputs=[self.component, self._root_bits, self.num_components, self.active_count,
                            self.label_links], device=dev)

@@ -173,19 +173,7 @@ def tet_surface(
 
 
 @wp.kernel
-def particles_clear(elem_nodes: wp.array(dtype=wp.vec4i), cut_dirty: wp.array2d(dtype=wp.int32),
-                    particle_active: wp.array2d(dtype=wp.int32)):
-    env, e = wp.tid()
-    if cut_dirty[env, 0] == 0:
-        return
-    nd = elem_nodes[e]
-    for j in range(4):
-        if nd[j] >= 0:
-            particle_active[env, nd[j]] = 0
-
-
-@wp.kernel
-def particles_mark(
+def particles_set_activity(
     elem_nodes: wp.array(dtype=wp.vec4i),
     elem_kind: wp.array(dtype=wp.int32),
     elem_col: wp.array(dtype=wp.int32),
@@ -193,18 +181,26 @@ def particles_mark(
     tri_active: wp.array2d(dtype=wp.int32),
     segment_active: wp.array2d(dtype=wp.int32),
     cut_dirty: wp.array2d(dtype=wp.int32),
+    live_only: int,
+    value: int,
     particle_active: wp.array2d(dtype=wp.int32),
 ):
-    """A particle of a cuttable element is active while one of its elements is (after ``particles_clear``)."""
+    """Write ``value`` to the particles of the cuttable elements (of the live ones only with ``live_only``).
+
+    Launched twice in order: clear every element's particles (live_only 0, value 0), then mark the particles of
+    live elements (live_only 1, value 1), so a particle is active while one of its elements is. Races are benign:
+    within a launch every writer stores the same value.
+    """
     env, e = wp.tid()
     if cut_dirty[env, 0] == 0:
         return
-    if element_alive(env, elem_kind[e], elem_col[e], tet_active, tri_active, segment_active) == 0:
-        return
+    if live_only != 0:
+        if element_alive(env, elem_kind[e], elem_col[e], tet_active, tri_active, segment_active) == 0:
+            return
     nd = elem_nodes[e]
     for j in range(4):
         if nd[j] >= 0:
-            particle_active[env, nd[j]] = 1  # benign race: every writer stores 1
+            particle_active[env, nd[j]] = value
 
 
 # ----------------------------------------------------------------------------------------------------
