@@ -47,12 +47,12 @@ def add_contact(world, obj, scene: str, body: int) -> ContactSystem:
     cs.add_particle_group(obj, radius=lay["radius"], segments=True if scene == "rod" else None,
                           triangles=True if scene == "cloth" else None)
     (pos, quat) = lay["capsule"]
-    q = world.state.body_q.numpy()
-    q[:, body, :3] = pos
-    q[:, body, 3:] = quat
-    world.state.body_q.assign(q)
-    world.initial_state.body_q.assign(q)
-    world._body_q_prev.assign(q)
+    q = np.zeros((world.num_envs, 1, 7), dtype=np.float32)
+    q[:, 0, :3] = pos
+    q[:, 0, 3:] = quat
+    world.set_body_poses(wp.array(q, dtype=wp.transform, device=world.device),
+                         wp.array([body], dtype=wp.int32, device=world.device),
+                         teleport_mask=wp.ones(world.num_envs, dtype=wp.int32, device=world.device))
     cs.add_capsule(2.25e-3, 0.04, body=body, name="instrument")
     ext, centre = lay["box"]
     box = trimesh.creation.box(extents=ext)

@@ -52,7 +52,7 @@ def build_cloth(num_envs: int, device: str, substeps: int, iterations: int):
     q = world.state.particle_q.numpy()
     q[..., 1] += 0.2 * (-q[..., 2])  # lean the sheet out of its vertical plane
     world.state.particle_q.assign(q)
-    world.initial_state.particle_q.assign(q)
+    world.save_start_state()
     return world, obj, v, obj.edges - obj.particle_start
 
 

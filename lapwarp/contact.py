@@ -113,7 +113,6 @@ class ContactSystem:
         self.self_sets: list[dict] = []
         self.pair_names: list[str] = []
         self._finalized = False
-        self._sweep = 0  # position of the next record_sweep call in the recorded step (substep, iteration)
 
     # ------------------------------------------------------------------------------------------------
     # description
@@ -481,14 +480,6 @@ class ContactSystem:
     # ------------------------------------------------------------------------------------------------
     # World hooks (recorded into the step)
     # ------------------------------------------------------------------------------------------------
-    def _substep_position(self, world) -> tuple[int, int]:
-        iters = max(1, world.iterations)
-        sub, it = divmod(self._sweep, iters)
-        self._sweep += 1
-        if self._sweep >= iters * world.substeps:
-            self._sweep = 0
-        return sub, it
-
     def body_arrays(self, world) -> tuple:
         """(previous-step, current) body pose arrays as the World interpolates them for attachments."""
         s = world.state
@@ -497,16 +488,15 @@ class ContactSystem:
         prev = world.body_q_previous if world.body_q_previous is not None else s.body_q
         return prev, s.body_q
 
-    def record_sweep(self, world, launch, h: float) -> None:
+    def record_sweep(self, world, launch, sweep) -> None:
         """Record the contact projections of one sweep (called by the World while it records a step)."""
-        sub, it = self._substep_position(world)
         n, s = self.num_envs, world.state
-        S = world.substeps
-        iters = max(1, world.iterations)
-        if sub == 0 and it == 0:
+        S, h = sweep.substeps, sweep.h
+        q_pred = world.predicted_positions
+        if sweep.first:
             launch(ck.clear_reports, n, [], [self.report_count, self.report_force, self.contact_count, self.overflow])
-        report = 1 if (sub == S - 1 and it == iters - 1) else 0
-        blend_prev, blend = sub / S, (sub + 1) / S
+        report = 1 if sweep.last else 0
+        blend_prev, blend = sweep.blend_prev, sweep.blend
         # impulse m * dx / h summed over the sweeps, divided by the step duration -> mean force over the step
         force_scale = 1.0 / (h * h * S)
         bqp, bq = self.body_arrays(world)
@@ -515,7 +505,7 @@ class ContactSystem:
         if len(self.cp_particle):
             launch(ck.collide_particles, (n, len(self.cp_particle)),
                    [self.cp_particle, self.cp_group, self.cp_radius, *shapes, self.shape_mesh, self.shape_thickness,
-                    self.shape_mu, self.pair_index, bqp, bq, blend_prev, blend, m.particle_inv_mass, world._q_pred,
+                    self.shape_mu, self.pair_index, bqp, bq, blend_prev, blend, m.particle_inv_mass, q_pred,
                     s.particle_qd, h, force_scale, report, self.report_margin, self.ignore_bodies,
                     int(self.body_ignore_mask), self.particle_active],
                    [s.particle_q, self.report_count, self.report_force, self.contact_count, self.contact_particle,
@@ -524,7 +514,7 @@ class ContactSystem:
         for c in range(len(off) - 1):
             launch(ck.collide_segments, (n, off[c + 1] - off[c]),
                    [self.seg_nodes, self.seg_group, self.seg_radius, off[c], *shapes, self.shape_thickness,
-                    self.shape_mu, self.pair_index, bqp, bq, blend_prev, blend, m.particle_inv_mass, world._q_pred,
+                    self.shape_mu, self.pair_index, bqp, bq, blend_prev, blend, m.particle_inv_mass, q_pred,
                     s.particle_qd, h, force_scale, self.ignore_bodies, int(self.body_ignore_mask), self.seg_col,
                     self.seg_mask],
                    [s.particle_q, self.report_force])
@@ -532,7 +522,7 @@ class ContactSystem:
         for c in range(len(off) - 1):
             launch(ck.collide_triangles, (n, off[c + 1] - off[c]),
                    [self.tri_nodes, self.tri_group, self.tri_radius, off[c], *shapes, self.shape_thickness,
-                    self.shape_mu, self.pair_index, bqp, bq, blend_prev, blend, m.particle_inv_mass, world._q_pred,
+                    self.shape_mu, self.pair_index, bqp, bq, blend_prev, blend, m.particle_inv_mass, q_pred,
                     s.particle_qd, h, force_scale, self.ignore_bodies, int(self.body_ignore_mask), self.tri_col,
                     self.tri_mask, self.face_mask],
                    [s.particle_q, self.report_force])
@@ -541,7 +531,7 @@ class ContactSystem:
             launch(ck.collide_surface, (n, len(self.cp_particle)),
                    [self.cp_particle, self.cp_group, self.cp_radius, sf["shape"], sf["mesh"].id, sf["tris"],
                     sf["owner"][0], sf["owner"][1], sf["closed"], sf["thickness"], sf["mu"], self.pair_index,
-                    m.particle_inv_mass, world._q_pred, s.particle_qd, h, force_scale, report, self.report_margin,
+                    m.particle_inv_mass, q_pred, s.particle_qd, h, force_scale, report, self.report_margin,
                     sf["face_col"], sf["face_mask"], self.particle_active],
                    [s.particle_q, self.surf_delta, self.surf_count, self.report_count, self.report_force,
                     self.contact_count, self.contact_particle, self.contact_shape, self.contact_normal,
@@ -550,7 +540,7 @@ class ContactSystem:
                                                                         self.surf_count], [s.particle_q])
         for a in self._self_arrays:
             common = [a["particle"], a["radius"], a["chain"], a["pos"], a["length"], a["pair"], a["skip"], a["mu"]]
-            tail = [m.particle_inv_mass, world._q_pred, s.particle_qd, h, force_scale, report]
+            tail = [m.particle_inv_mass, q_pred, s.particle_qd, h, force_scale, report]
             if a["grid"]:
                 launch(a["bucket_count"].zero_)
                 launch(ck.grid_count, (n, a["count"]), [a["particle"], a["inv_cell"], a["H"], s.particle_q],
@@ -568,6 +558,11 @@ class ContactSystem:
             launch(ck.apply_particle_deltas, (n, a["count"]), [a["particle"], a["delta"]], [s.particle_q])
         if report:
             launch(ck.clamp_contact_count, n, [self.capacity], [self.contact_count])
+
+    def reset(self, env_mask: wp.array) -> None:
+        """Clear the masked envs' reports (``World.reset`` calls it): a new episode starts with no contact."""
+        wp.launch(ck.clear_reports_masked, dim=self.num_envs, inputs=[env_mask],
+                  outputs=[self.report_count, self.report_force, self.contact_count, self.overflow], device=self.device)
 
     def clear_reports(self) -> None:
         """Zero the reports now (``world.step`` already does this at its start; for use outside a step)."""

@@ -80,7 +80,6 @@ class GraspSystem:
         self.grasp_delta = wp.zeros((n, self.slots), dtype=wp.quat, device=dev)
         self._dummy_q = wp.zeros((1, 1), dtype=wp.quat, device=dev)
         self.jaw_mask = (1 << instrument.jaw_a) | (1 << instrument.jaw_b)
-        self._sweep = 0
         if contact not in world.solvers:
             raise ValueError("finalize() the ContactSystem before creating the GraspSystem")
         world.add_solver(self)
@@ -90,19 +89,15 @@ class GraspSystem:
         return s.segment_q if s.segment_q is not None else self._dummy_q
 
     # World hooks ------------------------------------------------------------------------------------
-    def record_sweep(self, world, launch, h: float) -> None:
+    def record_sweep(self, world, launch, sweep) -> None:
         """Hold the orientation of grasped rod segments (every sweep); after the last sweep of the step, grasp or
         release from the contact records that the ContactSystem (added before this system) just wrote."""
-        iters = max(1, world.iterations)
-        sub = self._sweep // iters
-        last = self._sweep == iters * world.substeps - 1
-        self._sweep = (self._sweep + 1) % (iters * world.substeps)
         if self.hold_orientation:
             bqp, bq = self.contact.body_arrays(world)
             launch(ck.hold_grasped_orientations, (self.world.num_envs, self.slots),
                    [self.slot_start, self.particle_segment, world.state.attach_particle, world.state.attach_body,
-                    self.grasp_delta, bqp, bq, (sub + 1) / world.substeps], [world.state.segment_q])
-        if last:
+                    self.grasp_delta, bqp, bq, sweep.blend], [world.state.segment_q])
+        if sweep.last:
             self._record_update(world, launch)
 
     def _record_update(self, world, launch) -> None:

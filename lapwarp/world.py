@@ -10,11 +10,18 @@ over the graph colours of every constraint group (rod stretch: one exact chain s
 and derives velocities from the position change.
 After the substeps a stability check flags envs with NaN or runaway speed in ``unstable`` (sticky
 until that env is reset) and, when ``auto_reset_unstable`` is set, restores only those envs.
+
+The World owns each env's *start state*: ``reset(env_mask)`` restores it for the masked envs, and a task that
+randomises its scene writes the new rows into ``state`` during its reset and then calls ``save_start_state(mask)``
+so that later restores (a stability reset) return to this episode's start. Kinematic bodies are posed through
+``set_body_poses``; systems plugged in with ``add_solver`` get the position of each sweep as a :class:`Sweep` and the
+substep's predicted positions through ``predicted_positions``. Nothing outside this module touches its scratch.
 """
 
 from __future__ import annotations
 
 import copy
+from dataclasses import dataclass
 
 import numpy as np
 import warp as wp
@@ -30,6 +37,43 @@ def _clone_state(state: State) -> State:
     return out
 
 
+@dataclass(frozen=True)
+class Sweep:
+    """Where a constraint sweep sits in the recorded step (what ``add_solver`` systems get per sweep).
+
+    Attributes:
+        substep, iteration: indices of this sweep's substep and of the sweep within it.
+        substeps, iterations: counts per step.
+        h: substep length (s).
+        blend_prev, blend: kinematic body poses at the start and end of this substep, as fractions of the way from
+            ``body_q_previous`` to ``state.body_q`` (the World interpolates bodies linearly across a step).
+    """
+
+    substep: int
+    iteration: int
+    substeps: int
+    iterations: int
+    h: float
+
+    @property
+    def first(self) -> bool:
+        """The first sweep of the step (clear per-step accumulators here)."""
+        return self.substep == 0 and self.iteration == 0
+
+    @property
+    def last(self) -> bool:
+        """The last sweep of the step (report, grasp or release here)."""
+        return self.substep == self.substeps - 1 and self.iteration == self.iterations - 1
+
+    @property
+    def blend_prev(self) -> float:
+        return self.substep / self.substeps
+
+    @property
+    def blend(self) -> float:
+        return (self.substep + 1) / self.substeps
+
+
 class World:
     """A batch of ``num_envs`` independent scenes on one Warp device.
 
@@ -43,8 +87,6 @@ class World:
         auto_reset_unstable: restore the initial state of envs flagged unstable at the end of ``step``.
 
     Attributes:
-        initial_state: the state ``reset`` copies from; the env layer may overwrite its rows (for
-            example randomised start poses) before calling ``reset``.
         unstable: ``(num_envs,)`` int32, 1 once an env produced NaN or a speed above
             ``model.max_speed``; cleared by ``reset`` of that env.
     """
@@ -75,7 +117,7 @@ class World:
         self.rng = wp.empty(self.num_envs, dtype=wp.uint32, device=self.device)
         self.unstable = wp.zeros(self.num_envs, dtype=wp.int32, device=self.device)
         self._unstable_now = wp.zeros(self.num_envs, dtype=wp.int32, device=self.device)
-        self.initial_state = _clone_state(self.state)
+        self._start_state = _clone_state(self.state)
         self._alloc_scratch()
         self.seed_rng(self.seed)
 
@@ -131,6 +173,12 @@ class World:
                 self._lam[name] = wp.zeros((n, count), dtype=dtype, device=dev)
 
     @property
+    def predicted_positions(self) -> wp.array | None:
+        """Particle positions after this substep's prediction (gravity, damping), before any constraint
+        ``(num_envs, particles)``: contact uses them for friction and velocity-consistent corrections."""
+        return self._q_pred
+
+    @property
     def body_q_previous(self) -> wp.array | None:
         """Kinematic body poses at the start of the current step ``(num_envs, bodies)``; during a step the
         World interpolates from these to ``state.body_q`` across the substeps (None without bodies)."""
@@ -139,12 +187,14 @@ class World:
     def add_solver(self, solver) -> None:
         """Plug an extra constraint system (contact, grasping, ...) into every substep sweep.
 
-        ``solver.record_sweep(world, launch, substep_dt)`` is called while a step is recorded, once per sweep
-        of every substep, after the built-in constraint groups; it must only ``launch(kernel, dim, inputs,
-        outputs)`` (which records the launch for replay, so it ends up in the env's CUDA graph) or
-        ``launch(fn)`` with a plain callable that only launches device work (e.g. ``wp.Mesh.refit``). An optional
-        ``solver.record_substep_end(world, launch, substep_dt)`` runs after the velocity update of each substep
-        (e.g. for velocity-level friction or restitution). Systems never reallocate after being added.
+        ``solver.record_sweep(world, launch, sweep)`` is called while a step is recorded, once per sweep of every
+        substep, after the built-in constraint groups, with the sweep's :class:`Sweep`; it must only
+        ``launch(kernel, dim, inputs, outputs)`` (which records the launch for replay, so it ends up in the env's
+        CUDA graph) or ``launch(fn)`` with a plain callable that only launches device work (e.g.
+        ``wp.Mesh.refit``). An optional ``solver.record_substep_end(world, launch, sweep)`` runs after the velocity
+        update of each substep (e.g. for velocity-level friction or restitution), and an optional
+        ``solver.reset(env_mask)`` runs at the end of ``World.reset`` (launches only: clear the masked envs'
+        reports or grasps). Systems never reallocate after being added.
         """
         self.solvers.append(solver)
         self._cmd_key = None
@@ -204,10 +254,11 @@ class World:
                        [m.segment_inv_inertia, m.segment_damping, h, s.segment_q, s.segment_qd], [self._sq_prev])
             for arr in lam.values():
                 cmds.append(arr.zero_)
-            for _ in range(iters):
-                self._record_sweep(launch, xpbd, inv_dt2, use_lam, (sub + 1) / self.substeps)
+            for it in range(iters):
+                sweep = Sweep(sub, it, self.substeps, iters, h)
+                self._record_sweep(launch, xpbd, inv_dt2, use_lam, sweep.blend)
                 for solver in self.solvers:
-                    solver.record_sweep(self, launch, h)
+                    solver.record_sweep(self, launch, sweep)
             launch(xpbd.update_particle_velocities, (n, m.particle_count), [s.particle_q, self._q_pred, 1.0 / h],
                    [s.particle_qd])
             if m.segment_count:
@@ -215,7 +266,7 @@ class World:
                        [s.segment_qd])
             for solver in self.solvers:
                 if hasattr(solver, "record_substep_end"):
-                    solver.record_substep_end(self, launch, h)
+                    solver.record_substep_end(self, launch, Sweep(sub, iters - 1, self.substeps, iters, h))
         if self._body_q_prev is not None:
             bq, bqp = s.body_q, self._body_q_prev
             cmds.append(lambda: wp.copy(bqp, bq))
@@ -299,26 +350,70 @@ class World:
 
     # ------------------------------------------------------------------------------------------------
     def _restore(self, env_mask: wp.array) -> None:
-        init = self.initial_state
+        start = self._start_state
         for name, arr in self.state.arrays().items():
-            src = getattr(init, name)
+            src = getattr(start, name)
             if src is None or arr.ndim != 2 or arr.shape[1] == 0:
                 continue
             wp.launch(world_kernels.copy_masked_2d, dim=arr.shape, inputs=[env_mask, src], outputs=[arr],
                       device=self.device)
         if self._body_q_prev is not None:
-            wp.launch(world_kernels.copy_masked_2d, dim=self._body_q_prev.shape, inputs=[env_mask, init.body_q],
+            wp.launch(world_kernels.copy_masked_2d, dim=self._body_q_prev.shape, inputs=[env_mask, start.body_q],
                       outputs=[self._body_q_prev], device=self.device)
 
     def reset(self, env_mask: wp.array) -> None:
-        """Restore the initial physical state of the envs whose ``env_mask`` entry is non-zero, in place."""
+        """Restore the start state of the envs whose ``env_mask`` entry is non-zero, in place; then let every
+        added system forget those envs (``solver.reset``)."""
         self._restore(env_mask)
         wp.launch(world_kernels.clear_masked_int, dim=self.num_envs, inputs=[env_mask], outputs=[self.unstable],
                   device=self.device)
+        for solver in self.solvers:
+            if hasattr(solver, "reset"):
+                solver.reset(env_mask)
+
+    def save_start_state(self, env_mask: wp.array | None = None) -> None:
+        """Make the current state of the masked envs (all envs without a mask) their start state: what ``reset``
+        and a stability restore return to. A task calls it after writing its randomised start into ``state``
+        (launches only, graph-capturable)."""
+        mask = env_mask if env_mask is not None else self._all_envs()
+        start = self._start_state
+        for name, arr in self.state.arrays().items():
+            dst = getattr(start, name)
+            if dst is None or arr.ndim != 2 or arr.shape[1] == 0:
+                continue
+            wp.launch(world_kernels.copy_masked_2d, dim=arr.shape, inputs=[mask, arr], outputs=[dst],
+                      device=self.device)
+
+    def set_body_poses(self, poses: wp.array, bodies: wp.array, teleport_mask: wp.array | None = None) -> None:
+        """Pose kinematic bodies: ``state.body_q[env, bodies[k]] = poses[env, k]`` for every env.
+
+        During a step the World moves each body linearly from its pose at the start of the step to this one across
+        the substeps. With ``teleport_mask`` (at reset) the masked envs' bodies jump there instead (no sweep through
+        the scene from the old pose) and the pose becomes part of their start state; the other envs are untouched.
+
+        Args:
+            poses: ``(num_envs, K)`` ``wp.transform`` in the env frame.
+            bodies: ``(K,)`` int32 body indices (``SceneBuilder.add_body``).
+            teleport_mask: ``(num_envs,)`` int32 or None.
+        """
+        s = self.state
+        if s.body_q is None:
+            raise ValueError("the scene has no kinematic bodies (SceneBuilder.add_body)")
+        if poses.ndim != 2 or poses.shape[0] != self.num_envs or poses.shape[1] != bodies.shape[0]:
+            raise ValueError(f"poses must be ({self.num_envs}, {bodies.shape[0]}) transforms, got {poses.shape}")
+        teleport = teleport_mask is not None
+        wp.launch(world_kernels.write_body_poses, dim=poses.shape,
+                  inputs=[poses, bodies, teleport_mask if teleport else self.unstable, int(teleport)],
+                  outputs=[s.body_q, self._body_q_prev, self._start_state.body_q], device=self.device)
+
+    def _all_envs(self) -> wp.array:
+        if not hasattr(self, "_all_envs_mask"):
+            self._all_envs_mask = wp.ones(self.num_envs, dtype=wp.int32, device=self.device)
+        return self._all_envs_mask
 
     def reset_all(self) -> None:
-        """Reset every env (host-side convenience; allocates a mask)."""
-        self.reset(wp.ones(self.num_envs, dtype=wp.int32, device=self.device))
+        """Reset every env."""
+        self.reset(self._all_envs())
 
     # ------------------------------------------------------------------------------------------------
     def simulate(self, duration: float, dt: float) -> None:
@@ -334,7 +429,7 @@ class World:
     def state_bytes_per_env(self) -> int:
         """Bytes of dynamic per-env data: state arrays plus solver scratch (excludes shared topology)."""
         total = sum(a.capacity for a in self.state.arrays().values())
-        total += sum(a.capacity for a in self.initial_state.arrays().values())
+        total += sum(a.capacity for a in self._start_state.arrays().values())
         for a in (self._q_pred, self._sq_prev, self._body_q_prev, *self._rod_scratch, *self._lam.values()):
             if a is not None:
                 total += a.capacity

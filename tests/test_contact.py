@@ -8,6 +8,7 @@ import math
 import numpy as np
 import pytest
 import trimesh
+import warp as wp
 
 from lapwarp.assets import box_tets, cloth_grid, rod_circle, rod_polyline
 from lapwarp.builder import SceneBuilder
@@ -199,8 +200,8 @@ def test_contact_counts_match_hand_built_scene_and_envs_are_isolated(device):
     w, cs = build(True)
     pose = w.state.body_q.numpy()
     pose[1, 0, :3] = (0.05, 0.0, 0.05 + 0.0069)  # env 1 only: tool touching the (pinned) particle C
-    w.state.body_q.assign(pose)
-    w._body_q_prev.assign(pose)
+    w.set_body_poses(wp.array(pose, dtype=wp.transform, device=device), wp.array([0], dtype=wp.int32, device=device),
+                     teleport_mask=wp.ones(2, dtype=wp.int32, device=device))
     w.simulate(0.3, 0.1)
     c = cs.counts()
     assert c[0, cs.pair("floor", "free")] == 2 and c[0, cs.pair("ball", "free")] == 1
@@ -305,7 +306,7 @@ def test_bead_rests_on_deforming_tissue_surface_per_env(device):
     q = w.state.particle_q.numpy()
     q[1, blk.particles, 2] -= 0.004
     w.state.particle_q.assign(q)
-    w.initial_state.particle_q.assign(q)
+    w.save_start_state()
     cs = ContactSystem(w)
     cs.add_particle_group(bead, radius=5.0e-4, name="bead")
     cs.add_surface(blk, thickness=2.0e-4, name="tissue")

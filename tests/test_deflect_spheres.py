@@ -48,7 +48,7 @@ def place_cutting_centre(env, env_id: int, hook: int, point: np.ndarray) -> None
     ones = wp.ones(env.num_envs, dtype=wp.int32, device=env.wp_device)
     w = env.world
     wp.launch(pose_hook_bodies, dim=(env.num_envs, env.num_hooks), inputs=[env.instruments.pose, ones, 1],
-              outputs=[w.state.body_q, w.body_q_previous, w.initial_state.body_q], device=env.wp_device)
+              outputs=[w.state.body_q, w.body_q_previous, w._start_state.body_q], device=env.wp_device)
 
 
 def test_spaces_and_observation_sizes(device):

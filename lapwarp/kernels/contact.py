@@ -949,6 +949,20 @@ def clear_reports(report_count: wp.array2d(dtype=wp.int32), report_force: wp.arr
 
 
 @wp.kernel
+def clear_reports_masked(env_mask: wp.array(dtype=wp.int32), report_count: wp.array2d(dtype=wp.int32),
+                         report_force: wp.array2d(dtype=float), contact_count: wp.array(dtype=wp.int32),
+                         overflow: wp.array(dtype=wp.int32)):
+    env = wp.tid()
+    if env_mask[env] == 0:
+        return
+    for p in range(report_count.shape[1]):
+        report_count[env, p] = 0
+        report_force[env, p] = 0.0
+    contact_count[env] = 0
+    overflow[env] = 0
+
+
+@wp.kernel
 def clamp_contact_count(capacity: int, contact_count: wp.array(dtype=wp.int32)):
     env = wp.tid()
     contact_count[env] = wp.min(contact_count[env], capacity)

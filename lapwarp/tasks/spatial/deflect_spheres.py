@@ -739,7 +739,7 @@ class DeflectSpheresEnv(BatchedEnv):
         w = self.world
         wp.launch(pose_hook_bodies, dim=(self.num_envs, self.num_hooks),
                   inputs=[self.instruments.pose, self.reset_mask, 0],
-                  outputs=[w.state.body_q, w.body_q_previous, w.initial_state.body_q], device=self.wp_device)
+                  outputs=[w.state.body_q, w.body_q_previous, w._start_state.body_q], device=self.wp_device)
 
     def _compute_features(self) -> None:
         cfg, c = self.cfg, self.contact
@@ -757,7 +757,7 @@ class DeflectSpheresEnv(BatchedEnv):
     def _reset_task(self, env_mask: wp.array) -> None:
         cfg, w, dev = self.cfg, self.world, self.wp_device
         half = 0.5 * np.asarray(cfg.board_size) - cfg.sphere_margin
-        s, init = w.state, w.initial_state
+        s, init = w.state, w._start_state
         wp.launch(reset_spheres, dim=self.num_envs,
                   inputs=[env_mask, wp.vec2(*(-half)), wp.vec2(*half), cfg.sphere_height_limits[0],
                           cfg.sphere_height_limits[1], cfg.min_sphere_distance, cfg.stalk_stiffness_limits[0],
