@@ -20,6 +20,7 @@ import os
 import sys
 import time
 
+import numpy as np
 import trimesh
 import warp as wp
 
