@@ -26,6 +26,7 @@ import numpy as np
 import warp as wp
 
 from lapwarp.kernels import contact as ck
+from lapwarp.kernels.geometry import BodyMotion
 
 # particle-particle sets with at least this many members per env use the per-env cell list (measured on CPU,
 # see docs/contact.md: brute force costs M^2 pair tests, the cell list ~27 buckets + a scan per sweep)
@@ -45,6 +46,15 @@ def _transform(tf) -> wp.transform:
     if len(v) == 7:
         return wp.transform(wp.vec3(*v[:3]), wp.quat(*v[3:]))
     raise ValueError(f"transform must be (px, py, pz) or (px, py, pz, qx, qy, qz, qw), got {len(v)} values")
+
+
+def make_struct(cls, **fields):
+    """An instance of the ``wp.struct`` ``cls`` with ``fields`` set (kernel bundles are built once on the host and
+    never changed afterwards: a recorded launch reads the struct it was recorded with)."""
+    out = cls()
+    for name, value in fields.items():
+        setattr(out, name, value)
+    return out
 
 
 @dataclass
@@ -99,6 +109,9 @@ class ContactSystem:
         contact_depth: ``(num_envs, capacity)`` float penetration before projection (m, > -report_margin).
         overflow: ``(num_envs,)`` int32, 1 when the records of that env did not fit in ``capacity``.
         pair_names: name of every report column, ``"shape/group"`` or the self-contact set's name.
+        shape_table, reports, ignore: the colliders, the reports and records above, and the ``ignore_bodies`` mask
+            as the ``wp.struct`` bundles of :mod:`lapwarp.kernels.contact` (``ShapeTable``, ``ContactReports``,
+            ``IgnoreMask``) that the contact and grasping kernels take.
     """
 
     def __init__(self, world, capacity: int = 64, report_margin: float = 1.0e-4, body_ignore_mask: bool = False):
@@ -350,6 +363,9 @@ class ContactSystem:
         if S == 0:  # no shapes: the kernels loop over nothing
             self.shape_kind = wp.zeros(0, dtype=wp.int32, device=dev)
         self.pair_index = arr(pair, wp.int32)
+        self.shape_table = make_struct(ck.ShapeTable, kind=self.shape_kind, body=self.shape_body,
+                                       local=self.shape_local, params=self.shape_params, mesh=self.shape_mesh,
+                                       thickness=self.shape_thickness, mu=self.shape_mu, pair_index=self.pair_index)
 
         cp = [g.particles for g in self.groups]
         self.cp_particle = arr(np.concatenate(cp).astype(np.int32) if cp else np.zeros(0, np.int32), wp.int32)
@@ -357,6 +373,8 @@ class ContactSystem:
                             .astype(np.int32) if cp else np.zeros(0, np.int32), wp.int32)
         self.cp_radius = arr(np.concatenate([np.full(len(g.particles), g.radius) for g in self.groups])
                              .astype(np.float32) if cp else np.zeros(0, np.float32), float)
+        self._particles = make_struct(ck.ContactParticles, particle=self.cp_particle, group=self.cp_group,
+                                      radius=self.cp_radius)
 
         # rod segments, graph-coloured so one launch per colour touches disjoint nodes
         from lapwarp.builder import color_graph
@@ -374,6 +392,8 @@ class ContactSystem:
             self.seg_nodes = arr(seg_all[order].astype(np.int32), wp.vec2i)
             self.seg_group = arr(np.concatenate(sgrp)[order].astype(np.int32), wp.int32)
             self.seg_radius = arr(np.concatenate(srad)[order].astype(np.float32), float)
+            self._segments = make_struct(ck.ContactSegments, nodes=self.seg_nodes, group=self.seg_group,
+                                         radius=self.seg_radius)
         # cutting masks of segments / triangles / particles: empty maps (one uniform branch) unless cuttable
         st = self.world.state
         self._no_col = wp.zeros(0, dtype=wp.int32, device=dev)
@@ -403,11 +423,16 @@ class ContactSystem:
             self.tri_nodes = arr(tri_all[order].astype(np.int32), wp.vec3i)
             self.tri_group = arr(np.concatenate(tgrp)[order].astype(np.int32), wp.int32)
             self.tri_radius = arr(np.concatenate(trad)[order].astype(np.float32), float)
+            self._triangles = make_struct(ck.ContactTriangles, nodes=self.tri_nodes, group=self.tri_group,
+                                          radius=self.tri_radius)
         self.tri_col = self._no_col
         if tris and any(g.tri_col is not None for g in self.groups if g.triangles is not None):
             cols = [g.tri_col if g.tri_col is not None else np.full(len(g.triangles), -1)
                     for g in self.groups if g.triangles is not None]
             self.tri_col = arr(np.concatenate(cols)[order].astype(np.int32), wp.int32)
+        self._cut_masks = make_struct(ck.CutMasks, particle_active=self.particle_active, seg_col=self.seg_col,
+                                      segment_active=self.seg_mask, tri_col=self.tri_col, tri_active=self.tri_mask,
+                                      tet_face_active=self.face_mask)
 
         # deforming surfaces: one grouped wp.Mesh each over the flat (num_envs * particle_count) view of
         # particle_q, so refit reads the live positions with no gather; BVH group = env
@@ -427,11 +452,12 @@ class ContactSystem:
             else:
                 face_col = arr(fc.astype(np.int32), wp.int32)
                 face_mask = self.tri_mask if sh.surface["kind"] == "cloth" else self.face_mask
-            self._surfaces.append(dict(shape=sidx, mesh=mesh, tris=arr(t.astype(np.int32), wp.vec3i),
-                                       face_col=face_col, face_mask=face_mask,
-                                       verts=arr(verts.astype(np.int32), wp.int32), owner=sh.surface["owner"],
-                                       closed=int(sh.surface["closed"]), thickness=sh.thickness,
-                                       mu=wp.vec2(sh.mu_static, sh.mu_kinetic)))
+            # thickness and friction: the kernel reads the surface's own row of the shape table
+            owner = sh.surface["owner"]
+            self._surfaces.append(dict(mesh=mesh, verts=arr(verts.astype(np.int32), wp.int32), surface=make_struct(
+                ck.ContactSurface, shape=sidx, mesh=mesh.id, tris=arr(t.astype(np.int32), wp.vec3i),
+                owner_start=int(owner[0]), owner_end=int(owner[1]), closed=int(sh.surface["closed"]),
+                face_col=face_col, face_active=face_mask)))
         if self._surfaces:
             self.surf_delta = wp.zeros((n, P), dtype=wp.vec3, device=dev)
             self.surf_count = wp.zeros((n, P), dtype=wp.int32, device=dev)
@@ -439,24 +465,24 @@ class ContactSystem:
         self._self_arrays = []
         for k, ss in enumerate(self.self_sets):
             m = len(ss["particles"])
-            self._self_arrays.append(dict(
-                particle=arr(ss["particles"].astype(np.int32), wp.int32),
-                radius=arr(ss["radius"].astype(np.float32), float),
-                chain=arr(ss["chain"].astype(np.int32), wp.int32),
-                pos=arr(ss["pos"].astype(np.int32), wp.int32),
-                length=arr(ss["length"].astype(np.int32), wp.int32),
-                pair=arr(np.full(m, self._self_pair[k], np.int32), wp.int32),
-                delta=wp.zeros((n, m), dtype=wp.vec3, device=dev),
-                count=m, skip=ss["skip"], mu=wp.vec2(*ss["mu"]), grid=ss["grid"]))
+            members = make_struct(ck.ParticleContactSet, particle=arr(ss["particles"].astype(np.int32), wp.int32),
+                                  radius=arr(ss["radius"].astype(np.float32), float),
+                                  chain=arr(ss["chain"].astype(np.int32), wp.int32),
+                                  chain_pos=arr(ss["pos"].astype(np.int32), wp.int32),
+                                  chain_len=arr(ss["length"].astype(np.int32), wp.int32),
+                                  pair=arr(np.full(m, self._self_pair[k], np.int32), wp.int32),
+                                  skip_links=ss["skip"], mu=wp.vec2(*ss["mu"]))
+            grid = None
             if ss["grid"]:
-                a = self._self_arrays[-1]
                 H = 1 << max(4, int(np.ceil(np.log2(2 * m))))  # ~2 buckets per member: few collisions
-                a.update(H=H, inv_cell=1.0 / max(2.0 * float(ss["radius"].max()), 1.0e-9),
-                         bucket_count=wp.zeros(n * H, dtype=wp.int32, device=dev),
-                         bucket_start=wp.zeros(n * H, dtype=wp.int32, device=dev),
-                         member_bucket=wp.zeros((n, m), dtype=wp.int32, device=dev),
-                         member_rank=wp.zeros((n, m), dtype=wp.int32, device=dev),
-                         sorted_member=wp.zeros(n * m, dtype=wp.int32, device=dev))
+                grid = make_struct(ck.CellGrid, inv_cell=1.0 / max(2.0 * float(ss["radius"].max()), 1.0e-9), buckets=H,
+                                   bucket_count=wp.zeros(n * H, dtype=wp.int32, device=dev),
+                                   bucket_start=wp.zeros(n * H, dtype=wp.int32, device=dev),
+                                   member_bucket=wp.zeros((n, m), dtype=wp.int32, device=dev),
+                                   member_rank=wp.zeros((n, m), dtype=wp.int32, device=dev),
+                                   sorted_member=wp.zeros(n * m, dtype=wp.int32, device=dev))
+            self._self_arrays.append(dict(members=members, grid=grid, count=m,
+                                          delta=wp.zeros((n, m), dtype=wp.vec3, device=dev)))
 
         P = max(self.num_pairs, 1)
         self.report_count = wp.zeros((n, P), dtype=wp.int32, device=dev)
@@ -468,11 +494,19 @@ class ContactSystem:
         self.contact_normal = wp.zeros((n, cap), dtype=wp.vec3, device=dev)
         self.contact_depth = wp.zeros((n, cap), dtype=float, device=dev)
         self.overflow = wp.zeros(n, dtype=wp.int32, device=dev)
+        self.reports = make_struct(ck.ContactReports, report_count=self.report_count, report_force=self.report_force,
+                                   contact_count=self.contact_count, contact_particle=self.contact_particle,
+                                   contact_shape=self.contact_shape, contact_normal=self.contact_normal,
+                                   contact_depth=self.contact_depth, overflow=self.overflow)
         self._dummy_tf = wp.zeros((1, 1), dtype=wp.transform, device=dev)
         if self.body_ignore_mask:
             self.ignore_bodies = wp.zeros((n, max(self.world.model.particle_count, 1)), dtype=wp.int32, device=dev)
         else:
             self.ignore_bodies = wp.zeros((1, 1), dtype=wp.int32, device=dev)
+        self.ignore = make_struct(ck.IgnoreMask, bodies=self.ignore_bodies, enabled=int(self.body_ignore_mask))
+        # per-substep bundles, built when a step is first recorded and kept: recorded launches read them
+        self._motions: dict = {}
+        self._solves: dict = {}
         self._finalized = True
         self.world.add_solver(self)
         return self
@@ -488,86 +522,75 @@ class ContactSystem:
         prev = world.body_q_previous if world.body_q_previous is not None else s.body_q
         return prev, s.body_q
 
+    def body_motion(self, world, sweep) -> BodyMotion:
+        """The kinematic bodies' motion during ``sweep``'s substep (``body_arrays`` and the substep's blends), one
+        struct per substep, kept for the launches recorded with it."""
+        key = (sweep.substep, sweep.substeps)
+        if key not in self._motions:
+            bqp, bq = self.body_arrays(world)
+            self._motions[key] = make_struct(BodyMotion, body_q_prev=bqp, body_q=bq, blend_prev=sweep.blend_prev,
+                                             blend=sweep.blend)
+        return self._motions[key]
+
+    def _particle_solve(self, world, sweep) -> ck.ParticleSolve:
+        # impulse m * dx / h summed over the sweeps, divided by the step duration -> mean force over the step
+        key = (sweep.h, sweep.substeps)
+        if key not in self._solves:
+            h = sweep.h
+            self._solves[key] = make_struct(ck.ParticleSolve, inv_mass=world.model.particle_inv_mass,
+                                            q_pred=world.predicted_positions, qd=world.state.particle_qd, h=h,
+                                            force_scale=1.0 / (h * h * sweep.substeps))
+        return self._solves[key]
+
     def record_sweep(self, world, launch, sweep) -> None:
         """Record the contact projections of one sweep (called by the World while it records a step)."""
-        n, s = self.num_envs, world.state
-        S, h = sweep.substeps, sweep.h
-        q_pred = world.predicted_positions
+        n, q = self.num_envs, world.state.particle_q
         if sweep.first:
-            launch(ck.clear_reports, n, [], [self.report_count, self.report_force, self.contact_count, self.overflow])
+            launch(ck.clear_reports, n, [], [self.reports])
         report = 1 if sweep.last else 0
-        blend_prev, blend = sweep.blend_prev, sweep.blend
-        # impulse m * dx / h summed over the sweeps, divided by the step duration -> mean force over the step
-        force_scale = 1.0 / (h * h * S)
-        bqp, bq = self.body_arrays(world)
-        m = world.model
-        shapes = [self.shape_kind, self.shape_body, self.shape_local, self.shape_params]
+        shapes, motion, solve = self.shape_table, self.body_motion(world, sweep), self._particle_solve(world, sweep)
+        ignore, masks, reports = self.ignore, self._cut_masks, self.reports
         if len(self.cp_particle):
             launch(ck.collide_particles, (n, len(self.cp_particle)),
-                   [self.cp_particle, self.cp_group, self.cp_radius, *shapes, self.shape_mesh, self.shape_thickness,
-                    self.shape_mu, self.pair_index, bqp, bq, blend_prev, blend, m.particle_inv_mass, q_pred,
-                    s.particle_qd, h, force_scale, report, self.report_margin, self.ignore_bodies,
-                    int(self.body_ignore_mask), self.particle_active],
-                   [s.particle_q, self.report_count, self.report_force, self.contact_count, self.contact_particle,
-                    self.contact_shape, self.contact_normal, self.contact_depth, self.overflow])
+                   [self._particles, shapes, motion, solve, ignore, masks, report, self.report_margin], [q, reports])
         off = self.seg_color_offsets
         for c in range(len(off) - 1):
             launch(ck.collide_segments, (n, off[c + 1] - off[c]),
-                   [self.seg_nodes, self.seg_group, self.seg_radius, off[c], *shapes, self.shape_thickness,
-                    self.shape_mu, self.pair_index, bqp, bq, blend_prev, blend, m.particle_inv_mass, q_pred,
-                    s.particle_qd, h, force_scale, self.ignore_bodies, int(self.body_ignore_mask), self.seg_col,
-                    self.seg_mask],
-                   [s.particle_q, self.report_force])
+                   [self._segments, off[c], shapes, motion, solve, ignore, masks], [q, reports])
         off = self.tri_color_offsets
         for c in range(len(off) - 1):
             launch(ck.collide_triangles, (n, off[c + 1] - off[c]),
-                   [self.tri_nodes, self.tri_group, self.tri_radius, off[c], *shapes, self.shape_thickness,
-                    self.shape_mu, self.pair_index, bqp, bq, blend_prev, blend, m.particle_inv_mass, q_pred,
-                    s.particle_qd, h, force_scale, self.ignore_bodies, int(self.body_ignore_mask), self.tri_col,
-                    self.tri_mask, self.face_mask],
-                   [s.particle_q, self.report_force])
+                   [self._triangles, off[c], shapes, motion, solve, ignore, masks], [q, reports])
         for sf in self._surfaces:
             launch(sf["mesh"].refit)  # BVH bounds of the surface as it is now (after this sweep's constraints)
             launch(ck.collide_surface, (n, len(self.cp_particle)),
-                   [self.cp_particle, self.cp_group, self.cp_radius, sf["shape"], sf["mesh"].id, sf["tris"],
-                    sf["owner"][0], sf["owner"][1], sf["closed"], sf["thickness"], sf["mu"], self.pair_index,
-                    m.particle_inv_mass, q_pred, s.particle_qd, h, force_scale, report, self.report_margin,
-                    sf["face_col"], sf["face_mask"], self.particle_active],
-                   [s.particle_q, self.surf_delta, self.surf_count, self.report_count, self.report_force,
-                    self.contact_count, self.contact_particle, self.contact_shape, self.contact_normal,
-                    self.contact_depth, self.overflow])
+                   [self._particles, sf["surface"], shapes, solve, masks, report, self.report_margin],
+                   [q, self.surf_delta, self.surf_count, reports])
             launch(ck.apply_surface_deltas, (n, sf["verts"].shape[0]), [sf["verts"], self.surf_delta,
-                                                                        self.surf_count], [s.particle_q])
+                                                                        self.surf_count], [q])
         for a in self._self_arrays:
-            common = [a["particle"], a["radius"], a["chain"], a["pos"], a["length"], a["pair"], a["skip"], a["mu"]]
-            tail = [m.particle_inv_mass, q_pred, s.particle_qd, h, force_scale, report]
-            if a["grid"]:
-                launch(a["bucket_count"].zero_)
-                launch(ck.grid_count, (n, a["count"]), [a["particle"], a["inv_cell"], a["H"], s.particle_q],
-                       [a["bucket_count"], a["member_bucket"], a["member_rank"]])
+            members, grid, m = a["members"], a["grid"], a["count"]
+            if grid is not None:
+                launch(grid.bucket_count.zero_)
+                launch(ck.grid_count, (n, m), [members, grid, q])
                 # one exclusive scan over every env's buckets gives global offsets (env e starts at e * M)
-                launch(lambda a=a: wp.utils.array_scan(a["bucket_count"], a["bucket_start"], inclusive=False))
-                launch(ck.grid_scatter, (n, a["count"]), [a["bucket_start"], a["member_bucket"], a["member_rank"]],
-                       [a["sorted_member"]])
-                launch(ck.collide_particle_pairs_grid, (n, a["count"]),
-                       [*common, a["inv_cell"], a["H"], a["bucket_start"], a["bucket_count"], a["sorted_member"],
-                        *tail], [s.particle_q, a["delta"], self.report_count, self.report_force])
+                launch(lambda g=grid: wp.utils.array_scan(g.bucket_count, g.bucket_start, inclusive=False))
+                launch(ck.grid_scatter, (n, m), [grid])
+                launch(ck.collide_particle_pairs_grid, (n, m), [members, grid, solve, report],
+                       [q, a["delta"], reports])
             else:
-                launch(ck.collide_particle_pairs, (n, a["count"]), [*common, *tail],
-                       [s.particle_q, a["delta"], self.report_count, self.report_force])
-            launch(ck.apply_particle_deltas, (n, a["count"]), [a["particle"], a["delta"]], [s.particle_q])
+                launch(ck.collide_particle_pairs, (n, m), [members, solve, report], [q, a["delta"], reports])
+            launch(ck.apply_particle_deltas, (n, m), [members.particle, a["delta"]], [q])
         if report:
-            launch(ck.clamp_contact_count, n, [self.capacity], [self.contact_count])
+            launch(ck.clamp_contact_count, n, [self.capacity], [reports])
 
     def reset(self, env_mask: wp.array) -> None:
         """Clear the masked envs' reports (``World.reset`` calls it): a new episode starts with no contact."""
-        wp.launch(ck.clear_reports_masked, dim=self.num_envs, inputs=[env_mask],
-                  outputs=[self.report_count, self.report_force, self.contact_count, self.overflow], device=self.device)
+        wp.launch(ck.clear_reports_masked, dim=self.num_envs, inputs=[env_mask, self.reports], device=self.device)
 
     def clear_reports(self) -> None:
         """Zero the reports now (``world.step`` already does this at its start; for use outside a step)."""
-        wp.launch(ck.clear_reports, dim=self.num_envs, inputs=[],
-                  outputs=[self.report_count, self.report_force, self.contact_count, self.overflow], device=self.device)
+        wp.launch(ck.clear_reports, dim=self.num_envs, inputs=[self.reports], device=self.device)
 
     # ------------------------------------------------------------------------------------------------
     # host helpers (sync; for tests and scripts)

@@ -21,7 +21,8 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from lapwarp.kernels import contact as ck
+from lapwarp.contact import make_struct
+from lapwarp.kernels import grasping as gk
 
 
 class GraspSystem:
@@ -82,6 +83,18 @@ class GraspSystem:
         self.jaw_mask = (1 << instrument.jaw_a) | (1 << instrument.jaw_b)
         if contact not in world.solvers:
             raise ValueError("finalize() the ContactSystem before creating the GraspSystem")
+        self._grasper = make_struct(gk.Grasper, shaft=instrument.shaft_body, jaw_a=instrument.jaw_a,
+                                    jaw_b=instrument.jaw_b, jaw_length=float(instrument.jaw_length),
+                                    grasp_threshold=self.grasp_threshold, release_threshold=self.release_threshold,
+                                    cone_margin=self.cone_margin, max_offset=self.max_offset,
+                                    slot_start=self.slot_start, slots=self.slots, compliance=self.compliance,
+                                    graspable=self.graspable, particle_segment=self.particle_segment)
+        s = world.state
+        attach = make_struct(gk.Attachments, particle=s.attach_particle, body=s.attach_body, offset=s.attach_offset,
+                             compliance=s.attach_compliance)
+        self._state = make_struct(gk.GraspState, grasped=self.grasped, lost_grasp=self.lost_grasp,
+                                  grasp_delta=self.grasp_delta, attach=attach, ignore=contact.ignore)
+        self._scene = make_struct(gk.GraspScene, body_q=s.body_q, particle_q=s.particle_q, segment_q=self._segq())
         world.add_solver(self)
 
     def _segq(self):
@@ -93,38 +106,23 @@ class GraspSystem:
         """Hold the orientation of grasped rod segments (every sweep); after the last sweep of the step, grasp or
         release from the contact records that the ContactSystem (added before this system) just wrote."""
         if self.hold_orientation:
-            bqp, bq = self.contact.body_arrays(world)
-            launch(ck.hold_grasped_orientations, (self.world.num_envs, self.slots),
-                   [self.slot_start, self.particle_segment, world.state.attach_particle, world.state.attach_body,
-                    self.grasp_delta, bqp, bq, sweep.blend], [world.state.segment_q])
+            launch(gk.hold_grasped_orientations, (self.world.num_envs, self.slots),
+                   [self._grasper, self._state, self.contact.body_motion(world, sweep)],
+                   [world.state.segment_q])
         if sweep.last:
-            self._record_update(world, launch)
-
-    def _record_update(self, world, launch) -> None:
-        s, c, ins = world.state, self.contact, self.instrument
-        launch(ck.update_grasp, world.num_envs,
-               [self.jaw_angle, self.grasp_threshold, self.release_threshold, ins.shaft_body, ins.jaw_a, ins.jaw_b,
-                float(ins.jaw_length), self.cone_margin, self.max_offset, self.slot_start, self.slots,
-                self.compliance, self.graspable, self.particle_segment, c.shape_body, c.contact_count,
-                c.contact_particle, c.contact_shape, s.body_q, s.particle_q, self._segq(), int(c.body_ignore_mask)],
-               [self.grasped, self.lost_grasp, s.attach_particle, s.attach_body, s.attach_offset, s.attach_compliance,
-                self.grasp_delta, c.ignore_bodies])
+            c = self.contact
+            launch(gk.update_grasp, world.num_envs,
+                   [self._grasper, self.jaw_angle, c.shape_table, c.reports, self._scene], [self._state])
 
     # host-side (reset time) -------------------------------------------------------------------------
     def start_grasped(self, particle: int, env_mask: wp.array | None = None) -> None:
         """Release the masked envs' grasps and, if ``particle >= 0``, attach that global particle at its current
         offset to the jaw on its side of the jaws' mid-plane (call after ``world.reset`` and after posing the
         instrument)."""
-        w, c = self.world, self.contact
-        s = w.state
+        w = self.world
         mask = env_mask if env_mask is not None else wp.ones(w.num_envs, dtype=wp.int32, device=w.device)
-        wp.launch(ck.start_grasp, dim=w.num_envs,
-                  inputs=[mask, int(particle), self.instrument.shaft_body, self.instrument.jaw_a,
-                          self.instrument.jaw_b, self.slot_start, self.slots,
-                          self.compliance, self.particle_segment, s.body_q, s.particle_q, self._segq(),
-                          int(c.body_ignore_mask)],
-                  outputs=[self.grasped, self.lost_grasp, s.attach_particle, s.attach_body, s.attach_offset,
-                           s.attach_compliance, self.grasp_delta, c.ignore_bodies], device=w.device)
+        wp.launch(gk.start_grasp, dim=w.num_envs, inputs=[mask, int(particle), self._grasper, self._scene],
+                  outputs=[self._state], device=w.device)
 
     def reset(self, env_mask: wp.array) -> None:
         """Forget the grasps of the masked envs (``world.reset`` restores the attachment slots themselves)."""

@@ -1,11 +1,11 @@
 """Instrument bodies, collision shapes and procedural visual meshes, posed per env from a TPSD tip transform.
 
 An :class:`InstrumentShape` adds kinematic bodies to a ``SceneBuilder`` (the shaft, and for articulated tools two
-jaws or blades), then colliders to a :class:`lapwarp.contact.ContactSystem`, and writes the bodies'
-``state.body_q`` from the instrument's tip pose (``TPSDInstruments.pose``) and a per-env jaw angle with one
-kernel launch. Frames follow sofa_env: the shaft is the tip's local +Z (tip at the origin, shaft behind it at
-negative z); the jaws hinge at the tip and rotate about local X, jaw A by ``+angle`` and jaw B by ``-angle``
-(degrees at the API), so the opening between them is ``2 * angle``.
+jaws or blades), then colliders to a :class:`lapwarp.contact.ContactSystem`, and poses the bodies from the
+instrument's tip pose (``TPSDInstruments.pose``) and a per-env jaw angle: one kernel launch into the instrument's
+own pose array, handed to ``World.set_body_poses``. Frames follow sofa_env: the shaft is the tip's local +Z (tip at
+the origin, shaft behind it at negative z); the jaws hinge at the tip and rotate about local X, jaw A by ``+angle``
+and jaw B by ``-angle`` (degrees at the API), so the opening between them is ``2 * angle``.
 
 Geometry (metres) after sofa_env's collision models: grasper jaws 25 mm with r = 1 mm spheres -> capsules;
 shaft r = 2.25 mm; cauter hook r = 0.8 mm at the tip with a r = 1.5 mm shaft; scissors blades 15 mm.
@@ -20,7 +20,7 @@ import numpy as np
 import trimesh
 import warp as wp
 
-from lapwarp.kernels.contact import pose_instrument_bodies, step_jaw_angle
+from lapwarp.kernels.bodies import pose_instrument_bodies, step_jaw_angle
 
 KINDS = ("grasper", "cauter", "scissors", "loop", "endoscope")
 
@@ -69,6 +69,10 @@ class InstrumentShape:
     bodies: list = field(default_factory=list)
     parts: list = field(default_factory=list)  # (role, params, transform) role: shaft | jaw_a | jaw_b | tool
     shape_ids: dict = field(default_factory=dict)  # role -> [shape ids]
+    # allocated by the first pose(): (num_envs, len(bodies)) poses, the body indices, closed jaws (angle 0)
+    _poses: wp.array | None = field(default=None, init=False, repr=False, compare=False)
+    _body_index: wp.array | None = field(default=None, init=False, repr=False, compare=False)
+    _closed_jaws: wp.array | None = field(default=None, init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         if self.kind not in KINDS:
@@ -119,18 +123,30 @@ class InstrumentShape:
     def body_array(self) -> wp.vec3i:
         return wp.vec3i(self.shaft_body, self.jaw_a, self.jaw_b)
 
-    def pose(self, world, tip_pose: wp.array, column: int, jaw_angle_deg: wp.array | None = None) -> None:
-        """Write ``world.state.body_q`` of this instrument's bodies for every env (one launch, graph-capturable).
+    def pose(self, world, tip_pose: wp.array, column: int, jaw_angle_deg: wp.array | None = None,
+             teleport_mask: wp.array | None = None) -> None:
+        """Pose this instrument's bodies in every env: one launch writes them into the instrument's own
+        ``(num_envs, len(bodies))`` array, which ``world.set_body_poses`` then applies (graph-capturable; the first
+        call allocates that array).
 
         Args:
+            world: the World whose kinematic bodies these are.
             tip_pose: ``(num_envs, k)`` ``wp.transform`` tip poses (``TPSDInstruments.pose``).
             column: this instrument's column of ``tip_pose``.
-            jaw_angle_deg: ``(num_envs,)`` float jaw angle in degrees (articulated kinds).
+            jaw_angle_deg: ``(num_envs,)`` float jaw angle in degrees (articulated kinds; None: closed jaws).
+            teleport_mask: ``(num_envs,)`` int32 or None: the masked envs' bodies jump to the pose and keep it as
+                their start state (at reset) instead of sweeping there during the next step (see
+                ``World.set_body_poses``).
         """
-        ang = jaw_angle_deg if jaw_angle_deg is not None else wp.zeros(1, dtype=float, device=world.device)
-        wp.launch(pose_instrument_bodies, dim=world.num_envs,
-                  inputs=[tip_pose, int(column), ang, self.body_array()], outputs=[world.state.body_q],
-                  device=world.device)
+        n, dev = world.num_envs, world.device
+        if self._poses is None or self._poses.shape[0] != n:
+            self._poses = wp.zeros((n, len(self.bodies)), dtype=wp.transform, device=dev)
+            self._body_index = wp.array(self.bodies, dtype=wp.int32, device=dev)
+            self._closed_jaws = wp.zeros(n, dtype=float, device=dev)
+        ang = jaw_angle_deg if jaw_angle_deg is not None else self._closed_jaws
+        wp.launch(pose_instrument_bodies, dim=n, inputs=[tip_pose, int(column), ang], outputs=[self._poses],
+                  device=dev)
+        world.set_body_poses(self._poses, self._body_index, teleport_mask)
 
     def step_jaw(self, actions: wp.array, column: int, max_speed_deg: float, dt: float, angle_deg: wp.array,
                  grasped: wp.array | None = None) -> None:

@@ -18,6 +18,8 @@ cuttable objects) means "no masks": one branch on a uniform value, no memory tra
 
 import warp as wp
 
+from lapwarp.kernels.geometry import interpolate_transform
+
 wp.set_module_options({"enable_backward": False})
 
 
@@ -377,13 +379,6 @@ def solve_tethers(
     # unilateral: only pulls back particles beyond their rest geodesic distance from the anchor
     if length > m:
         q[env, i] = a + d * (m / length)
-
-
-@wp.func
-def interpolate_transform(a: wp.transform, b: wp.transform, s: float):
-    p = wp.transform_get_translation(a) * (1.0 - s) + wp.transform_get_translation(b) * s
-    r = wp.quat_slerp(wp.transform_get_rotation(a), wp.transform_get_rotation(b), s)
-    return wp.transform(p, r)
 
 
 @wp.kernel
