@@ -568,10 +568,11 @@ class SceneBuilder:
         self._bodies.append((name, p))
         return len(self._bodies) - 1
 
-    def add_attachment(self, particle: int, body: int = -1, compliance: float = 0.0, offset=None) -> None:
+    def add_attachment(self, particle: int, body: int = -1, compliance: float = 0.0, offset=None) -> int:
         """Attach global ``particle`` to kinematic ``body`` (-1: a fixed point in the world) with a
         compliance in m/N. ``offset`` (body frame) defaults to the particle's initial position seen from the
-        body's initial pose, so the attachment starts relaxed."""
+        body's initial pose, so the attachment starts relaxed. Returns its slot (column of the ``attach_*`` state
+        arrays)."""
         if offset is None:
             x = self._pos_all()[particle]
             if body >= 0:
@@ -581,6 +582,7 @@ class SceneBuilder:
             else:
                 offset = x
         self._attachments.append((int(particle), int(body), np.asarray(offset, dtype=np.float64), float(compliance)))
+        return len(self._attachments) - 1
 
     # ---------------------------------------------------------------------------------------------
     def finalize(

@@ -1,22 +1,197 @@
-"""Env configuration: the keyword-only dataclass every task config derives from, and override checks.
+"""Env configuration: the keyword-only dataclass every task config derives from, and its checks.
 
-Fields carry their units in comments; defaults are the paper's values (Tables B and C). Unknown
-override keys, unknown reward feature names and invalid enumerations raise ``ValueError`` listing the
-valid choices: nothing is silently ignored.
+Fields carry their units in the config's docstring and their type (with an allowed range) in their annotation;
+defaults are the paper's values (Tables B and C). ``EnvConfig.validate`` checks every field against its annotation
+and coerces where the meaning is unambiguous: numbers from strings (``"0.01"``), numpy numbers, lists for tuples,
+``"true"/"false"/"1"/"0"/"yes"/"no"`` for booleans (the command line passes strings). Anything else raises
+``ValueError`` naming the field, the value, the expected type and the allowed range. Unknown override keys, unknown
+reward feature names and invalid choices raise ``ValueError`` listing the valid ones: nothing is silently ignored.
+
+Annotations understood: ``bool``, ``int``, ``float`` (finite), ``str``, ``Literal[...]`` (choices), ``X | None``,
+``tuple[T, ...]`` / ``tuple[T1, T2]`` (lists and arrays accepted), ``dict[str, float]``, and
+``Annotated[T, Range(...)]`` for a range (applied to every element of a tuple). Shorthands: :data:`Positive`,
+:data:`NonNegative`, :data:`Fraction`, :data:`PositiveInt`, :data:`Vec2`, :data:`Vec3`, :data:`PTSD`.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import math
+import numbers
+import types
+import typing
 from dataclasses import dataclass, field
-from typing import Any, TypeVar
+from typing import Annotated, Any, Literal, TypeVar
+
+import numpy as np
 
 OBSERVATION_TYPES = ("STATE", "RGB", "RGBD", "DEPTH")
 ACTION_TYPES = ("CONTINUOUS", "DISCRETE")
 INVALID_ACTION_MODES = ("raise", "zero")
+#: Largest image side (pixels) an image observation may ask for.
+MAX_IMAGE_SIDE = 2048
 
 C = TypeVar("C", bound="EnvConfig")
+
+
+@dataclass(frozen=True)
+class Range:
+    """Allowed interval of a number (of every element of a tuple): ``gt`` / ``ge`` / ``lt`` / ``le`` bounds."""
+
+    gt: float | None = None
+    ge: float | None = None
+    lt: float | None = None
+    le: float | None = None
+
+    def contains(self, x: float) -> bool:
+        return ((self.gt is None or x > self.gt) and (self.ge is None or x >= self.ge)
+                and (self.lt is None or x < self.lt) and (self.le is None or x <= self.le))
+
+    def __str__(self) -> str:
+        parts = [f"{op} {v:g}" for op, v in ((">", self.gt), (">=", self.ge), ("<", self.lt), ("<=", self.le))
+                 if v is not None]
+        return " and ".join(parts)
+
+
+Positive = Annotated[float, Range(gt=0.0)]
+NonNegative = Annotated[float, Range(ge=0.0)]
+Fraction = Annotated[float, Range(ge=0.0, le=1.0)]
+PositiveInt = Annotated[int, Range(ge=1)]
+Vec2 = tuple[float, float]
+Vec3 = tuple[float, float, float]
+#: Pan, tilt, spin in degrees and depth in metres.
+PTSD = tuple[float, float, float, float]
+
+_TRUE, _FALSE = ("true", "1", "yes", "on"), ("false", "0", "no", "off")
+
+
+class _Invalid(ValueError):
+    pass
+
+
+def _type_name(tp) -> str:
+    origin = typing.get_origin(tp)
+    if origin is Annotated:
+        base, *marks = typing.get_args(tp)
+        ranges = [str(m) for m in marks if isinstance(m, Range)]
+        return _type_name(base) + (f" ({', '.join(ranges)})" if ranges else "")
+    if origin is Literal:
+        return "one of " + repr(list(typing.get_args(tp)))
+    if origin in (typing.Union, types.UnionType):
+        return " or ".join(_type_name(a) for a in typing.get_args(tp))
+    if origin is tuple:
+        args = typing.get_args(tp)
+        if len(args) == 2 and args[1] is Ellipsis:
+            return f"a sequence of {_type_name(args[0])}"
+        return f"{len(args)} values ({', '.join(_type_name(a) for a in args)})"
+    if origin is dict:
+        return "a dict " + " -> ".join(_type_name(a) for a in typing.get_args(tp))
+    if tp is type(None):
+        return "None"
+    return getattr(tp, "__name__", str(tp))
+
+
+def coerce(value: Any, tp) -> Any:
+    """``value`` converted to the annotation ``tp`` (see the module docstring); raises ``ValueError`` if it is not
+    unambiguously one."""
+    origin = typing.get_origin(tp)
+    if origin is Annotated:
+        base, *marks = typing.get_args(tp)
+        out = coerce(value, base)
+        for mark in marks:
+            if isinstance(mark, Range):
+                for x in (out if isinstance(out, tuple) else (out,)):
+                    if x is not None and not mark.contains(x):
+                        raise _Invalid(f"outside the allowed range {mark}")
+        return out
+    if origin in (typing.Union, types.UnionType):
+        args = typing.get_args(tp)
+        if value is None and type(None) in args:
+            return None
+        for arg in args:
+            if arg is type(None):
+                continue
+            try:
+                return coerce(value, arg)
+            except _Invalid:
+                continue
+        raise _Invalid("of the wrong type")
+    if origin is Literal:
+        if value not in typing.get_args(tp):
+            raise _Invalid("not one of the choices")
+        return value
+    if origin is tuple:
+        args = typing.get_args(tp)
+        if isinstance(value, (str, bytes)) or not isinstance(value, (tuple, list, np.ndarray)):
+            raise _Invalid("not a sequence")
+        seq = list(np.asarray(value).tolist()) if isinstance(value, np.ndarray) else list(value)
+        if len(args) == 2 and args[1] is Ellipsis:
+            return tuple(coerce(v, args[0]) for v in seq)
+        if len(seq) != len(args):
+            raise _Invalid(f"has {len(seq)} values")
+        return tuple(coerce(v, a) for v, a in zip(seq, args, strict=True))
+    if origin is dict:
+        key_tp, val_tp = typing.get_args(tp)
+        if not isinstance(value, dict):
+            raise _Invalid("not a dict")
+        return {coerce(k, key_tp): coerce(v, val_tp) for k, v in value.items()}
+    if tp is bool:
+        if isinstance(value, (bool, np.bool_)):
+            return bool(value)
+        if isinstance(value, str) and value.strip().lower() in _TRUE + _FALSE:
+            return value.strip().lower() in _TRUE
+        raise _Invalid("not a boolean")
+    if tp is int:
+        if isinstance(value, (bool, np.bool_)):
+            raise _Invalid("a boolean, not an integer")
+        if isinstance(value, numbers.Integral):
+            return int(value)
+        if isinstance(value, str):
+            try:
+                return int(value.strip())
+            except ValueError:
+                raise _Invalid("not an integer") from None
+        raise _Invalid("not an integer")
+    if tp is float:
+        if isinstance(value, (bool, np.bool_)):
+            raise _Invalid("a boolean, not a number")
+        if isinstance(value, str):
+            try:
+                value = float(value.strip())
+            except ValueError:
+                raise _Invalid("not a number") from None
+        if not isinstance(value, numbers.Real):
+            raise _Invalid("not a number")
+        if not math.isfinite(float(value)):
+            raise _Invalid("not finite")
+        return float(value)
+    if tp is str:
+        if not isinstance(value, str):
+            raise _Invalid("not a string")
+        return value
+    return value  # an annotation this module does not check
+
+
+def check_fields(cfg) -> None:
+    """Check and coerce every init field of the dataclass ``cfg`` against its annotation, in place."""
+    hints = typing.get_type_hints(type(cfg), include_extras=True)
+    for f in dataclasses.fields(cfg):
+        if not f.init or f.name not in hints:
+            continue
+        value = getattr(cfg, f.name)
+        try:
+            setattr(cfg, f.name, coerce(value, hints[f.name]))
+        except _Invalid as err:
+            raise ValueError(f"{type(cfg).__name__}.{f.name}={value!r} is invalid ({err}): expected "
+                             f"{_type_name(hints[f.name])}") from None
+
+
+def check_low_high(cfg, low_name: str, high_name: str, strict: bool = True) -> None:
+    """Raise ``ValueError`` unless the tuples ``low_name`` < ``high_name`` element-wise (``<=`` when not strict)."""
+    low, high = np.asarray(getattr(cfg, low_name), float), np.asarray(getattr(cfg, high_name), float)
+    if np.any(low >= high) if strict else np.any(low > high):
+        raise ValueError(f"{type(cfg).__name__}: {low_name}={tuple(low)} must be {'<' if strict else '<='} "
+                         f"{high_name}={tuple(high)} in every component")
 
 
 @dataclass(kw_only=True)
@@ -26,51 +201,44 @@ class EnvConfig:
     Attributes:
         observation_type: "STATE" (default), or "RGB", "RGBD", "DEPTH" once a task has a camera.
         action_type: "CONTINUOUS" (Box [-1, 1]^d scaled by the maximum velocities) or "DISCRETE"
-            (``Discrete(2d+1)``, see ``lapwarp.instruments.discrete_action_table``).
+            (``Discrete(2d+1)``, see ``env.discrete_actions``).
         time_step: simulated seconds per physics step (sofa_env's ``time_step``).
         frame_skip: physics steps per env step; the action is applied at every one of them.
         max_episode_steps: time limit in env steps (Table C); reaching it truncates the episode.
         frame_stack: number of stacked observation frames, newest last (the paper stacks 4).
         reward_weights: weights by feature name; given names replace the task's defaults (Table A).
-        invalid_actions: "raise" (default) raises ``ValueError`` on NaN/inf actions, which costs one
-            device-to-host sync per step; "zero" replaces non-finite components by 0 on the device and
-            counts them under ``extras["log"]["/action/nonfinite_fraction"]``.
+        invalid_actions: "raise" (default) raises ``ValueError`` on NaN/inf actions and out-of-range discrete indices,
+            which costs one device-to-host sync per step; "zero" replaces non-finite components by 0 (an invalid
+            discrete index by the no-op) on the device and counts them under ``extras["log"]["/action/..."]``.
         clip_actions: clip continuous actions to [-1, 1] (the action space's bounds); the fraction of
             clipped components is logged under ``/action/clipped_fraction``.
         privileged_critic: also return a ``critic`` observation group with privileged state.
-        image_shape: (height, width) of image observations in pixels.
+        image_shape: (height, width) of image observations in pixels, each at most ``MAX_IMAGE_SIDE``.
         seed: seed of the per-env device RNG streams.
     """
 
     observation_type: str = "STATE"
-    action_type: str = "CONTINUOUS"
-    time_step: float = 0.1
-    frame_skip: int = 1
-    max_episode_steps: int = 500
-    frame_stack: int = 1
+    action_type: Literal["CONTINUOUS", "DISCRETE"] = "CONTINUOUS"
+    time_step: Positive = 0.1
+    frame_skip: PositiveInt = 1
+    max_episode_steps: PositiveInt = 500
+    frame_stack: PositiveInt = 1
     reward_weights: dict[str, float] = field(default_factory=dict)
-    invalid_actions: str = "raise"
+    invalid_actions: Literal["raise", "zero"] = "raise"
     clip_actions: bool = True
     privileged_critic: bool = False
-    image_shape: tuple[int, int] = (64, 64)
+    image_shape: tuple[Annotated[int, Range(ge=1, le=MAX_IMAGE_SIDE)], Annotated[int, Range(ge=1, le=MAX_IMAGE_SIDE)]] \
+        = (64, 64)
     seed: int = 0
 
     def validate(self, reward_features: tuple[str, ...], supported_observations: tuple[str, ...]) -> None:
-        """Check enumerations and numbers; raise ``ValueError`` naming the offending field."""
+        """Check (and coerce) every field; raise ``ValueError`` naming the offending field. Task configs extend it
+        with checks that relate fields to each other."""
+        check_fields(self)
         _check_choice("observation_type", self.observation_type, supported_observations)
-        _check_choice("action_type", self.action_type, ACTION_TYPES)
-        _check_choice("invalid_actions", self.invalid_actions, INVALID_ACTION_MODES)
-        if not (math.isfinite(self.time_step) and self.time_step > 0.0):
-            raise ValueError(f"time_step must be a positive number of seconds, got {self.time_step!r}")
-        for name in ("frame_skip", "max_episode_steps", "frame_stack"):
-            value = getattr(self, name)
-            if not isinstance(value, int) or value < 1:
-                raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
         unknown = sorted(set(self.reward_weights) - set(reward_features))
         if unknown:
             raise ValueError(f"unknown reward feature(s) {unknown}; valid features: {list(reward_features)}")
-        if len(self.image_shape) != 2 or min(self.image_shape) < 1:
-            raise ValueError(f"image_shape must be (height, width) with positive sizes, got {self.image_shape!r}")
 
 
 def _check_choice(name: str, value: Any, choices: tuple[str, ...]) -> None:

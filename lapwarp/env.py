@@ -1,20 +1,27 @@
 """BatchedEnv: the base of every task env; an ``rsl_rl.env.VecEnv`` over ``num_envs`` scenes.
 
-It owns the env buffers (actions, reward features, rewards, dones, episode counters, observation
-frames and stacks) and the step pipeline; a task fills in the scene and five kernels' worth of hooks:
+It owns the env buffers (actions, reward features and their delta baselines, rewards, dones, episode counters,
+observation frames and stacks) and the step pipeline. A task *declares* its reward features (``rewards``, a
+``lapwarp.tasks.spec.RewardSpec``), its observation blocks and its action blocks; the base derives sizes, bounds,
+the discrete action table, delta features, done flags and logging from them. The task fills in:
 
-    _build()                 -> World, and the task's own state arrays
-    _apply_actions(actions)  once per env step: normalised actions -> per-physics-step commands
-    _before_physics_step()   once per physics step (frame skip): drive kinematic instruments
-    _compute_features()      reward features (num_envs, F), success and failure flags
-    _reset_task(env_mask)    re-randomise the masked envs in place from the per-env RNG
-    _compute_observations()  the newest STATE frame (num_envs, D) (and the critic frame)
+    _build()                      -> World (and the task's parts: instrument rig, objects, its own state arrays)
+    _observation_layout()         STATE blocks and bounds (``ObservationSpec.layout``); ``_critic_layout()`` optional
+    _action_layout()              ``ActionLayout`` of the continuous action     } default: the task's instrument
+    _apply_actions(actions)       once per env step: actions -> commands        } rig ``self.rig``
+    _before_physics_step()        once per physics step (frame skip)            } (``lapwarp.tasks.rig``)
+    _compute_features(mask, out)  non-delta reward features of the masked envs (a pure function of the state)
+    _update_task()                optional, after rewards and dones: events (a new target, restarting baselines)
+    _reset_task(env_mask)         re-randomise the masked envs in place from the per-env RNG (writing ``world.state``
+                                  rows; the base then saves them as the World's start state of those envs)
+    _compute_observations()       the newest STATE frame ``obs_frame`` (and ``critic_frame``'s own blocks)
+    _build_visual_scene()         optional: the ``VisualScene`` image observations, renders and USD read
 
-One env step = action sanitising, ``frame_skip`` physics steps, features, reward and dones, masked
-auto-reset, observations and frame stacks. On CUDA the whole step is captured once as a CUDA graph and
-replayed on torch's current stream, so it runs without host syncs and orders naturally with the policy's
-torch work. Outputs are torch views of Warp arrays (zero copy); ``step`` returns clones of them, because
-rsl-rl keeps references to observations across steps.
+One env step = action sanitising, ``frame_skip`` physics steps, features, deltas/reward/dones, task events, masked
+auto-reset (World, task, then the reset envs' delta baselines from the features of their new state), observations
+and frame stacks. On CUDA the whole step is captured once as a CUDA graph and replayed on torch's current stream, so
+it runs without host syncs and orders naturally with the policy's torch work. Outputs are torch views of Warp arrays
+(zero copy); ``step`` returns clones of them, because rsl-rl keeps references to observations across steps.
 """
 
 from __future__ import annotations
@@ -30,11 +37,12 @@ from tensordict import TensorDict
 
 from lapwarp.config import EnvConfig, build_config
 from lapwarp.kernels import env_kernels
+from lapwarp.tasks.spec import ActionLayout, ObservationLayout, RewardSpec
 from lapwarp.world import World
 
 
 class BatchedEnv(VecEnv):
-    """Base class of all lapwarp task envs (see the module docstring for the hooks a task provides).
+    """Base class of all lapwarp task envs (see the module docstring for what a task declares and provides).
 
     Args:
         cfg: the task's config dataclass.
@@ -48,9 +56,11 @@ class BatchedEnv(VecEnv):
 
     config_class: ClassVar[type[EnvConfig]] = EnvConfig
     task_name: ClassVar[str] = ""
-    reward_features: ClassVar[tuple[str, ...]] = ()
-    default_reward_weights: ClassVar[dict[str, float]] = {}
+    #: The task's reward features, weights, deltas and success/failure terms.
+    rewards: ClassVar[RewardSpec | None] = None
     supported_observations: ClassVar[tuple[str, ...]] = ("STATE",)
+    #: ``"module:Class"`` of the task's scripted expert (``lapwarp.experts.make_expert``), imported when asked for.
+    expert: ClassVar[str | None] = None
 
     @classmethod
     def from_overrides(cls, num_envs: int = 1, device: str = "cpu", use_cuda_graph: bool = True,
@@ -65,7 +75,9 @@ class BatchedEnv(VecEnv):
             raise TypeError(f"{type(self).__name__} needs a {self.config_class.__name__}, got {type(cfg).__name__}")
         if not isinstance(num_envs, int) or num_envs < 1:
             raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
-        cfg.validate(self.reward_features, self.supported_observations)
+        if self.rewards is None:
+            raise TypeError(f"{type(self).__name__} declares no rewards (a lapwarp.tasks.spec.RewardSpec)")
+        cfg.validate(self.rewards.names, self.supported_observations)
         wp.init()
         self.cfg = cfg
         self.num_envs = num_envs
@@ -73,12 +85,17 @@ class BatchedEnv(VecEnv):
         self.device = "cpu" if self.wp_device.is_cpu else f"cuda:{self.wp_device.ordinal}"
         self.max_episode_length = cfg.max_episode_steps
         self.dt = cfg.time_step * cfg.frame_skip  # simulated seconds per env step
-        self.reward_weights = {**self.default_reward_weights, **cfg.reward_weights}
+        self.reward_weights = {**self._default_reward_weights(), **cfg.reward_weights}
         self.keep_final_observations = bool(keep_final_observations)
+        self._visual_scene = None
 
         with wp.ScopedDevice(self.wp_device):
             self.world: World = self._build()
-            self.action_dim = self._action_dim()
+            self.obs_layout: ObservationLayout = self._observation_layout()
+            # built even without the critic group: kernels take its columns as an argument of their declared type
+            self.critic_layout: ObservationLayout = self._critic_layout()
+            self.action_layout: ActionLayout = self._action_layout()
+            self.action_dim = self.action_layout.size
             self.is_discrete = cfg.action_type == "DISCRETE"
             self.num_actions = 1 if self.is_discrete else self.action_dim
             self._allocate_buffers()
@@ -87,56 +104,88 @@ class BatchedEnv(VecEnv):
         self._torch_streams: dict[int, wp.Stream] = {}
         self.reset()
 
-    # ------------------------------------------------------------------ hooks a task implements
+    # ------------------------------------------------------------------ what a task provides
     @abstractmethod
     def _build(self) -> World:
-        """Build the scene: return the World and allocate the task's own state arrays."""
+        """Build the scene: return the World and allocate the task's parts and state arrays."""
 
     @abstractmethod
-    def _action_dim(self) -> int:
-        """Size of the continuous action vector."""
+    def _observation_layout(self) -> ObservationLayout:
+        """The STATE observation blocks of this configuration (``ObservationSpec.layout``)."""
 
-    @abstractmethod
-    def _observation_dim(self) -> int:
-        """Size of one STATE observation frame."""
+    def _critic_layout(self) -> ObservationLayout:
+        """The privileged critic blocks (only with ``privileged_critic``); the policy layout by default. A critic
+        layout made by ``obs_layout.extend(...)`` starts with the policy's values, which the base copies in."""
+        return self.obs_layout
 
-    def _critic_observation_dim(self) -> int:
-        """Size of one privileged critic frame (only used with ``privileged_critic``)."""
-        return self._observation_dim()
+    def _action_layout(self) -> ActionLayout:
+        """The continuous action's blocks; by default those of the task's instrument rig (``self.rig``)."""
+        return self.rig.action_layout
 
-    def _observation_bounds(self) -> tuple[float, float]:
-        """Bounds of every STATE observation value, for gymnasium spaces (unbounded by default)."""
-        return -np.inf, np.inf
+    def _default_reward_weights(self) -> dict[str, float]:
+        """Default weight per feature (Table A); a task whose weights depend on its config overrides this."""
+        return self.rewards.default_weights()
 
-    def _discrete_action_table(self) -> np.ndarray:
-        """``(2d+1, d)`` table of normalised actions (1 = maximum velocity) for DISCRETE action types."""
-        raise ValueError(f"{type(self).__name__} has no discrete action table")
-
-    @abstractmethod
     def _apply_actions(self, actions: wp.array2d) -> None:
-        """Turn sanitised normalised actions ``(num_envs, action_dim)`` into per-physics-step commands."""
+        """Turn sanitised normalised actions ``(num_envs, action_dim)`` into per-physics-step commands; by default the
+        instrument rig's (``self.rig``)."""
+        self.rig.apply_actions(actions, self.cfg.time_step)
 
-    def visual_scene(self):
-        """The ``lapwarp.visuals.VisualScene`` renderers and exporters draw (camera and objects)."""
+    def _before_physics_step(self) -> None:
+        """Per physics step (frame skip) work before ``World.step``: move the instrument rig if the task has one."""
+        rig = getattr(self, "rig", None)
+        if rig is not None:
+            rig.step()
+
+    @abstractmethod
+    def _compute_features(self, env_mask: wp.array, features_out: wp.array2d) -> None:
+        """Write the non-delta features of the envs whose ``env_mask`` entry is non-zero into ``features_out``
+        ``(num_envs, F)`` (columns ``self.rewards.F.<NAME>``); a pure function of the state, also used on freshly
+        reset envs to start their delta baselines. Delta columns are filled by the base."""
+
+    def _update_task(self) -> None:
+        """After features, reward and dones of a step: task events (a new active target...), which may restart delta
+        baselines by writing ``self.baselines[env, F.<BASE>]``. Nothing by default."""
+
+    @abstractmethod
+    def _reset_task(self, env_mask: wp.array) -> None:
+        """Re-randomise the task state of the envs whose ``env_mask`` entry is non-zero (after ``World.reset``)."""
+
+    @abstractmethod
+    def _compute_observations(self) -> None:
+        """Write the newest ``obs_frame`` (and ``critic_frame`` with ``privileged_critic``)."""
+
+    def _build_visual_scene(self):
+        """The ``lapwarp.visuals.VisualScene`` of this task (built once, on first use)."""
         raise ValueError(f"{type(self).__name__} does not describe its visuals yet")
 
     def update_visuals(self) -> None:
         """Bring the per-env visual transforms/points of ``visual_scene()`` up to date (launches only)."""
 
-    def _before_physics_step(self) -> None:
-        """Per physics step (frame skip) work before ``World.step``; nothing by default."""
+    def visual_scene(self):
+        """The ``lapwarp.visuals.VisualScene`` renderers and exporters draw (camera and objects), built on first use."""
+        if self._visual_scene is None:
+            with wp.ScopedDevice(self.wp_device):
+                self._visual_scene = self._build_visual_scene()
+                self.update_visuals()
+        return self._visual_scene
 
-    @abstractmethod
-    def _compute_features(self) -> None:
-        """Write ``features`` (num_envs, F), ``success`` and ``failure`` (num_envs,)."""
+    # ------------------------------------------------------------------ derived from the declarations
+    @property
+    def reward_features(self) -> tuple[str, ...]:
+        """Feature names in column order."""
+        return self.rewards.names
 
-    @abstractmethod
-    def _reset_task(self, env_mask: wp.array) -> None:
-        """Re-randomise the task state of the envs whose ``env_mask`` entry is non-zero."""
+    @property
+    def discrete_actions(self) -> torch.Tensor:
+        """``(2d + 1, d)`` table on the env's device: discrete action ``k`` moves exactly like the continuous action
+        ``discrete_actions[k]`` (rows ``2i``/``2i+1`` = +-one discrete step along component ``i``, last = no-op)."""
+        return torch.as_tensor(self.action_layout.discrete_table(), device=self.device)
 
-    @abstractmethod
-    def _compute_observations(self) -> None:
-        """Write the newest ``obs_frame`` (and ``critic_frame`` with ``privileged_critic``)."""
+    def observation_bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(low, high)`` of every value of the STATE ``policy`` observation (frames included), float32."""
+        s = self.cfg.frame_stack
+        return np.tile(self.obs_layout.low, s), np.tile(self.obs_layout.high, s)
 
     # ------------------------------------------------------------------ buffers
     def _allocate_buffers(self) -> None:
@@ -145,18 +194,20 @@ class BatchedEnv(VecEnv):
         self.actions = wp.zeros((n, self.action_dim), dtype=wp.float32, device=dev)
         self.discrete_in = wp.zeros(n, dtype=wp.int64, device=dev)
         if self.is_discrete:
-            table = np.asarray(self._discrete_action_table(), dtype=np.float32)
-            if table.shape != (2 * self.action_dim + 1, self.action_dim):
-                raise ValueError(f"discrete action table has shape {table.shape}, "
-                                 f"expected {(2 * self.action_dim + 1, self.action_dim)}")
-            self.action_table = wp.array(table, dtype=wp.float32, device=dev)
+            self.action_table = wp.array(self.action_layout.discrete_table(), dtype=wp.float32, device=dev)
         self.nonfinite_actions = wp.zeros(n, dtype=wp.int32, device=dev)
         self.clipped_actions = wp.zeros(n, dtype=wp.int32, device=dev)
 
-        num_features = len(self.reward_features)
-        self.features = wp.zeros((n, num_features), dtype=wp.float32, device=dev)
-        weights = np.array([self.reward_weights.get(f, 0.0) for f in self.reward_features], dtype=np.float32)
+        spec = self.rewards
+        self.features = wp.zeros((n, spec.size), dtype=wp.float32, device=dev)
+        #: ``(num_envs, F)`` delta baselines, by the column of the feature they are the change of.
+        self.baselines = wp.zeros((n, spec.size), dtype=wp.float32, device=dev)
+        weights = np.array([self.reward_weights.get(f, 0.0) for f in spec.names], dtype=np.float32)
         self.weights = wp.array(weights, dtype=wp.float32, device=dev)
+        deltas = np.asarray(spec.deltas, dtype=np.int32).reshape(-1, 2)
+        self._delta_columns = wp.array(deltas[:, 0].copy(), dtype=wp.int32, device=dev)
+        self._delta_bases = wp.array(deltas[:, 1].copy(), dtype=wp.int32, device=dev)
+        self._all_envs = wp.ones(n, dtype=wp.int32, device=dev)
         self.success = wp.zeros(n, dtype=wp.int32, device=dev)
         self.failure = wp.zeros(n, dtype=wp.int32, device=dev)
         self.reward = wp.zeros(n, dtype=wp.float32, device=dev)
@@ -172,13 +223,18 @@ class BatchedEnv(VecEnv):
         self.last_episode_length = wp.zeros(n, dtype=wp.int32, device=dev)
 
         stack = self.cfg.frame_stack
-        self.obs_frame = wp.zeros((n, self._observation_dim()), dtype=wp.float32, device=dev)
+        self.obs_frame = wp.zeros((n, self.obs_layout.size), dtype=wp.float32, device=dev)
         self.obs_stack = self.obs_frame if stack == 1 else wp.zeros(
-            (n, stack * self._observation_dim()), dtype=wp.float32, device=dev)
+            (n, stack * self.obs_layout.size), dtype=wp.float32, device=dev)
+        policy_names = self.obs_layout.names
+        self._critic_has_policy_prefix = (self.critic_layout.names[:len(policy_names)] == policy_names
+                                          and self.critic_layout.sizes[:len(policy_names)] == self.obs_layout.sizes)
         if self.cfg.privileged_critic:
-            self.critic_frame = wp.zeros((n, self._critic_observation_dim()), dtype=wp.float32, device=dev)
+            self.critic_frame = wp.zeros((n, self.critic_layout.size), dtype=wp.float32, device=dev)
             self.critic_stack = self.critic_frame if stack == 1 else wp.zeros(
-                (n, stack * self._critic_observation_dim()), dtype=wp.float32, device=dev)
+                (n, stack * self.critic_layout.size), dtype=wp.float32, device=dev)
+        else:
+            self.critic_frame = self.obs_frame  # kernels may write it unconditionally; nothing reads it
         self.uses_images = self.cfg.observation_type != "STATE"
         if self.uses_images:
             self._allocate_image_buffers()
@@ -272,11 +328,12 @@ class BatchedEnv(VecEnv):
 
         Args:
             actions: ``(num_envs, num_actions)`` floats in [-1, 1] (CONTINUOUS) or ``(num_envs,)`` /
-                ``(num_envs, 1)`` integer indices (DISCRETE).
+                ``(num_envs, 1)`` integer indices in ``[0, 2 d]`` (DISCRETE).
 
         Returns:
             observations, rewards ``(num_envs,)``, dones ``(num_envs,)`` and extras with ``time_outs`` and
-            ``log`` (reward term means under ``/reward/<feature>``, ``/episode/success`` and friends).
+            ``log``: every weighted reward term under ``/reward/<feature>``, every raw feature under
+            ``/feature/<feature>``, ``/episode/success`` and friends.
         """
         self._load_actions(actions)
         if self._use_cuda_graph:
@@ -301,6 +358,12 @@ class BatchedEnv(VecEnv):
                                  f"got {tuple(actions.shape)}")
             if actions.dtype.is_floating_point or actions.dtype == torch.bool or actions.dtype.is_complex:
                 raise ValueError(f"discrete actions must be integer indices, got dtype {actions.dtype}")
+            if self.cfg.invalid_actions == "raise":
+                bad = ((actions < 0) | (actions > 2 * self.action_dim)).reshape(-1)
+                if bool(bad.any()):
+                    envs = bad.nonzero().flatten().tolist()[:10]
+                    raise ValueError(f"discrete actions outside [0, {2 * self.action_dim}] in envs {envs}; pass "
+                                     "invalid_actions='zero' to treat them as the no-op")
             self._t["discrete_in"].copy_(actions.reshape(self.num_envs))
             return
         expected = (self.num_envs, self.num_actions)
@@ -328,13 +391,15 @@ class BatchedEnv(VecEnv):
         for _ in range(self.cfg.frame_skip):
             self._before_physics_step()
             self.world.step(self.cfg.time_step)
-        self._compute_features()
+        self._compute_features(self._all_envs, self.features)
+        spec = self.rewards
         wp.launch(env_kernels.finish_env_step, dim=self.num_envs,
-                  inputs=[self.features, self.weights, self.success, self.failure, self.world.unstable,
-                          self.cfg.max_episode_steps, self.episode_length, self.episode_return],
-                  outputs=[self.reward, self.terminated, self.truncated, self.done, self.reset_mask,
-                           self.last_episode_success, self.finished_episodes, self.last_episode_return,
-                           self.last_episode_length], device=dev)
+                  inputs=[self._delta_columns, self._delta_bases, spec.success, spec.failure, self.weights,
+                          self.world.unstable, self.cfg.max_episode_steps, self.episode_length, self.episode_return],
+                  outputs=[self.features, self.baselines, self.success, self.failure, self.reward, self.terminated,
+                           self.truncated, self.done, self.reset_mask, self.last_episode_success,
+                           self.finished_episodes, self.last_episode_return, self.last_episode_length], device=dev)
+        self._update_task()
         if self.keep_final_observations:
             # observe before the reset: the stack gets the final frame for every env, then the reset envs
             # alone get their first frame (PUSH_MASKED_ONLY) so no env is shifted twice.
@@ -345,9 +410,15 @@ class BatchedEnv(VecEnv):
             self._reset_and_observe(env_kernels.PUSH_ALL)
 
     def _reset_and_observe(self, push_mode: int = env_kernels.PUSH_ALL) -> None:
-        """Reset the envs flagged in ``reset_mask`` in place, then write observations (and frame stacks)."""
+        """Reset the envs flagged in ``reset_mask`` in place, start their delta baselines from the features of the
+        new state, then write observations (and frame stacks)."""
         self.world.reset(self.reset_mask)
         self._reset_task(self.reset_mask)
+        self.world.save_start_state(self.reset_mask)  # a stability restore returns to this episode's start
+        if self.rewards.deltas:
+            # the task's feature kernel writes the reset envs' features straight into the baselines (a delta's base
+            # column is the column of its baseline; the other columns of ``baselines`` are never read)
+            self._compute_features(self.reset_mask, self.baselines)
         wp.launch(env_kernels.clear_episode_buffers, dim=self.num_envs, inputs=[self.reset_mask],
                   outputs=[self.episode_length, self.episode_return], device=self.wp_device)
         self._observe(push_mode)
@@ -355,6 +426,9 @@ class BatchedEnv(VecEnv):
     def _observe(self, push_mode: int) -> None:
         """Write the newest frames and push them onto the frame stacks."""
         self._compute_observations()
+        if self.cfg.privileged_critic and self._critic_has_policy_prefix:
+            wp.launch(env_kernels.copy_leading_columns, dim=self.obs_frame.shape, inputs=[self.obs_frame],
+                      outputs=[self.critic_frame], device=self.wp_device)
         if self.uses_images:
             self._observe_images(push_mode)
         if self.cfg.frame_stack == 1:
@@ -369,8 +443,12 @@ class BatchedEnv(VecEnv):
 
     def _step_outputs(self) -> tuple[TensorDict, torch.Tensor, torch.Tensor, dict]:
         t = self._t
-        term_means = (t["features"] * t["weights"]).mean(dim=0)
-        log: dict[str, torch.Tensor] = {f"/reward/{name}": term_means[i] for i, name in enumerate(self.reward_features)}
+        features = t["features"]
+        names = self.rewards.names
+        raw_means = features.mean(dim=0)
+        term_means = raw_means * t["weights"]
+        log: dict[str, torch.Tensor] = dict(zip([f"/reward/{n}" for n in names], term_means.unbind(), strict=True))
+        log.update(zip([f"/feature/{n}" for n in names], raw_means.unbind(), strict=True))
         finished = t["finished_episodes"] > 0
         num_finished = finished.sum().clamp(min=1)
         log["/episode/success"] = (t["last_episode_success"] * finished).sum() / num_finished
@@ -380,6 +458,8 @@ class BatchedEnv(VecEnv):
         if not self.is_discrete:
             log["/action/nonfinite_fraction"] = t["nonfinite_actions"].float().mean() / self.action_dim
             log["/action/clipped_fraction"] = t["clipped_actions"].float().mean() / self.action_dim
+        else:
+            log["/action/invalid_fraction"] = t["nonfinite_actions"].float().mean()
         extras = {"time_outs": t["truncated"].bool(), "log": log}
         if self.keep_final_observations:
             extras["final_observations"] = t["final_obs"].clone()
@@ -400,6 +480,12 @@ class BatchedEnv(VecEnv):
         return wp.ScopedDevice(self.wp_device)
 
     # ------------------------------------------------------------------ conveniences
+    def restart_baselines(self, env_mask: wp.array | None = None) -> None:
+        """Start the delta features of the masked envs (all without a mask) from their current state, as a reset
+        does (host utility for tests and tools that place things by hand)."""
+        with self._torch_stream_scope():
+            self._compute_features(self._all_envs if env_mask is None else env_mask, self.baselines)
+
     @property
     def observation_dim(self) -> int:
         """Size of the flattened STATE ``policy`` observation (frames included)."""

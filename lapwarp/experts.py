@@ -1,7 +1,9 @@
 """Scripted experts: privileged-state controllers that solve each task (proof of solvability, demos).
 
 An expert is called like a policy: ``expert = make_expert(env); actions = expert()`` returns a
-``(num_envs, num_actions)`` tensor on the env's device, computed from privileged state with torch ops (no host syncs).
+``(num_envs, num_actions)`` tensor on the env's device (``(num_envs,)`` indices for discrete actions), computed from
+privileged state with torch ops (no host syncs). Each task names its expert class in ``env.expert``
+(``"module:Class"``); it is imported only when asked for.
 """
 
 from __future__ import annotations
@@ -11,42 +13,34 @@ import importlib
 import torch
 
 
-class ReachExpert:
-    """Moves the end effector straight at the target at full speed, slowing to land on it.
+def make_expert(env):
+    """The scripted expert of ``env``'s task."""
+    if not getattr(env, "expert", None):
+        raise ValueError(f"task {env.task_name!r} has no scripted expert")
+    module_name, class_name = env.expert.split(":")
+    return getattr(importlib.import_module(module_name), class_name)(env)
 
-    Continuous: ``a = clip((target - ee) / (v_max * dt), -1, 1)`` per axis, so the last step lands exactly
-    on the target. Discrete: moves along the axis with the largest remaining error.
+
+class Expert:
+    """Base of the scripted experts: turns the *ideal* normalised action into the env's action type.
+
+    A subclass computes ``ideal`` ``(num_envs, action_dim)``: per component, the remaining error divided by how far a
+    continuous action of 1 moves in one env step (so ``ideal`` = 1 closes the error in exactly one step). Continuous
+    actions are ``ideal`` clipped to [-1, 1]; a discrete action moves along the component whose error is the most
+    discrete steps (``env.discrete_actions``), or is the no-op when every error is within half a step.
     """
 
     def __init__(self, env):
-        if env.task_name != "Reach":
-            raise ValueError(f"ReachExpert drives Reach, not {env.task_name}")
         self.env = env
+        table = env.discrete_actions
+        d = table.shape[1]
+        self._discrete_step = table[0:2 * d:2].diagonal().clamp(min=1.0e-12)  # row 2i moves component i by +step
 
-    def __call__(self, obs=None) -> torch.Tensor:
-        env = self.env
-        state = env.privileged_state()
-        error = state["target_position"] - state["ee_position"]
-        if env.is_discrete:
-            axis = error.abs().argmax(dim=1)
-            negative = (error.gather(1, axis[:, None])[:, 0] < 0).long()
-            return 2 * axis + negative  # rows of lapwarp.instruments.discrete_action_table
-        step_length = env.cfg.maximum_robot_velocity * env.cfg.time_step * env.cfg.frame_skip
-        return (error / step_length).clamp(-1.0, 1.0)
-
-
-# task name -> "module:Class"; experts that reuse their task's kernels live in the task module and are imported
-# only when asked for.
-_EXPERTS = {
-    "Reach": "lapwarp.experts:ReachExpert",
-    "DeflectSpheres": "lapwarp.tasks.spatial.deflect_spheres:DeflectSpheresExpert",
-    "SearchForPoint": "lapwarp.tasks.spatial.search_for_point:SearchForPointExpert",
-}
-
-
-def make_expert(env):
-    """The scripted expert of ``env``'s task."""
-    if env.task_name not in _EXPERTS:
-        raise ValueError(f"no expert for task {env.task_name!r}; experts exist for {sorted(_EXPERTS)}")
-    module_name, class_name = _EXPERTS[env.task_name].split(":")
-    return getattr(importlib.import_module(module_name), class_name)(env)
+    def policy_actions(self, ideal: torch.Tensor) -> torch.Tensor:
+        if not self.env.is_discrete:
+            return ideal.clamp(-1.0, 1.0)
+        ratio = ideal / self._discrete_step
+        component = ratio.abs().argmax(dim=1)
+        chosen = ratio.gather(1, component[:, None])[:, 0]
+        action = 2 * component + (chosen < 0).long()
+        return torch.where(chosen.abs() < 0.5, torch.full_like(action, 2 * ideal.shape[1]), action)

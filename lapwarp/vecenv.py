@@ -21,7 +21,7 @@ from lapwarp.registry import make
 
 
 def _spaces(env: BatchedEnv) -> tuple[gym.spaces.Space, gym.spaces.Space]:
-    low, high = (0.0, 1.0) if env.uses_images else env._observation_bounds()
+    low, high = (0.0, 1.0) if env.uses_images else env.observation_bounds()
     obs_space = gym.spaces.Box(low=np.float32(low), high=np.float32(high), shape=env.observation_shape,
                                dtype=np.float32)
     if env.is_discrete:

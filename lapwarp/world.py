@@ -349,17 +349,34 @@ class World:
             self._restore(self._unstable_now)
 
     # ------------------------------------------------------------------------------------------------
+    def _state_rows(self, state: State) -> world_kernels.StateRows:
+        rows = world_kernels.StateRows()
+        empty = {}
+        for name, dtype in world_kernels.StateRows.cls.__annotations__.items():
+            arr = getattr(state, name, None)
+            if arr is None:
+                dt = dtype.dtype
+                if dt not in empty:
+                    empty[dt] = wp.zeros((self.num_envs, 0), dtype=dt, device=self.device)
+                arr = empty[dt]
+            setattr(rows, name, arr)
+        return rows
+
+    def _copy_rows(self, env_mask: wp.array, src: State, dst: State, restore: bool) -> None:
+        if not hasattr(self, "_rows"):
+            arrays = self.state.arrays().values()
+            self._rows = (self._state_rows(self.state), self._state_rows(self._start_state),
+                          max([a.shape[1] for a in arrays if a.ndim == 2] or [0]))
+        live, start, width = self._rows
+        if width == 0:
+            return
+        body_prev = self._body_q_prev if self._body_q_prev is not None else self._dummy_tf()
+        wp.launch(world_kernels.copy_state_rows, dim=(self.num_envs, width),
+                  inputs=[env_mask, start if restore else live, live if restore else start, body_prev,
+                          int(restore and self._body_q_prev is not None)], device=self.device)
+
     def _restore(self, env_mask: wp.array) -> None:
-        start = self._start_state
-        for name, arr in self.state.arrays().items():
-            src = getattr(start, name)
-            if src is None or arr.ndim != 2 or arr.shape[1] == 0:
-                continue
-            wp.launch(world_kernels.copy_masked_2d, dim=arr.shape, inputs=[env_mask, src], outputs=[arr],
-                      device=self.device)
-        if self._body_q_prev is not None:
-            wp.launch(world_kernels.copy_masked_2d, dim=self._body_q_prev.shape, inputs=[env_mask, start.body_q],
-                      outputs=[self._body_q_prev], device=self.device)
+        self._copy_rows(env_mask, self._start_state, self.state, restore=True)
 
     def reset(self, env_mask: wp.array) -> None:
         """Restore the start state of the envs whose ``env_mask`` entry is non-zero, in place; then let every
@@ -373,16 +390,10 @@ class World:
 
     def save_start_state(self, env_mask: wp.array | None = None) -> None:
         """Make the current state of the masked envs (all envs without a mask) their start state: what ``reset``
-        and a stability restore return to. A task calls it after writing its randomised start into ``state``
-        (launches only, graph-capturable)."""
-        mask = env_mask if env_mask is not None else self._all_envs()
-        start = self._start_state
-        for name, arr in self.state.arrays().items():
-            dst = getattr(start, name)
-            if dst is None or arr.ndim != 2 or arr.shape[1] == 0:
-                continue
-            wp.launch(world_kernels.copy_masked_2d, dim=arr.shape, inputs=[mask, arr], outputs=[dst],
-                      device=self.device)
+        and a stability restore return to. The env base calls it after every task reset, so a randomised start
+        written into ``state`` is kept for the episode (one launch, graph-capturable)."""
+        self._copy_rows(env_mask if env_mask is not None else self._all_envs(), self.state, self._start_state,
+                        restore=False)
 
     def set_body_poses(self, poses: wp.array, bodies: wp.array, teleport_mask: wp.array | None = None) -> None:
         """Pose kinematic bodies: ``state.body_q[env, bodies[k]] = poses[env, k]`` for every env.

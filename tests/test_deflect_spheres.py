@@ -8,11 +8,10 @@ import math
 import numpy as np
 import pytest
 import torch
-import warp as wp
 
 import lapwarp
 from lapwarp.experts import make_expert
-from lapwarp.tasks.spatial.deflect_spheres import CUTTING_CENTER_OFFSET, DONE, pose_hook_bodies
+from lapwarp.tasks.spatial.deflect_spheres import CUTTING_CENTER_OFFSET, DONE
 
 WS_LOW = np.array([-0.06, -0.06, -0.01])
 WS_HIGH = np.array([0.06, 0.06, 0.09])
@@ -44,11 +43,7 @@ def place_cutting_centre(env, env_id: int, hook: int, point: np.ndarray) -> None
     tilt = math.degrees(math.atan2(-d[1], d[2]))
     ptsd = env.instruments.ptsd_numpy()[env_id].copy()
     ptsd[hook] = [pan, tilt, ptsd[hook, 2], np.linalg.norm(d) - CUTTING_CENTER_OFFSET]
-    env.instruments.set_ptsd(ptsd[None], env_ids=[env_id])
-    ones = wp.ones(env.num_envs, dtype=wp.int32, device=env.wp_device)
-    w = env.world
-    wp.launch(pose_hook_bodies, dim=(env.num_envs, env.num_hooks), inputs=[env.instruments.pose, ones, 1],
-              outputs=[w.state.body_q, w.body_q_previous, w._start_state.body_q], device=env.wp_device)
+    env.rig.set_ptsd(ptsd[None], env_ids=[env_id])
 
 
 def test_spaces_and_observation_sizes(device):
@@ -59,7 +54,7 @@ def test_spaces_and_observation_sizes(device):
     assert two.get_observations()["policy"].shape == (3, 41)
     discrete = lapwarp.make("DeflectSpheres", num_envs=2, device=device, single_instrument=False,
                             action_type="DISCRETE")
-    assert discrete.action_table.shape == (17, 8)  # Discrete(2 * 8 + 1): one PTSD component of one hook per action
+    assert discrete.discrete_actions.shape == (17, 8)  # Discrete(2 * 8 + 1): one PTSD component of one hook per action
     critic = lapwarp.make("DeflectSpheres", num_envs=2, device=device, privileged_critic=True)
     assert critic.get_observations()["critic"].shape == (2, 29 + 5 + 4)
     with pytest.raises(ValueError, match="sampling_mode"):
@@ -74,7 +69,7 @@ def test_observation_layout(device):
     q = env.world.state.particle_q.numpy().astype(np.float64)
     unit = 2 * (q - WS_LOW) / (WS_HIGH - WS_LOW) - 1
     np.testing.assert_allclose(obs[:, :15], unit.reshape(2, 15), atol=1e-5)
-    active = env.active.numpy()
+    active = env.task.active.numpy()
     np.testing.assert_allclose(obs[:, 15:18], unit[np.arange(2), active], atol=1e-5)
     ptsd = env.instruments.ptsd_numpy()
     low, high = np.array([-90, -90, -90, 0.0]), np.array([90, 90, 90, 0.3])
@@ -84,7 +79,7 @@ def test_observation_layout(device):
         np.testing.assert_allclose(obs[:, col + 4:col + 7], 2 * (pose[:, hook, :3] - WS_LOW) / (WS_HIGH - WS_LOW) - 1,
                                    atol=1e-5)
         np.testing.assert_allclose(obs[:, col + 7:col + 11], pose[:, hook, 3:], atol=1e-6)
-    np.testing.assert_array_equal(obs[:, 29], env.active_hook.numpy())
+    np.testing.assert_array_equal(obs[:, 29], env.task.active_hook.numpy())
 
 
 @pytest.mark.parametrize("single", [True, False])
@@ -105,21 +100,21 @@ def test_reward_features_match_hand_computed_values(device):
     q = env.world.state.particle_q.numpy()
     q[:, :, 0] += 0.002
     env.world.state.particle_q.assign(q)
-    prev = np.linalg.norm(cutting_centres(env)[np.arange(3), 0] - q[np.arange(3), env.active.numpy()], axis=1)
+    prev = np.linalg.norm(cutting_centres(env)[np.arange(3), 0] - q[np.arange(3), env.task.active.numpy()], axis=1)
     # env 2 presses into the spin limit: a state-limit violation (spin does not move the tip)
     ptsd = env.instruments.ptsd_numpy()
     ptsd[2, 0, 2] = 89.9
-    env.instruments.set_ptsd(ptsd)
-    prev[2] = np.linalg.norm(cutting_centres(env)[2, 0] - q[2, env.active.numpy()[2]])
-    env.previous_distance.assign(prev.astype(np.float32))
+    env.rig.set_ptsd(ptsd)
+    prev[2] = np.linalg.norm(cutting_centres(env)[2, 0] - q[2, env.task.active.numpy()[2]])
+    env.restart_baselines()
     action = np.zeros((3, 4), dtype=np.float32)
     action[1, 3] = 0.5  # deeper by 1 mm
     action[2, 2] = 1.0
     _, reward, _, _ = env.step(torch.tensor(action, device=env.device))
 
     q = env.world.state.particle_q.numpy().astype(np.float64)
-    anchors = env.anchors.numpy().astype(np.float64)
-    active = env.active.numpy()
+    anchors = env.task.anchors.numpy().astype(np.float64)
+    active = env.task.active.numpy()
     deflection = np.linalg.norm(q - anchors, axis=2)
     dist = np.linalg.norm(cutting_centres(env)[np.arange(3), 0] - q[np.arange(3), active], axis=1)
     inactive = np.array([deflection[e].sum() - deflection[e, active[e]] for e in range(3)]) / 0.003
@@ -138,7 +133,7 @@ def test_reward_features_match_hand_computed_values(device):
 
 def test_resets_rerandomise_and_respect_minimum_distance(device):
     env = lapwarp.make("DeflectSpheres", num_envs=64, device=device)
-    anchors = env.anchors.numpy().astype(np.float64)
+    anchors = env.task.anchors.numpy().astype(np.float64)
     assert np.all(np.abs(anchors[..., :2]) <= 0.045 + 1e-6)
     assert np.all((anchors[..., 2] >= 0.03 - 1e-6) & (anchors[..., 2] <= 0.06 + 1e-6))
     gaps = np.linalg.norm(anchors[:, :, None] - anchors[:, None], axis=3) + np.eye(5) * 1.0
@@ -148,15 +143,15 @@ def test_resets_rerandomise_and_respect_minimum_distance(device):
     np.testing.assert_allclose(env.world.state.particle_q.numpy() - anchors, np.broadcast_to([0, 0, -0.05 * 9.81e-3],
                                                                                               anchors.shape), atol=1e-6)
     env.reset()
-    assert not np.allclose(env.anchors.numpy(), anchors)
+    assert not np.allclose(env.task.anchors.numpy(), anchors)
     # auto-reset touches only finished envs
     env = lapwarp.make("DeflectSpheres", num_envs=16, device=device, num_deflect_to_win=1)
     expert = make_expert(env)
     changed = np.zeros(16, dtype=bool)
     for _ in range(12):
-        before = env.anchors.numpy().copy()
+        before = env.task.anchors.numpy().copy()
         _, _, done, _ = env.step(expert())
-        moved = np.any(env.anchors.numpy() != before, axis=(1, 2))
+        moved = np.any(env.task.anchors.numpy() != before, axis=(1, 2))
         np.testing.assert_array_equal(moved, done.cpu().numpy())
         changed |= moved
     assert changed.any()
@@ -165,8 +160,8 @@ def test_resets_rerandomise_and_respect_minimum_distance(device):
 @pytest.mark.parametrize("matching", [True, False])
 def test_deflection_counts_only_with_the_matching_hook(device, matching):
     env = lapwarp.make("DeflectSpheres", num_envs=2, device=device, single_instrument=False, num_deflect_to_win=2)
-    active, hook = env.active.numpy().copy(), env.active_hook.numpy().copy()
-    anchors = env.anchors.numpy().astype(np.float64)
+    active, hook = env.task.active.numpy().copy(), env.task.active_hook.numpy().copy()
+    anchors = env.task.anchors.numpy().astype(np.float64)
     for e in range(2):
         pusher = hook[e] if matching else 1 - hook[e]
         # from the hook's side, 5 mm into the sphere (sphere radius 6 mm + hook radius 0.8 mm)
@@ -176,20 +171,20 @@ def test_deflection_counts_only_with_the_matching_hook(device, matching):
         side /= np.linalg.norm(side)
         place_cutting_centre(env, e, pusher, anchors[e, active[e]] - side * 0.0018)
     env.step(torch.zeros(2, 8, device=env.device))
-    deflection = np.linalg.norm(env.world.state.particle_q.numpy() - env.anchors.numpy(), axis=2)
+    deflection = np.linalg.norm(env.world.state.particle_q.numpy() - env.task.anchors.numpy(), axis=2)
     assert np.all(deflection[np.arange(2), active] >= 0.003)  # pushed out of the hook either way
     features = env._t["features"].cpu().numpy()
     if matching:
         np.testing.assert_array_equal(features[:, 8], 1.0)
         np.testing.assert_allclose(features[:, 6], deflection[np.arange(2), active] / 0.003, rtol=1e-4)
-        np.testing.assert_array_equal(env.num_deflections.numpy(), 1)
-        np.testing.assert_array_equal(env.sphere_state.numpy()[np.arange(2), active], DONE)  # without replacement
-        assert np.all(env.active.numpy() != active)
+        np.testing.assert_array_equal(env.task.num_deflections.numpy(), 1)
+        np.testing.assert_array_equal(env.task.state.numpy()[np.arange(2), active], DONE)  # without replacement
+        assert np.all(env.task.active.numpy() != active)
     else:
         np.testing.assert_array_equal(features[:, 8], 0.0)
         np.testing.assert_array_equal(features[:, 6], 0.0)
-        np.testing.assert_array_equal(env.num_deflections.numpy(), 0)
-        np.testing.assert_array_equal(env.active.numpy(), active)
+        np.testing.assert_array_equal(env.task.num_deflections.numpy(), 0)
+        np.testing.assert_array_equal(env.task.active.numpy(), active)
 
 
 def test_expert_solves_one_sphere_one_hook(device):

@@ -7,6 +7,11 @@ relative). Over a 120-step contact rollout such differences could grow, so obser
 ``atol = 2e-5`` (a 20 micrometre / 1e-5 rad scale on normalised values) and dones exactly. DeflectSpheres' discrete
 actions changed meaning on purpose (they now move like the continuous action of the same table row) and are not
 replayed here.
+
+One deliberate fix shows in the recordings: DeflectSpheres' critic ``tip_contact`` flag of a freshly reset env was the
+previous episode's last contact (it was only refreshed by the next step's features); it is now 0 at reset, because the
+World clears a reset env's contact reports and the reset envs' features are evaluated on their new state. That value
+is compared as 0 in the rows of envs that were just reset.
 """
 
 from __future__ import annotations
@@ -32,6 +37,15 @@ CASES = {
 ATOL = 2.0e-5
 
 
+def expected_critic(case: str, critic: np.ndarray, done: np.ndarray) -> np.ndarray:
+    """The recorded critic with the stale-contact fix applied (see the module docstring)."""
+    if not case.startswith("deflect"):
+        return critic
+    fixed = critic.copy()
+    fixed[done.astype(bool), -1] = 0.0  # tip_contact is the critic's last value
+    return fixed
+
+
 @pytest.mark.parametrize("case", sorted(CASES))
 def test_recorded_rollout_replays(case):
     task, overrides = CASES[case]
@@ -48,4 +62,5 @@ def test_recorded_rollout_replays(case):
         np.testing.assert_allclose(env.features.numpy(), rec["features"][t], atol=ATOL, err_msg=where)
         np.testing.assert_allclose(rew.numpy(), rec["reward"][t], atol=ATOL * 100, rtol=1e-5, err_msg=where)
         np.testing.assert_allclose(obs["policy"].numpy(), rec["policy"][t], atol=ATOL, err_msg=where)
-        np.testing.assert_allclose(obs["critic"].numpy(), rec["critic"][t], atol=ATOL, err_msg=where)
+        np.testing.assert_allclose(obs["critic"].numpy(), expected_critic(case, rec["critic"][t], rec["done"][t]),
+                                   atol=ATOL, err_msg=where)

@@ -10,7 +10,7 @@ import torch
 import warp as wp
 
 import lapwarp
-from lapwarp.experts import ReachExpert
+from lapwarp.tasks.spatial.reach import ReachExpert
 
 WS_LOW = np.array([-0.15, -0.05, -0.15])
 WS_HIGH = np.array([0.15, 0.14, 0.15])
@@ -21,8 +21,7 @@ def set_positions(env, ee: np.ndarray, target: np.ndarray) -> None:
     """Place end effectors and targets by hand and make the delta feature start from their distance."""
     env.ee_position.assign(wp.array(ee.astype(np.float32), dtype=wp.vec3, device=env.wp_device))
     env.target_position.assign(wp.array(target.astype(np.float32), dtype=wp.vec3, device=env.wp_device))
-    dist = np.linalg.norm(target - ee, axis=1).astype(np.float32)
-    env.previous_distance.assign(wp.array(dist, dtype=wp.float32, device=env.wp_device))
+    env.restart_baselines()
 
 
 def positions(env) -> tuple[np.ndarray, np.ndarray]:

@@ -11,7 +11,10 @@ import torch
 
 import lapwarp
 from lapwarp.experts import make_expert
-from lapwarp.tasks.spatial.search_for_point import SEARCH_FEATURES, oblique_camera_ptsd
+from lapwarp.tasks.camera import oblique_camera_ptsd
+from lapwarp.tasks.spatial.search_for_point import REWARDS
+
+SEARCH_FEATURES = REWARDS.names
 
 F = {name: i for i, name in enumerate(SEARCH_FEATURES)}
 CAM_RCM = np.array([0.010, -0.1008, 0.28182])

@@ -6,6 +6,13 @@ import warp as wp
 wp.set_module_options({"enable_backward": False})
 
 
+@wp.func
+def hinged_jaw_pose(tip: wp.transform, angle_deg: float) -> wp.transform:
+    """A jaw hinged at the tip, rotated by ``angle_deg`` about the tip's local x (jaw A: +angle, jaw B: -angle)."""
+    a = angle_deg * (wp.pi / 180.0)
+    return wp.transform_multiply(tip, wp.transform(wp.vec3(0.0), wp.quat_from_axis_angle(wp.vec3(1.0, 0.0, 0.0), a)))
+
+
 @wp.kernel
 def pose_instrument_bodies(
     tip_pose: wp.array2d(dtype=wp.transform),
@@ -19,11 +26,8 @@ def pose_instrument_bodies(
     tip = tip_pose[env, column]
     poses_out[env, 0] = tip
     if poses_out.shape[1] > 1:
-        a = jaw_angle_deg[env] * (wp.pi / 180.0)
-        poses_out[env, 1] = wp.transform_multiply(
-            tip, wp.transform(wp.vec3(0.0), wp.quat_from_axis_angle(wp.vec3(1.0, 0.0, 0.0), a)))
-        poses_out[env, 2] = wp.transform_multiply(
-            tip, wp.transform(wp.vec3(0.0), wp.quat_from_axis_angle(wp.vec3(1.0, 0.0, 0.0), -a)))
+        poses_out[env, 1] = hinged_jaw_pose(tip, jaw_angle_deg[env])
+        poses_out[env, 2] = hinged_jaw_pose(tip, -jaw_angle_deg[env])
 
 
 @wp.kernel

@@ -60,14 +60,19 @@ def lookup_discrete_actions(
 
 @wp.kernel
 def finish_env_step(
-    features: wp.array2d(dtype=wp.float32),
+    delta_columns: wp.array(dtype=wp.int32),
+    delta_bases: wp.array(dtype=wp.int32),
+    success_column: int,
+    failure_column: int,
     weights: wp.array(dtype=wp.float32),
-    success: wp.array(dtype=wp.int32),
-    failure: wp.array(dtype=wp.int32),
     unstable: wp.array(dtype=wp.int32),
     max_episode_length: int,
     episode_length: wp.array(dtype=wp.int32),
     episode_return: wp.array(dtype=wp.float32),
+    features: wp.array2d(dtype=wp.float32),
+    baselines: wp.array2d(dtype=wp.float32),
+    success_out: wp.array(dtype=wp.int32),
+    failure_out: wp.array(dtype=wp.int32),
     reward_out: wp.array(dtype=wp.float32),
     terminated_out: wp.array(dtype=wp.int32),
     truncated_out: wp.array(dtype=wp.int32),
@@ -78,13 +83,28 @@ def finish_env_step(
     last_episode_return: wp.array(dtype=wp.float32),
     last_episode_length: wp.array(dtype=wp.int32),
 ):
-    """Weighted reward sum, termination (success, failure, instability) and truncation (time limit).
+    """Delta features, done flags, weighted reward sum, termination and truncation of one env step.
 
-    Success and failure terminate as in sofa_env; an unstable env is terminated too, since its state is
-    garbage and must not be bootstrapped. Truncation is reported only when the episode did not terminate,
-    so ``time_outs`` marks exactly the envs PPO should bootstrap.
+    Delta feature ``delta_columns[k]`` = feature ``delta_bases[k]`` minus its baseline, which then becomes the
+    feature's value. Success and failure are the declared feature columns (failure -1: none) and terminate as in
+    sofa_env; an unstable env is terminated too, since its state is garbage and must not be bootstrapped. Truncation
+    is reported only when the episode did not terminate, so ``time_outs`` marks exactly the envs PPO should bootstrap.
     """
     env = wp.tid()
+    for k in range(delta_columns.shape[0]):
+        b = delta_bases[k]
+        value = features[env, b]
+        features[env, delta_columns[k]] = value - baselines[env, b]
+        baselines[env, b] = value
+    succeeded = int(0)
+    if features[env, success_column] > 0.0:
+        succeeded = 1
+    failed = int(0)
+    if failure_column >= 0:
+        if features[env, failure_column] > 0.0:
+            failed = 1
+    success_out[env] = succeeded
+    failure_out[env] = failed
     r = float(0.0)
     for f in range(features.shape[1]):
         r += weights[f] * features[env, f]
@@ -95,7 +115,7 @@ def finish_env_step(
     ret = episode_return[env] + r
     episode_return[env] = ret
     term = int(0)
-    if success[env] != 0 or failure[env] != 0 or unstable[env] != 0:
+    if succeeded != 0 or failed != 0 or unstable[env] != 0:
         term = 1
     trunc = int(0)
     if term == 0 and length >= max_episode_length:
@@ -107,7 +127,7 @@ def finish_env_step(
     done_out[env] = done
     reset_mask_out[env] = done
     if done != 0:
-        last_episode_success[env] = success[env]
+        last_episode_success[env] = succeeded
         finished_episodes[env] = finished_episodes[env] + 1
         last_episode_return[env] = ret
         last_episode_length[env] = length
@@ -123,6 +143,13 @@ def clear_episode_buffers(
     if env_mask[env] != 0:
         episode_length[env] = 0
         episode_return[env] = 0.0
+
+
+@wp.kernel
+def copy_leading_columns(src: wp.array2d(dtype=wp.float32), dst: wp.array2d(dtype=wp.float32)):
+    """``dst[:, :src.shape[1]] = src`` (the policy's values at the start of the critic's frame)."""
+    env, i = wp.tid()
+    dst[env, i] = src[env, i]
 
 
 @wp.kernel

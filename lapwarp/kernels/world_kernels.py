@@ -1,4 +1,4 @@
-"""Kernels that belong to the World itself: per-env RNG seeding and masked state copies."""
+"""Kernels that belong to the World itself: per-env RNG seeding, masked state copies, body poses."""
 
 from typing import Any
 
@@ -48,3 +48,58 @@ def write_body_poses(
         body_q_prev[env, b] = poses[env, k]
         start_body_q[env, b] = poses[env, k]
     body_q[env, b] = poses[env, k]
+
+
+@wp.struct
+class StateRows:
+    """Every array of a ``lapwarp.model.State`` (absent ones as ``(1, 0)`` placeholders), so one launch copies them
+    all (``World.reset`` and ``World.save_start_state`` run every step inside the captured graph)."""
+
+    particle_q: wp.array2d(dtype=wp.vec3)
+    particle_qd: wp.array2d(dtype=wp.vec3)
+    segment_q: wp.array2d(dtype=wp.quat)
+    segment_qd: wp.array2d(dtype=wp.vec3)
+    body_q: wp.array2d(dtype=wp.transform)
+    attach_particle: wp.array2d(dtype=wp.int32)
+    attach_body: wp.array2d(dtype=wp.int32)
+    attach_offset: wp.array2d(dtype=wp.vec3)
+    attach_compliance: wp.array2d(dtype=float)
+    tet_active: wp.array2d(dtype=wp.int32)
+    tri_active: wp.array2d(dtype=wp.int32)
+    segment_active: wp.array2d(dtype=wp.int32)
+    tet_face_active: wp.array2d(dtype=wp.int32)
+    cut_dirty: wp.array2d(dtype=wp.int32)
+    particle_active: wp.array2d(dtype=wp.int32)
+
+
+@wp.func
+def copy_element(env: int, i: int, src: wp.array2d(dtype=Any), dst: wp.array2d(dtype=Any)):
+    if i < dst.shape[1]:
+        dst[env, i] = src[env, i]
+
+
+@wp.kernel
+def copy_state_rows(env_mask: wp.array(dtype=wp.int32), src: StateRows, dst: StateRows,
+                    body_q_prev: wp.array2d(dtype=wp.transform), write_body_q_prev: int):
+    """Element ``i`` of every array of the masked envs' rows, ``src`` -> ``dst`` (and the body poses at the start of
+    the step when restoring, so the next step does not sweep bodies from where they were)."""
+    env, i = wp.tid()
+    if env_mask[env] == 0:
+        return
+    copy_element(env, i, src.particle_q, dst.particle_q)
+    copy_element(env, i, src.particle_qd, dst.particle_qd)
+    copy_element(env, i, src.segment_q, dst.segment_q)
+    copy_element(env, i, src.segment_qd, dst.segment_qd)
+    copy_element(env, i, src.body_q, dst.body_q)
+    copy_element(env, i, src.attach_particle, dst.attach_particle)
+    copy_element(env, i, src.attach_body, dst.attach_body)
+    copy_element(env, i, src.attach_offset, dst.attach_offset)
+    copy_element(env, i, src.attach_compliance, dst.attach_compliance)
+    copy_element(env, i, src.tet_active, dst.tet_active)
+    copy_element(env, i, src.tri_active, dst.tri_active)
+    copy_element(env, i, src.segment_active, dst.segment_active)
+    copy_element(env, i, src.tet_face_active, dst.tet_face_active)
+    copy_element(env, i, src.cut_dirty, dst.cut_dirty)
+    copy_element(env, i, src.particle_active, dst.particle_active)
+    if write_body_q_prev != 0:
+        copy_element(env, i, src.body_q, body_q_prev)

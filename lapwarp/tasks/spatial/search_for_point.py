@@ -28,7 +28,8 @@ the hook activated. The anatomy is procedural (``lapwarp.assets.abdomen``); ever
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
+from typing import Annotated
 
 import numpy as np
 import torch
@@ -36,31 +37,47 @@ import trimesh
 import warp as wp
 
 from lapwarp.assets.abdomen import abdomen_parts, inside_dome, organ_mesh
-from lapwarp.config import EnvConfig
+from lapwarp.builder import SceneBuilder
+from lapwarp.config import PTSD, EnvConfig, NonNegative, Positive, PositiveInt, Range, Vec3
 from lapwarp.env import BatchedEnv
-from lapwarp.instruments import TPSDConfig, TPSDInstruments, discrete_action_table
-from lapwarp.kernels.kinematics import STATE_LIMITS_VIOLATED
-from lapwarp.kernels.raster import world_to_pixel
-from lapwarp.model import Model
+from lapwarp.experts import Expert
+from lapwarp.instruments import TPSDConfig
 from lapwarp.render import focal_length
-from lapwarp.visuals import CameraSpec, VisualObject, VisualScene, cylinder_mesh, sphere_mesh
+from lapwarp.tasks.camera import (
+    EndoscopeCamera,
+    camera_pose_from_ptsd,
+    euler_xyz_matrix,
+    oblique_camera_ptsd,
+    oblique_optic_pose,
+    point_to_ptsd,
+    quat_to_matrix,
+    relative_pixel_distance,
+    sight_lines_clear,
+)
+from lapwarp.tasks.rig import STATE_LIMITS_VIOLATED, InstrumentRig, InstrumentSpec
+from lapwarp.tasks.spec import Feature, ObservationLayout, ObservationSpec, RewardSpec, write_transform
+from lapwarp.tasks.targets import draw_candidate
+from lapwarp.visuals import VisualObject, VisualScene, sphere_mesh
 from lapwarp.world import World
 
 wp.set_module_options({"enable_backward": False})
 
-SEARCH_FEATURES = (
-    "poi_is_in_frame",
-    "relative_camera_distance_error_to_poi",
-    "delta_relative_camera_distance_error_to_poi",
-    "relative_pixel_distance_poi_to_image_center",
-    "delta_relative_pixel_distance_poi_to_image_center",
-    "collision_cauter",
-    "relative_distance_cauter_target",
-    "relative_delta_distance_cauter_target",
-    "cauter_touches_target",
-    "cauter_action_violated_state_limits",
-    "successful_task",
+# Every feature of both modes; the default weights depend on the mode (Table A), 0 for the other mode's terms.
+REWARDS = RewardSpec(
+    Feature("poi_is_in_frame"),
+    Feature("relative_camera_distance_error_to_poi"),
+    Feature("delta_relative_camera_distance_error_to_poi", delta_of="relative_camera_distance_error_to_poi"),
+    Feature("relative_pixel_distance_poi_to_image_center"),
+    Feature("delta_relative_pixel_distance_poi_to_image_center",
+            delta_of="relative_pixel_distance_poi_to_image_center"),
+    Feature("collision_cauter"),
+    Feature("relative_distance_cauter_target"),
+    Feature("relative_delta_distance_cauter_target", delta_of="relative_distance_cauter_target"),
+    Feature("cauter_touches_target"),
+    Feature("cauter_action_violated_state_limits"),
+    Feature("successful_task"),
 )
+F = REWARDS.F
 # Table A, SearchForPointEnv without hook.
 CAMERA_WEIGHTS = {
     "poi_is_in_frame": 0.01,
@@ -79,13 +96,12 @@ ACTIVE_VISION_WEIGHTS = {
     "cauter_action_violated_state_limits": 0.0,
     "successful_task": 100.0,
 }
-# Every feature gets a weight in both modes (0 for the other mode's terms), so ``env.reward_weights`` lists all.
-CAMERA_WEIGHTS = {**dict.fromkeys(ACTIVE_VISION_WEIGHTS, 0.0), **CAMERA_WEIGHTS}
-ACTIVE_VISION_WEIGHTS = {**dict.fromkeys(CAMERA_WEIGHTS, 0.0), **ACTIVE_VISION_WEIGHTS}
+# STATE in SI units; the cauter blocks exist in active vision only (size 0 otherwise)
+OBS = ObservationSpec("poi", "camera_pose", "camera_ptsd", "cauter_pose", "cauter_state")
+_OBS_BOUND = 3.2  # positions within ~0.5 m of the origin, quaternions, angles within their limits (spin +-180 deg)
 _NUM_CAUTER_SPHERES = wp.constant(4)
 _CAUTER_SPHERE_SPACING = wp.constant(0.004)  # m between the collision spheres along the hook, tip backwards
 _CAUTER_SPHERE_RADIUS = wp.constant(0.0015)  # m
-_MAX_PIXEL_DISTANCE = wp.constant(2.0)  # relative pixel distance while the POI is behind the camera
 
 
 @dataclass(kw_only=True)
@@ -114,57 +130,41 @@ class SearchForPointConfig(EnvConfig):
         poi_radius: radius of the drawn POI marker (m); visual only.
     """
 
-    time_step: float = 0.1
-    frame_skip: int = 3
-    max_episode_steps: int = 500
+    frame_skip: PositiveInt = 3
     active_vision: bool = False
     cauter_activation: bool = False
-    activation_deadzone: float = 0.1
-    target_distance_camera_poi: float = 0.12
-    tolerance_target_distance: float = 0.01
-    tolerance_image_center: float = 0.2
-    instrument_touch_tolerance: float = 0.005
-    maximum_state_velocity: tuple[float, float, float, float] = (20.0, 20.0, 30.0, 0.035)
-    discrete_action_magnitude: tuple[float, float, float, float] = (5.0, 5.0, 5.0, 0.005)
-    oblique_viewing_angle_deg: float = 30.0
-    camera_fov_deg: float = 45.0
-    camera_near: float = 0.002
-    camera_far: float = 0.3
-    camera_rcm_position: tuple[float, float, float] = (0.010, -0.1008, 0.28182)
-    camera_rcm_euler_deg: tuple[float, float, float] = (-155.0, 0.0, 0.0)
-    camera_start_ptsd: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.03)
-    camera_ptsd_noise: tuple[float, float, float, float] = (15.0, 15.0, 15.0, 0.015)
-    camera_state_low: tuple[float, float, float, float] = (-40.0, -50.0, -180.0, 0.01)
-    camera_state_high: tuple[float, float, float, float] = (40.0, 40.0, 180.0, 0.15)
-    cauter_rcm_position: tuple[float, float, float] = (0.1172, 0.00229, 0.23362)
-    cauter_rcm_euler_deg: tuple[float, float, float] = (-170.0, -30.0, 0.0)
-    cauter_start_ptsd: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.05)
-    cauter_ptsd_noise: tuple[float, float, float, float] = (15.0, 15.0, 30.0, 0.02)
-    cauter_state_low: tuple[float, float, float, float] = (-60.0, -60.0, -90.0, 0.0)
-    cauter_state_high: tuple[float, float, float, float] = (35.0, 60.0, 90.0, 0.25)
-    poi_radius: float = 0.004
-    reward_weights: dict[str, float] = field(default_factory=dict)
+    activation_deadzone: Annotated[float, Range(ge=0.0, lt=1.0)] = 0.1
+    target_distance_camera_poi: Positive = 0.12
+    tolerance_target_distance: Positive = 0.01
+    tolerance_image_center: Positive = 0.2
+    instrument_touch_tolerance: Positive = 0.005
+    maximum_state_velocity: tuple[Positive, Positive, Positive, Positive] = (20.0, 20.0, 30.0, 0.035)
+    discrete_action_magnitude: tuple[Positive, Positive, Positive, Positive] = (5.0, 5.0, 5.0, 0.005)
+    oblique_viewing_angle_deg: Annotated[float, Range(gt=0.0, lt=90.0)] = 30.0
+    camera_fov_deg: Annotated[float, Range(gt=0.0, lt=180.0)] = 45.0
+    camera_near: Positive = 0.002
+    camera_far: Positive = 0.3
+    camera_rcm_position: Vec3 = (0.010, -0.1008, 0.28182)
+    camera_rcm_euler_deg: Vec3 = (-155.0, 0.0, 0.0)
+    camera_start_ptsd: PTSD = (0.0, 0.0, 0.0, 0.03)
+    camera_ptsd_noise: tuple[NonNegative, NonNegative, NonNegative, NonNegative] = (15.0, 15.0, 15.0, 0.015)
+    camera_state_low: PTSD = (-40.0, -50.0, -180.0, 0.01)
+    camera_state_high: PTSD = (40.0, 40.0, 180.0, 0.15)
+    cauter_rcm_position: Vec3 = (0.1172, 0.00229, 0.23362)
+    cauter_rcm_euler_deg: Vec3 = (-170.0, -30.0, 0.0)
+    cauter_start_ptsd: PTSD = (0.0, 0.0, 0.0, 0.05)
+    cauter_ptsd_noise: tuple[NonNegative, NonNegative, NonNegative, NonNegative] = (15.0, 15.0, 30.0, 0.02)
+    cauter_state_low: PTSD = (-60.0, -60.0, -90.0, 0.0)
+    cauter_state_high: PTSD = (35.0, 60.0, 90.0, 0.25)
+    poi_radius: Positive = 0.004
 
     def validate(self, reward_features, supported_observations) -> None:
         super().validate(reward_features, supported_observations)
-        for name in ("target_distance_camera_poi", "tolerance_target_distance", "tolerance_image_center",
-                     "instrument_touch_tolerance", "camera_fov_deg", "camera_near", "poi_radius"):
-            value = getattr(self, name)
-            if not (math.isfinite(value) and value > 0.0):
-                raise ValueError(f"{name} must be a positive number, got {value!r}")
-        if not 0.0 < self.oblique_viewing_angle_deg < 90.0:
-            raise ValueError(f"oblique_viewing_angle_deg must lie in (0, 90), got {self.oblique_viewing_angle_deg}")
         if not self.camera_far > self.camera_near:
             raise ValueError(f"camera_far ({self.camera_far}) must exceed camera_near ({self.camera_near})")
-        if not 0.0 <= self.activation_deadzone < 1.0:
-            raise ValueError(f"activation_deadzone must lie in [0, 1), got {self.activation_deadzone}")
         if self.cauter_activation and not self.active_vision:
             raise ValueError("cauter_activation needs active_vision=True")
-        for name in ("maximum_state_velocity", "discrete_action_magnitude"):
-            v = np.asarray(getattr(self, name), float)
-            if v.shape != (4,) or not np.all(np.isfinite(v)) or np.any(v <= 0):
-                raise ValueError(f"{name} must be 4 positive numbers, got {getattr(self, name)!r}")
-        self.camera_tpsd()  # TPSDConfig checks shapes, limits and the start state
+        self.camera_tpsd()  # TPSDConfig checks limits and the start state
         self.cauter_tpsd()
 
     def camera_tpsd(self) -> TPSDConfig:
@@ -182,113 +182,7 @@ class SearchForPointConfig(EnvConfig):
                           discrete_magnitude=self.discrete_action_magnitude, ptsd_noise=self.cauter_ptsd_noise)
 
 
-# ---------------------------------------------------------------------------- camera inverse kinematics (torch)
-def _euler_xyz_matrix(angles: torch.Tensor) -> torch.Tensor:
-    """``Rx(a0) Ry(a1) Rz(a2)`` for angles ``(..., 3)`` in radians -> ``(..., 3, 3)``."""
-    c, s = torch.cos(angles), torch.sin(angles)
-    one, zero = torch.ones_like(c[..., 0]), torch.zeros_like(c[..., 0])
-    rx = torch.stack([one, zero, zero, zero, c[..., 0], -s[..., 0], zero, s[..., 0], c[..., 0]], -1)
-    ry = torch.stack([c[..., 1], zero, s[..., 1], zero, one, zero, -s[..., 1], zero, c[..., 1]], -1)
-    rz = torch.stack([c[..., 2], -s[..., 2], zero, s[..., 2], c[..., 2], zero, zero, zero, one], -1)
-    shape = angles.shape[:-1] + (3, 3)
-    return rx.reshape(shape) @ ry.reshape(shape) @ rz.reshape(shape)
-
-
-def quat_to_matrix(q: torch.Tensor) -> torch.Tensor:
-    """Quaternions ``(..., 4)`` xyzw -> rotation matrices ``(..., 3, 3)``."""
-    x, y, z, w = q.unbind(-1)
-    return torch.stack([
-        1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w),
-        2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w),
-        2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y),
-    ], -1).reshape(q.shape[:-1] + (3, 3))
-
-
-def oblique_camera_ptsd(rcm_position: torch.Tensor, rcm_rotation: torch.Tensor, poi: torch.Tensor, distance: float,
-                        oblique_deg: float, num_roll: int = 36) -> torch.Tensor:
-    """Camera states that centre ``poi`` at ``distance`` with the oblique optic, one per roll sample.
-
-    Geometry: the optic sits at ``c = rcm + depth s`` on the shaft ``s`` and looks along ``v``, with angle
-    ``oblique`` between ``s`` and ``v``. In the triangle (rcm, c, poi) the angle at ``c`` is ``180 - oblique``, so
-    ``L^2 = depth^2 + D^2 + 2 depth D cos(oblique)`` (``L = |poi - rcm|``) gives the depth, and the shaft makes
-    the angle ``asin(D sin(oblique) / L)`` with the direction to the POI. That leaves one free parameter, the
-    azimuth of the shaft about that direction (the image's roll about the POI): we return ``num_roll`` samples of
-    it. Pan and tilt follow from the shaft, spin from the oblique direction ``(v - cos(oblique) s) / sin(oblique)``,
-    which is the shaft's local +Y.
-
-    Args:
-        rcm_position: ``(..., 3)`` trocar positions (m).
-        rcm_rotation: ``(..., 3, 3)`` trocar orientations (world from RCM).
-        poi: ``(..., 3)`` points of interest (m).
-        distance: desired camera-POI distance (m).
-        oblique_deg: oblique viewing angle (deg).
-        num_roll: number of roll samples.
-
-    Returns:
-        ``(..., num_roll, 4)`` states (pan, tilt, spin in rad; depth in m); NaN where no solution exists
-        (``L < D sin(oblique)``).
-    """
-    theta = math.radians(oblique_deg)
-    q = (rcm_rotation.transpose(-1, -2) @ (poi - rcm_position)[..., None])[..., 0]  # POI in the RCM frame
-    length = q.norm(dim=-1, keepdim=True)
-    u = q / length
-    depth = -distance * math.cos(theta) + torch.sqrt(length**2 - (distance * math.sin(theta)) ** 2)
-    alpha = torch.asin((distance * math.sin(theta) / length).clamp(max=1.0))
-    helper = torch.zeros_like(u)
-    helper[..., 0] = 1.0
-    use_y = u[..., 0].abs() > 0.9
-    helper[use_y] = torch.tensor([0.0, 1.0, 0.0], dtype=u.dtype, device=u.device)
-    e1 = torch.nn.functional.normalize(torch.linalg.cross(u, helper), dim=-1)
-    e2 = torch.linalg.cross(u, e1)
-    phi = torch.arange(num_roll, dtype=u.dtype, device=u.device) * (2 * math.pi / num_roll)
-    w = torch.cos(phi)[:, None] * e1[..., None, :] + torch.sin(phi)[:, None] * e2[..., None, :]
-    s = torch.cos(alpha)[..., None, :] * u[..., None, :] + torch.sin(alpha)[..., None, :] * w
-    view = (q[..., None, :] - depth[..., None, :] * s) / distance
-    y_s = (view - math.cos(theta) * s) / math.sin(theta)
-    pan = torch.atan2(s[..., 0], torch.sqrt(s[..., 1] ** 2 + s[..., 2] ** 2))
-    tilt = torch.atan2(-s[..., 1], s[..., 2])
-    zero = torch.zeros_like(pan)
-    a = _euler_xyz_matrix(torch.stack([tilt, pan, zero], -1))
-    local_y = (a.transpose(-1, -2) @ y_s[..., None])[..., 0]
-    spin = torch.atan2(-local_y[..., 0], local_y[..., 1])
-    return torch.stack([pan, tilt, spin, depth.expand_as(pan)], -1)
-
-
-def camera_pose_from_ptsd(rcm_position: torch.Tensor, rcm_rotation: torch.Tensor, ptsd: torch.Tensor,
-                          oblique_deg: float) -> tuple[torch.Tensor, torch.Tensor]:
-    """Optic position ``(..., 3)`` and orientation ``(..., 3, 3)`` (looks along -Z) from camera states (torch)."""
-    local = _euler_xyz_matrix(torch.stack([ptsd[..., 1], ptsd[..., 0], ptsd[..., 2]], -1))
-    rot = rcm_rotation @ local
-    position = rcm_position + rot[..., :, 2] * ptsd[..., 3:4]
-    offset = _euler_xyz_matrix(torch.tensor([math.radians(180.0 - oblique_deg), 0.0, 0.0], dtype=ptsd.dtype,
-                                            device=ptsd.device))
-    return position, rot @ offset
-
-
 # ---------------------------------------------------------------------------- kernels
-@wp.func
-def camera_pose(tip: wp.transform, optic_offset: wp.quat) -> wp.transform:
-    """Optical pose of the endoscope: its TPSD tip pose rotated by ``Rx(180 - oblique)`` (see the module doc)."""
-    return wp.transform(wp.transform_get_translation(tip), wp.transform_get_rotation(tip) * optic_offset)
-
-
-@wp.func
-def relative_pixel_distance(cam: wp.transform, poi: wp.vec3, focal: float, width: float, height: float,
-                            near: float) -> wp.vec2:
-    """(relative pixel distance of the POI to the image centre in [0, 2], in frame 0/1)."""
-    pix = world_to_pixel(cam, poi, focal, 0.5 * width, 0.5 * height)
-    rel = float(_MAX_PIXEL_DISTANCE)
-    in_frame = float(0.0)
-    if pix[2] > near:
-        dr = pix[0] - 0.5 * height
-        dc = pix[1] - 0.5 * width
-        rel = wp.min(wp.sqrt(dr * dr + dc * dc) / (0.5 * wp.sqrt(width * width + height * height)),
-                     float(_MAX_PIXEL_DISTANCE))
-        if pix[0] >= 0.0 and pix[0] < height and pix[1] >= 0.0 and pix[1] < width:
-            in_frame = 1.0
-    return wp.vec2(rel, in_frame)
-
-
 @wp.func
 def cauter_collisions(tip: wp.transform, mesh: wp.uint64) -> int:
     """Number of the hook's collision spheres (tip and three behind it along the shaft) touching an organ."""
@@ -306,25 +200,13 @@ def cauter_collisions(tip: wp.transform, mesh: wp.uint64) -> int:
 
 
 @wp.kernel
-def apply_activation(actions: wp.array2d(dtype=wp.float32), column: int, deadzone: float,
-                     active: wp.array(dtype=wp.int32)):
-    """sofa_env's cauter activation: outside the dead zone the sign switches it, inside it stays as it was."""
-    env = wp.tid()
-    a = actions[env, column]
-    if wp.abs(a) > deadzone:
-        if a > 0.0:
-            active[env] = 1
-        else:
-            active[env] = 0
-
-
-@wp.kernel
 def eval_search_features(
+    env_mask: wp.array(dtype=wp.int32),
     pose: wp.array2d(dtype=wp.transform),
     rcm: wp.array2d(dtype=wp.transform),
     flags: wp.array2d(dtype=wp.int32),
     poi: wp.array(dtype=wp.vec3),
-    active: wp.array(dtype=wp.int32),
+    active: wp.array2d(dtype=wp.int32),
     optic_offset: wp.quat,
     focal: float,
     width: float,
@@ -337,21 +219,14 @@ def eval_search_features(
     active_vision: int,
     require_activation: int,
     organ_mesh: wp.uint64,
-    update_previous: int,
-    env_mask: wp.array(dtype=wp.int32),
-    previous: wp.array2d(dtype=wp.float32),
     features_out: wp.array2d(dtype=wp.float32),
-    success_out: wp.array(dtype=wp.int32),
-    failure_out: wp.array(dtype=wp.int32),
 ):
-    """Reward features of §5.3 (order of ``SEARCH_FEATURES``); ``previous`` holds (distance error, pixel distance,
-    cauter distance) of the last step for the deltas. With ``update_previous`` = 0 this is the reset pass: it only
-    stores the starting values of the masked envs."""
+    """Reward features of §5.3 (deltas: the env base). Instrument 0 is the endoscope, 1 the hook."""
     env = wp.tid()
-    if update_previous == 0 and env_mask[env] == 0:
+    if env_mask[env] == 0:
         return
     p = poi[env]
-    cam = camera_pose(pose[env, 0], optic_offset)
+    cam = oblique_optic_pose(pose[env, 0], optic_offset)
     dist_err = wp.abs(wp.length(p - wp.transform_get_translation(cam)) - target_distance) / target_distance
     pixel = relative_pixel_distance(cam, p, focal, width, height, near)
     cauter_dist = float(0.0)
@@ -367,35 +242,21 @@ def eval_search_features(
             touches = 1
         if (flags[env, 1] & STATE_LIMITS_VIOLATED) != 0:
             violated = 1.0
-    if update_previous == 0:
-        previous[env, 0] = dist_err
-        previous[env, 1] = pixel[0]
-        previous[env, 2] = cauter_dist
-        return
-    ok = int(0)
+    ok = float(0.0)
     if active_vision != 0:
-        if touches != 0 and (require_activation == 0 or active[env] != 0):
-            ok = 1
+        if touches != 0 and (require_activation == 0 or active[env, 1] != 0):
+            ok = 1.0
     else:
-        if (dist_err * target_distance < tolerance_distance and pixel[0] < tolerance_center
-                and pixel[1] > 0.0):
-            ok = 1
-    features_out[env, 0] = pixel[1]
-    features_out[env, 1] = dist_err
-    features_out[env, 2] = dist_err - previous[env, 0]
-    features_out[env, 3] = pixel[0]
-    features_out[env, 4] = pixel[0] - previous[env, 1]
-    features_out[env, 5] = float(collisions)
-    features_out[env, 6] = cauter_dist
-    features_out[env, 7] = cauter_dist - previous[env, 2]
-    features_out[env, 8] = float(touches)
-    features_out[env, 9] = violated
-    features_out[env, 10] = float(ok)
-    previous[env, 0] = dist_err
-    previous[env, 1] = pixel[0]
-    previous[env, 2] = cauter_dist
-    success_out[env] = ok
-    failure_out[env] = 0
+        if dist_err * target_distance < tolerance_distance and pixel[0] < tolerance_center and pixel[1] > 0.0:
+            ok = 1.0
+    features_out[env, F.POI_IS_IN_FRAME] = pixel[1]
+    features_out[env, F.RELATIVE_CAMERA_DISTANCE_ERROR_TO_POI] = dist_err
+    features_out[env, F.RELATIVE_PIXEL_DISTANCE_POI_TO_IMAGE_CENTER] = pixel[0]
+    features_out[env, F.COLLISION_CAUTER] = float(collisions)
+    features_out[env, F.RELATIVE_DISTANCE_CAUTER_TARGET] = cauter_dist
+    features_out[env, F.CAUTER_TOUCHES_TARGET] = float(touches)
+    features_out[env, F.CAUTER_ACTION_VIOLATED_STATE_LIMITS] = violated
+    features_out[env, F.SUCCESSFUL_TASK] = ok
 
 
 @wp.kernel
@@ -404,31 +265,12 @@ def sample_pois(
     candidates: wp.array(dtype=wp.vec3),
     rng: wp.array(dtype=wp.uint32),
     poi: wp.array(dtype=wp.vec3),
-    active: wp.array(dtype=wp.int32),
 ):
-    """Draw each masked env's POI uniformly from the precomputed candidates; switch the hook off."""
+    """Draw each masked env's POI uniformly from the precomputed candidates."""
     env = wp.tid()
     if env_mask[env] == 0:
         return
-    s = rng[env]
-    n = candidates.shape[0]
-    i = wp.min(int(wp.randf(s) * float(n)), n - 1)
-    rng[env] = s
-    poi[env] = candidates[i]
-    active[env] = 0
-
-
-@wp.func
-def write_pose(obs: wp.array2d(dtype=wp.float32), env: int, start: int, xf: wp.transform):
-    """Position then quaternion (xyzw), sign chosen so that w >= 0 (q and -q are the same rotation)."""
-    t = wp.transform_get_translation(xf)
-    q = wp.transform_get_rotation(xf)
-    if q[3] < 0.0:
-        q = wp.quat(-q[0], -q[1], -q[2], -q[3])
-    for k in range(3):
-        obs[env, start + k] = t[k]
-    for k in range(4):
-        obs[env, start + 3 + k] = q[k]
+    poi[env] = draw_candidate(rng, env, candidates)
 
 
 @wp.kernel
@@ -436,65 +278,33 @@ def observe_search(
     poi: wp.array(dtype=wp.vec3),
     pose: wp.array2d(dtype=wp.transform),
     ptsd: wp.array2d(dtype=wp.vec4),
-    active: wp.array(dtype=wp.int32),
+    active: wp.array2d(dtype=wp.int32),
     optic_offset: wp.quat,
     active_vision: int,
+    o: OBS.Columns,
     obs_out: wp.array2d(dtype=wp.float32),
 ):
-    """STATE: POI (3), camera pose (7), camera PTSD (4) [, cauter pose (7), cauter PTSD (4), activation (1)]."""
+    """STATE: POI (3), camera pose (7), camera PTSD (4) [, cauter pose (7), cauter PTSD (4) and activation (1)]."""
     env = wp.tid()
     p = poi[env]
     for k in range(3):
-        obs_out[env, k] = p[k]
-    write_pose(obs_out, env, 3, camera_pose(pose[env, 0], optic_offset))
+        obs_out[env, o.poi + k] = p[k]
+    write_transform(obs_out, env, o.camera_pose, oblique_optic_pose(pose[env, 0], optic_offset))
     s = ptsd[env, 0]
     for k in range(4):
-        obs_out[env, 10 + k] = s[k]
+        obs_out[env, o.camera_ptsd + k] = s[k]
     if active_vision != 0:
-        write_pose(obs_out, env, 14, pose[env, 1])
+        write_transform(obs_out, env, o.cauter_pose, pose[env, 1])
         c = ptsd[env, 1]
         for k in range(4):
-            obs_out[env, 21 + k] = c[k]
-        obs_out[env, 25] = float(active[env])
+            obs_out[env, o.cauter_state + k] = c[k]
+        obs_out[env, o.cauter_state + 4] = float(active[env, 1])
 
 
 @wp.kernel
-def update_search_visuals(
-    pose: wp.array2d(dtype=wp.transform),
-    poi: wp.array(dtype=wp.vec3),
-    optic_offset: wp.quat,
-    active_vision: int,
-    camera_out: wp.array(dtype=wp.transform),
-    marker_out: wp.array2d(dtype=wp.transform),
-    cauter_out: wp.array2d(dtype=wp.transform),
-):
-    """Per-env camera pose of the renderer, POI marker and hook transforms from the current state."""
+def update_poi_marker(poi: wp.array(dtype=wp.vec3), marker_out: wp.array2d(dtype=wp.transform)):
     env = wp.tid()
-    camera_out[env] = camera_pose(pose[env, 0], optic_offset)
     marker_out[env, 0] = wp.transform(poi[env], wp.quat_identity())
-    if active_vision != 0:
-        cauter_out[env, 0] = pose[env, 1]
-
-
-@wp.kernel
-def check_sight_lines(
-    mesh: wp.uint64,
-    start: wp.array(dtype=wp.vec3),
-    end: wp.array(dtype=wp.vec3),
-    slack: float,
-    clear_out: wp.array(dtype=wp.int32),
-):
-    """1 where the segment start -> end hits no organ before ``slack`` m short of its end (POI precompute, expert)."""
-    i = wp.tid()
-    d = end[i] - start[i]
-    length = wp.length(d)
-    if length <= slack:
-        clear_out[i] = 1
-        return
-    query = wp.mesh_query_ray(mesh, start[i], d / length, length - slack)
-    clear_out[i] = 1
-    if query.result:
-        clear_out[i] = 0
 
 
 # ---------------------------------------------------------------------------- POI candidates (host, once)
@@ -528,7 +338,7 @@ def poi_candidates(cfg: SearchForPointConfig, device=None) -> np.ndarray:
     pts = v[(normals[:, 2] > -0.2) & inside_dome(v, margin=0.005)]  # the underside is never in view
     pts_t = torch.from_numpy(pts)
     rcm_p = torch.tensor(cfg.camera_rcm_position, dtype=torch.float64)
-    rcm_r = _euler_xyz_matrix(torch.tensor(np.radians(cfg.camera_rcm_euler_deg)))
+    rcm_r = euler_xyz_matrix(torch.tensor(np.radians(cfg.camera_rcm_euler_deg)))
     sol = oblique_camera_ptsd(rcm_p, rcm_r, pts_t, cfg.target_distance_camera_poi, cfg.oblique_viewing_angle_deg)
     cam_pos, _ = camera_pose_from_ptsd(rcm_p, rcm_r, sol, cfg.oblique_viewing_angle_deg)
     ok = _limit_mask(sol, cfg.camera_state_low, cfg.camera_state_high) & ~torch.isnan(sol).any(-1)
@@ -538,27 +348,19 @@ def poi_candidates(cfg: SearchForPointConfig, device=None) -> np.ndarray:
     ends = pts[idx_point.numpy()]
     dev = wp.get_device(device)
     mesh = wp.Mesh(points=wp.array(v, dtype=wp.vec3, device=dev), indices=wp.array(f.ravel(), dtype=int, device=dev))
+    torch_dev = "cpu" if dev.is_cpu else f"cuda:{dev.ordinal}"
 
     def clear(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-        out = wp.zeros(len(a), dtype=wp.int32, device=dev)
-        if len(a):
-            wp.launch(check_sight_lines, dim=len(a), inputs=[mesh.id, wp.array(a, dtype=wp.vec3, device=dev),
-                                                             wp.array(b, dtype=wp.vec3, device=dev), 0.002],
-                      outputs=[out], device=dev)
-        return out.numpy().astype(bool)
+        a, b = (torch.as_tensor(np.ascontiguousarray(x), device=torch_dev) for x in (a, b))
+        return sight_lines_clear(mesh, a, b).cpu().numpy() if len(a) else np.zeros(0, bool)
 
     visible = np.zeros(len(pts), dtype=bool)
     visible[idx_point.numpy()[clear(starts, ends)]] = True
     if cfg.active_vision:
-        rcm_c = np.asarray(cfg.cauter_rcm_position)
-        rot_c = _euler_xyz_matrix(torch.tensor(np.radians(cfg.cauter_rcm_euler_deg))).numpy()
-        local = (pts - rcm_c) @ rot_c  # R^T (p - rcm), row-wise
-        depth = np.linalg.norm(local, axis=1)
-        pan = np.arctan2(local[:, 0], np.hypot(local[:, 1], local[:, 2]))
-        tilt = np.arctan2(-local[:, 1], local[:, 2])
-        cauter_ptsd = torch.from_numpy(np.stack([pan, tilt, np.zeros_like(pan), depth], -1))
-        visible &= _limit_mask(cauter_ptsd, cfg.cauter_state_low, cfg.cauter_state_high).numpy()
-        visible &= clear(np.broadcast_to(rcm_c, pts.shape).copy(), pts)
+        rcm_c = torch.tensor(cfg.cauter_rcm_position, dtype=torch.float64)
+        rot_c = euler_xyz_matrix(torch.tensor(np.radians(cfg.cauter_rcm_euler_deg)))
+        visible &= _limit_mask(point_to_ptsd(rcm_c, rot_c, pts_t), cfg.cauter_state_low, cfg.cauter_state_high).numpy()
+        visible &= clear(np.broadcast_to(rcm_c.numpy(), pts.shape).copy(), pts)
     result = pts[visible].astype(np.float32)
     if len(result) == 0:
         raise ValueError("no point of interest satisfies the camera (and cauter) limits with this configuration")
@@ -572,200 +374,140 @@ class SearchForPointEnv(BatchedEnv):
 
     config_class = SearchForPointConfig
     task_name = "SearchForPoint"
-    reward_features = SEARCH_FEATURES
-    default_reward_weights = CAMERA_WEIGHTS
+    rewards = REWARDS
     supported_observations = ("STATE", "RGB", "RGBD", "DEPTH")
+    expert = "lapwarp.tasks.spatial.search_for_point:SearchForPointExpert"
     cfg: SearchForPointConfig
 
-    def __init__(self, cfg: SearchForPointConfig, *args, **kwargs):
-        if isinstance(cfg, SearchForPointConfig) and cfg.active_vision:
-            # the instance attribute shadows the class default the base class merges overrides into
-            self.default_reward_weights = ACTIVE_VISION_WEIGHTS
-        super().__init__(cfg, *args, **kwargs)
+    def _default_reward_weights(self) -> dict[str, float]:
+        chosen = ACTIVE_VISION_WEIGHTS if self.cfg.active_vision else CAMERA_WEIGHTS
+        return {**dict.fromkeys(self.rewards.names, 0.0), **chosen}
 
     def _build(self) -> World:
         cfg, n, dev = self.cfg, self.num_envs, self.wp_device
-        world = World(Model(num_envs=n, device=str(dev)), seed=cfg.seed)
-        configs = [cfg.camera_tpsd()] + ([cfg.cauter_tpsd()] if cfg.active_vision else [])
-        self.instruments = TPSDInstruments(configs, n, device=str(dev))
+        builder = SceneBuilder()
+        specs = [InstrumentSpec(name="endoscope", tpsd=cfg.camera_tpsd())]
+        if cfg.active_vision:  # its body carries the hook's visual; its contact is checked by the reward only
+            specs.append(InstrumentSpec(name="cauter", tpsd=cfg.cauter_tpsd(), shape="cauter",
+                                        activation=cfg.cauter_activation, activation_deadzone=cfg.activation_deadzone))
+        self.rig = InstrumentRig(specs, builder)
+        world = builder.finalize(num_envs=n, device=str(dev), seed=cfg.seed)
+        self.rig.finalize(world)
+        self.endoscope = EndoscopeCamera(self.rig, 0, cfg.oblique_viewing_angle_deg, cfg.camera_fov_deg,
+                                         cfg.camera_near, cfg.camera_far)
         self.candidates = wp.array(poi_candidates(cfg, dev), dtype=wp.vec3, device=dev)
         self.poi = wp.zeros(n, dtype=wp.vec3, device=dev)
-        self.cauter_active = wp.zeros(n, dtype=wp.int32, device=dev)
-        self.previous = wp.zeros((n, 3), dtype=wp.float32, device=dev)
         v, f = organ_mesh()
         self._organ_points = wp.array(v, dtype=wp.vec3, device=dev)
         self._organ_indices = wp.array(f.ravel(), dtype=int, device=dev)
         self.organ_mesh = wp.Mesh(points=self._organ_points, indices=self._organ_indices, support_winding_number=True)
-        angle = math.radians(180.0 - cfg.oblique_viewing_angle_deg)
-        self.optic_offset = wp.quat_from_axis_angle(wp.vec3(1.0, 0.0, 0.0), angle)
         height, width = cfg.image_shape
         self._focal = focal_length(cfg.camera_fov_deg, height)
-        self._visual_scene: VisualScene | None = None
-        self.camera_poses = wp.zeros(n, dtype=wp.transform, device=dev)
-        self.marker_transforms = wp.zeros((n, 1), dtype=wp.transform, device=dev)
-        self.cauter_transforms = wp.zeros((n, 1), dtype=wp.transform, device=dev)
         return world
 
-    def _action_dim(self) -> int:
-        if not self.cfg.active_vision:
-            return 4
-        return 9 if self.cfg.cauter_activation else 8
+    @property
+    def instruments(self):
+        """The endoscope's (and hook's) ``TPSDInstruments``."""
+        return self.rig.instruments
 
-    def _observation_dim(self) -> int:
-        return 26 if self.cfg.active_vision else 14
+    @property
+    def cauter_active(self) -> wp.array:
+        """``(num_envs,)`` int32, 1 while the hook is switched on (active vision with activation)."""
+        return self.rig.active[:, self.rig.num_instruments - 1]
 
-    def _observation_bounds(self) -> tuple[float, float]:
-        # positions stay within ~0.5 m of the origin, quaternions in [-1, 1], angles within their limits (spin of
-        # the camera up to +-180 deg), depths below 0.25 m: every value lies in [-3.2, 3.2]
-        return -3.2, 3.2
+    def _observation_layout(self) -> ObservationLayout:
+        b, av = _OBS_BOUND, int(self.cfg.active_vision)
+        return OBS.layout(poi=(3, -b, b), camera_pose=(7, -b, b), camera_ptsd=(4, -b, b), cauter_pose=(7 * av, -b, b),
+                          cauter_state=(5 * av, -b, b))
 
-    def _discrete_action_table(self) -> np.ndarray:
-        ratio = (np.asarray(self.cfg.discrete_action_magnitude) / np.asarray(self.cfg.maximum_state_velocity))
-        magnitudes = list(ratio) * (2 if self.cfg.active_vision else 1)
-        if self.cfg.cauter_activation:
-            magnitudes.append(1.0)
-        return discrete_action_table(magnitudes)
-
-    def _apply_actions(self, actions: wp.array2d) -> None:
-        self.instruments.set_actions(actions, self.cfg.time_step)
-        if self.cfg.cauter_activation:
-            wp.launch(apply_activation, dim=self.num_envs, inputs=[actions, 8, self.cfg.activation_deadzone],
-                      outputs=[self.cauter_active], device=self.wp_device)
-
-    def _before_physics_step(self) -> None:
-        self.instruments.step()
-
-    def _launch_features(self, update_previous: int, env_mask: wp.array) -> None:
-        cfg = self.cfg
+    def _compute_features(self, env_mask: wp.array, features_out: wp.array2d) -> None:
+        cfg, rig = self.cfg, self.rig
         height, width = cfg.image_shape
-        ins = self.instruments
         wp.launch(eval_search_features, dim=self.num_envs,
-                  inputs=[ins.pose, ins.rcm, ins.flags, self.poi, self.cauter_active, self.optic_offset, self._focal,
-                          float(width), float(height), cfg.camera_near, cfg.target_distance_camera_poi,
+                  inputs=[env_mask, rig.pose, rig.rcm, rig.flags, self.poi, rig.active, self.endoscope.optic_offset,
+                          self._focal, float(width), float(height), cfg.camera_near, cfg.target_distance_camera_poi,
                           cfg.tolerance_target_distance, cfg.tolerance_image_center, cfg.instrument_touch_tolerance,
-                          int(cfg.active_vision), int(cfg.cauter_activation), self.organ_mesh.id, update_previous,
-                          env_mask],
-                  outputs=[self.previous, self.features, self.success, self.failure], device=self.wp_device)
-
-    def _compute_features(self) -> None:
-        self._launch_features(1, self.reset_mask)
+                          int(cfg.active_vision), int(cfg.cauter_activation), self.organ_mesh.id],
+                  outputs=[features_out], device=self.wp_device)
 
     def _reset_task(self, env_mask: wp.array) -> None:
-        self.instruments.reset(env_mask, self.world.rng)
+        self.rig.reset(env_mask, self.world.rng)
         wp.launch(sample_pois, dim=self.num_envs, inputs=[env_mask, self.candidates, self.world.rng],
-                  outputs=[self.poi, self.cauter_active], device=self.wp_device)
-        self._launch_features(0, env_mask)
+                  outputs=[self.poi], device=self.wp_device)
 
     def _compute_observations(self) -> None:
-        ins = self.instruments
+        rig = self.rig
         wp.launch(observe_search, dim=self.num_envs,
-                  inputs=[self.poi, ins.pose, ins.ptsd, self.cauter_active, self.optic_offset,
-                          int(self.cfg.active_vision)], outputs=[self.obs_frame], device=self.wp_device)
+                  inputs=[self.poi, rig.pose, rig.ptsd, rig.active, self.endoscope.optic_offset,
+                          int(self.cfg.active_vision), self.obs_layout.columns],
+                  outputs=[self.obs_frame], device=self.wp_device)
         if self.cfg.privileged_critic:
             wp.copy(self.critic_frame, self.obs_frame)  # the STATE is already privileged (the POI position)
 
     # ------------------------------------------------------------------ visuals
-    def visual_scene(self) -> VisualScene:
+    def _build_visual_scene(self) -> VisualScene:
         """The procedural abdomen (wall, floor, organs), the POI marker (bright green) and, in active vision, the
-        hook (silver). Camera: the oblique endoscope, one pose per env in ``camera_poses``."""
-        if self._visual_scene is None:
-            cfg, n, dev = self.cfg, self.num_envs, self.wp_device
-            self._static_transforms = wp.array([wp.transform_identity()] * n, dtype=wp.transform,
-                                               device=dev).reshape((n, 1))
-            objects = []
-            for seg, part in enumerate(abdomen_parts(), start=1):
-                objects.append(VisualObject(part.name, "rigid", part.color, seg, part.vertices, part.faces,
-                                            self._static_transforms))
-            sv, sf = sphere_mesh(cfg.poi_radius, subdivisions=2)
-            objects.append(VisualObject("poi", "rigid", (0.1, 0.95, 0.2), len(objects) + 1, sv, sf,
-                                        self.marker_transforms))
-            if cfg.active_vision:
-                hv, hf = _hook_mesh()
-                objects.append(VisualObject("cauter", "rigid", (0.72, 0.74, 0.78), len(objects) + 1, hv, hf,
-                                            self.cauter_transforms))
-            self._visual_scene = VisualScene(
-                camera=CameraSpec(poses=self.camera_poses, fov_deg=cfg.camera_fov_deg, near=cfg.camera_near,
-                                  far=cfg.camera_far),
-                objects=objects, background=(0.0, 0.0, 0.0))
-            self.update_visuals()
-        return self._visual_scene
+        hook (silver). Camera: the oblique endoscope, one pose per env."""
+        cfg, n, dev = self.cfg, self.num_envs, self.wp_device
+        self.marker_transforms = wp.zeros((n, 1), dtype=wp.transform, device=dev)
+        static = wp.full((n, 1), wp.transform_identity(), dtype=wp.transform, device=dev)
+        objects = [VisualObject(part.name, "rigid", part.color, seg, part.vertices, part.faces, static)
+                   for seg, part in enumerate(abdomen_parts(), start=1)]
+        sv, sf = sphere_mesh(cfg.poi_radius, subdivisions=2)
+        objects.append(VisualObject("poi", "rigid", (0.1, 0.95, 0.2), len(objects) + 1, sv, sf,
+                                    self.marker_transforms))
+        objects += self.rig.visual_objects([None, (0.72, 0.74, 0.78)], first_segmentation_id=len(objects))
+        return VisualScene(camera=self.endoscope.spec, objects=objects, background=(0.0, 0.0, 0.0))
 
     def update_visuals(self) -> None:
-        wp.launch(update_search_visuals, dim=self.num_envs,
-                  inputs=[self.instruments.pose, self.poi, self.optic_offset, int(self.cfg.active_vision)],
-                  outputs=[self.camera_poses, self.marker_transforms, self.cauter_transforms], device=self.wp_device)
+        self.endoscope.update()
+        if self._visual_scene is None:
+            return
+        wp.launch(update_poi_marker, dim=self.num_envs, inputs=[self.poi], outputs=[self.marker_transforms],
+                  device=self.wp_device)
 
     # ------------------------------------------------------------------ privileged access (experts, tests)
     def privileged_state(self) -> dict[str, torch.Tensor]:
         """Zero-copy torch views: ``poi`` (N, 3) m, ``ptsd`` (N, K, 4) rad/m, ``pose`` / ``rcm`` (N, K, 7)
         transforms (K = 1 camera, 2 with the cauter), ``cauter_active`` (N,)."""
-        ins = self.instruments
-        return {"poi": wp.to_torch(self.poi), "ptsd": wp.to_torch(ins.ptsd), "pose": wp.to_torch(ins.pose),
-                "rcm": wp.to_torch(ins.rcm), "cauter_active": wp.to_torch(self.cauter_active)}
+        rig = self.rig
+        return {"poi": wp.to_torch(self.poi), "ptsd": wp.to_torch(rig.ptsd), "pose": wp.to_torch(rig.pose),
+                "rcm": wp.to_torch(rig.rcm), "cauter_active": wp.to_torch(rig.active)[:, -1]}
 
     def set_ptsd(self, ptsd: np.ndarray, env_ids=None) -> None:
         """Host utility for tests: write instrument states (deg, deg, deg, m) and start the deltas from them."""
-        self.instruments.set_ptsd(ptsd, env_ids)
-        self._launch_features(0, self._all_envs_mask())
+        self.rig.instruments.set_ptsd(ptsd, env_ids)
+        self.restart_baselines()
 
     def set_poi(self, poi: np.ndarray) -> None:
         """Host utility for tests: place the POIs ``(num_envs, 3)`` (m) and start the deltas from them."""
         self.poi.assign(wp.array(np.asarray(poi, np.float32), dtype=wp.vec3, device=self.wp_device))
-        self._launch_features(0, self._all_envs_mask())
+        self.restart_baselines()
 
     def sight_lines_clear(self, start: torch.Tensor, end: torch.Tensor) -> torch.Tensor:
         """Whether each segment ``start -> end`` ``(M, 3)`` (torch, env device) misses the organs until 2 mm before
-        its end: one launch, no host sync (for experts: a centred POI should also be visible)."""
-        start = start.reshape(-1, 3).to(torch.float32).contiguous()
-        end = end.reshape(-1, 3).to(torch.float32).contiguous()
-        out = torch.zeros(start.shape[0], dtype=torch.int32, device=start.device)
-        with self._torch_stream_scope():  # on torch's stream: ordered after the torch ops that made the inputs
-            wp.launch(check_sight_lines, dim=start.shape[0],
-                      inputs=[self.organ_mesh.id, wp.from_torch(start, dtype=wp.vec3),
-                              wp.from_torch(end, dtype=wp.vec3), 0.002], outputs=[wp.from_torch(out)],
-                      device=self.wp_device)
-        return out.bool()
-
-    def _all_envs_mask(self) -> wp.array:
-        return wp.full(self.num_envs, 1, dtype=wp.int32, device=self.wp_device)
+        its end (for experts: a centred POI should also be visible)."""
+        return sight_lines_clear(self.organ_mesh, start, end, 0.002)
 
 
-def _hook_mesh() -> tuple[np.ndarray, np.ndarray]:
-    """Electrocautery hook, tip at the origin: a 5 mm shaft (z < -8 mm), a thin electrode and a 4 mm hook."""
-    shaft_v, shaft_f = cylinder_mesh(0.0025, 0.3)
-    shaft_v[:, 2] -= 0.008
-    rod = trimesh.creation.cylinder(radius=0.0008, height=0.008, sections=10)
-    rod.apply_translation((0.0, 0.0, -0.004))
-    hook = trimesh.creation.cylinder(radius=0.0008, height=0.004, sections=10)
-    hook.apply_transform(trimesh.transformations.rotation_matrix(math.pi / 2, (1, 0, 0)))
-    hook.apply_translation((0.0, 0.002, 0.0))
-    mesh = trimesh.util.concatenate([trimesh.Trimesh(shaft_v, shaft_f, process=False), rod, hook])
-    return np.asarray(mesh.vertices, np.float32), np.asarray(mesh.faces, np.int32)
-
-
-class SearchForPointExpert:
+class SearchForPointExpert(Expert):
     """Privileged controller: drives the camera to the state that centres the POI at the desired distance.
 
     Each call solves the oblique-optic inverse kinematics (``oblique_camera_ptsd``) for 36 roll samples, keeps the
     ones inside the state limits, prefers those with a clear line of sight to the POI, and heads for the one
     reachable soonest at maximum velocity (time = the largest per-component distance / speed), stepping exactly
-    onto it when it is within one step. In active vision the
-    hook heads for ``point_to_ptsd`` of the POI (spin kept) and, with activation, switches on. Discrete actions
-    move the component with the largest remaining error, in units of one discrete step.
+    onto it when it is within one step. In active vision the hook heads for ``point_to_ptsd`` of the POI (spin kept)
+    and, with activation, switches on first.
     """
 
     def __init__(self, env: SearchForPointEnv):
-        if env.task_name != "SearchForPoint":
-            raise ValueError(f"SearchForPointExpert drives SearchForPoint, not {env.task_name}")
-        self.env = env
-        cfg = env.cfg
-        dev = env.device
+        super().__init__(env)
+        cfg, dev = env.cfg, env.device
         scale = torch.tensor([math.pi / 180] * 3 + [1.0], device=dev)
         self.v_max = torch.tensor(cfg.maximum_state_velocity, device=dev) * scale
-        self.discrete = torch.tensor(cfg.discrete_action_magnitude, device=dev) * scale
         self.low = torch.tensor(cfg.camera_state_low, device=dev) * scale
         self.high = torch.tensor(cfg.camera_state_high, device=dev) * scale
-        self.step_time = cfg.time_step * cfg.frame_skip
+        self.step = self.v_max * cfg.time_step * cfg.frame_skip  # PTSD change of a continuous action of 1
 
     def __call__(self, obs=None) -> torch.Tensor:
         env, cfg = self.env, self.env.cfg
@@ -783,34 +525,12 @@ class SearchForPointExpert:
                                        cfg.oblique_viewing_angle_deg)
         clear = env.sight_lines_clear(eye, poi[:, None].expand_as(eye)).reshape(time.shape)
         time = time + 1000.0 * (~clear).to(time.dtype)
-        best = time.argmin(dim=1)
-        target = candidates[torch.arange(env.num_envs, device=env.device), best]
+        target = candidates[torch.arange(env.num_envs, device=env.device), time.argmin(dim=1)]
         target = torch.where(torch.isfinite(target), target, current).clamp(self.low, self.high)
-        errors = [target - current]
-        if cfg.active_vision:
-            errors.append(self._cauter_target(poi, ptsd[:, 1], rcm[:, 1]) - ptsd[:, 1])
-        if env.is_discrete:
-            action = self._discrete(errors)
-            if cfg.cauter_activation:  # switch the hook on first (row 16 = +activation); it stays on
-                action = torch.where(state["cauter_active"] == 0, torch.full_like(action, 16), action)
-            return action
-        actions = [(e / (self.v_max * self.step_time)).clamp(-1.0, 1.0) for e in errors]
-        if cfg.cauter_activation:
-            actions.append(torch.ones(env.num_envs, 1, device=env.device))
-        return torch.cat(actions, dim=1)
-
-    @staticmethod
-    def _cauter_target(poi: torch.Tensor, ptsd: torch.Tensor, rcm: torch.Tensor) -> torch.Tensor:
-        local = (quat_to_matrix(rcm[:, 3:7]).transpose(-1, -2) @ (poi - rcm[:, :3])[..., None])[..., 0]
-        depth = local.norm(dim=-1)
-        pan = torch.atan2(local[:, 0], torch.sqrt(local[:, 1] ** 2 + local[:, 2] ** 2))
-        tilt = torch.atan2(-local[:, 1], local[:, 2])
-        return torch.stack([pan, tilt, ptsd[:, 2], depth], -1)
-
-    def _discrete(self, errors: list[torch.Tensor]) -> torch.Tensor:
-        steps = torch.cat([e / (self.discrete * self.step_time) for e in errors], dim=1)
-        index = steps.abs().argmax(dim=1)
-        chosen = steps.gather(1, index[:, None])[:, 0]
-        action = 2 * index + (chosen < 0).long()
-        no_op = torch.full_like(action, 2 * self.env.action_dim)
-        return torch.where(chosen.abs() < 0.5, no_op, action)
+        ideal = [(target - current) / self.step]
+        if cfg.active_vision:  # the hook's tip to the POI, spin kept
+            hook = point_to_ptsd(rcm[:, 1, :3], quat_to_matrix(rcm[:, 1, 3:7]), poi, ptsd[:, 1, 2])
+            ideal.append((hook - ptsd[:, 1]) / self.step)
+        if cfg.cauter_activation:  # switch the hook on before anything else; it then stays on (dead zone)
+            ideal.append(1.0e6 * (state["cauter_active"] == 0).to(poi.dtype)[:, None])
+        return self.policy_actions(torch.cat(ideal, dim=1))
