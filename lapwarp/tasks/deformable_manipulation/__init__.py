@@ -1,0 +1,1 @@
+"""Deformable Manipulation track: TissueManipulation, PickAndPlace, GraspLiftAndTouch (not implemented yet)."""

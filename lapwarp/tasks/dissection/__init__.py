@@ -1,0 +1,1 @@
+"""Dissection track: RopeCutting, PrecisionCutting, TissueDissection (not implemented yet)."""

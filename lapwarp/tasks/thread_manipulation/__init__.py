@@ -1,0 +1,1 @@
+"""Thread Manipulation track: ThreadInHole, RopeThreading, LigatingLoop (not implemented yet)."""
