@@ -78,7 +78,7 @@ def run(scene: str, num_envs: int, device: str, substeps: int, steps: int, settl
 
     lb.SceneBuilder.finalize = finalize
     try:
-        world, obj, _, _ = SCENES[scene](num_envs, device, substeps, 1)
+        world, obj, _, _ = SCENES[scene](num_envs, device, substeps, 1, "chains")
     finally:
         lb.SceneBuilder.finalize = orig
     cs = add_contact(world, obj, scene, holder["body"]) if contact else None

@@ -1,29 +1,32 @@
-"""Physics-only throughput of the XPBD core: env-steps/s for a batch of cloths, tet blocks or rods.
+"""Physics-only throughput and solution quality of the XPBD core: env-steps/s for a batch of cloths, tet blocks or
+rods, with the stretch (or sag) each configuration ends up with.
 
-One env step is 0.1 s of simulated time (LapGym's 10 Hz control) split into ``--substeps`` XPBD
-substeps with ``--iterations`` sweeps each. On CUDA one env step is captured as a CUDA graph and
-replayed; timings use ``wp.synchronize_device``. Every figure is reported with the substeps,
-iterations and solution quality (stretch = max edge length / rest length after the hang settles).
+One env step is 0.1 s of simulated time (LapGym's 10 Hz control) split into ``--substeps`` XPBD substeps with
+``--iterations`` sweeps each. On CUDA one env step is captured as a CUDA graph and replayed; timings use
+``wp.synchronize_device``. Every figure is reported with its substeps, iterations, edge solver and the quality of the
+solution: the mean and max edge stretch (current / rest length over all edges of all envs; the cloth's physical
+stretch under its own weight is ~1e-4) or a tet block's sag.
 
-Scenes (SI units):
+Scenes (SI units; cloths are 40 x 40 vertices over 75 mm, PrecisionCutting's grid: 1,600 vertices, 3,042 triangles,
+0.2 kg/m^2, stretch stiffness 1e3 N/m, bending 1e-6 N m):
 
-* ``cloth``: 40 x 40 vertices, 75 mm (PrecisionCutting's grid: 1,600 vertices, 3,042 triangles),
-  hanging from its pinned top edge, 0.2 kg/m^2, stretch stiffness 1e3 N/m, bending 1e-6 N m, tethers.
-* ``tet``: 40 x 40 x 20 mm tissue block, 7 x 6 x 4 cells -> 1,008 tets, E = 3 kPa, nu = 0.45,
-  clamped base, sagging under gravity.
-* ``rod``: 100 segments, 200 mm, r = 1 mm, E = 1e6 Pa, pinned at the top, released 30 degrees from the
-  vertical and swinging into its hang (stretch solved exactly per rod, see kernels/rods.py; elastic strain
-  at the top 0.2 %, so ``stretch`` ~1.002 is the physical value).
+* ``cloth``: hanging from its pinned top edge with long-range tethers (the benchmark before the edge chains).
+* ``cloth_free``: the same without tethers (``--no-tethers`` of the issue); ``cloth_cut``: cuttable (no tethers by
+  design, cutting masks in every substep, nothing cut).
+* ``cloth_drape``: Newton's peer scene (``tools/peer_newton_cloth.py``): flat in the xy plane, pinned along its x = 0
+  edge, released to swing down and drape; ``grid_stretch_*`` and ``mid_row_stretch`` are reported the same way as
+  the peer script does it (structural row/column edges; the middle row's length / 75 mm).
+* ``cloth_pulled``: flat, pinned along its back edge (y = 75 mm); its two front corners are grasped by kinematic
+  attachments (compliance 1e-6 m/N) and dragged 15 mm down in 1 s along the arc about the pinned edge, then held:
+  PrecisionCutting's support pattern (back edge and near corners) with the corners moving.
+* ``tet``: 40 x 40 x 20 mm tissue block, 7 x 6 x 4 cells -> 1,008 tets, E = 3 kPa, nu = 0.45, clamped base.
+  ``tet_stiff``: the same at E = 30 kPa; ``sag`` is the top face's mean sag.
+* ``rod``: 100 segments, 200 mm, r = 1 mm, E = 1e6 Pa, pinned at the top, swinging into its hang.
 
-Rod sweep on the GPU::
+``--substeps 0`` means automatic (``SceneBuilder.finalize(substeps=None)``: 10, or more for stiff tets).
 
-    python benchmarks/bench_physics.py --device cuda:0 --scene rod --num-envs 1024 4096 16384 --substeps 10 20 \\
-        --out benchmarks/physics_rod.json
-
-Examples::
-
-    python benchmarks/bench_physics.py --device cuda:0 --num-envs 1024 4096 16384 --scene all \\
-        --out benchmarks/physics.json
+    python benchmarks/bench_physics.py --device cuda:0 --scene cloth_free cloth_cut cloth_pulled --num-envs 4096 \\
+        --substeps 20 40 --out physics.json
     python benchmarks/bench_physics.py --device cpu --num-envs 2 --steps 2 --settle-steps 2   # smoke test
 """
 
@@ -42,59 +45,116 @@ from lapwarp.builder import SceneBuilder
 DT = 0.1  # simulated seconds per env step
 
 
-def build_cloth(num_envs: int, device: str, substeps: int, iterations: int):
+def _cloth(builder, v, t, fixed, **kw):
+    return builder.add_cloth(v, t, areal_density=0.2, stretch_stiffness=1e3, bend_stiffness=1e-6, damping=1.0,
+                             fixed=fixed, **kw)
+
+
+def build_hanging(num_envs, device, substeps, iterations, edge_solver, tethers=False, cuttable=False):
     b = SceneBuilder()
     v, t = cloth_grid(40, 40, 0.075, 0.075, plane="xz", origin=(0.0, 0.0, -0.075))
-    top = np.nonzero(v[:, 2] > -1e-9)[0]
-    obj = b.add_cloth(v, t, areal_density=0.2, stretch_stiffness=1e3, bend_stiffness=1e-6, damping=1.0, fixed=top)
-    # a small sideways tilt so the cloth swings into its hang instead of starting exactly at rest
-    world = b.finalize(num_envs, device, substeps=substeps, iterations=iterations)
+    obj = _cloth(b, v, t, np.nonzero(v[:, 2] > -1e-9)[0], tethers=tethers, cuttable=cuttable)
+    world = b.finalize(num_envs, device, substeps=substeps, iterations=iterations, edge_solver=edge_solver)
     q = world.state.particle_q.numpy()
-    q[..., 1] += 0.2 * (-q[..., 2])  # lean the sheet out of its vertical plane
+    q[..., 1] += 0.2 * (-q[..., 2])  # lean the sheet out of its vertical plane: it swings into its hang
     world.state.particle_q.assign(q)
     world.save_start_state()
-    return world, obj, v, obj.edges - obj.particle_start
+    return world, obj, v, None
 
 
-def build_tet(num_envs: int, device: str, substeps: int, iterations: int):
+def build_drape(num_envs, device, substeps, iterations, edge_solver):
+    b = SceneBuilder()
+    v, t = cloth_grid(40, 40, 0.075, 0.075, plane="xy", origin=(0.0, -0.0375, 0.0))
+    obj = _cloth(b, v, t, np.nonzero(v[:, 0] < 1e-9)[0])
+    world = b.finalize(num_envs, device, substeps=substeps, iterations=iterations, edge_solver=edge_solver)
+    return world, obj, v, None
+
+
+def build_pulled(num_envs, device, substeps, iterations, edge_solver):
+    b = SceneBuilder()
+    v, t = cloth_grid(40, 40, 0.075, 0.075, plane="xy")
+    obj = _cloth(b, v, t, np.nonzero(v[:, 1] > 0.075 - 1e-9)[0])
+    corners = [0, 39]
+    bodies = [b.add_body(f"grasper{k}", pose=(*v[c], 0.0, 0.0, 0.0, 1.0)) for k, c in enumerate(corners)]
+    for c, body in zip(corners, bodies, strict=True):
+        b.add_attachment(obj.particle_start + c, body, compliance=1e-6)
+    world = b.finalize(num_envs, device, substeps=substeps, iterations=iterations, edge_solver=edge_solver)
+    ids = wp.array(np.array(bodies, np.int32), dtype=wp.int32, device=device)
+
+    def drag(step: int) -> None:  # host-side: before timing
+        drop = 0.015 * min(step, 10) / 10
+        back = 0.075 - np.sqrt(0.075**2 - drop**2)  # along the arc about the pinned edge: no stretch needed
+        pose = [[*(v[c] + (0.0, back, -drop)), 0.0, 0.0, 0.0, 1.0] for c in corners]
+        world.set_body_poses(wp.array(np.array([pose] * num_envs, np.float32), dtype=wp.transform, device=device),
+                             ids)
+
+    return world, obj, v, drag
+
+
+def build_tet(num_envs, device, substeps, iterations, edge_solver, youngs=3e3):
     b = SceneBuilder()
     v, t = box_tets((0.04, 0.04, 0.02), (7, 6, 4))
-    obj = b.add_tet_mesh(v, t, density=1000.0, youngs_modulus=3e3, poisson_ratio=0.45, damping=1.0,
+    obj = b.add_tet_mesh(v, t, density=1000.0, youngs_modulus=youngs, poisson_ratio=0.45, damping=1.0,
                          fixed=np.nonzero(v[:, 2] < 1e-9)[0])
     world = b.finalize(num_envs, device, substeps=substeps, iterations=iterations)
-    e = np.unique(np.sort(np.concatenate([t[:, [a, c]] for a in range(4) for c in range(a + 1, 4)]), axis=1), axis=0)
-    return world, obj, v, e
+    return world, obj, v, None
 
 
-def build_rod(num_envs: int, device: str, substeps: int, iterations: int):
+def build_rod(num_envs, device, substeps, iterations, edge_solver):
     b = SceneBuilder()
     n = 101
-    # pinned at the top, starting 30 degrees from the vertical so it swings into its hang
     s = np.linspace(0.0, 0.2, n)
     pts = np.stack([s * np.sin(np.radians(30.0)), np.zeros(n), -s * np.cos(np.radians(30.0))], axis=1)
     obj = b.add_rod(pts, radius=0.001, density=1000.0, youngs_modulus=1e6, damping=1.0, fixed=[0])
     world = b.finalize(num_envs, device, substeps=substeps, iterations=iterations)
-    return world, obj, pts, obj.edges - obj.particle_start
+    return world, obj, pts, None
 
 
-SCENES = {"cloth": build_cloth, "tet": build_tet, "rod": build_rod}
-SIZES = {"cloth": "40x40 grid, 1,600 vertices, 3,042 tris", "tet": "1,008 tets, 280 nodes",
-         "rod": "100 segments, 101 nodes"}
+SCENES = {
+    "cloth": lambda *a: build_hanging(*a, tethers=True),
+    "cloth_free": build_hanging,
+    "cloth_cut": lambda *a: build_hanging(*a, cuttable=True),
+    "cloth_drape": build_drape,
+    "cloth_pulled": build_pulled,
+    "tet": build_tet,
+    "tet_stiff": lambda *a: build_tet(*a, youngs=3e4),
+    "rod": build_rod,
+}
 
 
-def stretch_of(world, obj, rest_pos, edges) -> float:
-    q = world.positions(obj)
-    rest = np.linalg.norm(rest_pos[edges[:, 0]] - rest_pos[edges[:, 1]], axis=1)
-    cur = np.linalg.norm(q[:, edges[:, 0]] - q[:, edges[:, 1]], axis=2)
-    return float(np.nanmax(cur / rest))
+def quality(scene: str, world, obj, rest: np.ndarray) -> dict:
+    q = world.positions(obj).astype(np.float64)
+    out = {"nan_envs": int((~np.isfinite(q).all(axis=(1, 2))).sum())}
+    if scene.startswith("tet"):
+        top = np.nonzero(rest[:, 2] > 0.02 - 1e-9)[0]
+        out["sag_m"] = float(-(q[:, top, 2] - rest[top, 2]).mean())
+        return out
+    e = obj.edges - obj.particle_start
+    ratio = np.linalg.norm(q[:, e[:, 0]] - q[:, e[:, 1]], axis=2) / np.linalg.norm(rest[e[:, 0]] - rest[e[:, 1]],
+                                                                                     axis=1)
+    out.update(stretch_mean=float(np.nanmean(ratio)), stretch_max=float(np.nanmax(ratio)))
+    if scene.startswith("cloth"):
+        grid = q.reshape(q.shape[0], 40, 40, 3)  # vertex j * 40 + i: row j, column i
+        rows = np.linalg.norm(np.diff(grid, axis=2), axis=3) / (0.075 / 39)
+        cols = np.linalg.norm(np.diff(grid, axis=1), axis=3) / (0.075 / 39)
+        structural = np.concatenate([rows.reshape(len(q), -1), cols.reshape(len(q), -1)], axis=1)
+        out.update(grid_stretch_mean=float(np.nanmean(structural)), grid_stretch_max=float(np.nanmax(structural)))
+        if scene == "cloth_drape":  # the peer script's metric: the middle row (y = 0) from pinned to free edge
+            out["mid_row_stretch"] = float(np.nanmax(rows[:, 20].sum(axis=1) / 39))
+    return out
 
 
-def run(scene: str, num_envs: int, device: str, substeps: int, iterations: int, steps: int, settle: int) -> dict:
+def run(scene: str, num_envs: int, device: str, substeps: int, iterations: int, edge_solver: str, steps: int,
+        settle: int, newton_steps: int | None = None) -> dict:
     wp.synchronize_device(device)
-    world, obj, rest_pos, edges = SCENES[scene](num_envs, device, substeps, iterations)
+    world, obj, rest, drag = SCENES[scene](num_envs, device, substeps or None, iterations, edge_solver)
+    if newton_steps:
+        world.chain_newton_steps = newton_steps
     dev = wp.get_device(device)
-    # settle the hang (also compiles kernels and records the launches of a step)
-    for _ in range(max(1, settle)):
+    # settle (and drag) before timing; this also compiles the kernels and records a step's launches
+    for k in range(max(1, settle)):
+        if drag is not None:
+            drag(k + 1)
         world.step(DT)
     wp.synchronize_device(device)
     graph = None
@@ -113,80 +173,55 @@ def run(scene: str, num_envs: int, device: str, substeps: int, iterations: int, 
     wp.synchronize_device(device)
     elapsed = time.perf_counter() - t0
     m = world.model
-    launches = 2 + (len(m.edge_color_offsets) - 1) + (len(m.hinge_color_offsets) - 1) + (len(m.tet_color_offsets) - 1)
-    launches += (len(m.segment_color_offsets) - 1) + (len(m.bend_color_offsets) - 1) + (1 if m.tether_count else 0)
-    launches += 2 if m.segment_count else 0
-    launches += 1 if m.rod_count else 0  # direct rod stretch solve, one thread per (env, rod)
     rec = {
-        "scene": scene,
-        "size": SIZES[scene],
-        "device": dev.name if dev.is_cuda else "cpu",
-        "num_envs": num_envs,
-        "sim_seconds_per_env_step": DT,
-        "substeps": world.substeps,
-        "iterations": world.iterations,
-        "kernel_launches_per_substep": launches,
-        "cuda_graph": graph is not None,
-        "steps_timed": steps,
-        "seconds": elapsed,
-        "env_steps_per_s": num_envs * steps / elapsed,
-        "stretch_max": stretch_of(world, obj, rest_pos, edges),
-        "unstable_envs": int(world.unstable.numpy().sum()),
+        "scene": scene, "device": dev.name if dev.is_cuda else "cpu", "num_envs": num_envs,
+        "sim_seconds_per_env_step": DT, "substeps": world.substeps_for(DT), "iterations": world.iterations,
+        "edge_solver": "chains" if m.edge_chains is not None else ("colored" if m.edge_count else None),
+        "chain_newton_steps": world.chain_newton_steps if m.edge_chains is not None else None,
+        "chain_families": m.edge_chains.num_families if m.edge_chains is not None else None,
+        "tethers": m.tether_count > 0, "cuda_graph": graph is not None, "steps_timed": steps, "seconds": elapsed,
+        "env_steps_per_s": num_envs * steps / elapsed, "unstable_envs": int(world.unstable.numpy().sum()),
         "state_bytes_per_env": world.state_bytes_per_env(),
-        "colors": {"edges": len(m.edge_color_offsets) - 1, "hinges": len(m.hinge_color_offsets) - 1,
-                   "tets": len(m.tet_color_offsets) - 1, "segments": len(m.segment_color_offsets) - 1,
-                   "bends": len(m.bend_color_offsets) - 1},
+        "sim_time_s": DT * (max(1, settle) + 2 + steps) if dev.is_cuda else DT * (max(1, settle) + steps),
     }
+    rec.update(quality(scene, world, obj, rest))
     del world
     return rec
-
-
-def fits_16k_cloth(device: str, substeps: int, iterations: int) -> dict:
-    """Allocate 16,384 cloth envs and run one step; report success and the device memory used."""
-    try:
-        free0 = wp.get_device(device).free_memory if wp.get_device(device).is_cuda else None
-        world, *_ = build_cloth(16384, device, substeps, iterations)
-        world.step(DT)
-        wp.synchronize_device(device)
-        free1 = wp.get_device(device).free_memory if wp.get_device(device).is_cuda else None
-        used = None if free0 is None else int(free0 - free1)
-        return {"cloth_16k_envs_fit": True, "device_bytes_used": used,
-                "state_bytes_per_env": world.state_bytes_per_env()}
-    except Exception as exc:  # report, do not crash the benchmark
-        return {"cloth_16k_envs_fit": False, "error": repr(exc)}
 
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--device", default="cuda:0")
-    p.add_argument("--num-envs", type=int, nargs="+", default=[1024, 4096])
-    p.add_argument("--scene", choices=["cloth", "tet", "rod", "all"], default="all")
-    p.add_argument("--substeps", type=int, nargs="+", default=[20], help="one run per value")
-    p.add_argument("--iterations", type=int, default=1)
-    p.add_argument("--steps", type=int, default=50, help="timed env steps")
-    p.add_argument("--settle-steps", type=int, default=30, help="untimed env steps before timing (hang settles)")
-    p.add_argument("--check-16k", action="store_true", help="also check that 16,384 cloth envs allocate and step")
-    p.add_argument("--out", default=None, help="write the results as JSON here")
+    p.add_argument("--num-envs", type=int, nargs="+", default=[4096])
+    p.add_argument("--scene", nargs="+", default=["cloth", "cloth_free", "tet", "rod"], choices=[*SCENES, "all"])
+    p.add_argument("--substeps", type=int, nargs="+", default=[20], help="one run per value; 0 = automatic")
+    p.add_argument("--iterations", type=int, nargs="+", default=[1], help="one run per value")
+    p.add_argument("--edge-solver", nargs="+", default=["chains"], choices=["chains", "colored"])
+    p.add_argument("--newton-steps", type=int, default=None, help="Newton steps per cloth chain solve")
+    p.add_argument("--steps", type=int, default=30, help="timed env steps")
+    p.add_argument("--settle-steps", type=int, default=30, help="untimed env steps before timing")
+    p.add_argument("--out", default=None, help="append one JSON line per run to this file")
     args = p.parse_args()
 
     wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)  # no per-module load lines
     wp.init()
-    scenes = ["cloth", "tet", "rod"] if args.scene == "all" else [args.scene]
-    results = []
+    scenes = list(SCENES) if "all" in args.scene else args.scene
     for scene in scenes:
-        for sub, n in [(sub, n) for sub in args.substeps for n in args.num_envs]:
-            rec = run(scene, n, args.device, sub, args.iterations, args.steps, args.settle_steps)
-            results.append(rec)
-            print(f"{scene:5s} envs={n:6d} substeps={rec['substeps']} iters={rec['iterations']} "
-                  f"{rec['env_steps_per_s']:12.1f} env-steps/s  stretch={rec['stretch_max']:.4f}  "
-                  f"state={rec['state_bytes_per_env']} B/env  unstable={rec['unstable_envs']}", flush=True)
-    out = {"results": results}
-    if args.check_16k:
-        out["cloth_16k"] = fits_16k_cloth(args.device, args.substeps[0], args.iterations)
-        print("cloth 16k:", out["cloth_16k"], flush=True)
-    if args.out:
-        with open(args.out, "w") as f:
-            json.dump(out, f, indent=2)
+        solvers = args.edge_solver if scene.startswith("cloth") else ["chains"]
+        for solver in solvers:
+            for sub in args.substeps:
+                for it in args.iterations:
+                    for n in args.num_envs:
+                        rec = run(scene, n, args.device, sub, it, solver, args.steps, args.settle_steps,
+                                  args.newton_steps)
+                        quality_text = (f"sag={rec['sag_m']:.3e} m" if "sag_m" in rec else
+                                        f"stretch mean={rec['stretch_mean']:.4f} max={rec['stretch_max']:.3f}")
+                        print(f"{scene:12s} {str(rec['edge_solver']):8s} envs={n:6d} substeps={rec['substeps']:4d} "
+                              f"iters={it} {rec['env_steps_per_s']:12.1f} env-steps/s  {quality_text}  "
+                              f"unstable={rec['unstable_envs']}", flush=True)
+                        if args.out:
+                            with open(args.out, "a") as f:
+                                f.write(json.dumps(rec) + "\n")
 
 
 if __name__ == "__main__":

@@ -27,6 +27,12 @@ __all__ = ["SceneBuilder", "color_graph"]
 # ----------------------------------------------------------------------------------------------------
 
 
+#: Model arrays that hold material parameters (per env with ``finalize(per_env_materials=True)``).
+MATERIAL_ARRAYS = ("particle_inv_mass", "particle_damping", "edge_compliance", "hinge_compliance", "tet_params",
+                   "segment_compliance", "segment_inv_inertia", "segment_damping", "bend_compliance",
+                   "rod_stretch_compliance")
+
+
 def _per_env(value, name: str) -> np.ndarray:
     """A scalar or per-env sequence as a 1-D float64 array (length 1 or num_envs, checked later)."""
     a = np.atleast_1d(np.asarray(value, dtype=np.float64))
@@ -179,6 +185,7 @@ class SceneBuilder:
         self._rod_stretch = _Group()  # rows (particle_start, segment_start, segment_count, closed), one per rod
         self._bodies: list[tuple[str, np.ndarray]] = []
         self._attachments: list[tuple[int, int, np.ndarray, float]] = []
+        self._tet_omega = 0.0  # largest elastic frequency of the tet meshes, 1/s (0: none)
 
     # ---------------------------------------------------------------------------------------------
     @property
@@ -249,7 +256,7 @@ class SceneBuilder:
         bend_stiffness=1.0e-6,
         damping=0.0,
         fixed=None,
-        tethers: bool = True,
+        tethers: bool = False,
         name: str = "cloth",
         cuttable: bool = False,
     ) -> SceneObject:
@@ -268,9 +275,10 @@ class SceneBuilder:
             damping: linear velocity damping rate, 1/s.
             fixed: bool mask or local indices of pinned vertices.
             tethers: add long-range attachments (Kim et al. 2012) from every free vertex to its nearest
-                pinned vertex, limiting the distance to the rest distance; they stop a hanging cloth from
-                stretching under its own weight at few substeps. Ignored (no tethers) for cuttable cloth: a
-                tether would keep holding a piece that was cut off its pinned part.
+                pinned vertex, limiting the distance to the rest distance. Off by default: the edge chains of
+                ``finalize(edge_solver="chains")`` keep a cloth at its length without them (and tethers cannot help
+                a grasped sheet); they remain useful with ``edge_solver="colored"``. Ignored (no tethers) for
+                cuttable cloth: a tether would keep holding a piece that was cut off its pinned part.
             name: object name.
             cuttable: its triangles get per-env active masks (``lapwarp.cutting``); an edge spring acts while one
                 of its triangles is present, a hinge while both are.
@@ -427,6 +435,12 @@ class SceneBuilder:
             np.broadcast_to(a_vol, (P, len(vol))),
             np.ones((P, len(vol))),
         ], axis=2)
+        # fastest elastic wave across a tet (P-wave speed over its shortest edge): the substep length at which XPBD's
+        # single sweep per substep still reaches this material's compliance (SceneBuilder.finalize, substeps=None)
+        edges = np.stack([x[t[:, a]] - x[t[:, b]] for a, b in ((0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3))], 1)
+        shortest = np.linalg.norm(edges, axis=2).min()
+        rho = float(np.min(_per_env(density, "density")))
+        self._tet_omega = max(self._tet_omega, float(np.sqrt((lam + 2.0 * mu).max() / rho) / shortest))
         self._tets.indices.append(t + off)
         self._tets.rest.append(np.linalg.inv(Ds))
         self._tets.geom.append(np.ones(len(t)))
@@ -511,7 +525,7 @@ class SceneBuilder:
         J = np.pi * radius**4 / 2.0
         # stretch-shear: energy 0.5 l (G A g1^2 + G A g2^2 + E A g3^2) -> compliance 1/(k A l) per axis.
         # The stretch axis is solved as a segment distance constraint (compliance l / (E A)) by the direct
-        # per-rod chain solver (kernels/rods.py), exact along the whole rod in one sweep; along d3 a lagging
+        # per-rod chain solver (kernels/chains.py), exact along the whole rod in one sweep; along d3 a lagging
         # orientation would stretch the rod sideways. A negative z compliance tells the stretch-shear kernel
         # to skip that axis.
         ss_geom = np.stack([1.0 / (area * L), 1.0 / (area * L), -1.0 / (area * L)], axis=1)
@@ -589,28 +603,43 @@ class SceneBuilder:
         self,
         num_envs: int,
         device: str | None = None,
-        substeps: int = 10,
+        substeps: int | None = None,
         iterations: int = 1,
         attachment_capacity: int = 0,
         seed: int = 0,
         max_speed: float = 50.0,
         auto_reset_unstable: bool = True,
+        edge_solver: str = "chains",
+        per_env_materials: bool = False,
     ):
         """Build the batched ``World`` of ``num_envs`` copies of this scene on ``device``.
 
         Args:
             num_envs: number of independent envs.
             device: Warp device name (``"cpu"``, ``"cuda:0"``); None = Warp's default.
-            substeps: XPBD substeps per ``world.step``.
+            substeps: XPBD substeps per ``world.step``; None (default) = automatic: at least 10 (cloth edge chains
+                and rods converge there), and for tet meshes enough that a substep resolves the fastest elastic
+                wave across the stiffest tet (``h c / l_min <= 0.7``, P-wave speed ``c``), where one sweep per
+                substep reaches the material's stiffness (fewer substeps make stiff tets too soft); see
+                ``World.substeps_for``.
             iterations: constraint sweeps per substep.
             attachment_capacity: attachment slots per env (at least the static attachments); grasping
                 code writes new ones into ``state.attach_*``.
             seed: per-env RNG seed.
             max_speed: speed in m/s above which an env is flagged unstable.
             auto_reset_unstable: restore envs flagged unstable at the end of each step.
+            edge_solver: ``"chains"`` (default): the distance constraints (cloth edges, springs) are split into
+                straight chains solved directly, one linear-time solve per chain and sweep (``lapwarp.chains``), so
+                a cloth keeps its length at the control rate without tethers; ``"colored"``: one Gauss-Seidel
+                projection per constraint, colour by colour (cheaper per sweep, converges slowly on long paths).
+            per_env_materials: give every env its own row of every material array (stiffness, damping, mass), so
+                ``World.set_materials`` can change them per env at reset (domain randomisation of materials).
         """
+        from lapwarp.chains import build_chain_set, straight_chains
         from lapwarp.world import World
 
+        if edge_solver not in ("chains", "colored"):
+            raise ValueError(f"edge_solver={edge_solver!r} is not 'chains' or 'colored'")
         dev = wp.get_device(device)
         N = int(num_envs)
         n = self._n
@@ -623,6 +652,7 @@ class SceneBuilder:
 
         model = Model(num_envs=N, device=str(dev), gravity=wp.vec3(*self.gravity), particle_count=n)
         model.max_speed = float(max_speed)
+        model.max_substep = 0.7 / self._tet_omega if self._tet_omega > 0.0 else float("inf")
         model.objects = list(self.objects)
         f32 = np.float32
         state = State()
@@ -671,6 +701,8 @@ class SceneBuilder:
             model.edge_rest = wp.array(np.concatenate(self._edges.rest)[order].astype(f32), dtype=float, device=dev)
             model.edge_compliance = wp.array(build_comp(self._edges, order), dtype=float, device=dev)
             model.edge_color_offsets = offs
+            if edge_solver == "chains":
+                model.edge_chains = build_chain_set(straight_chains(idx[order], x), n, dev)
             if self._cuttable:
                 etri = np.concatenate(self._edge_tris)[order]
                 model.edge_tris = wp.array(etri.astype(np.int32), dtype=wp.vec2i, device=dev)
@@ -756,13 +788,12 @@ class SceneBuilder:
             sq = np.concatenate(self._seg_q).astype(f32)
             state.segment_q = wp.array(np.ascontiguousarray(np.broadcast_to(sq, (N, S, 4))), dtype=wp.quat, device=dev)
             state.segment_qd = wp.zeros((N, S), dtype=wp.vec3, device=dev)
-            # direct stretch solve: one row per rod, per-segment data in insertion order
-            rows = np.concatenate(self._rod_stretch.indices).astype(np.int32)
+            # direct stretch solve: one chain per rod, per-segment data in insertion order
+            rows = np.concatenate(self._rod_stretch.indices)
             model.rod_count = len(rows)
-            model.rod_particle_start = wp.array(rows[:, 0], dtype=wp.int32, device=dev)
-            model.rod_segment_start = wp.array(rows[:, 1], dtype=wp.int32, device=dev)
-            model.rod_segment_count = wp.array(rows[:, 2], dtype=wp.int32, device=dev)
-            model.rod_closed = wp.array(rows[:, 3], dtype=wp.int32, device=dev)
+            model.rod_chains = build_chain_set(
+                [(list(range(p0, p0 + m + (0 if closed else 1))), list(range(s0, s0 + m)), bool(closed))
+                 for p0, s0, m, closed in rows.tolist()], n, dev)
             model.rod_stretch_rest = wp.array(np.concatenate(self._rod_stretch.rest).astype(f32), dtype=float,
                                               device=dev)
             model.rod_stretch_compliance = wp.array(build_comp(self._rod_stretch, np.arange(S)), dtype=float,
@@ -788,6 +819,9 @@ class SceneBuilder:
                 state.tet_face_active = wp.array(np.ascontiguousarray(fa), dtype=wp.int32, device=dev)
             if model.tri_count:
                 state.tri_active = wp.ones((N, model.tri_count), dtype=wp.int32, device=dev)
+                state.edge_active = wp.ones((N, model.edge_count), dtype=wp.int32, device=dev)
+                if model.hinge_count:
+                    state.hinge_active = wp.ones((N, model.hinge_count), dtype=wp.int32, device=dev)
             if model.segment_count:
                 state.segment_active = wp.ones((N, model.segment_count), dtype=wp.int32, device=dev)
             # 1 = surfaces / connectivity of this env must be recomputed: set at build and restored as 1 by reset
@@ -817,5 +851,16 @@ class SceneBuilder:
         surf = [o.surface_tris for o in self.objects if o.surface_tris is not None and len(o.surface_tris)]
         if surf:
             model.surface_tris = wp.array(np.concatenate(surf).astype(np.int32), dtype=wp.vec3i, device=dev)
+        if per_env_materials:
+            # one row per env of every material array, and the built values to scale from (World.set_materials)
+            for name in MATERIAL_ARRAYS:
+                arr = getattr(model, name)
+                if arr is None:
+                    continue
+                if arr.shape[0] != N:
+                    arr = wp.array(np.ascontiguousarray(np.repeat(arr.numpy(), N, axis=0)), dtype=arr.dtype,
+                                   device=dev)
+                    setattr(model, name, arr)
+                model.material_base[name] = wp.clone(arr)
         return World(model, state, seed=seed, substeps=substeps, iterations=iterations,
                      auto_reset_unstable=auto_reset_unstable)

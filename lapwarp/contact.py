@@ -425,6 +425,12 @@ class ContactSystem:
             self.tri_radius = arr(np.concatenate(trad)[order].astype(np.float32), float)
             self._triangles = make_struct(ck.ContactTriangles, nodes=self.tri_nodes, group=self.tri_group,
                                           radius=self.tri_radius)
+            S = max(len(self.shapes), 1)
+            self._tool_axes = make_struct(ck.ToolAxes, c0=wp.zeros((n, S), dtype=wp.vec3, device=dev),
+                                          c1=wp.zeros((n, S), dtype=wp.vec3, device=dev),
+                                          lo=wp.zeros(n, dtype=wp.vec3, device=dev),
+                                          hi=wp.zeros(n, dtype=wp.vec3, device=dev))
+            self._tri_pad = float(np.concatenate(trad).max())
         self.tri_col = self._no_col
         if tris and any(g.tri_col is not None for g in self.groups if g.triangles is not None):
             cols = [g.tri_col if g.tri_col is not None else np.full(len(g.triangles), -1)
@@ -558,9 +564,11 @@ class ContactSystem:
             launch(ck.collide_segments, (n, off[c + 1] - off[c]),
                    [self._segments, off[c], shapes, motion, solve, ignore, masks], [q, reports])
         off = self.tri_color_offsets
+        if len(off) > 1:
+            launch(ck.compute_tool_axes, n, [shapes, motion, self._tri_pad], [self._tool_axes])
         for c in range(len(off) - 1):
             launch(ck.collide_triangles, (n, off[c + 1] - off[c]),
-                   [self._triangles, off[c], shapes, motion, solve, ignore, masks], [q, reports])
+                   [self._triangles, off[c], shapes, motion, self._tool_axes, solve, ignore, masks], [q, reports])
         for sf in self._surfaces:
             launch(sf["mesh"].refit)  # BVH bounds of the surface as it is now (after this sweep's constraints)
             launch(ck.collide_surface, (n, len(self.cp_particle)),

@@ -186,6 +186,11 @@ class CuttingSystem:
         s = w.state
         self._masks = tuple(a if a is not None else w._dummy_mask for a in (s.tet_active, s.tri_active,
                                                                               s.segment_active))
+        m = w.model
+        if s.hinge_active is not None:
+            self._hinge_map = (m.hinge_tris, s.hinge_active)
+        else:  # no hinges: an empty table and mask
+            self._hinge_map = (wp.zeros(1, dtype=wp.vec2i, device=dev), wp.zeros((1, 0), dtype=wp.int32, device=dev))
         self._finalized = True
         self._update()  # initial connectivity / counters (cut_dirty starts at 1)
         return self
@@ -228,6 +233,10 @@ class CuttingSystem:
             wp.launch(ck.tet_surface, dim=(w.num_envs, 4 * m.tet_count),
                       inputs=[s.cut_dirty, s.tet_active, m.tet_face_neighbor], outputs=[s.tet_face_active],
                       device=dev)
+        if s.edge_active is not None:
+            wp.launch(ck.cloth_constraint_masks, dim=(w.num_envs, max(m.edge_count, m.hinge_count)),
+                      inputs=[s.cut_dirty, m.edge_tris, self._hinge_map[0], s.tri_active],
+                      outputs=[s.edge_active, self._hinge_map[1]], device=dev)
         N, M, P = w.num_envs, self.num_elements, self._pairs.shape[0]
         masks = self._masks
         for live_only in (0, 1):  # clear, then mark the particles of live elements

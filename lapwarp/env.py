@@ -208,7 +208,13 @@ class BatchedEnv(VecEnv):
         self._delta_columns = wp.array(deltas[:, 0].copy(), dtype=wp.int32, device=dev)
         self._delta_bases = wp.array(deltas[:, 1].copy(), dtype=wp.int32, device=dev)
         self._all_envs = wp.ones(n, dtype=wp.int32, device=dev)
-        self._log_keys = [f"/reward/{f}" for f in spec.names] + [f"/feature/{f}" for f in spec.names]
+        # extras["log"]: weighted and raw feature means, episode statistics, action checks (env_kernels.reduce_log)
+        self._log_keys = [f"/reward/{f}" for f in spec.names] + [f"/feature/{f}" for f in spec.names] + [
+            "/episode/success", "/episode/return", "/episode/length", "/env/unstable_fraction",
+            *(("/action/invalid_fraction",) if self.is_discrete else
+              ("/action/nonfinite_fraction", "/action/clipped_fraction"))]
+        self.log_values = wp.zeros(len(self._log_keys), dtype=wp.float32, device=dev)
+        self._log_sums = wp.zeros(len(self._log_keys) + 1, dtype=wp.float32, device=dev)
         self.success = wp.zeros(n, dtype=wp.int32, device=dev)
         self.failure = wp.zeros(n, dtype=wp.int32, device=dev)
         self.reward = wp.zeros(n, dtype=wp.float32, device=dev)
@@ -248,6 +254,7 @@ class BatchedEnv(VecEnv):
             "actions_in", "discrete_in", "features", "weights", "reward", "terminated", "truncated", "done",
             "episode_length", "success", "last_episode_success", "finished_episodes", "last_episode_return",
             "last_episode_length", "nonfinite_actions", "clipped_actions", "obs_stack")}
+        self._t["log"] = wp.to_torch(self.log_values)
         if self.uses_images:
             self._t["image_stack"] = wp.to_torch(self.image_stack)
         self._t["unstable"] = wp.to_torch(self.world.unstable)
@@ -401,6 +408,7 @@ class BatchedEnv(VecEnv):
                            self.truncated, self.done, self.reset_mask, self.last_episode_success,
                            self.finished_episodes, self.last_episode_return, self.last_episode_length], device=dev)
         self._update_task()
+        self._reduce_log()
         if self.keep_final_observations:
             # observe before the reset: the stack gets the final frame for every env, then the reset envs
             # alone get their first frame (PUSH_MASKED_ONLY) so no env is shifted twice.
@@ -409,6 +417,19 @@ class BatchedEnv(VecEnv):
             self._reset_and_observe(env_kernels.PUSH_MASKED_ONLY)
         else:
             self._reset_and_observe(env_kernels.PUSH_ALL)
+
+    def _reduce_log(self) -> None:
+        """Means over the envs of everything ``extras["log"]`` reports, into ``log_values`` (two launches)."""
+        dev = self.wp_device
+        self._log_sums.zero_()
+        wp.launch(env_kernels.sum_log_terms, dim=self.num_envs,
+                  inputs=[self.features, self.weights, self.finished_episodes, self.last_episode_success,
+                          self.last_episode_return, self.last_episode_length, self.world.unstable,
+                          self.nonfinite_actions, self.clipped_actions, int(self.is_discrete)],
+                  outputs=[self._log_sums], device=dev)
+        wp.launch(env_kernels.finish_log_terms, dim=1,
+                  inputs=[self._log_sums, self.rewards.size, self.num_envs, self.action_dim, int(self.is_discrete)],
+                  outputs=[self.log_values], device=dev)
 
     def _reset_and_observe(self, push_mode: int = env_kernels.PUSH_ALL) -> None:
         """Reset the envs flagged in ``reset_mask`` in place, start their delta baselines from the features of the
@@ -444,21 +465,9 @@ class BatchedEnv(VecEnv):
 
     def _step_outputs(self) -> tuple[TensorDict, torch.Tensor, torch.Tensor, dict]:
         t = self._t
-        raw_means = t["features"].mean(dim=0)
-        # one stacked tensor, then views: a few torch ops per step whatever the number of features
-        means = torch.stack((raw_means * t["weights"], raw_means)).flatten().unbind()
-        log: dict[str, torch.Tensor] = dict(zip(self._log_keys, means, strict=True))
-        finished = t["finished_episodes"] > 0
-        num_finished = finished.sum().clamp(min=1)
-        log["/episode/success"] = (t["last_episode_success"] * finished).sum() / num_finished
-        log["/episode/return"] = (t["last_episode_return"] * finished).sum() / num_finished
-        log["/episode/length"] = (t["last_episode_length"] * finished).sum() / num_finished
-        log["/env/unstable_fraction"] = t["unstable"].float().mean()
-        if not self.is_discrete:
-            log["/action/nonfinite_fraction"] = t["nonfinite_actions"].float().mean() / self.action_dim
-            log["/action/clipped_fraction"] = t["clipped_actions"].float().mean() / self.action_dim
-        else:
-            log["/action/invalid_fraction"] = t["nonfinite_actions"].float().mean()
+        # the log values were reduced on the device inside the step (_reduce_log): one copy, then views of it (a
+        # fresh tensor per step, since rsl-rl keeps every step's log until the end of its iteration)
+        log: dict[str, torch.Tensor] = dict(zip(self._log_keys, t["log"].clone().unbind(), strict=True))
         extras = {"time_outs": t["truncated"].bool(), "log": log}
         if self.keep_final_observations:
             extras["final_observations"] = t["final_obs"].clone()

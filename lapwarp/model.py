@@ -81,6 +81,7 @@ class Model:
     particle_inv_mass: wp.array2d | None = None  # (P, n) 1/kg, 0 = fixed
     particle_damping: wp.array2d | None = None  # (P, n) linear velocity damping rate 1/s
     max_speed: float = 50.0  # m/s, above this an env is flagged unstable
+    max_substep: float = float("inf")  # s, the longest substep at which stiff tets still converge (builder)
 
     # distance constraints (cloth stretch/shear edges, springs, pendulum links) ----------------------
     edge_count: int = 0
@@ -133,15 +134,15 @@ class Model:
     bend_rest: wp.array | None = None  # (B,) quat rest Darboux quaternion
     bend_compliance: wp.array2d | None = None  # (P, B) vec3 bend-twist compliance, material frame
     bend_color_offsets: list = field(default_factory=lambda: [0])
-    # direct stretch solve (kernels/rods.py): one (env, rod) thread solves the rod's chain of segment
+    # direct stretch solve (kernels/chains.py): one (env, rod) thread solves the rod's chain of segment
     # distance constraints exactly; per-segment arrays in insertion order (SceneObject.segments)
     rod_count: int = 0
-    rod_particle_start: wp.array | None = None  # (R,) int32 first particle (node 0) of the rod
-    rod_segment_start: wp.array | None = None  # (R,) int32 first segment of the rod
-    rod_segment_count: wp.array | None = None  # (R,) int32 segments (nodes: +1 open, +0 closed)
-    rod_closed: wp.array | None = None  # (R,) int32 1 = closed loop (cyclic system)
+    rod_chains: object = None  # lapwarp.chains.ChainSet, one chain per rod (constraints = segments)
     rod_stretch_rest: wp.array | None = None  # (S,) segment rest length m
     rod_stretch_compliance: wp.array2d | None = None  # (P, S) l / (E A), m/N
+    # the distance constraints (edges) as straight chains solved directly (lapwarp.chains); None = coloured
+    # Gauss-Seidel over the edge colours
+    edge_chains: object = None  # lapwarp.chains.ChainSet (constraints = edge indices)
 
     # kinematic bodies (instrument jaws) and attachments ---------------------------------------------
     body_count: int = 0
@@ -149,6 +150,8 @@ class Model:
     attachment_capacity: int = 0
 
     objects: list = field(default_factory=list)  # SceneObject handles, in insertion order
+    # built values of the material arrays when every env has its own row (finalize(per_env_materials=True))
+    material_base: dict = field(default_factory=dict)
     surface_tris: wp.array | None = None  # (F,) vec3i all render/contact triangles, global indices
 
 
@@ -168,6 +171,8 @@ class State:
     # cutting (only when the scene has a cuttable object; 1 = present, 0 = removed; insertion order)
     tet_active: wp.array2d | None = None  # (N, T) int32
     tri_active: wp.array2d | None = None  # (N, F) int32 cloth triangles (also their render face mask)
+    edge_active: wp.array2d | None = None  # (N, E) int32 an edge acts while one of its triangles is present
+    hinge_active: wp.array2d | None = None  # (N, H) int32 a hinge acts while both its triangles are present
     segment_active: wp.array2d | None = None  # (N, S) int32 rod segments
     tet_face_active: wp.array2d | None = None  # (N, 4T) int32 tet faces on the current surface
     cut_dirty: wp.array2d | None = None  # (N, 1) int32 surfaces/connectivity need recomputing (1 after reset)

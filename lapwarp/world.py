@@ -82,7 +82,7 @@ class World:
         state: initial dynamic state; a copy is kept so ``reset`` can restore masked envs in place.
         control: per-env commands written by the env's action kernels.
         seed: seed of the per-env device RNG streams (env ``i`` uses stream ``rand_init(seed, i)``).
-        substeps: XPBD substeps per ``step`` call.
+        substeps: XPBD substeps per ``step`` call; None = automatic (``substeps_for``).
         iterations: constraint sweeps per substep (1 is usually best: spend the budget on substeps).
         auto_reset_unstable: restore the initial state of envs flagged unstable at the end of ``step``.
 
@@ -97,7 +97,7 @@ class World:
         state: State | None = None,
         control: Control | None = None,
         seed: int = 0,
-        substeps: int = 10,
+        substeps: int | None = 10,
         iterations: int = 1,
         auto_reset_unstable: bool = True,
     ):
@@ -107,13 +107,18 @@ class World:
         self.state = state if state is not None else State()
         self.control = control if control is not None else Control()
         self.seed = int(seed)
-        self.substeps = int(substeps)
+        #: substeps per ``step``; None = chosen per step length by ``substeps_for``
+        self.substeps = None if substeps is None else int(substeps)
         self.iterations = int(iterations)
         self.auto_reset_unstable = bool(auto_reset_unstable)
         # Newton steps of the direct rod stretch solve per sweep: the second one, linearised after the first,
         # removes what the first leaves on curved rods (its transverse filter keeps kinks stable but is not
         # exact in length where the rod bends); its residual is small, so its tension filter barely acts
         self.rod_newton_steps = 2
+        # Newton steps of each cloth edge-chain solve per sweep (the families' solves follow each other)
+        self.chain_newton_steps = 1
+        # tets' rotation: warm-started extraction iterations per projection (0 = SVD polar decomposition)
+        self.tet_rotation_iterations = 2
         self.rng = wp.empty(self.num_envs, dtype=wp.uint32, device=self.device)
         self.unstable = wp.zeros(self.num_envs, dtype=wp.int32, device=self.device)
         self._unstable_now = wp.zeros(self.num_envs, dtype=wp.int32, device=self.device)
@@ -129,23 +134,21 @@ class World:
         self._body_q_prev = None
         if m.particle_count:
             self._q_pred = wp.zeros((n, m.particle_count), dtype=wp.vec3, device=dev)
-        self._rod_scratch = ()
         if m.segment_count:
             self._sq_prev = wp.zeros((n, m.segment_count), dtype=wp.quat, device=dev)
-            # lambda of the Newton steps, modified super-diagonal, right-hand side / dl, loop correction
-            self._rod_scratch = tuple(wp.zeros((n, m.segment_count), dtype=float, device=dev) for _ in range(4))
-            # transverse filter, per rod node (a rod has at most segments + 1 nodes): super-diagonal, rhs, base
-            nn = m.segment_count + m.rod_count
-            self._rod_scratch += (wp.zeros((n, nn), dtype=float, device=dev),
-                                  wp.zeros((n, nn), dtype=wp.vec3, device=dev),
-                                  wp.zeros((n, nn), dtype=wp.vec3, device=dev))
+        # per-env inverse masses of the deformables' constraints with attachments folded in (None: no attachments)
+        self._w_eff = wp.zeros((n, m.particle_count), dtype=float, device=dev) if m.attachment_capacity else None
+        self._rod_scratch = self._chain_scratch(m.rod_chains)
+        # per (env, tet) rotation of the last projection: the warm start of the next one (identity at rest)
+        self._tet_rotation = wp.full((n, max(m.tet_count, 1)), wp.quat_identity(), dtype=wp.quat, device=dev)
+        self._no_rotation = wp.zeros((1, 0), dtype=wp.quat, device=dev)
+        self._edge_scratch = self._chain_scratch(m.edge_chains)
         if self.state.body_q is not None:
             self._body_q_prev = wp.clone(self.state.body_q)
         self._dummy_f = wp.zeros((1, 1), dtype=float, device=dev)
         self._dummy_v2 = wp.zeros((1, 1), dtype=wp.vec2, device=dev)
         self._dummy_v3 = wp.zeros((1, 1), dtype=wp.vec3, device=dev)
         # "no cutting masks" for the constraint kernels: empty element maps / a (1, 0) mask
-        self._no_map_v2i = wp.zeros(0, dtype=wp.vec2i, device=dev)
         self._no_map_i = wp.zeros(0, dtype=wp.int32, device=dev)
         self._no_mask = wp.zeros((1, 0), dtype=wp.int32, device=dev)
         self._dummy_mask = wp.zeros((1, 1), dtype=wp.int32, device=dev)
@@ -154,6 +157,18 @@ class World:
         self._cmds: list = []
         self._cmd_key = None
         self.solvers: list = []
+
+    def _chain_scratch(self, chains) -> tuple:
+        """Per-env scratch of a chain set's direct solve: per link the multiplier of the Newton steps, modified
+        super-diagonal, right-hand side / dl and loop correction; per node (a chain has at most links + 1 nodes)
+        the transverse filter's super-diagonal, right-hand side and base point."""
+        if chains is None:
+            return ()
+        n, dev = self.num_envs, self.device
+        links, nodes = max(chains.edges, 1), max(chains.edges + chains.count, 1)
+        return (*(wp.zeros((n, links), dtype=float, device=dev) for _ in range(4)),
+                wp.zeros((n, nodes), dtype=float, device=dev), wp.zeros((n, nodes), dtype=wp.vec3, device=dev),
+                wp.zeros((n, nodes), dtype=wp.vec3, device=dev))
 
     def _alloc_lambdas(self) -> None:
         """Multiplier arrays exist only when iterations > 1 (with one sweep lambda starts at 0)."""
@@ -199,6 +214,16 @@ class World:
         self.solvers.append(solver)
         self._cmd_key = None
 
+    #: fewest automatic substeps (cloth edge chains and rods converge from here at 0.1 s steps)
+    MIN_AUTO_SUBSTEPS = 10
+
+    def substeps_for(self, dt: float) -> int:
+        """Substeps of a ``step(dt)``: the fixed count, or automatically ``max(10, ceil(dt / model.max_substep))``."""
+        if self.substeps is not None:
+            return self.substeps
+        need = dt / self.model.max_substep if np.isfinite(self.model.max_substep) else 0.0
+        return max(self.MIN_AUTO_SUBSTEPS, int(np.ceil(need - 1e-9)))
+
     def set_iterations(self, iterations: int) -> None:
         """Change the sweeps per substep (allocates multipliers; not inside a captured graph)."""
         self.iterations = int(iterations)
@@ -220,7 +245,8 @@ class World:
         """
         if self.model.particle_count == 0:
             return
-        key = (float(dt), self.substeps, self.iterations, self.rod_newton_steps)
+        key = (float(dt), self.substeps_for(float(dt)), self.iterations, self.rod_newton_steps, self.chain_newton_steps,
+               self.tet_rotation_iterations)
         if self._cmd_key != key:
             self._cmds = self._record_step(float(dt))
             self._cmd_key = key
@@ -241,12 +267,17 @@ class World:
             rec = wp.launch(kernel, dim=dim, inputs=inputs, outputs=list(outputs), device=dev, record_cmd=True)
             cmds.append(rec.launch)
 
-        h = dt / self.substeps
+        substeps = self.substeps_for(dt)
+        h = dt / substeps
         inv_dt2 = 1.0 / (h * h)
+        if self._w_eff is not None:
+            # attachments change only between steps (grasping updates them after the last sweep)
+            launch(world_kernels.attachment_inverse_masses, (n, m.particle_count),
+                   [m.particle_inv_mass, s.attach_particle, s.attach_compliance, inv_dt2], [self._w_eff])
         iters = max(1, self.iterations)
         use_lam = 1 if iters > 1 else 0
         lam = self._lam
-        for sub in range(self.substeps):
+        for sub in range(substeps):
             launch(xpbd.integrate_particles, (n, m.particle_count),
                    [m.particle_inv_mass, m.particle_damping, m.gravity, h, s.particle_q, s.particle_qd], [self._q_pred])
             if m.segment_count:
@@ -255,7 +286,7 @@ class World:
             for arr in lam.values():
                 cmds.append(arr.zero_)
             for it in range(iters):
-                sweep = Sweep(sub, it, self.substeps, iters, h)
+                sweep = Sweep(sub, it, substeps, iters, h)
                 self._record_sweep(launch, xpbd, inv_dt2, use_lam, sweep.blend)
                 for solver in self.solvers:
                     solver.record_sweep(self, launch, sweep)
@@ -266,7 +297,7 @@ class World:
                        [s.segment_qd])
             for solver in self.solvers:
                 if hasattr(solver, "record_substep_end"):
-                    solver.record_substep_end(self, launch, Sweep(sub, iters - 1, self.substeps, iters, h))
+                    solver.record_substep_end(self, launch, Sweep(sub, iters - 1, substeps, iters, h))
         if self._body_q_prev is not None:
             bq, bqp = s.body_q, self._body_q_prev
             cmds.append(lambda: wp.copy(bqp, bq))
@@ -274,38 +305,58 @@ class World:
         return cmds
 
     def _record_sweep(self, launch, xpbd, inv_dt2: float, use_lam: int, blend: float) -> None:
+        from lapwarp.kernels import chains
+
         m, n, s = self.model, self.num_envs, self.state
         lam = self._lam
-        # cutting masks (state arrays, restored by reset) and the maps from constraints to their elements
-        tri_mask = s.tri_active if s.tri_active is not None else self._dummy_mask
-        edge_tris = m.edge_tris if (m.edge_tris is not None and s.tri_active is not None) else self._no_map_v2i
-        hinge_tris = m.hinge_tris if (m.hinge_tris is not None and s.tri_active is not None) else self._no_map_v2i
+        # inverse masses for the deformables' own constraints: attached particles count as heavier (see
+        # attachment_inverse_masses); the attachments themselves and the integration use the true ones
+        w_eff = self._w_eff if self._w_eff is not None else m.particle_inv_mass
+        # cutting masks (state arrays, restored by reset); (1, 0) arrays mean "no masks"
+        edge_mask = s.edge_active if s.edge_active is not None else self._no_mask
+        hinge_mask = s.hinge_active if s.hinge_active is not None else self._no_mask
         tet_mask = s.tet_active if s.tet_active is not None else self._dummy_mask
         tet_map = m.tet_element if s.tet_active is not None else self._no_map_i
         seg_mask = s.segment_active if s.segment_active is not None else self._no_mask
+
+        def solve_chains(cs, rest, compliance, lam_arr, scratch, mask, newton_steps):
+            # one launch per family of chains that share no node (Gauss-Seidel across families)
+            off = cs.family_offsets
+            for f in range(len(off) - 1):
+                launch(chains.solve_chains, (n, off[f + 1] - off[f]),
+                       [off[f], cs.edge_start, cs.edge_count, cs.closed, cs.node, cs.constraint, rest, compliance,
+                        w_eff, inv_dt2, use_lam, newton_steps, lam_arr, *scratch, mask],
+                       [s.particle_q])
+
         if m.tether_count:
             launch(xpbd.solve_tethers, (n, m.tether_count),
-                   [m.tether_particle, m.tether_anchor, m.tether_max, m.particle_inv_mass], [s.particle_q])
-        off = m.edge_color_offsets
-        for c in range(len(off) - 1):
-            launch(xpbd.solve_edges, (n, off[c + 1] - off[c]),
-                   [off[c], m.edge_indices, m.edge_rest, m.edge_compliance, m.particle_inv_mass, inv_dt2, use_lam,
-                    lam.get("edge", self._dummy_f), edge_tris, tri_mask], [s.particle_q])
+                   [m.tether_particle, m.tether_anchor, m.tether_max, w_eff], [s.particle_q])
+        if m.edge_chains is None:
+            off = m.edge_color_offsets
+            for c in range(len(off) - 1):
+                launch(xpbd.solve_edges, (n, off[c + 1] - off[c]),
+                       [off[c], m.edge_indices, m.edge_rest, m.edge_compliance, w_eff, inv_dt2, use_lam,
+                        lam.get("edge", self._dummy_f), edge_mask], [s.particle_q])
         off = m.tet_color_offsets
         for c in range(len(off) - 1):
             launch(xpbd.solve_tets, (n, off[c + 1] - off[c]),
-                   [off[c], m.tet_indices, m.tet_inv_rest, m.tet_params, m.particle_inv_mass, inv_dt2, use_lam,
-                    lam.get("tet", self._dummy_v2), tet_map, tet_mask], [s.particle_q])
+                   [off[c], m.tet_indices, m.tet_inv_rest, m.tet_params, w_eff, inv_dt2, use_lam,
+                    lam.get("tet", self._dummy_v2), tet_map, tet_mask, self.tet_rotation_iterations],
+                   [self._tet_rotation if self.tet_rotation_iterations > 0 else self._no_rotation, s.particle_q])
         off = m.hinge_color_offsets
         for c in range(len(off) - 1):
             launch(xpbd.solve_hinges, (n, off[c + 1] - off[c]),
-                   [off[c], m.hinge_indices, m.hinge_rest, m.hinge_compliance, m.particle_inv_mass, inv_dt2, use_lam,
-                    lam.get("hinge", self._dummy_f), hinge_tris, tri_mask], [s.particle_q])
+                   [off[c], m.hinge_indices, m.hinge_rest, m.hinge_compliance, w_eff, inv_dt2, use_lam,
+                    lam.get("hinge", self._dummy_f), hinge_mask], [s.particle_q])
+        if m.edge_chains is not None:
+            # after the bending hinges, so every sweep ends with the cloth at its length
+            solve_chains(m.edge_chains, m.edge_rest, m.edge_compliance, lam.get("edge", self._dummy_f),
+                         self._edge_scratch, edge_mask, self.chain_newton_steps)
         off = m.segment_color_offsets
         for c in range(len(off) - 1):
             launch(xpbd.solve_stretch_shear, (n, off[c + 1] - off[c]),
                    [off[c], m.segment_particles, m.segment_rest, m.segment_compliance, m.segment_inv_inertia,
-                    m.particle_inv_mass, inv_dt2, use_lam, lam.get("segment", self._dummy_v3), seg_mask],
+                    w_eff, inv_dt2, use_lam, lam.get("segment", self._dummy_v3), seg_mask],
                    [s.particle_q, s.segment_q])
         off = m.bend_color_offsets
         for c in range(len(off) - 1):
@@ -314,12 +365,8 @@ class World:
                     lam.get("bend", self._dummy_v3), seg_mask], [s.segment_q])
         if m.rod_count:
             # after shear and bend-twist so every sweep ends with the rods at their length
-            from lapwarp.kernels import rods
-
-            launch(rods.solve_rod_stretch, (n, m.rod_count),
-                   [m.rod_particle_start, m.rod_segment_start, m.rod_segment_count, m.rod_closed, m.rod_stretch_rest,
-                    m.rod_stretch_compliance, m.particle_inv_mass, inv_dt2, use_lam, self.rod_newton_steps,
-                    lam.get("rod", self._dummy_f), *self._rod_scratch, seg_mask], [s.particle_q])
+            solve_chains(m.rod_chains, m.rod_stretch_rest, m.rod_stretch_compliance, lam.get("rod", self._dummy_f),
+                         self._rod_scratch, seg_mask, self.rod_newton_steps)
         if m.attachment_capacity:
             bq = s.body_q if s.body_q is not None else self._dummy_tf()
             bqp = self._body_q_prev if self._body_q_prev is not None else bq
@@ -417,6 +464,77 @@ class World:
                   inputs=[poses, bodies, teleport_mask if teleport else self.unstable, int(teleport)],
                   outputs=[s.body_q, self._body_q_prev, self._start_state.body_q], device=self.device)
 
+    def set_materials(self, obj, env_mask: wp.array, stiffness_scale: wp.array | None = None,
+                      damping: wp.array | None = None, density_scale: wp.array | None = None) -> None:
+        """Give the masked envs their own material for ``obj`` (a ``SceneObject``): the built stiffness (Young's
+        modulus, membrane, bending, rod moduli) times ``stiffness_scale[env]``, the built density times
+        ``density_scale[env]``, and the velocity damping rate ``damping[env]`` (1/s); each a ``(num_envs,)`` float
+        array or None (unchanged). Launches only (call it in a task's reset, inside the captured step); the scene
+        must be built with ``finalize(per_env_materials=True)``. The first call per object builds its column tables
+        on the host: make it once before capturing."""
+        m = self.model
+        if not m.material_base:
+            raise ValueError("per-env materials need SceneBuilder.finalize(per_env_materials=True)")
+        cols = self._material_columns(obj)
+        inv_stiffness = inv_density = None
+        if stiffness_scale is not None:
+            inv_stiffness = self._scratch_reciprocal("stiffness", stiffness_scale)
+        if density_scale is not None:
+            inv_density = self._scratch_reciprocal("density", density_scale)
+        n, dev = self.num_envs, self.device
+        for name, columns in cols.items():
+            base, out = m.material_base[name], getattr(m, name)
+            if name == "tet_params" and stiffness_scale is not None:
+                wp.launch(world_kernels.scale_tet_compliance, dim=(n, columns.shape[0]),
+                          inputs=[env_mask, columns, base, stiffness_scale], outputs=[out], device=dev)
+            elif name.endswith("compliance") and inv_stiffness is not None:
+                wp.launch(world_kernels.scale_material_columns, dim=(n, columns.shape[0]),
+                          inputs=[env_mask, columns, base, inv_stiffness], outputs=[out], device=dev)
+            elif name in ("particle_inv_mass", "segment_inv_inertia") and inv_density is not None:
+                wp.launch(world_kernels.scale_material_columns, dim=(n, columns.shape[0]),
+                          inputs=[env_mask, columns, base, inv_density], outputs=[out], device=dev)
+            elif name.endswith("damping") and damping is not None:
+                wp.launch(world_kernels.set_material_columns, dim=(n, columns.shape[0]),
+                          inputs=[env_mask, columns, damping], outputs=[out], device=dev)
+
+    def _scratch_reciprocal(self, key: str, values: wp.array) -> wp.array:
+        if not hasattr(self, "_reciprocals"):
+            self._reciprocals = {}
+        out = self._reciprocals.setdefault(key, wp.zeros(self.num_envs, dtype=float, device=self.device))
+        wp.launch(world_kernels.reciprocal, dim=self.num_envs, inputs=[values], outputs=[out], device=self.device)
+        return out
+
+    def _material_columns(self, obj) -> dict:
+        """Columns of every material array that belong to ``obj`` (host tables built once per object)."""
+        if not hasattr(self, "_material_cols"):
+            self._material_cols = {}
+        if obj.name in self._material_cols:
+            return self._material_cols[obj.name]
+        m, dev = self.model, self.device
+        lo, hi = obj.particle_start, obj.particle_start + obj.particle_count
+        seg = np.arange(obj.segment_start, obj.segment_start + obj.segment_count)
+
+        def inside(values):
+            return np.nonzero((values >= lo) & (values < hi))[0]
+
+        found = {"particle_inv_mass": np.arange(lo, hi), "particle_damping": np.arange(lo, hi)}
+        if m.edge_count:
+            found["edge_compliance"] = inside(m.edge_indices.numpy()[:, 0])
+        if m.hinge_count:
+            found["hinge_compliance"] = inside(m.hinge_indices.numpy()[:, 2])
+        if m.tet_count:
+            found["tet_params"] = inside(m.tet_indices.numpy()[:, 0])
+        if m.segment_count and len(seg):
+            found["segment_compliance"] = inside(m.segment_particles.numpy()[:, 0])
+            found["segment_inv_inertia"] = found["segment_damping"] = found["rod_stretch_compliance"] = seg
+            if m.bend_count:
+                b = m.bend_segments.numpy()[:, 0]
+                found["bend_compliance"] = np.nonzero((b >= seg[0]) & (b <= seg[-1]))[0]
+        cols = {name: wp.array(idx.astype(np.int32), dtype=wp.int32, device=dev) for name, idx in found.items()
+                if len(idx) and name in m.material_base}
+        self._material_cols[obj.name] = cols
+        return cols
+
     def _all_envs(self) -> wp.array:
         if not hasattr(self, "_all_envs_mask"):
             self._all_envs_mask = wp.ones(self.num_envs, dtype=wp.int32, device=self.device)
@@ -441,7 +559,8 @@ class World:
         """Bytes of dynamic per-env data: state arrays plus solver scratch (excludes shared topology)."""
         total = sum(a.capacity for a in self.state.arrays().values())
         total += sum(a.capacity for a in self._start_state.arrays().values())
-        for a in (self._q_pred, self._sq_prev, self._body_q_prev, *self._rod_scratch, *self._lam.values()):
+        for a in (self._q_pred, self._sq_prev, self._body_q_prev, *self._rod_scratch, *self._edge_scratch,
+                  *self._lam.values()):
             if a is not None:
                 total += a.capacity
         return total // max(1, self.num_envs)

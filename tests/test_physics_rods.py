@@ -1,7 +1,7 @@
 """Cosserat rods against closed forms: hanging length (direct stretch solve), cantilever (Euler-Bernoulli),
 catenary, pendulum period, rest stays at rest, violent starts, batch invariance.
 
-The stretch constraints of a rod are solved exactly along the whole rod per sweep (kernels/rods.py), so
+The stretch constraints of a rod are solved exactly along the whole rod per sweep (kernels/chains.py), so
 the tests run at the benchmark's 20 substeps per 0.1 s; the cantilever needs more substeps for its bending
 (Gauss-Seidel bend-twist, compliant regime r = h^2 w / alpha <~ 1).
 """

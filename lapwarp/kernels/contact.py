@@ -446,12 +446,45 @@ def collide_segments(
 # ----------------------------------------------------------------------------------------------------
 
 
+@wp.struct
+class ToolAxes:
+    """The sphere and capsule colliders of every env at the end of the current substep, computed once per sweep
+    for the triangle passes: axis ends ``(num_envs, shapes)`` and one padded box around all of them per env. Most
+    triangles of a sheet are far from every tool and return after comparing their box with the env's."""
+
+    c0: wp.array2d(dtype=wp.vec3)
+    c1: wp.array2d(dtype=wp.vec3)
+    lo: wp.array(dtype=wp.vec3)
+    hi: wp.array(dtype=wp.vec3)
+
+
+@wp.kernel
+def compute_tool_axes(shapes: ShapeTable, motion: BodyMotion, pad: float, axes: ToolAxes):
+    env = wp.tid()
+    lo = wp.vec3(1.0e30)
+    hi = wp.vec3(-1.0e30)
+    for s in range(shapes.kind.shape[0]):
+        if shapes.kind[s] > SHAPE_CAPSULE:
+            continue
+        tf = shape_pose(shapes, s, env, motion, motion.blend)
+        a = shape_axis_end(shapes, s, tf, -1.0)
+        b = shape_axis_end(shapes, s, tf, 1.0)
+        axes.c0[env, s] = a
+        axes.c1[env, s] = b
+        r = wp.vec3(shapes.params[s][0] + shapes.thickness[s])
+        lo = wp.min(lo, wp.min(a, b) - r)
+        hi = wp.max(hi, wp.max(a, b) + r)
+    axes.lo[env] = lo - wp.vec3(pad)
+    axes.hi[env] = hi + wp.vec3(pad)
+
+
 @wp.kernel
 def collide_triangles(
     triangles: ContactTriangles,
     start: int,
     shapes: ShapeTable,
     motion: BodyMotion,
+    axes: ToolAxes,
     solve: ParticleSolve,
     ignore: IgnoreMask,
     masks: CutMasks,
@@ -484,6 +517,13 @@ def collide_triangles(
     x0 = q[env, tri[0]]
     x1 = q[env, tri[1]]
     x2 = q[env, tri[2]]
+    # cull: the triangle's box against the box around every tool of the env (padded by the triangles' radius)
+    tmin = wp.min(x0, wp.min(x1, x2))
+    tmax = wp.max(x0, wp.max(x1, x2))
+    lo = axes.lo[env]
+    hi = axes.hi[env]
+    if tmax[0] < lo[0] or tmax[1] < lo[1] or tmax[2] < lo[2] or tmin[0] > hi[0] or tmin[1] > hi[1] or tmin[2] > hi[2]:
+        return
     ignore_bits = ignored_bodies(ignore, env, tri[0]) | ignored_bodies(ignore, env, tri[1])
     ignore_bits = ignore_bits | ignored_bodies(ignore, env, tri[2])
     for s in range(shapes.kind.shape[0]):
@@ -493,9 +533,8 @@ def collide_triangles(
             continue
         if passes_through(shapes, s, ignore_bits):
             continue
-        tf = shape_pose(shapes, s, env, motion, motion.blend)
-        c0 = shape_axis_end(shapes, s, tf, -1.0)
-        c1 = shape_axis_end(shapes, s, tf, 1.0)
+        c0 = axes.c0[env, s]
+        c1 = axes.c1[env, s]
         # cheap reject (most triangles are far from the tool): bounding sphere about the centroid vs the axis
         cen = (x0 + x1 + x2) / 3.0
         bound = wp.sqrt(wp.max(wp.length_sq(x0 - cen), wp.max(wp.length_sq(x1 - cen), wp.length_sq(x2 - cen))))
@@ -509,6 +548,7 @@ def collide_triangles(
         c = c0 * (1.0 - cl[0]) + c1 * cl[0]
         fn = safe_normalize(wp.cross(x1 - x0, x2 - x0), wp.vec3(0.0, 0.0, 1.0))
         # axis touching the triangle: push to the side the tool came from (its centre at the substep start)
+        tf = shape_pose(shapes, s, env, motion, motion.blend)
         tf0 = shape_pose(shapes, s, env, motion, motion.blend_prev)
         side = wp.dot(p - wp.transform_get_translation(tf0), fn)
         if side < 0.0:

@@ -173,6 +173,36 @@ def tet_surface(
 
 
 @wp.kernel
+def cloth_constraint_masks(
+    cut_dirty: wp.array2d(dtype=wp.int32),
+    edge_tris: wp.array(dtype=wp.vec2i),
+    hinge_tris: wp.array(dtype=wp.vec2i),
+    tri_active: wp.array2d(dtype=wp.int32),
+    edge_active: wp.array2d(dtype=wp.int32),
+    hinge_active: wp.array2d(dtype=wp.int32),
+):
+    """Edge and hinge masks of the envs whose triangles changed: an edge lives while one of its triangles does (a
+    spring with no triangle, -1 -1, always), a hinge while both do. Once per cut, so the constraint kernels of every
+    substep read one mask value instead of two triangle masks."""
+    env, c = wp.tid()
+    if cut_dirty[env, 0] == 0:
+        return
+    if c < edge_active.shape[1]:
+        et = edge_tris[c]
+        alive = int(1)
+        if et[0] >= 0 or et[1] >= 0:
+            alive = 0
+            if et[0] >= 0:
+                alive = tri_active[env, et[0]]
+            if et[1] >= 0 and alive == 0:
+                alive = tri_active[env, et[1]]
+        edge_active[env, c] = alive
+    if c < hinge_active.shape[1]:
+        ht = hinge_tris[c]
+        hinge_active[env, c] = wp.where(tri_active[env, ht[0]] != 0 and tri_active[env, ht[1]] != 0, 1, 0)
+
+
+@wp.kernel
 def particles_set_activity(
     elem_nodes: wp.array(dtype=wp.vec4i),
     elem_kind: wp.array(dtype=wp.int32),

@@ -134,6 +134,61 @@ def finish_env_step(
 
 
 @wp.kernel
+def sum_log_terms(
+    features: wp.array2d(dtype=wp.float32),
+    weights: wp.array(dtype=wp.float32),
+    finished_episodes: wp.array(dtype=wp.int32),
+    last_episode_success: wp.array(dtype=wp.int32),
+    last_episode_return: wp.array(dtype=wp.float32),
+    last_episode_length: wp.array(dtype=wp.int32),
+    unstable: wp.array(dtype=wp.int32),
+    nonfinite: wp.array(dtype=wp.int32),
+    clipped: wp.array(dtype=wp.int32),
+    discrete: int,
+    sums: wp.array(dtype=wp.float32),
+):
+    """Per env: add its weighted and raw features, its last finished episode's statistics, instability and action
+    counts to ``sums`` (layout of ``BatchedEnv._log_keys``, then the number of envs with a finished episode)."""
+    env = wp.tid()
+    F = features.shape[1]
+    for f in range(F):
+        v = features[env, f]
+        wp.atomic_add(sums, f, v * weights[f])
+        wp.atomic_add(sums, F + f, v)
+    if finished_episodes[env] > 0:
+        wp.atomic_add(sums, 2 * F, float(last_episode_success[env]))
+        wp.atomic_add(sums, 2 * F + 1, last_episode_return[env])
+        wp.atomic_add(sums, 2 * F + 2, float(last_episode_length[env]))
+        wp.atomic_add(sums, sums.shape[0] - 1, 1.0)
+    if unstable[env] != 0:
+        wp.atomic_add(sums, 2 * F + 3, 1.0)
+    if nonfinite[env] != 0:
+        wp.atomic_add(sums, 2 * F + 4, float(nonfinite[env]))
+    if discrete == 0 and clipped[env] != 0:
+        wp.atomic_add(sums, 2 * F + 5, float(clipped[env]))
+
+
+@wp.kernel
+def finish_log_terms(sums: wp.array(dtype=wp.float32), num_features: int, num_envs: int, action_dim: int,
+                     discrete: int, values: wp.array(dtype=wp.float32)):
+    """Sums -> means: features and instability over all envs, episode statistics over the envs that finished one,
+    action fractions per action component (continuous) or per env (discrete)."""
+    F = num_features
+    inv_envs = 1.0 / float(num_envs)
+    for k in range(2 * F):
+        values[k] = sums[k] * inv_envs
+    finished = wp.max(sums[sums.shape[0] - 1], 1.0)
+    for k in range(3):
+        values[2 * F + k] = sums[2 * F + k] / finished
+    values[2 * F + 3] = sums[2 * F + 3] * inv_envs
+    if discrete != 0:
+        values[2 * F + 4] = sums[2 * F + 4] * inv_envs
+    else:
+        values[2 * F + 4] = sums[2 * F + 4] * inv_envs / float(action_dim)
+        values[2 * F + 5] = sums[2 * F + 5] * inv_envs / float(action_dim)
+
+
+@wp.kernel
 def clear_episode_buffers(
     env_mask: wp.array(dtype=wp.int32),
     episode_length: wp.array(dtype=wp.int32),

@@ -66,6 +66,8 @@ class StateRows:
     attach_compliance: wp.array2d(dtype=float)
     tet_active: wp.array2d(dtype=wp.int32)
     tri_active: wp.array2d(dtype=wp.int32)
+    edge_active: wp.array2d(dtype=wp.int32)
+    hinge_active: wp.array2d(dtype=wp.int32)
     segment_active: wp.array2d(dtype=wp.int32)
     tet_face_active: wp.array2d(dtype=wp.int32)
     cut_dirty: wp.array2d(dtype=wp.int32)
@@ -97,9 +99,81 @@ def copy_state_rows(env_mask: wp.array(dtype=wp.int32), src: StateRows, dst: Sta
     copy_element(env, i, src.attach_compliance, dst.attach_compliance)
     copy_element(env, i, src.tet_active, dst.tet_active)
     copy_element(env, i, src.tri_active, dst.tri_active)
+    copy_element(env, i, src.edge_active, dst.edge_active)
+    copy_element(env, i, src.hinge_active, dst.hinge_active)
     copy_element(env, i, src.segment_active, dst.segment_active)
     copy_element(env, i, src.tet_face_active, dst.tet_face_active)
     copy_element(env, i, src.cut_dirty, dst.cut_dirty)
     copy_element(env, i, src.particle_active, dst.particle_active)
     if write_body_q_prev != 0:
         copy_element(env, i, src.body_q, body_q_prev)
+
+
+@wp.kernel
+def scale_material_columns(env_mask: wp.array(dtype=wp.int32), columns: wp.array(dtype=wp.int32),
+                           base: wp.array2d(dtype=Any), factor: wp.array(dtype=float), out: wp.array2d(dtype=Any)):
+    """``out[env, c] = base[env, c] * factor[env]`` for the masked envs and the given columns (compliances divided
+    by a stiffness scale, inverse masses by a density scale)."""
+    env, k = wp.tid()
+    if env_mask[env] == 0:
+        return
+    c = columns[k]
+    out[env, c] = base[env, c] * factor[env]
+
+
+@wp.kernel
+def scale_tet_compliance(env_mask: wp.array(dtype=wp.int32), columns: wp.array(dtype=wp.int32),
+                         base: wp.array2d(dtype=wp.vec3), stiffness: wp.array(dtype=float),
+                         out: wp.array2d(dtype=wp.vec3)):
+    """Tet compliances (deviatoric, volumetric; -1 marks no volume term) divided by a stiffness scale."""
+    env, k = wp.tid()
+    if env_mask[env] == 0:
+        return
+    c = columns[k]
+    p = base[env, c]
+    s = 1.0 / stiffness[env]
+    vol = p[1]
+    if vol >= 0.0:
+        vol = vol * s
+    out[env, c] = wp.vec3(p[0] * s, vol, p[2])
+
+
+@wp.kernel
+def set_material_columns(env_mask: wp.array(dtype=wp.int32), columns: wp.array(dtype=wp.int32),
+                         value: wp.array(dtype=float), out: wp.array2d(dtype=float)):
+    """``out[env, c] = value[env]`` for the masked envs and the given columns (damping rates)."""
+    env, k = wp.tid()
+    if env_mask[env] == 0:
+        return
+    out[env, columns[k]] = value[env]
+
+
+@wp.kernel
+def reciprocal(values: wp.array(dtype=float), out: wp.array(dtype=float)):
+    i = wp.tid()
+    out[i] = 1.0 / values[i]
+
+
+@wp.kernel
+def attachment_inverse_masses(inv_mass: wp.array2d(dtype=float), attach_particle: wp.array2d(dtype=wp.int32),
+                              attach_compliance: wp.array2d(dtype=float), inv_dt2: float,
+                              w_out: wp.array2d(dtype=float)):
+    """Inverse mass of each particle as the deformables' constraints see it: a particle held by attachments of
+    compliances alpha_s counts as ``1 / (1 / w + sum h^2 / alpha_s)``, i.e. the attachment springs' resistance
+    added to its inertia (0 for a stiff attachment: a grasped point then acts as pinned in the cloth, rod and tet
+    solves, instead of being dragged off by the whole sheet's weight within a sweep and snapped back by its
+    attachment afterwards)."""
+    env, i = wp.tid()
+    w = inv_mass[env % inv_mass.shape[0], i]
+    if w > 0.0:
+        resistance = float(0.0)
+        for s in range(attach_particle.shape[1]):
+            if attach_particle[env, s] == i:
+                a = attach_compliance[env, s] * inv_dt2
+                if a <= 0.0:
+                    w = 0.0
+                else:
+                    resistance += 1.0 / a
+        if w > 0.0 and resistance > 0.0:
+            w = 1.0 / (1.0 / w + resistance)
+    w_out[env, i] = w

@@ -11,9 +11,10 @@ XPBD (Macklin et al. 2016) with compliance ``alpha`` in SI units: ``alpha_t = al
 ``lambda`` starts at zero and is not stored (``use_lambda = 0``); with more iterations it is
 accumulated in per-env arrays so the result stays compliance-consistent.
 
-Cutting masks (``lapwarp.cutting``): constraint kernels take the per-env ``active`` masks of the elements they
-belong to and skip a constraint whose element was removed. An empty element map (length 0, scenes without
-cuttable objects) means "no masks": one branch on a uniform value, no memory traffic.
+Cutting masks (``lapwarp.cutting``): constraint kernels take per-env ``active`` masks and skip a constraint whose
+element was removed: cloth edges and hinges their own masks (derived from the triangles once per cut), tets the
+mask of their element. An empty mask or element map (scenes without cuttable objects) means "no masks": one branch
+on a uniform value, no memory traffic.
 """
 
 import warp as wp
@@ -114,23 +115,15 @@ def solve_edges(
     inv_dt2: float,
     use_lambda: int,
     lam: wp.array2d(dtype=float),
-    edge_tris: wp.array(dtype=wp.vec2i),
-    tri_active: wp.array2d(dtype=wp.int32),
+    edge_active: wp.array2d(dtype=wp.int32),
     q: wp.array2d(dtype=wp.vec3),
 ):
     env, t = wp.tid()
     c = start + t
-    if edge_tris.shape[0] > 0:
-        # an edge spring of a cloth lives while one of its triangles does (springs have no triangle: -1, -1)
-        et = edge_tris[c]
-        if et[0] >= 0 or et[1] >= 0:
-            alive = int(0)
-            if et[0] >= 0:
-                alive = tri_active[env, et[0]]
-            if et[1] >= 0 and alive == 0:
-                alive = tri_active[env, et[1]]
-            if alive == 0:
-                return
+    # (N, E) cutting mask (an edge lives while one of its triangles does), or (1, 0): no masks
+    if edge_active.shape[1] > 0:
+        if edge_active[env, c] == 0:
+            return
     ij = indices[c]
     pe = env % inv_mass.shape[0]
     wi = inv_mass[pe, ij[0]]
@@ -167,16 +160,14 @@ def solve_hinges(
     inv_dt2: float,
     use_lambda: int,
     lam: wp.array2d(dtype=float),
-    hinge_tris: wp.array(dtype=wp.vec2i),
-    tri_active: wp.array2d(dtype=wp.int32),
+    hinge_active: wp.array2d(dtype=wp.int32),
     q: wp.array2d(dtype=wp.vec3),
 ):
     env, t = wp.tid()
     c = start + t
-    if hinge_tris.shape[0] > 0:
-        # a hinge bends two triangles against each other: it needs both
-        ht = hinge_tris[c]
-        if tri_active[env, ht[0]] == 0 or tri_active[env, ht[1]] == 0:
+    # (N, H) cutting mask (a hinge bends two triangles against each other: it needs both), or (1, 0): no masks
+    if hinge_active.shape[1] > 0:
+        if hinge_active[env, c] == 0:
             return
     h = indices[c]
     pe = env % inv_mass.shape[0]
@@ -258,6 +249,30 @@ def polar_rotation(F: wp.mat33):
     return U * wp.transpose(V)
 
 
+@wp.func
+def extract_rotation(F: wp.mat33, q0: wp.quat, iterations: int) -> wp.quat:
+    """Rotation of ``F`` by Mueller et al. 2016 ("A Robust Method to Extract the Rotational Part of
+    Deformations"): from the warm start ``q0`` (the tet's rotation of the previous sweep), turn the frame's columns
+    towards ``F``'s. Always a proper rotation, also for inverted tets; a few iterations suffice when warm-started,
+    which is far cheaper than the SVD of ``polar_rotation``."""
+    q = q0
+    a0 = mat_col(F, 0)
+    a1 = mat_col(F, 1)
+    a2 = mat_col(F, 2)
+    for _ in range(iterations):
+        R = wp.quat_to_matrix(q)
+        r0 = mat_col(R, 0)
+        r1 = mat_col(R, 1)
+        r2 = mat_col(R, 2)
+        omega = (wp.cross(r0, a0) + wp.cross(r1, a1) + wp.cross(r2, a2)) * (
+            1.0 / (wp.abs(wp.dot(r0, a0) + wp.dot(r1, a1) + wp.dot(r2, a2)) + 1.0e-9))
+        angle = wp.length(omega)
+        if angle < 1.0e-9:
+            break
+        q = wp.normalize(wp.quat_from_axis_angle(omega / angle, angle) * q)
+    return q
+
+
 @wp.kernel
 def solve_tets(
     start: int,
@@ -270,6 +285,8 @@ def solve_tets(
     lam: wp.array2d(dtype=wp.vec2),
     tet_element: wp.array(dtype=wp.int32),
     tet_active: wp.array2d(dtype=wp.int32),
+    rotation_iterations: int,
+    tet_rotation: wp.array2d(dtype=wp.quat),
     q: wp.array2d(dtype=wp.vec3),
 ):
     env, t = wp.tid()
@@ -292,7 +309,13 @@ def solve_tets(
     p = params[env % params.shape[0], c]
     # Energy V (mu |F - R|^2 + lambda/2 (det F - 1)^2) = C_D^2 / (2 alpha_D) + C_H^2 / (2 alpha_H): both
     # constraints vanish at rest, so stiff materials (alpha / dt^2 << w |grad C|^2) stay stable.
-    R = polar_rotation(F)
+    R = wp.mat33()
+    if tet_rotation.shape[1] > 0:  # warm-started rotation extraction (the default)
+        qr = extract_rotation(F, tet_rotation[env, c], rotation_iterations)
+        tet_rotation[env, c] = qr
+        R = wp.quat_to_matrix(qr)
+    else:
+        R = polar_rotation(F)
     FR = F - R
     C_D = wp.sqrt(wp.ddot(FR, FR))
     f1 = mat_col(F, 0)
