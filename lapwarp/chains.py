@@ -26,26 +26,29 @@ class ChainSet:
 
     Attributes:
         count: number of chains; ``edges``: number of constraints in all chains.
-        edge_start, edge_count, closed: ``(count,)`` int32 per chain, in family order.
-        node: ``(edges + count,)`` int32 global particle of node ``k`` of chain ``c`` at ``edge_start[c] + c + k``.
-        constraint: ``(edges,)`` int32 constraint index of link ``k`` of chain ``c`` at ``edge_start[c] + k``.
-        family_offsets: host list, chains ``[family_offsets[f], family_offsets[f + 1])`` share no node.
+        edge_count, closed: ``(count,)`` int32 per chain, chains in family order.
+        node: int32 global particle of every node slot, ``constraint``: int32 constraint index of every link slot;
+            within a family link-major (link ``k`` of its ``i``-th chain at ``link_base + k * stride + i``, node
+            ``j`` at ``node_base + j * stride + i``), padded to the family's longest chain.
+        families: host list of ``(first chain, chains, link_base, node_base)``; the chains of one family share no node.
+        link_slots, node_slots: sizes of the slot arrays (the per-env scratch has the same layout).
         lengths: host array of the chain lengths (links), for reports.
     """
 
     count: int
     edges: int
-    edge_start: wp.array
     edge_count: wp.array
     closed: wp.array
     node: wp.array
     constraint: wp.array
-    family_offsets: list = field(default_factory=lambda: [0])
+    families: list = field(default_factory=list)
+    link_slots: int = 0
+    node_slots: int = 0
     lengths: np.ndarray | None = None
 
     @property
     def num_families(self) -> int:
-        return len(self.family_offsets) - 1
+        return len(self.families)
 
 
 def straight_chains(edges: np.ndarray, positions: np.ndarray, min_angle_deg: float = 120.0) -> list[tuple[list, list,
@@ -138,24 +141,34 @@ def chain_families(chains: list[tuple[list, list, bool]], num_nodes: int) -> lis
 
 
 def build_chain_set(chains: list[tuple[list, list, bool]], num_nodes: int, device) -> ChainSet:
-    """Flatten chains (node lists in global particle indices, constraint ids) into a ``ChainSet`` in family order."""
+    """Flatten chains (node lists in global particle indices, constraint ids) into a ``ChainSet``: chains grouped
+    into families, each family's links and nodes interleaved link-major."""
     family = chain_families(chains, num_nodes)
-    order = sorted(range(len(chains)), key=lambda c: (family[c], c))
-    edge_start, edge_count, closed, node, constraint = [], [], [], [], []
-    offsets = [0]
-    for rank, c in enumerate(order):
-        nodes, ids, is_closed = chains[c]
-        edge_start.append(len(constraint))
-        edge_count.append(len(ids))
-        closed.append(int(is_closed))
-        constraint.extend(ids)
-        node.extend(nodes + [nodes[-1]] * (len(ids) + 1 - len(nodes)))  # a loop's spare slot is never read
-        if rank + 1 == len(order) or family[order[rank + 1]] != family[c]:
-            offsets.append(rank + 1)
+    # by family, then longest first: the threads of a warp then walk chains of about the same length
+    order = sorted(range(len(chains)), key=lambda c: (family[c], -len(chains[c][1]), c))
+    edge_count = [len(chains[c][1]) for c in order]
+    closed = [int(chains[c][2]) for c in order]
+    node_slots, link_slots, families = [], [], []
+    first = 0
+    for f in sorted(set(family)):
+        members = [c for c in order if family[c] == f]
+        count, longest = len(members), max(len(chains[c][1]) for c in members)
+        links = np.zeros((longest, count), dtype=np.int64)  # padding is never read (k < edge_count)
+        nodes = np.zeros((longest + 1, count), dtype=np.int64)
+        for i, c in enumerate(members):
+            ids, chain_nodes = chains[c][1], chains[c][0]
+            links[: len(ids), i] = ids
+            nodes[: len(chain_nodes), i] = chain_nodes
+        families.append((first, count, sum(a.size for a in link_slots), sum(a.size for a in node_slots)))
+        link_slots.append(links.ravel())
+        node_slots.append(nodes.ravel())
+        first += count
 
     def arr(values):
         return wp.array(np.asarray(values, dtype=np.int32), dtype=wp.int32, device=device)
 
-    return ChainSet(count=len(chains), edges=len(constraint), edge_start=arr(edge_start), edge_count=arr(edge_count),
-                    closed=arr(closed), node=arr(node), constraint=arr(constraint), family_offsets=offsets,
-                    lengths=np.asarray(edge_count))
+    link = np.concatenate(link_slots) if link_slots else np.zeros(0, np.int64)
+    node = np.concatenate(node_slots) if node_slots else np.zeros(0, np.int64)
+    return ChainSet(count=len(chains), edges=int(sum(edge_count)), edge_count=arr(edge_count), closed=arr(closed),
+                    node=arr(node), constraint=arr(link), families=families, link_slots=len(link),
+                    node_slots=len(node), lengths=np.asarray(edge_count))

@@ -165,7 +165,7 @@ class World:
         if chains is None:
             return ()
         n, dev = self.num_envs, self.device
-        links, nodes = max(chains.edges, 1), max(chains.edges + chains.count, 1)
+        links, nodes = max(chains.link_slots, 1), max(chains.node_slots, 1)
         return (*(wp.zeros((n, links), dtype=float, device=dev) for _ in range(4)),
                 wp.zeros((n, nodes), dtype=float, device=dev), wp.zeros((n, nodes), dtype=wp.vec3, device=dev),
                 wp.zeros((n, nodes), dtype=wp.vec3, device=dev))
@@ -321,11 +321,10 @@ class World:
 
         def solve_chains(cs, rest, compliance, lam_arr, scratch, mask, newton_steps):
             # one launch per family of chains that share no node (Gauss-Seidel across families)
-            off = cs.family_offsets
-            for f in range(len(off) - 1):
-                launch(chains.solve_chains, (n, off[f + 1] - off[f]),
-                       [off[f], cs.edge_start, cs.edge_count, cs.closed, cs.node, cs.constraint, rest, compliance,
-                        w_eff, inv_dt2, use_lam, newton_steps, lam_arr, *scratch, mask],
+            for first, count, link_base, node_base in cs.families:
+                launch(chains.solve_chains, (n, count),
+                       [first, count, link_base, node_base, cs.edge_count, cs.closed, cs.node, cs.constraint, rest,
+                        compliance, w_eff, inv_dt2, use_lam, newton_steps, lam_arr, *scratch, mask],
                        [s.particle_q])
 
         if m.tether_count:

@@ -8,9 +8,12 @@ hanging 40 x 40 cloth without tethers 2x on average, 15x at worst) at 20 substep
 launch (a *family*) share no node, so they run in parallel without atomics; families follow each other
 (Gauss-Seidel across families).
 
-A chain is a list of nodes (``chain_node``: global particle indices, node ``k`` of chain ``c`` at slot
-``chain_edge_start[c] + c + k``) and of constraints (``chain_constraint``: the index of edge ``k``'s rest length,
-compliance, multiplier and cutting mask column in its constraint group, at slot ``chain_edge_start[c] + k``).
+A chain is a list of nodes (``chain_node``: global particle indices) and of constraints (``chain_constraint``: the
+index of link ``k``'s rest length, compliance, multiplier and cutting mask column in its constraint group). The
+chains of a family are stored interleaved, link-major: link ``k`` of the family's ``i``-th chain at slot
+``link_base + k * stride + i`` and node ``j`` at ``node_base + j * stride + i`` (``stride`` = chains in the family), so
+the threads of a warp, each walking its own chain, read and write neighbouring memory; the per-env scratch uses the
+same slots.
 
 Derivation (Deul, Kugelstadt, Weiler, Bender 2018, "Direct Position-Based Solver for Stiff Rods", here
 for the scalar stretch constraints only; shear and bend-twist stay local Gauss-Seidel projections).
@@ -67,7 +70,9 @@ def segment_dir(a: wp.vec3, b: wp.vec3):
 @wp.kernel
 def solve_chains(
     family_start: int,
-    chain_edge_start: wp.array(dtype=wp.int32),
+    stride: int,
+    link_base: int,
+    node_base: int,
     chain_edge_count: wp.array(dtype=wp.int32),
     chain_closed: wp.array(dtype=wp.int32),
     chain_node: wp.array(dtype=wp.int32),
@@ -91,8 +96,10 @@ def solve_chains(
 ):
     env, i = wp.tid()
     r = family_start + i  # chain index
-    s0 = chain_edge_start[r]
-    nb = s0 + r  # first node slot: a chain has at most edge_count + 1 nodes
+    # link k of this chain at slot s0 + k * stride, node j at nb + j * stride: the chains of a family are interleaved
+    # (link-major), so the threads of a warp, walking their chains in step, touch neighbouring memory
+    s0 = link_base + i
+    nb = node_base + i
     m = chain_edge_count[r]
     nodes = m + 1
     closed3 = int(0)
@@ -105,7 +112,7 @@ def solve_chains(
     masked = active.shape[1] > 0
     if masked and closed3 != 0:
         # a loop cut at its closing corner is an open chain (cut elsewhere: blocks split inside the solve)
-        if active[env, chain_constraint[s0]] == 0 or active[env, chain_constraint[s0 + m - 1]] == 0:
+        if active[env, chain_constraint[s0]] == 0 or active[env, chain_constraint[s0 + (m - 1) * stride]] == 0:
             closed3 = 0
 
     for it in range(newton_steps):
@@ -113,13 +120,13 @@ def solve_chains(
         # ---- forward elimination (Thomas); for a loop also the second right-hand side u --------------------
         x_first = q[env, chain_node[nb]]
         w_first = inv_mass[pe, chain_node[nb]]
-        n_cur, len_cur = segment_dir(x_first, q[env, chain_node[nb + (1 % nodes)]])
+        n_cur, len_cur = segment_dir(x_first, q[env, chain_node[nb + (1 % nodes) * stride]])
         # closing segment m-1 (node m-1 -> node 0) and its coupling s = A_{m-1,0} for a loop
         n_last = wp.vec3(0.0)
         g = float(0.0)
         s = float(0.0)
         if cyclic != 0:
-            n_last, len_last = segment_dir(q[env, chain_node[nb + m - 1]], x_first)
+            n_last, len_last = segment_dir(q[env, chain_node[nb + (m - 1) * stride]], x_first)
             s = -w_first * wp.dot(n_last, n_cur)
             if s == 0.0:
                 cyclic = 0  # no corner coupling (node 0 pinned): a plain tridiagonal system
@@ -132,7 +139,7 @@ def solve_chains(
             k1 = k + 1
             if k1 == nodes:
                 k1 = 0
-            w_k1 = inv_mass[pe, chain_node[nb + k1]]
+            w_k1 = inv_mass[pe, chain_node[nb + k1 * stride]]
             # look one segment ahead for the super-diagonal A_{k,k+1}
             n_next = wp.vec3(0.0)
             len_next = float(0.0)
@@ -141,23 +148,24 @@ def solve_chains(
                 k2 = k + 2
                 if k2 >= nodes:
                     k2 = k2 - nodes
-                n_next, len_next = segment_dir(q[env, chain_node[nb + k1]], q[env, chain_node[nb + k2]])
+                n_next, len_next = segment_dir(q[env, chain_node[nb + k1 * stride]],
+                                               q[env, chain_node[nb + k2 * stride]])
                 c_k = -w_k1 * wp.dot(n_cur, n_next)
             act_k = int(1)
             if masked:
-                act_k = active[env, chain_constraint[s0 + k]]
+                act_k = active[env, chain_constraint[s0 + k * stride]]
                 if k + 1 < m:
-                    if act_k == 0 or active[env, chain_constraint[s0 + k + 1]] == 0:
+                    if act_k == 0 or active[env, chain_constraint[s0 + (k + 1) * stride]] == 0:
                         c_k = 0.0  # no coupling across a cut
-            alpha = compliance[ce, chain_constraint[s0 + k]] * inv_dt2
+            alpha = compliance[ce, chain_constraint[s0 + k * stride]] * inv_dt2
             b_k = w_k + w_k1 + alpha
-            rhs = rest[chain_constraint[s0 + k]] - len_cur  # -C_k
+            rhs = rest[chain_constraint[s0 + k * stride]] - len_cur  # -C_k
             # lambda of this sweep so far: earlier sweeps (iterations > 1) plus the earlier Newton step
             lam_k = float(0.0)
             if use_lambda != 0:
-                lam_k = lam[env, chain_constraint[s0 + k]]
+                lam_k = lam[env, chain_constraint[s0 + k * stride]]
             if it > 0:
-                lam_k = lam_k + scratch_l[env, s0 + k]
+                lam_k = lam_k + scratch_l[env, s0 + k * stride]
             rhs = rhs - alpha * lam_k
             u_k = float(0.0)
             if cyclic != 0:
@@ -177,10 +185,10 @@ def solve_chains(
             c_prev = c_k * inv
             d_prev = (rhs - a_k * d_prev) * inv
             e_prev = (u_k - a_k * e_prev) * inv
-            scratch_c[env, s0 + k] = c_prev
-            scratch_d[env, s0 + k] = d_prev
+            scratch_c[env, s0 + k * stride] = c_prev
+            scratch_d[env, s0 + k * stride] = d_prev
             if cyclic != 0:
-                scratch_e[env, s0 + k] = e_prev
+                scratch_e[env, s0 + k * stride] = e_prev
             a_k = c_k
             n_cur = n_next
             len_cur = len_next
@@ -191,19 +199,20 @@ def solve_chains(
         z_next = float(0.0)
         for kk in range(m):
             k = m - 1 - kk
-            c = scratch_c[env, s0 + k]
-            y_next = scratch_d[env, s0 + k] - c * y_next
-            scratch_d[env, s0 + k] = y_next
+            c = scratch_c[env, s0 + k * stride]
+            y_next = scratch_d[env, s0 + k * stride] - c * y_next
+            scratch_d[env, s0 + k * stride] = y_next
             if cyclic != 0:
-                z_next = scratch_e[env, s0 + k] - c * z_next
-                scratch_e[env, s0 + k] = z_next
+                z_next = scratch_e[env, s0 + k * stride] - c * z_next
+                scratch_e[env, s0 + k * stride] = z_next
         if cyclic != 0:
             # y_next, z_next now hold y_0, z_0; v = (1, 0, .., 0, s / g)
-            vy = y_next + (s / g) * scratch_d[env, s0 + m - 1]
-            vz = z_next + (s / g) * scratch_e[env, s0 + m - 1]
+            vy = y_next + (s / g) * scratch_d[env, s0 + (m - 1) * stride]
+            vz = z_next + (s / g) * scratch_e[env, s0 + (m - 1) * stride]
             f = vy / (1.0 + vz)
             for k in range(m):
-                scratch_d[env, s0 + k] = scratch_d[env, s0 + k] - f * scratch_e[env, s0 + k]
+                sk = s0 + k * stride
+                scratch_d[env, sk] = scratch_d[env, sk] - f * scratch_e[env, sk]
 
         # ---- corrections dx_j = w_j (n_{j-1} dl_{j-1} - n_j dl_j), normals from the positions before this solve.
         # Applied as is, the transverse part of dx is an explicit diffusion of kinks, d <- d + r Lap(d) with
@@ -221,7 +230,7 @@ def solve_chains(
         k_prev = float(0.0)  # w-free tension weight Lambda / l of segment j - 1
         if cyclic != 0:
             n_prev = n_last
-            dl_prev = scratch_d[env, s0 + m - 1]
+            dl_prev = scratch_d[env, s0 + (m - 1) * stride]
         cn_prev = float(0.0)
         dn_prev = wp.vec3(0.0)
         for j in range(nodes):
@@ -234,21 +243,24 @@ def solve_chains(
                 if jn == nodes:
                     x_next = x_first  # closing segment of a loop: node 0 as it was before the update
                 else:
-                    x_next = q[env, chain_node[nb + jn]]
+                    x_next = q[env, chain_node[nb + jn * stride]]
                 n_j, len_j = segment_dir(x_cur, x_next)
                 if masked:
-                    if active[env, chain_constraint[s0 + j]] == 0:
+                    if active[env, chain_constraint[s0 + j * stride]] == 0:
                         n_j = wp.vec3(0.0)  # a removed segment: the nodes beside it are free ends
-                dl_j = scratch_d[env, s0 + j]
-                if it == 0:
-                    scratch_l[env, s0 + j] = dl_j
-                else:
-                    scratch_l[env, s0 + j] = scratch_l[env, s0 + j] + dl_j
+                dl_j = scratch_d[env, s0 + j * stride]
+                # multiplier of this sweep's Newton steps so far (kept in scratch_l for the next step)
+                acc = dl_j
+                if it > 0:
+                    acc = scratch_l[env, s0 + j * stride] + dl_j
+                if it < newton_steps - 1:
+                    scratch_l[env, s0 + j * stride] = acc
                 if use_lambda != 0 and it == newton_steps - 1:
-                    lam[env, chain_constraint[s0 + j]] = lam[env, chain_constraint[s0 + j]] + scratch_l[env, s0 + j]
+                    cj = chain_constraint[s0 + j * stride]
+                    lam[env, cj] = lam[env, cj] + acc
                 if j + 1 < nodes and len_j > 1.0e-12:
                     k_j = wp.max(-dl_j, 0.0) / len_j
-            w_j = inv_mass[pe, chain_node[nb + j]]
+            w_j = inv_mass[pe, chain_node[nb + j * stride]]
             dx = (n_prev * dl_prev - n_j * dl_j) * w_j
             t = n_prev + n_j
             tl = wp.length(t)
@@ -264,9 +276,9 @@ def solve_chains(
             inv = 1.0 / denom
             cn_prev = up * inv
             dn_prev = (dx - par - dn_prev * lo) * inv
-            node_c[env, nb + j] = cn_prev
-            node_d[env, nb + j] = dn_prev
-            node_par[env, nb + j] = par + x_cur
+            node_c[env, nb + j * stride] = cn_prev
+            node_d[env, nb + j * stride] = dn_prev
+            node_par[env, nb + j * stride] = par + x_cur
             x_cur = x_next
             n_prev = n_j
             dl_prev = dl_j
@@ -274,6 +286,6 @@ def solve_chains(
         y = wp.vec3(0.0)
         for jj in range(nodes):
             j = nodes - 1 - jj
-            y = node_d[env, nb + j] - y * node_c[env, nb + j]
-            if inv_mass[pe, chain_node[nb + j]] > 0.0:
-                q[env, chain_node[nb + j]] = node_par[env, nb + j] + y
+            y = node_d[env, nb + j * stride] - y * node_c[env, nb + j * stride]
+            if inv_mass[pe, chain_node[nb + j * stride]] > 0.0:
+                q[env, chain_node[nb + j * stride]] = node_par[env, nb + j * stride] + y
