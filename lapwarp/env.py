@@ -422,7 +422,8 @@ class BatchedEnv(VecEnv):
         """Means over the envs of everything ``extras["log"]`` reports, into ``log_values`` (two launches)."""
         dev = self.wp_device
         self._log_sums.zero_()
-        wp.launch(env_kernels.sum_log_terms, dim=self.num_envs,
+        chunks = (self.num_envs + env_kernels.LOG_CHUNK - 1) // env_kernels.LOG_CHUNK
+        wp.launch(env_kernels.sum_log_terms, dim=(chunks, self._log_sums.shape[0]),
                   inputs=[self.features, self.weights, self.finished_episodes, self.last_episode_success,
                           self.last_episode_return, self.last_episode_length, self.world.unstable,
                           self.nonfinite_actions, self.clipped_actions, int(self.is_discrete)],

@@ -133,6 +133,10 @@ def finish_env_step(
         last_episode_length[env] = length
 
 
+#: Envs summed by one thread of ``sum_log_terms`` (few atomic additions per address instead of one per env).
+LOG_CHUNK = wp.constant(32)
+
+
 @wp.kernel
 def sum_log_terms(
     features: wp.array2d(dtype=wp.float32),
@@ -147,25 +151,39 @@ def sum_log_terms(
     discrete: int,
     sums: wp.array(dtype=wp.float32),
 ):
-    """Per env: add its weighted and raw features, its last finished episode's statistics, instability and action
-    counts to ``sums`` (layout of ``BatchedEnv._log_keys``, then the number of envs with a finished episode)."""
-    env = wp.tid()
+    """Thread (chunk, term): the sum of one term of ``extras["log"]`` over ``LOG_CHUNK`` envs, added to ``sums``
+    (layout of ``BatchedEnv._log_keys``, then the number of envs with a finished episode): weighted features, raw
+    features, the last finished episodes' success, return and length, instability and action counts."""
+    chunk, term = wp.tid()
     F = features.shape[1]
-    for f in range(F):
-        v = features[env, f]
-        wp.atomic_add(sums, f, v * weights[f])
-        wp.atomic_add(sums, F + f, v)
-    if finished_episodes[env] > 0:
-        wp.atomic_add(sums, 2 * F, float(last_episode_success[env]))
-        wp.atomic_add(sums, 2 * F + 1, last_episode_return[env])
-        wp.atomic_add(sums, 2 * F + 2, float(last_episode_length[env]))
-        wp.atomic_add(sums, sums.shape[0] - 1, 1.0)
-    if unstable[env] != 0:
-        wp.atomic_add(sums, 2 * F + 3, 1.0)
-    if nonfinite[env] != 0:
-        wp.atomic_add(sums, 2 * F + 4, float(nonfinite[env]))
-    if discrete == 0 and clipped[env] != 0:
-        wp.atomic_add(sums, 2 * F + 5, float(clipped[env]))
+    first = chunk * LOG_CHUNK
+    last = wp.min(first + LOG_CHUNK, features.shape[0])
+    acc = float(0.0)
+    for env in range(first, last):
+        v = float(0.0)
+        if term < F:
+            v = features[env, term] * weights[term]
+        elif term < 2 * F:
+            v = features[env, term - F]
+        elif term < 2 * F + 3 or term == sums.shape[0] - 1:
+            if finished_episodes[env] > 0:
+                if term == 2 * F:
+                    v = float(last_episode_success[env])
+                elif term == 2 * F + 1:
+                    v = last_episode_return[env]
+                elif term == 2 * F + 2:
+                    v = float(last_episode_length[env])
+                else:
+                    v = 1.0
+        elif term == 2 * F + 3:
+            v = float(unstable[env] != 0)
+        elif term == 2 * F + 4:
+            v = float(nonfinite[env])
+        elif term == 2 * F + 5 and discrete == 0:
+            v = float(clipped[env])
+        acc += v
+    if acc != 0.0:
+        wp.atomic_add(sums, term, acc)
 
 
 @wp.kernel
