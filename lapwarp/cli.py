@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Any, TextIO
 
 import lapwarp
+from lapwarp.output_paths import check_output_path
 
 USAGE_ERROR = 2  # argparse's exit status for bad arguments; used for invalid settings too
 RUN_ERROR = 1
@@ -150,7 +151,7 @@ def _non_negative_int(text: str) -> int:
     return value
 
 
-def _quiet_warp() -> None:
+def quiet_warp() -> None:
     import warp as wp
 
     # Warp's init banner and per-module load lines would bury the CLI's own output; keep its warnings.
@@ -165,7 +166,7 @@ def cmd_list(args: argparse.Namespace, out: TextIO) -> int:
     """Table of the registered tasks with their observation and action sizes (from a 1-env CPU instance)."""
     from lapwarp.registry import task_class
 
-    _quiet_warp()
+    quiet_warp()
     rows = []
     for name in lapwarp.list_tasks():
         env = lapwarp.make(name, num_envs=1, device="cpu")
@@ -200,7 +201,7 @@ def cmd_run(args: argparse.Namespace, out: TextIO, err: TextIO) -> int:
     import torch
     import warp as wp
 
-    _quiet_warp()
+    quiet_warp()
     overrides = parse_overrides(args.set)
     overrides.setdefault("observation_type", args.obs.upper())
     overrides.setdefault("seed", args.seed)
@@ -211,6 +212,12 @@ def cmd_run(args: argparse.Namespace, out: TextIO, err: TextIO) -> int:
         raise CliError(f"--save-images writes a PNG; give a path ending in .png, got {args.save_images!r}")
     if args.usd and Path(args.usd).suffix not in (".usda", ".usd", ".usdc"):
         raise CliError(f"--usd path must end in .usda, .usd or .usdc, got {args.usd!r}")
+    try:  # before the env is built: a long run must not end in an unwritable path
+        for option, path in (("--save-images", save_images), ("--usd", args.usd)):
+            if path:
+                check_output_path(path, option, make_dirs=args.mkdir)
+    except ValueError as exc:
+        raise CliError(f"{exc}{'' if args.mkdir else ' (--mkdir creates missing folders)'}") from None
     try:
         env = lapwarp.make(args.task, num_envs=args.num_envs, device=args.device, **overrides)
         policy = _make_policy(env, args.policy, args.seed)
@@ -222,9 +229,11 @@ def cmd_run(args: argparse.Namespace, out: TextIO, err: TextIO) -> int:
         try:
             from lapwarp.usd import UsdRecorder
 
-            recorder = UsdRecorder(env, args.usd, env_ids=range(min(env.num_envs, USD_ENVS)))
+            recorder = UsdRecorder(env, args.usd, env_ids=range(min(env.num_envs, USD_ENVS)), make_dirs=args.mkdir)
         except ImportError as exc:
             raise CliError(str(exc), RUN_ERROR) from None
+        except ValueError as exc:
+            raise CliError(str(exc)) from None
         recorder.record()
 
     obs = env.get_observations()
@@ -237,17 +246,20 @@ def cmd_run(args: argparse.Namespace, out: TextIO, err: TextIO) -> int:
     return_sum = torch.zeros((), dtype=torch.float64, device=env.device)
     length_sum = torch.zeros((), dtype=torch.long, device=env.device)
     reward_sum = torch.zeros((), dtype=torch.float64, device=env.device)
+    overflow_sum = torch.zeros((), dtype=torch.float64, device=env.device)  # env-steps with a full contact buffer
 
     progress = ProgressBar(args.steps, err, enabled=args.progress if args.progress is not None else err.isatty())
     start = time.perf_counter()
     try:
         for step in range(args.steps):
-            obs, rewards, dones, _ = env.step(policy(obs))
+            obs, rewards, dones, extras = env.step(policy(obs))
             episodes += dones.sum()
             successes += (last_success * dones).sum()
             return_sum += (last_return * dones).sum()
             length_sum += (last_length * dones).sum()
             reward_sum += rewards.sum()
+            if "/contact/overflow_fraction" in extras["log"]:
+                overflow_sum += extras["log"]["/contact/overflow_fraction"] * env.num_envs
             if recorder is not None:
                 recorder.record()
             if progress.enabled:
@@ -281,6 +293,9 @@ def cmd_run(args: argparse.Namespace, out: TextIO, err: TextIO) -> int:
         ["env-steps/s", f"{env_steps / elapsed:,.0f}" + (" (with USD recording)" if recorder else "")
          if env_steps else "n/a"],
     ]
+    if "/contact/overflow_fraction" in env.log_keys:
+        rows.append(["contact overflows", f"{round(float(overflow_sum))} env-steps lost contact records (capacity "
+                     "is a task config value)" if float(overflow_sum) > 0 else "none"])
     if recorder is not None:
         path = recorder.close()
         rows.append(["usd", f"{path} (envs 0..{len(recorder.env_ids) - 1}, {recorder.num_frames} time samples)"])
@@ -300,7 +315,6 @@ def _save_images(env, path: Path, size: int) -> str:
     if not hasattr(env, "render_rgb"):
         raise CliError(f"rendering is not available for {type(env).__name__}", RUN_ERROR)
     images = env.render_rgb(size, size)[:IMAGE_ENVS]
-    path.parent.mkdir(parents=True, exist_ok=True)
     grid = save_image_grid(images, path)
     return f"{path} ({len(images)} envs, {size}x{size} each, grid {grid.shape[1]}x{grid.shape[0]})"
 
@@ -321,7 +335,7 @@ def cmd_bench(args: argparse.Namespace, out: TextIO) -> int:
     """Run benchmarks/bench_env.py for TASK; options after TASK go to it unchanged."""
     if args.task not in lapwarp.list_tasks():
         raise CliError(f"unknown task {args.task!r}; available tasks: {lapwarp.list_tasks()}")
-    _quiet_warp()
+    quiet_warp()
     bench = _load_bench_module()
     try:
         return int(bench.main(["--task", args.task, *args.bench_args]) or 0)
@@ -363,6 +377,9 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--usd", metavar="FILE", default=None,
                      help=f"record envs 0..{USD_ENVS - 1} (at most) to a .usda/.usd/.usdc file, one time sample "
                           "per step")
+    run.add_argument("--mkdir", action="store_true",
+                     help="create missing folders of the --usd and --save-images paths (otherwise an error before "
+                          "the run)")
     run.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
                      help="config overrides, values parsed as JSON (e.g. sphere_radius=0.02 action_type=DISCRETE)")
     progress = run.add_mutually_exclusive_group()

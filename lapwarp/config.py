@@ -10,12 +10,13 @@ reward feature names and invalid choices raise ``ValueError`` listing the valid 
 Annotations understood: ``bool``, ``int``, ``float`` (finite), ``str``, ``Literal[...]`` (choices), ``X | None``,
 ``tuple[T, ...]`` / ``tuple[T1, T2]`` (lists and arrays accepted), ``dict[str, float]``, and
 ``Annotated[T, Range(...)]`` for a range (applied to every element of a tuple). Shorthands: :data:`Positive`,
-:data:`NonNegative`, :data:`Fraction`, :data:`PositiveInt`, :data:`Vec2`, :data:`Vec3`, :data:`PTSD`.
+:data:`NonNegative`, :data:`Fraction`, :data:`PositiveInt`, :func:`Count`, :data:`Vec2`, :data:`Vec3`, :data:`PTSD`.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import math
 import numbers
 import types
@@ -56,7 +57,14 @@ class Range:
 Positive = Annotated[float, Range(gt=0.0)]
 NonNegative = Annotated[float, Range(ge=0.0)]
 Fraction = Annotated[float, Range(ge=0.0, le=1.0)]
-PositiveInt = Annotated[int, Range(ge=1)]
+#: A count the device holds in int32 (episode lengths, steps).
+PositiveInt = Annotated[int, Range(ge=1, le=2**31 - 1)]
+
+
+def Count(most: int):  # noqa: N802 (reads like the other type shorthands)
+    """A positive integer of at most ``most`` (sizes that allocate: frames stacked, spheres, buffer capacities)."""
+    return Annotated[int, Range(ge=1, le=most)]
+
 Vec2 = tuple[float, float]
 Vec3 = tuple[float, float, float]
 #: Pan, tilt, spin in degrees and depth in metres.
@@ -203,9 +211,9 @@ class EnvConfig:
         action_type: "CONTINUOUS" (Box [-1, 1]^d scaled by the maximum velocities) or "DISCRETE"
             (``Discrete(2d+1)``, see ``env.discrete_actions``).
         time_step: simulated seconds per physics step (sofa_env's ``time_step``).
-        frame_skip: physics steps per env step; the action is applied at every one of them.
+        frame_skip: physics steps per env step (at most 1000); the action is applied at every one of them.
         max_episode_steps: time limit in env steps (Table C); reaching it truncates the episode.
-        frame_stack: number of stacked observation frames, newest last (the paper stacks 4).
+        frame_stack: number of stacked observation frames, newest last (the paper stacks 4; at most 64).
         reward_weights: weights by feature name; given names replace the task's defaults (Table A).
         invalid_actions: "raise" (default) raises ``ValueError`` on NaN/inf actions and out-of-range discrete indices,
             which costs one device-to-host sync per step; "zero" replaces non-finite components by 0 (an invalid
@@ -220,9 +228,9 @@ class EnvConfig:
     observation_type: str = "STATE"
     action_type: Literal["CONTINUOUS", "DISCRETE"] = "CONTINUOUS"
     time_step: Positive = 0.1
-    frame_skip: PositiveInt = 1
+    frame_skip: Count(1000) = 1
     max_episode_steps: PositiveInt = 500
-    frame_stack: PositiveInt = 1
+    frame_stack: Count(64) = 1
     reward_weights: dict[str, float] = field(default_factory=dict)
     invalid_actions: Literal["raise", "zero"] = "raise"
     clip_actions: bool = True
@@ -238,12 +246,65 @@ class EnvConfig:
         _check_choice("observation_type", self.observation_type, supported_observations)
         unknown = sorted(set(self.reward_weights) - set(reward_features))
         if unknown:
-            raise ValueError(f"unknown reward feature(s) {unknown}; valid features: {list(reward_features)}")
+            raise ValueError(f"reward_weights names unknown feature(s) {unknown}; valid features: "
+                             f"{list(reward_features)}")
 
 
 def _check_choice(name: str, value: Any, choices: tuple[str, ...]) -> None:
     if value not in choices:
         raise ValueError(f"{name}={value!r} is not valid; choose one of {list(choices)}")
+
+
+def check_seed(seed: Any, name: str = "seed") -> int:
+    """``seed`` as a Python int: any integer (numpy integers and integer strings too); a bool, a fraction or anything
+    else raises ``ValueError`` naming ``name``."""
+    try:
+        return coerce(seed, int)
+    except _Invalid as exc:
+        raise ValueError(f"{name}={seed!r} is invalid ({exc}): expected an integer") from None
+
+
+def rng_seed32(seed: int) -> int:
+    """The int32 seed of Warp's per-env RNG streams (``wp.rand_init(seed, env)``) for any Python integer.
+
+    Seeds in ``[0, 2**31)`` are used as they are (recorded episodes keep their seeds); every other integer (negative,
+    64-bit and beyond) is hashed (BLAKE2b of its bytes) into ``[-2**31, 0)``, so ``2**32`` no longer repeats the
+    episodes of seed 0 and no large or negative seed shares the streams of a small one. Distinct hashed seeds
+    collide with probability ``2**-31`` per pair (the RNG state of an env has 32 bits)."""
+    seed = check_seed(seed)
+    if 0 <= seed < 2**31:
+        return seed
+    raw = seed.to_bytes((seed.bit_length() + 8) // 8, "little", signed=True)
+    digest = int.from_bytes(hashlib.blake2b(raw, digest_size=4, person=b"lapwarp-seed").digest(), "little")
+    return -1 - (digest & 0x7FFFFFFF)
+
+
+def check_num_envs(num_envs: Any) -> int:
+    """``num_envs`` as a positive Python int (numpy integers accepted); anything else raises ``ValueError``."""
+    if isinstance(num_envs, (bool, np.bool_)) or not isinstance(num_envs, numbers.Integral) or num_envs < 1:
+        raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
+    return int(num_envs)
+
+
+def resolve_device(device: Any) -> str:
+    """A Warp device name for ``device``: a name (``"cpu"``, ``"cuda"``, ``"cuda:N"``), a ``torch.device`` or a Warp
+    ``Device``; an unknown or unavailable device raises ``ValueError`` listing the available ones."""
+    import warp as wp
+
+    wp.init()
+    if device is None:
+        return str(wp.get_device())
+    if hasattr(device, "alias") and not isinstance(device, str):  # a Warp Device
+        return device.alias
+    if type(device).__name__ == "device" and hasattr(device, "type"):  # a torch.device
+        device = device.type if device.index is None else f"{device.type}:{device.index}"
+    if not isinstance(device, str):
+        raise ValueError(f"device={device!r} is not a device name, torch.device or Warp device")
+    try:
+        return str(wp.get_device(device.strip()))
+    except (ValueError, RuntimeError) as exc:
+        available = [d.alias for d in wp.get_devices()]
+        raise ValueError(f"device={device!r} is not available ({exc}); available devices: {available}") from None
 
 
 def build_config(cfg_class: type[C], overrides: dict[str, Any]) -> C:

@@ -26,6 +26,7 @@ it runs without host syncs and orders naturally with the policy's torch work. Ou
 
 from __future__ import annotations
 
+import os
 from abc import abstractmethod
 from typing import Any, ClassVar
 
@@ -35,10 +36,53 @@ import warp as wp
 from rsl_rl.env import VecEnv
 from tensordict import TensorDict
 
-from lapwarp.config import EnvConfig, build_config
+from lapwarp.config import EnvConfig, build_config, check_num_envs, check_seed, resolve_device
 from lapwarp.kernels import env_kernels
 from lapwarp.tasks.spec import ActionLayout, ObservationLayout, RewardSpec
 from lapwarp.world import World
+
+
+def float_rows(array: wp.array) -> wp.array:
+    """A ``(num_envs, k)`` float32 view (no copy) of a contiguous env-major array of a float-based type (``float32``,
+    ``vec3``, ``vec4``, ``transform``, ...), for element-wise checks of any per-env state."""
+    if not array.is_contiguous:
+        raise ValueError(f"checked state must be a contiguous array, got shape {array.shape} strides {array.strides}")
+    scalar = getattr(array.dtype, "_wp_scalar_type_", array.dtype)
+    if scalar is not wp.float32:
+        raise ValueError(f"checked state must hold float32 values, got {array.dtype}")
+    width = array.size // array.shape[0] * (wp.types.type_size_in_bytes(array.dtype) // 4)  # floats per env
+    return wp.array(ptr=array.ptr, dtype=wp.float32, shape=(array.shape[0], width), device=array.device, copy=False)
+
+
+def image_bytes(num_envs: int, cfg: EnvConfig, keep_final_observations: bool = False) -> int:
+    """Device bytes of the image observation buffers of ``num_envs`` envs: the rasteriser's visibility buffer (8 bytes
+    per pixel), RGB (3) and depth (4) targets, the float frame (4 per channel) and its frame stack and final copy."""
+    height, width = cfg.image_shape
+    channels = {"RGB": 3, "RGBD": 4, "DEPTH": 1}.get(cfg.observation_type, 0)
+    stack = channels * cfg.frame_stack
+    per_pixel = 8 + 3 + 4 + 4 * channels + (4 * stack if cfg.frame_stack > 1 else 0)
+    per_pixel += 4 * stack if keep_final_observations else 0
+    return num_envs * height * width * per_pixel
+
+
+def available_memory(device: wp.context.Device) -> int | None:
+    """Free memory of a Warp device in bytes (host: available physical memory), None where unknown."""
+    if device.is_cuda:
+        return int(device.free_memory)
+    try:
+        return int(os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE"))
+    except (ValueError, OSError, AttributeError):
+        return None
+
+
+def check_image_memory(num_envs: int, cfg: EnvConfig, device: wp.context.Device, keep_final: bool) -> None:
+    """Raise ``ValueError`` before anything is allocated when the image buffers would not fit in 90% of the device's
+    free memory (the renderer's scene buffers come on top)."""
+    need, free = image_bytes(num_envs, cfg, keep_final), available_memory(device)
+    if free is not None and need > 0.9 * free:
+        raise ValueError(f"image_shape={tuple(cfg.image_shape)} with {cfg.observation_type} and frame_stack="
+                         f"{cfg.frame_stack} needs {need / 2**30:.2f} GiB of image buffers for {num_envs} envs, but "
+                         f"{device.alias} has {free / 2**30:.2f} GiB free: use fewer envs or smaller images")
 
 
 class BatchedEnv(VecEnv):
@@ -73,8 +117,8 @@ class BatchedEnv(VecEnv):
                  keep_final_observations: bool = False):
         if not isinstance(cfg, self.config_class):
             raise TypeError(f"{type(self).__name__} needs a {self.config_class.__name__}, got {type(cfg).__name__}")
-        if not isinstance(num_envs, int) or num_envs < 1:
-            raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
+        num_envs = check_num_envs(num_envs)
+        device = resolve_device(device)
         if self.rewards is None:
             raise TypeError(f"{type(self).__name__} declares no rewards (a lapwarp.tasks.spec.RewardSpec)")
         cfg.validate(self.rewards.names, self.supported_observations)
@@ -88,6 +132,8 @@ class BatchedEnv(VecEnv):
         self.reward_weights = {**self._default_reward_weights(), **cfg.reward_weights}
         self.keep_final_observations = bool(keep_final_observations)
         self._visual_scene = None
+        if cfg.observation_type != "STATE":
+            check_image_memory(num_envs, cfg, self.wp_device, self.keep_final_observations)
 
         with wp.ScopedDevice(self.wp_device):
             self.world: World = self._build()
@@ -143,6 +189,14 @@ class BatchedEnv(VecEnv):
         ``(num_envs, F)`` (columns ``self.rewards.F.<NAME>``); a pure function of the state, also used on freshly
         reset envs to start their delta baselines. Delta columns are filled by the base."""
 
+    def _checked_state(self) -> list[wp.array]:
+        """Per-env task state (env-major, contiguous arrays of float-based types) checked for NaN/inf after every
+        physics step: an env with one is flagged unstable, ends this step and is reset alone, so a fault never reaches
+        the observations of any env. Default: the instrument rig's PTSD and tip poses; tasks add their own state.
+        The World checks its particles itself."""
+        rig = getattr(self, "rig", None)
+        return [rig.state.ptsd, rig.state.pose] if rig is not None else []
+
     def _update_task(self) -> None:
         """After features, reward and dones of a step: task events (a new active target...), which may restart delta
         baselines by writing ``self.baselines[env, F.<BASE>]``. Nothing by default."""
@@ -171,6 +225,11 @@ class BatchedEnv(VecEnv):
         return self._visual_scene
 
     # ------------------------------------------------------------------ derived from the declarations
+    @property
+    def log_keys(self) -> tuple[str, ...]:
+        """Keys of ``extras["log"]`` in order (``/contact/overflow_fraction`` only for tasks with contact systems)."""
+        return tuple(self._log_keys)
+
     @property
     def reward_features(self) -> tuple[str, ...]:
         """Feature names in column order."""
@@ -213,6 +272,15 @@ class BatchedEnv(VecEnv):
             "/episode/success", "/episode/return", "/episode/length", "/env/unstable_fraction",
             *(("/action/invalid_fraction",) if self.is_discrete else
               ("/action/nonfinite_fraction", "/action/clipped_fraction"))]
+        self._state_rows = [float_rows(a) for a in self._checked_state()]
+        # contact systems' record buffers (ContactSystem.overflow): a full buffer is counted, never silent
+        self._overflow_sources = [s.overflow for s in self.world.solvers if getattr(s, "overflow", None) is not None]
+        #: ``(num_envs,)`` int32: 1 where a contact system of the env ran out of record capacity in the last step.
+        self.contact_overflow = wp.zeros(n, dtype=wp.int32, device=dev)
+        self._overflow_term = -1
+        if self._overflow_sources:
+            self._overflow_term = len(self._log_keys)
+            self._log_keys.append("/contact/overflow_fraction")
         self.log_values = wp.zeros(len(self._log_keys), dtype=wp.float32, device=dev)
         self._log_sums = wp.zeros(len(self._log_keys) + 1, dtype=wp.float32, device=dev)
         self.success = wp.zeros(n, dtype=wp.int32, device=dev)
@@ -322,7 +390,7 @@ class BatchedEnv(VecEnv):
     def reset(self, seed: int | None = None) -> tuple[TensorDict, dict]:
         """Reset every env (re-seeding the device RNG streams first when ``seed`` is given)."""
         if seed is not None:
-            self.world.seed_rng(int(seed))
+            self.world.seed_rng(check_seed(seed))
         with self._torch_stream_scope():
             wp.launch(env_kernels.fill_int_array, dim=self.num_envs, inputs=[1], outputs=[self.reset_mask],
                       device=self.wp_device)
@@ -396,9 +464,17 @@ class BatchedEnv(VecEnv):
                       inputs=[self.actions_in, int(self.cfg.clip_actions)],
                       outputs=[self.actions, self.nonfinite_actions, self.clipped_actions], device=dev)
         self._apply_actions(self.actions)
+        if self._overflow_sources:
+            self.contact_overflow.zero_()
         for _ in range(self.cfg.frame_skip):
             self._before_physics_step()
             self.world.step(self.cfg.time_step)
+            for flags in self._overflow_sources:  # cleared by every world step: collect them per physics step
+                wp.launch(env_kernels.or_flags, dim=self.num_envs, inputs=[flags], outputs=[self.contact_overflow],
+                          device=dev)
+        for rows in self._state_rows:
+            wp.launch(env_kernels.flag_nonfinite_rows, dim=self.num_envs, inputs=[rows], outputs=[self.world.unstable],
+                      device=dev)
         self._compute_features(self._all_envs, self.features)
         spec = self.rewards
         wp.launch(env_kernels.finish_env_step, dim=self.num_envs,
@@ -426,10 +502,11 @@ class BatchedEnv(VecEnv):
         wp.launch(env_kernels.sum_log_terms, dim=(chunks, self._log_sums.shape[0]),
                   inputs=[self.features, self.weights, self.finished_episodes, self.last_episode_success,
                           self.last_episode_return, self.last_episode_length, self.world.unstable,
-                          self.nonfinite_actions, self.clipped_actions, int(self.is_discrete)],
-                  outputs=[self._log_sums], device=dev)
+                          self.nonfinite_actions, self.clipped_actions, int(self.is_discrete), self.contact_overflow,
+                          self._overflow_term], outputs=[self._log_sums], device=dev)
         wp.launch(env_kernels.finish_log_terms, dim=1,
-                  inputs=[self._log_sums, self.rewards.size, self.num_envs, self.action_dim, int(self.is_discrete)],
+                  inputs=[self._log_sums, self.rewards.size, self.num_envs, self.action_dim, int(self.is_discrete),
+                          self._overflow_term],
                   outputs=[self.log_values], device=dev)
 
     def _reset_and_observe(self, push_mode: int = env_kernels.PUSH_ALL) -> None:

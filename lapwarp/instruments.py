@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import warp as wp
@@ -90,6 +90,8 @@ class TPSDConfig:
         ptsd_noise: reset noise, uniform in +-noise around ``start_ptsd`` (deg, deg, deg, m).
         rcm_position_noise: reset noise of the RCM position, uniform in +-noise (m).
         rcm_euler_noise_deg: reset noise of the RCM Euler angles, uniform in +-noise (deg).
+        source: the task config field each field above was set from (``{"start_ptsd": "right_start_ptsd"}``), so a
+            rejection names what the user wrote; fields not listed keep their own names.
     """
 
     rcm_position: Sequence[float] = (0.0, 0.0, 0.0)
@@ -104,34 +106,39 @@ class TPSDConfig:
     ptsd_noise: Sequence[float] = (0.0, 0.0, 0.0, 0.0)
     rcm_position_noise: Sequence[float] = (0.0, 0.0, 0.0)
     rcm_euler_noise_deg: Sequence[float] = (0.0, 0.0, 0.0)
+    source: dict[str, str] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
-        self.rcm_position = _as_vector("rcm_position", self.rcm_position, 3)
-        self.rcm_euler_deg = _as_vector("rcm_euler_deg", self.rcm_euler_deg, 3)
-        self.start_ptsd = _as_vector("start_ptsd", self.start_ptsd, 4)
-        self.state_low = _as_vector("state_low", self.state_low, 4, allow_inf=True)
-        self.state_high = _as_vector("state_high", self.state_high, 4, allow_inf=True)
-        self.workspace_low = _as_vector("workspace_low", self.workspace_low, 3, allow_inf=True)
-        self.workspace_high = _as_vector("workspace_high", self.workspace_high, 3, allow_inf=True)
-        self.max_velocity = _as_vector("max_velocity", self.max_velocity, 4)
-        self.discrete_magnitude = _as_vector("discrete_magnitude", self.discrete_magnitude, 4)
-        self.ptsd_noise = _as_vector("ptsd_noise", self.ptsd_noise, 4)
-        self.rcm_position_noise = _as_vector("rcm_position_noise", self.rcm_position_noise, 3)
-        self.rcm_euler_noise_deg = _as_vector("rcm_euler_noise_deg", self.rcm_euler_noise_deg, 3)
+        name = self.source.get
+        for key, size, allow_inf in (("rcm_position", 3, False), ("rcm_euler_deg", 3, False), ("start_ptsd", 4, False),
+                                     ("state_low", 4, True), ("state_high", 4, True), ("workspace_low", 3, True),
+                                     ("workspace_high", 3, True), ("max_velocity", 4, False),
+                                     ("discrete_magnitude", 4, False), ("ptsd_noise", 4, False),
+                                     ("rcm_position_noise", 3, False), ("rcm_euler_noise_deg", 3, False)):
+            setattr(self, key, _as_vector(name(key, key), getattr(self, key), size, allow_inf=allow_inf))
 
         for low_name, high_name in (("state_low", "state_high"), ("workspace_low", "workspace_high")):
             low, high = np.array(getattr(self, low_name)), np.array(getattr(self, high_name))
             if np.any(low > high):
-                raise ValueError(f"{low_name} must be <= {high_name}, got {low.tolist()} > {high.tolist()}")
-        for name in ("max_velocity", "discrete_magnitude", "ptsd_noise", "rcm_position_noise", "rcm_euler_noise_deg"):
-            if np.any(np.array(getattr(self, name)) < 0.0):
-                raise ValueError(f"{name} must be >= 0, got {list(getattr(self, name))}")
+                raise ValueError(f"{name(low_name, low_name)} must be <= {name(high_name, high_name)}, got "
+                                 f"{low.tolist()} > {high.tolist()}")
+        for key in ("max_velocity", "discrete_magnitude", "ptsd_noise", "rcm_position_noise", "rcm_euler_noise_deg"):
+            if np.any(np.array(getattr(self, key)) < 0.0):
+                raise ValueError(f"{name(key, key)} must be >= 0, got {list(getattr(self, key))}")
         start = np.array(self.start_ptsd)
         if np.any(start < np.array(self.state_low)) or np.any(start > np.array(self.state_high)):
             raise ValueError(
-                f"start_ptsd {list(self.start_ptsd)} is outside the state limits "
+                f"{name('start_ptsd', 'start_ptsd')} {list(self.start_ptsd)} is outside the state limits "
+                f"{name('state_low', 'state_low')}..{name('state_high', 'state_high')} = "
                 f"[{list(self.state_low)}, {list(self.state_high)}]"
             )
+
+
+def tpsd_from_config(cfg, **fields) -> TPSDConfig:
+    """A ``TPSDConfig`` whose fields come from a task config: a string value names the task config field to read
+    (and is what errors then name), any other value is used as it is (derived geometry)."""
+    values = {k: getattr(cfg, v) if isinstance(v, str) else v for k, v in fields.items()}
+    return TPSDConfig(**values, source={k: v for k, v in fields.items() if isinstance(v, str)})
 
 
 class TPSDInstruments:

@@ -37,6 +37,7 @@ import numpy as np
 import torch
 import warp as wp
 
+from lapwarp.output_paths import check_output_path
 from lapwarp.visuals import VisualObject, VisualScene
 
 __all__ = ["UsdRecorder", "grid_origins", "record_rollout", "validate_usd"]
@@ -112,16 +113,18 @@ class UsdRecorder:
         share_meshes: store each rigid mesh once under ``/World/Prototypes`` and reference it from every instance
             (default); ``False`` writes the geometry inline in every instance, for tools that do not compose
             references.
+        make_dirs: create the missing folders of ``path``; otherwise a missing folder (like an unwritable one)
+            raises ``ValueError`` here, before anything is recorded.
     """
 
     def __init__(self, env, path: str | Path, env_ids: Sequence[int] = (0,), spacing: float | None = None,
                  origins: np.ndarray | None = None, up_axis: str = "Y", hide_cut_faces: str = "holes",
-                 share_meshes: bool = True):
+                 share_meshes: bool = True, make_dirs: bool = False):
         self._pxr = _import_pxr()
         Gf, Sdf, Usd, UsdGeom, Vt = self._pxr
-        self.path = Path(path)
-        if self.path.suffix not in (".usda", ".usd", ".usdc"):
+        if Path(path).suffix not in (".usda", ".usd", ".usdc"):
             raise ValueError(f"USD path must end in .usda, .usd or .usdc, got {str(path)!r}")
+        self.path = check_output_path(path, "USD path", make_dirs)  # fail now, not after the recording
         if up_axis not in ("Y", "Z"):
             raise ValueError(f"up_axis must be 'Y' or 'Z', got {up_axis!r}")
         if hide_cut_faces not in HIDE_MODES:

@@ -26,6 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
+from lapwarp.config import check_seed, rng_seed32
 from lapwarp.kernels import world_kernels
 from lapwarp.model import Control, Model, State
 
@@ -106,7 +107,7 @@ class World:
         self.device = wp.get_device(model.device)
         self.state = state if state is not None else State()
         self.control = control if control is not None else Control()
-        self.seed = int(seed)
+        self.seed = check_seed(seed)
         #: substeps per ``step``; None = chosen per step length by ``substeps_for``
         self.substeps = None if substeps is None else int(substeps)
         self.iterations = int(iterations)
@@ -231,9 +232,10 @@ class World:
         self._cmd_key = None
 
     def seed_rng(self, seed: int) -> None:
-        """Re-seed every env's RNG stream (host-side call, not part of the captured step)."""
-        self.seed = int(seed)
-        wp.launch(world_kernels.init_env_rng, dim=self.num_envs, inputs=[self.seed], outputs=[self.rng],
+        """Re-seed every env's RNG stream (host-side call, not part of the captured step). Any Python integer is a
+        distinct seed (``lapwarp.config.rng_seed32``); a non-integer raises ``ValueError``."""
+        self.seed = check_seed(seed)
+        wp.launch(world_kernels.init_env_rng, dim=self.num_envs, inputs=[rng_seed32(self.seed)], outputs=[self.rng],
                   device=self.device)
 
     # ------------------------------------------------------------------------------------------------

@@ -142,6 +142,11 @@ def test_bench(capsys, device, tmp_path):
     (["run", "Reach", "--save-images", "grid.jpg"], "ending in .png"),
     (["run", "Reach", "--usd", "out.obj"], ".usda, .usd or .usdc"),
     (["bench", "Reach", "--frobnicate"], "unrecognized arguments: --frobnicate"),
+    (["run", "Reach", "--usd", "no_such_folder/x.usda"], "does not exist"),
+    (["run", "Reach", "--save-images", "no_such_folder/g.png"], "--mkdir creates missing folders"),
+    (["run", "Reach", "--set", "sphere_radius=big"], "sphere_radius='big' is invalid"),
+    (["run", "Reach", "--set", "clip_actions=maybe"], "clip_actions='maybe' is invalid"),
+    (["run", "Reach", "--set", "seed=1.5"], "seed=1.5 is invalid"),
     ([], "usage: lapwarp"),
 ])
 def test_bad_arguments_exit_2_with_a_clear_message(capsys, argv, message):
@@ -149,6 +154,29 @@ def test_bad_arguments_exit_2_with_a_clear_message(capsys, argv, message):
     assert status == 2
     assert message in err
     assert "Traceback" not in err and out == ""
+
+
+def test_output_folders_are_created_only_with_mkdir(capsys, device, tmp_path):
+    pytest.importorskip("pxr")
+    usd, png = tmp_path / "a" / "b" / "run.usda", tmp_path / "c" / "grid.png"
+    status, _, err = run_cli(capsys, "run", "Reach", "--num-envs", "2", "--steps", "1", "--device", device,
+                             "--usd", str(usd))
+    assert status == 2 and "does not exist" in err and not (tmp_path / "a").exists()
+    status, out, err = run_cli(capsys, "run", "Reach", "--num-envs", "2", "--steps", "1", "--device", device,
+                               "--usd", str(usd), "--save-images", str(png), "--image-size", "16", "--mkdir")
+    assert status == 0, err
+    rows = summary(out)
+    assert rows["usd"].startswith(str(usd)) and rows["images"].startswith(str(png))
+    assert usd.is_file() and png.is_file()
+
+
+def test_run_reports_contact_overflows(capsys, device):
+    status, out, err = run_cli(capsys, "run", "DeflectSpheres", "--num-envs", "2", "--steps", "40", "--device", device,
+                               "--policy", "expert", "--set", "contact_capacity=1", "--seed", "3")
+    assert status == 0, err
+    assert "env-steps lost contact records" in summary(out)["contact overflows"]
+    status, out, err = run_cli(capsys, "run", "Reach", "--num-envs", "2", "--steps", "1", "--device", device)
+    assert "contact overflows" not in summary(out)  # no contact systems, nothing to report
 
 
 def test_help_and_version_exit_0(capsys):

@@ -1,4 +1,4 @@
-"""The PPO launcher and the env benchmark run end to end with tiny settings (CPU)."""
+"""The PPO launcher, the env benchmark and the soak script run end to end with tiny settings (CPU)."""
 
 from __future__ import annotations
 
@@ -14,6 +14,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 import bench_env  # noqa: E402
 import ppo  # noqa: E402
+import soak  # noqa: E402
 
 
 def test_ppo_trains_saves_resumes_and_plays(device, tmp_path, capsys):
@@ -39,7 +40,8 @@ def test_paper_preset_matches_the_paper_table():
     assert (alg["learning_rate"], alg["clip_param"], alg["entropy_coef"]) == (2.5e-4, 0.1, 0.0)
     assert (alg["value_loss_coef"], alg["max_grad_norm"]) == (0.5, 0.5)
     assert cfg["actor"]["hidden_dims"] == [256, 256] and cfg["actor"]["activation"] == "relu"
-    assert env_overrides == {"frame_stack": 4}
+    # invalid_actions="zero": no host sync per step in training; non-finite actions are counted, not raised
+    assert env_overrides == {"frame_stack": 4, "invalid_actions": "zero"}
 
 
 def test_linear_schedule_decays_to_zero(device):
@@ -79,3 +81,26 @@ def test_image_preset_uses_the_papers_cnn():
     cfg = ppo.use_images(cfg)
     assert cfg["actor"]["class_name"] == "CNNModel" and cfg["obs_groups"]["actor"] == ["image"]
     assert cfg["actor"]["cnn_cfg"]["kernel_size"] == [8, 4, 3] and cfg["actor"]["cnn_cfg"]["stride"] == [4, 2, 1]
+
+
+def test_soak_counts_faults_and_checks_determinism(device, tmp_path, capsys):
+    out = tmp_path / "soak.jsonl"
+    assert soak.main(["--device", device, "--num-envs", "4", "--env-steps", "80", "--tasks", "DeflectSpheres",
+                      "--determinism", "5", "--out", str(out), "--set", "contact_capacity=1"]) == 0
+    lines = [json.loads(line) for line in out.read_text().splitlines()]
+    runs = [r for r in lines if "env_steps" in r]
+    assert [r["action_type"] for r in runs] == ["CONTINUOUS", "DISCRETE"]
+    for r in runs:
+        assert r["env_steps"] == 80 and r["nonfinite_observation_values"] == 0 and r["nonfinite_rewards"] == 0
+        assert r["contact_systems"] and r["memory_bytes_end"] > 0
+    determinism = [r for r in lines if "determinism_steps" in r]
+    assert determinism and all(r["max_abs_observation_difference"] == 0.0 for r in determinism)  # CPU: bit-exact
+
+
+def test_progress_line_names_faults():
+    import torch
+
+    logs = [{"/action/nonfinite_fraction": torch.tensor(0.0), "/env/unstable_fraction": torch.tensor(0.5)},
+            {"/action/nonfinite_fraction": torch.tensor(0.02), "/env/unstable_fraction": torch.tensor(0.0)}]
+    assert ppo.fault_summary(logs) == "  [non-finite actions 1.000%, unstable envs 25.000%]"
+    assert ppo.fault_summary([{"/action/nonfinite_fraction": torch.tensor(0.0)}]) == ""

@@ -14,6 +14,10 @@ Presets:
     gpu    thousands of envs on one GPU: 4,096 envs, 32 steps per env, 4 minibatches, 5 epochs, adaptive
            learning rate (KL 0.01), gamma 0.99.
     cpu    a short demo for CPU machines: 256 envs, 32 steps per env, 80 iterations (under a minute).
+
+Every preset builds the env with ``invalid_actions="zero"``: a non-finite action (a diverged policy) is zeroed on the
+device and counted, with no host sync per step (the env's default, "raise", checks every step on the host). The
+counts are in rsl-rl's logs (``/action/...``) and the progress line names any fault that occurred in an iteration.
 """
 
 from __future__ import annotations
@@ -95,7 +99,7 @@ def preset_config(name: str, num_envs: int, max_iterations: int) -> tuple[dict, 
             "learning_rate": 2.5e-4, "max_grad_norm": 0.5, "use_clipped_value_loss": True, "schedule": "fixed",
             "desired_kl": None,
         }
-        activation, env_overrides = "relu", {"frame_stack": 4}
+        activation, env_overrides = "relu", {"frame_stack": 4, "invalid_actions": "zero"}
     elif name in ("gpu", "cpu"):
         steps = 32
         algorithm = {
@@ -103,7 +107,7 @@ def preset_config(name: str, num_envs: int, max_iterations: int) -> tuple[dict, 
             "gamma": 0.99, "lam": 0.95, "value_loss_coef": 1.0, "entropy_coef": 0.0, "learning_rate": 1e-3,
             "max_grad_norm": 1.0, "use_clipped_value_loss": True, "schedule": "adaptive", "desired_kl": 0.01,
         }
-        activation, env_overrides = "elu", {}
+        activation, env_overrides = "elu", {"invalid_actions": "zero"}
     else:
         raise ValueError(f"unknown preset {name!r}; choose paper, gpu or cpu")
     train_cfg = {
@@ -143,11 +147,31 @@ def evaluate(env, policy, max_steps: int | None = None) -> tuple[float, float]:
     return success.float().mean().item(), returns.mean().item()
 
 
+#: ``extras["log"]`` keys of faults the one-line progress shows when they occur in an iteration.
+FAULT_KEYS = {"/action/nonfinite_fraction": "non-finite actions", "/action/invalid_fraction": "invalid actions",
+              "/env/unstable_fraction": "unstable envs", "/contact/overflow_fraction": "contact overflows"}
+
+
+def fault_summary(logs: list[dict]) -> str:
+    """``"  [non-finite actions 0.1%, ...]"`` for the fault keys with a non-zero mean over an iteration's step logs
+    (empty when there is none)."""
+    parts = []
+    for key, label in FAULT_KEYS.items():
+        values = [entry[key] for entry in logs if key in entry]
+        if values:
+            mean = float(torch.stack([torch.as_tensor(v, dtype=torch.float32) for v in values]).mean())
+            if mean > 0.0:
+                parts.append(f"{label} {mean:.3%}")
+    return f"  [{', '.join(parts)}]" if parts else ""
+
+
 def compact_progress(runner: OnPolicyRunner, env, verbose: bool) -> None:
     """Replace rsl-rl's 20-line block per iteration by one line (``--verbose`` keeps the block)."""
     original = runner.logger.log
 
     def log(**kwargs):
+        # read the iteration's fault counts before rsl-rl's log clears them (one host sync per iteration)
+        faults = fault_summary(runner.logger.ep_extras)
         if verbose:
             original(**kwargs)
         else:
@@ -162,7 +186,7 @@ def compact_progress(runner: OnPolicyRunner, env, verbose: bool) -> None:
         steps = runner.cfg["num_steps_per_env"] * env.num_envs
         fps = steps / max(kwargs["collect_time"] + kwargs["learn_time"], 1e-9)
         print(f"it {it + 1:5d}/{total}  return {mean_return:9.2f}  success {success:6.1%}  "
-              f"lr {kwargs['learning_rate']:.2e}  {fps:,.0f} steps/s", flush=True)
+              f"lr {kwargs['learning_rate']:.2e}  {fps:,.0f} steps/s{faults}", flush=True)
 
     runner.logger.log = log
 
@@ -189,10 +213,11 @@ def main(argv: list[str] | None = None) -> int:
 
     start = time.time()
     preset = args.preset or ("gpu" if args.device.startswith("cuda") else "cpu")
-    num_envs = args.num_envs or PRESET_DEFAULTS[preset][0]
-    iterations = args.max_iterations or PRESET_DEFAULTS[preset][1]
-    if num_envs < 1 or iterations < 1:
-        parser.error("--num-envs and --max-iterations must be positive")
+    num_envs = PRESET_DEFAULTS[preset][0] if args.num_envs is None else args.num_envs
+    iterations = PRESET_DEFAULTS[preset][1] if args.max_iterations is None else args.max_iterations
+    if num_envs < 1 or iterations < 1 or args.eval_envs < 1:
+        parser.error(f"--num-envs, --max-iterations and --eval-envs must be positive, got {num_envs}, {iterations} "
+                     f"and {args.eval_envs}")
     torch.manual_seed(args.seed)
     train_cfg, env_overrides = preset_config(preset, num_envs, iterations)
     train_cfg["seed"] = args.seed
@@ -208,7 +233,13 @@ def main(argv: list[str] | None = None) -> int:
         except json.JSONDecodeError:
             env_overrides[key] = value
 
-    env = lapwarp.make(args.task, num_envs=num_envs, device=args.device, seed=args.seed, **env_overrides)
+    for option, path in (("--play", args.play), ("--resume", args.resume)):
+        if path and not os.path.isfile(path):
+            parser.error(f"{option} {path!r} is not a file")
+    try:  # bad config values end as one usage line, not a traceback
+        env = lapwarp.make(args.task, num_envs=num_envs, device=args.device, seed=args.seed, **env_overrides)
+    except ValueError as exc:
+        parser.error(str(exc))
     run_dir = None if args.play else os.path.join(
         args.log_dir, args.task, f"{datetime.now():%Y%m%d-%H%M%S}_{preset}_seed{args.seed}")
     runner = OnPolicyRunner(env, train_cfg, log_dir=run_dir, device=args.device)

@@ -87,7 +87,8 @@ def finish_env_step(
 
     Delta feature ``delta_columns[k]`` = feature ``delta_bases[k]`` minus its baseline, which then becomes the
     feature's value. Success and failure are the declared feature columns (failure -1: none) and terminate as in
-    sofa_env; an unstable env is terminated too, since its state is garbage and must not be bootstrapped. Truncation
+    sofa_env; an unstable env is terminated too, since its state is garbage and must not be bootstrapped (an env with a
+    non-finite feature is flagged unstable here, its features logged as 0). Truncation
     is reported only when the episode did not terminate, so ``time_outs`` marks exactly the envs PPO should bootstrap.
     """
     env = wp.tid()
@@ -96,6 +97,16 @@ def finish_env_step(
         value = features[env, b]
         features[env, delta_columns[k]] = value - baselines[env, b]
         baselines[env, b] = value
+    # a non-finite feature means the env's task state went bad (the World flags bad particles itself): flag the env
+    # like an unstable one, so it ends and is reset alone, and log zeros instead of spreading NaN into the means
+    bad = int(0)
+    for f in range(features.shape[1]):
+        if not wp.isfinite(features[env, f]):
+            bad = 1
+    if bad != 0:
+        unstable[env] = 1
+        for f in range(features.shape[1]):
+            features[env, f] = 0.0
     succeeded = int(0)
     if features[env, success_column] > 0.0:
         succeeded = 1
@@ -149,11 +160,14 @@ def sum_log_terms(
     nonfinite: wp.array(dtype=wp.int32),
     clipped: wp.array(dtype=wp.int32),
     discrete: int,
+    overflow: wp.array(dtype=wp.int32),
+    overflow_term: int,
     sums: wp.array(dtype=wp.float32),
 ):
     """Thread (chunk, term): the sum of one term of ``extras["log"]`` over ``LOG_CHUNK`` envs, added to ``sums``
     (layout of ``BatchedEnv._log_keys``, then the number of envs with a finished episode): weighted features, raw
-    features, the last finished episodes' success, return and length, instability and action counts."""
+    features, the last finished episodes' success, return and length, instability, action counts and (at
+    ``overflow_term``, -1 = none) envs whose contact records overflowed."""
     chunk, term = wp.tid()
     F = features.shape[1]
     first = chunk * LOG_CHUNK
@@ -179,6 +193,8 @@ def sum_log_terms(
             v = float(unstable[env] != 0)
         elif term == 2 * F + 4:
             v = float(nonfinite[env])
+        elif term == overflow_term:
+            v = float(overflow[env] != 0)
         elif term == 2 * F + 5 and discrete == 0:
             v = float(clipped[env])
         acc += v
@@ -187,8 +203,26 @@ def sum_log_terms(
 
 
 @wp.kernel
+def flag_nonfinite_rows(values: wp.array2d(dtype=wp.float32), flags: wp.array(dtype=wp.int32)):
+    """``flags[env] = 1`` when row ``env`` of ``values`` (a float view of a per-env state array) holds a NaN/inf."""
+    env = wp.tid()
+    for k in range(values.shape[1]):
+        if not wp.isfinite(values[env, k]):
+            flags[env] = 1
+            return
+
+
+@wp.kernel
+def or_flags(flags: wp.array(dtype=wp.int32), out: wp.array(dtype=wp.int32)):
+    """``out[env] |= flags[env] != 0`` (per-env fault flags of several systems into one)."""
+    env = wp.tid()
+    if flags[env] != 0:
+        out[env] = 1
+
+
+@wp.kernel
 def finish_log_terms(sums: wp.array(dtype=wp.float32), num_features: int, num_envs: int, action_dim: int,
-                     discrete: int, values: wp.array(dtype=wp.float32)):
+                     discrete: int, overflow_term: int, values: wp.array(dtype=wp.float32)):
     """Sums -> means: features and instability over all envs, episode statistics over the envs that finished one,
     action fractions per action component (continuous) or per env (discrete)."""
     F = num_features
@@ -204,6 +238,8 @@ def finish_log_terms(sums: wp.array(dtype=wp.float32), num_features: int, num_en
     else:
         values[2 * F + 4] = sums[2 * F + 4] * inv_envs / float(action_dim)
         values[2 * F + 5] = sums[2 * F + 5] * inv_envs / float(action_dim)
+    if overflow_term >= 0:
+        values[overflow_term] = sums[overflow_term] * inv_envs
 
 
 @wp.kernel

@@ -41,11 +41,11 @@ import trimesh
 import warp as wp
 
 from lapwarp.builder import SceneBuilder
-from lapwarp.config import PTSD, EnvConfig, NonNegative, Positive, PositiveInt, Range, Vec3, check_low_high
+from lapwarp.config import PTSD, Count, EnvConfig, NonNegative, Positive, PositiveInt, Range, Vec3, check_low_high
 from lapwarp.contact import ContactSystem
 from lapwarp.env import BatchedEnv
 from lapwarp.experts import Expert
-from lapwarp.instruments import TPSDConfig
+from lapwarp.instruments import TPSDConfig, tpsd_from_config
 from lapwarp.kernels.geometry import closest_segment_segment
 from lapwarp.kernels.kinematics import point_to_ptsd
 from lapwarp.kernels.random import rand_uniform
@@ -103,7 +103,7 @@ class DeflectSpheresConfig(EnvConfig):
         board_size: (width along x, depth along y) of the board (m), 100 x 100 mm.
         workspace_height: height of the box over the board the hooks work in (m); the Cartesian workspace of the
             hook tips is the board enlarged by 10 mm on every side, from z = -10 mm to ``workspace_height`` + 10 mm.
-        num_spheres: spheres on the board (sofa_env's ``num_objects``).
+        num_spheres: spheres on the board (sofa_env's ``num_objects``), at most 64.
         sphere_height_limits: the height of each sphere centre is uniform in this range at reset (m).
         sphere_margin: sphere x, y are uniform in the board shrunk by this margin on each side (m), +-45 mm.
         min_sphere_distance: minimum distance between sphere centres at reset (m), 20 mm.
@@ -126,14 +126,17 @@ class DeflectSpheresConfig(EnvConfig):
         tool_collision_distance: the hooks collide when their RCM-to-tip segments are closer than this (m), 1.5 mm.
         camera_position: camera position (m); ``camera_euler_deg``: its XYZ Euler angles; ``camera_fov_deg``:
             vertical field of view.
-        physics_substeps: XPBD substeps per physics step.
+        physics_substeps: XPBD substeps per physics step (at most 10,000).
+        contact_capacity: contact records kept per env per step (``ContactSystem.capacity``, at most 4096); an env
+            with more is counted under ``extras["log"]["/contact/overflow_fraction"]`` (the contact response is
+            unaffected).
         max_episode_steps: time limit; ``None`` = 500 x ``num_deflect_to_win`` (Table C).
     """
 
     max_episode_steps: PositiveInt | None = None
     board_size: tuple[Positive, Positive] = (0.1, 0.1)
     workspace_height: Positive = 0.08
-    num_spheres: PositiveInt = 5
+    num_spheres: Count(64) = 5
     sphere_height_limits: tuple[Positive, Positive] = (0.03, 0.06)
     sphere_margin: NonNegative = 0.005
     min_sphere_distance: NonNegative = 0.02
@@ -141,7 +144,7 @@ class DeflectSpheresConfig(EnvConfig):
     post_mass: Positive = 0.1
     sphere_radius: Positive = 0.006
     single_instrument: bool = True
-    num_deflect_to_win: PositiveInt = 5
+    num_deflect_to_win: Count(1000) = 5
     min_deflection_distance: Positive = 0.003
     allow_deflection_with_instrument_shaft: bool = False
     sampling_mode: Literal["WITH_REPLACEMENT", "WITHOUT_REPLACEMENT"] = "WITHOUT_REPLACEMENT"
@@ -157,7 +160,8 @@ class DeflectSpheresConfig(EnvConfig):
     camera_position: Vec3 = (0.0, -0.14, 0.12)
     camera_euler_deg: Vec3 = (58.0, 0.0, 0.0)
     camera_fov_deg: Annotated[float, Range(gt=0.0, lt=180.0)] = 45.0
-    physics_substeps: PositiveInt = 10
+    physics_substeps: Count(10_000) = 10
+    contact_capacity: Count(4096) = 16
 
     def validate(self, reward_features, supported_observations) -> None:
         super().validate(reward_features, supported_observations)
@@ -188,14 +192,15 @@ class DeflectSpheresConfig(EnvConfig):
     def instrument_configs(self) -> list[TPSDConfig]:
         """TPSD configs of the right hook and (with two hooks) the left one; RCMs above the front corners."""
         low, high = self.workspace
-        common = dict(rcm_euler_deg=(-180.0, 0.0, 0.0), state_low=self.instrument_state_low,
-                      state_high=self.instrument_state_high, workspace_low=tuple(low), workspace_high=tuple(high),
-                      max_velocity=self.maximum_state_velocity, discrete_magnitude=self.discrete_action_magnitude,
-                      ptsd_noise=self.instrument_reset_noise)
-        configs = [TPSDConfig(rcm_position=(high[0], low[1], high[2]), start_ptsd=self.right_start_ptsd, **common)]
+        common = dict(rcm_euler_deg=(-180.0, 0.0, 0.0), state_low="instrument_state_low",
+                      state_high="instrument_state_high", workspace_low=tuple(low), workspace_high=tuple(high),
+                      max_velocity="maximum_state_velocity", discrete_magnitude="discrete_action_magnitude",
+                      ptsd_noise="instrument_reset_noise")
+        configs = [tpsd_from_config(self, rcm_position=(high[0], low[1], high[2]), start_ptsd="right_start_ptsd",
+                                    **common)]
         if not self.single_instrument:
-            configs.append(TPSDConfig(rcm_position=(low[0], low[1], high[2]), start_ptsd=self.left_start_ptsd,
-                                      **common))
+            configs.append(tpsd_from_config(self, rcm_position=(low[0], low[1], high[2]),
+                                            start_ptsd="left_start_ptsd", **common))
         return configs
 
 
@@ -450,7 +455,7 @@ class DeflectSpheresEnv(BatchedEnv):
         world = builder.finalize(num_envs=n, device=str(dev), substeps=cfg.physics_substeps, seed=cfg.seed)
         self.spheres.finalize(world)
         self.rig.finalize(world)
-        self.contact = ContactSystem(world, capacity=16, report_margin=5.0e-4)
+        self.contact = ContactSystem(world, capacity=cfg.contact_capacity, report_margin=5.0e-4)
         for k in range(num):  # one particle group per sphere: the reports tell which sphere a hook touches
             self.contact.add_particle_group([self.spheres.obj.particle_start + k], radius=cfg.sphere_radius,
                                             name=f"sphere{k}")
@@ -475,6 +480,9 @@ class DeflectSpheresEnv(BatchedEnv):
         p.num_to_win, p.without_replacement = cfg.num_deflect_to_win, int(cfg.sampling_mode == "WITHOUT_REPLACEMENT")
         self._sag = (0.0, 0.0, -9.81 * sphere_mass / cfg.stalk_stiffness_limits[0])
         return world
+
+    def _checked_state(self) -> list[wp.array]:
+        return [*super()._checked_state(), self.task.anchors]
 
     def _observation_layout(self) -> ObservationLayout:
         two = int(self.num_hooks == 2)

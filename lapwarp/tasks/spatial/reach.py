@@ -97,7 +97,8 @@ class ReachConfig(EnvConfig):
         for name in ("start_low", "start_high", "target_low", "target_high", "start_position"):
             p = np.asarray(getattr(self, name))
             if np.any(p < ws_lo - 1e-9) or np.any(p > ws_hi + 1e-9):
-                raise ValueError(f"{name}={tuple(p)} lies outside the workspace {tuple(ws_lo)}..{tuple(ws_hi)}")
+                raise ValueError(f"{name}={getattr(self, name)} lies outside the workspace "
+                                 f"workspace_low..workspace_high = {self.workspace_low}..{self.workspace_high}")
 
 
 # ---------------------------------------------------------------------------- kernels
@@ -229,6 +230,9 @@ class ReachEnv(BatchedEnv):
         self._ws_low, self._ws_high = wp.vec3(*cfg.workspace_low), wp.vec3(*cfg.workspace_high)
         self.workspace_diagonal = float(np.linalg.norm(np.subtract(cfg.workspace_high, cfg.workspace_low)))
         return world
+
+    def _checked_state(self) -> list[wp.array]:
+        return [self.positions]
 
     def _observation_layout(self) -> ObservationLayout:
         # positions normalised by the workspace the end effector never leaves (targets are sampled inside it)

@@ -38,10 +38,10 @@ import warp as wp
 
 from lapwarp.assets.abdomen import abdomen_parts, inside_dome, organ_mesh
 from lapwarp.builder import SceneBuilder
-from lapwarp.config import PTSD, EnvConfig, NonNegative, Positive, PositiveInt, Range, Vec3
+from lapwarp.config import PTSD, Count, EnvConfig, NonNegative, Positive, Range, Vec3
 from lapwarp.env import BatchedEnv
 from lapwarp.experts import Expert
-from lapwarp.instruments import TPSDConfig
+from lapwarp.instruments import TPSDConfig, tpsd_from_config
 from lapwarp.render import focal_length
 from lapwarp.tasks.camera import (
     EndoscopeCamera,
@@ -130,7 +130,7 @@ class SearchForPointConfig(EnvConfig):
         poi_radius: radius of the drawn POI marker (m); visual only.
     """
 
-    frame_skip: PositiveInt = 3
+    frame_skip: Count(1000) = 3
     active_vision: bool = False
     cauter_activation: bool = False
     activation_deadzone: Annotated[float, Range(ge=0.0, lt=1.0)] = 0.1
@@ -169,17 +169,17 @@ class SearchForPointConfig(EnvConfig):
 
     def camera_tpsd(self) -> TPSDConfig:
         """The endoscope as a TPSD instrument (its 'tip' is the optic's position)."""
-        return TPSDConfig(rcm_position=self.camera_rcm_position, rcm_euler_deg=self.camera_rcm_euler_deg,
-                          start_ptsd=self.camera_start_ptsd, state_low=self.camera_state_low,
-                          state_high=self.camera_state_high, max_velocity=self.maximum_state_velocity,
-                          discrete_magnitude=self.discrete_action_magnitude, ptsd_noise=self.camera_ptsd_noise)
+        return tpsd_from_config(self, rcm_position="camera_rcm_position", rcm_euler_deg="camera_rcm_euler_deg",
+                                start_ptsd="camera_start_ptsd", state_low="camera_state_low",
+                                state_high="camera_state_high", max_velocity="maximum_state_velocity",
+                                discrete_magnitude="discrete_action_magnitude", ptsd_noise="camera_ptsd_noise")
 
     def cauter_tpsd(self) -> TPSDConfig:
         """The electrocautery hook as a TPSD instrument."""
-        return TPSDConfig(rcm_position=self.cauter_rcm_position, rcm_euler_deg=self.cauter_rcm_euler_deg,
-                          start_ptsd=self.cauter_start_ptsd, state_low=self.cauter_state_low,
-                          state_high=self.cauter_state_high, max_velocity=self.maximum_state_velocity,
-                          discrete_magnitude=self.discrete_action_magnitude, ptsd_noise=self.cauter_ptsd_noise)
+        return tpsd_from_config(self, rcm_position="cauter_rcm_position", rcm_euler_deg="cauter_rcm_euler_deg",
+                                start_ptsd="cauter_start_ptsd", state_low="cauter_state_low",
+                                state_high="cauter_state_high", max_velocity="maximum_state_velocity",
+                                discrete_magnitude="discrete_action_magnitude", ptsd_noise="cauter_ptsd_noise")
 
 
 # ---------------------------------------------------------------------------- kernels
@@ -363,7 +363,10 @@ def poi_candidates(cfg: SearchForPointConfig, device=None) -> np.ndarray:
         visible &= clear(np.broadcast_to(rcm_c.numpy(), pts.shape).copy(), pts)
     result = pts[visible].astype(np.float32)
     if len(result) == 0:
-        raise ValueError("no point of interest satisfies the camera (and cauter) limits with this configuration")
+        raise ValueError("no point of interest can be framed with this configuration: no abdomen point is reachable "
+                         "at target_distance_camera_poi within camera_state_low..camera_state_high from "
+                         "camera_rcm_position / camera_rcm_euler_deg (with active_vision also within "
+                         "cauter_state_low..cauter_state_high from cauter_rcm_position / cauter_rcm_euler_deg)")
     _POI_CACHE[key] = result
     return result
 
@@ -414,6 +417,9 @@ class SearchForPointEnv(BatchedEnv):
     def cauter_active(self) -> wp.array:
         """``(num_envs,)`` int32, 1 while the hook is switched on (active vision with activation)."""
         return self.rig.active[:, self.rig.num_instruments - 1]
+
+    def _checked_state(self) -> list[wp.array]:
+        return [*super()._checked_state(), self.poi]
 
     def _observation_layout(self) -> ObservationLayout:
         b, av = _OBS_BOUND, int(self.cfg.active_vision)
