@@ -474,6 +474,7 @@ class SceneBuilder:
         fixed_orientations=None,
         name: str = "rod",
         cuttable: bool = False,
+        stretch_rest_scale: float = 1.0,
     ) -> SceneObject:
         """Cosserat rod: centreline particles plus one orientation quaternion per segment.
 
@@ -491,7 +492,13 @@ class SceneBuilder:
             name: object name.
             cuttable: its segments get per-env active masks (``lapwarp.cutting``); a removed segment is a break
                 in the chain (no stretch, shear or bend-twist across it).
+            stretch_rest_scale: rest length of every segment's stretch constraint over its length in ``points``
+                (1: the given shape is at rest). Below 1 the rod is pre-tensioned: sofa_env's rope-cutting ropes
+                are springs of rest length 0.2 x their initial length (scale 0.2), so a cut rope snaps back. The
+                stretch compliance stays ``l / (E A)`` of the given length ``l``, i.e. a spring constant ``E A / l``.
         """
+        if not stretch_rest_scale > 0.0:
+            raise ValueError(f"stretch_rest_scale must be positive, got {stretch_rest_scale!r}")
         x = np.asarray(points, dtype=np.float64).reshape(-1, 3)
         m = len(x)
         nseg = m if closed else m - 1
@@ -538,7 +545,8 @@ class SceneBuilder:
         # rest has C = 0 exactly instead of rounding residuals that the global solve spreads along the rod
         x32 = x.astype(np.float32)
         d32 = x32[seg[:, 1]] - x32[seg[:, 0]]
-        self._rod_stretch.rest.append(np.sqrt(d32[:, 0] * d32[:, 0] + d32[:, 1] * d32[:, 1] + d32[:, 2] * d32[:, 2]))
+        rest = np.sqrt(d32[:, 0] * d32[:, 0] + d32[:, 1] * d32[:, 1] + d32[:, 2] * d32[:, 2])
+        self._rod_stretch.rest.append(rest if stretch_rest_scale == 1.0 else rest * float(stretch_rest_scale))
         self._rod_stretch.geom.append(L / area)
         self._rod_stretch.scale.append((1.0 / Eb)[:, None])
         self._segments.indices.append(np.concatenate([seg + off, (np.arange(nseg) + self._nseg)[:, None]], axis=1))

@@ -23,6 +23,8 @@ import warp as wp
 from lapwarp.kernels.bodies import pose_instrument_bodies, step_jaw_angle
 
 KINDS = ("grasper", "cauter", "scissors", "loop", "endoscope")
+#: The electrocautery hook's cutting centre on its shaft axis, beyond the tip (sofa_env's cutting sphere 5), m.
+CAUTER_CUTTING_CENTER = 0.0144
 
 
 def _capsule_between(z0: float, z1: float, radius: float, y: float = 0.0, axis: str = "z"):
@@ -100,8 +102,8 @@ class InstrumentShape:
             self.parts.append(("jaw_a", *_capsule_between(jr, L, jr, y=-jr)))
             self.parts.append(("jaw_b", *_capsule_between(jr, L, jr, y=jr)))
         elif self.kind == "cauter":
-            self.parts.append(("tool", *_capsule_between(-0.001, 0.0144, 0.8e-3)))
-            self.parts.append(("tool", *_capsule_between(-1.5e-3, 1.6e-3, 0.8e-3, y=0.0144, axis="y")))
+            self.parts.append(("tool", *_capsule_between(-0.001, CAUTER_CUTTING_CENTER, 0.8e-3)))
+            self.parts.append(("tool", *_capsule_between(-1.5e-3, 1.6e-3, 0.8e-3, y=CAUTER_CUTTING_CENTER, axis="y")))
 
     def body_of(self, role: str) -> int:
         return {"shaft": self.shaft_body, "tool": self.shaft_body, "jaw_a": self.jaw_a, "jaw_b": self.jaw_b}[role]

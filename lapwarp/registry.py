@@ -10,6 +10,7 @@ _TASKS: dict[str, str] = {
     "Reach": "lapwarp.tasks.spatial.reach:ReachEnv",
     "SearchForPoint": "lapwarp.tasks.spatial.search_for_point:SearchForPointEnv",
     "DeflectSpheres": "lapwarp.tasks.spatial.deflect_spheres:DeflectSpheresEnv",
+    "RopeCutting": "lapwarp.tasks.dissection.rope_cutting:RopeCuttingEnv",
 }
 
 

@@ -16,6 +16,17 @@ from lapwarp.render import Renderer
 from lapwarp.visuals import VisualScene
 
 
+@wp.kernel
+def tube_face_mask(segment_active: wp.array2d(dtype=wp.int32), sides: int, faces: wp.array2d(dtype=wp.int32)):
+    """Thread (env, segment, side): the two triangle blocks of a tube (``Renderer.add_tube``: ``S * sides`` faces
+    each, segment-major, then the caps) follow the rod segment's mask, so a cut segment leaves a gap."""
+    env, seg, side = wp.tid()
+    on = wp.where(segment_active[env, seg] != 0, 1, 0)
+    f = seg * sides + side
+    faces[env, f] = on
+    faces[env, segment_active.shape[1] * sides + f] = on
+
+
 class SceneRenderer:
     """Renders ``scene`` for ``num_envs`` envs at ``width`` x ``height`` into ``rgb``/``depth``/``segmentation``.
 
@@ -40,6 +51,7 @@ class SceneRenderer:
         self._deformable_points: dict = {}
         self._active_masks: dict = {}
         self._tubes: dict = {}
+        self._tube_masks: list = []  # (segment mask (N, S), sides, face mask (N, F)) of tubes with cut segments
         column = 0
         for obj in scene.objects:
             if not obj.visible:
@@ -60,6 +72,11 @@ class SceneRenderer:
                 handle = self.renderer.add_tube(obj.points.shape[1], obj.radius, color=obj.color,
                                                 seg_id=obj.segmentation_id)
                 self._tubes[handle] = obj.points
+                if obj.face_active is not None:  # per-segment mask -> the tube's faces (caps always drawn)
+                    faces = 2 * handle.sides * (handle.num_nodes - 1) + (2 * handle.sides if handle.caps else 0)
+                    mask = wp.ones((num_envs, faces), dtype=wp.int32, device=self.device)
+                    self._tube_masks.append((obj.face_active, handle.sides, mask))
+                    self._active_masks[handle] = mask
         self._instances = wp.zeros((num_envs, max(column, 1)), dtype=wp.transform, device=self.device)
         self._num_instances = column
         self.renderer.finalize()
@@ -69,6 +86,9 @@ class SceneRenderer:
         for transforms, column in self._rigid:
             wp.launch(env_kernels.gather_transform_columns, dim=transforms.shape, inputs=[transforms, column],
                       outputs=[self._instances], device=self.device)
+        for segments, sides, faces in self._tube_masks:
+            wp.launch(tube_face_mask, dim=(segments.shape[0], segments.shape[1], sides), inputs=[segments, sides],
+                      outputs=[faces], device=self.device)
         self.renderer.render(
             camera_poses=self.scene.camera.poses,
             instance_transforms=self._instances if self._num_instances else None,

@@ -18,7 +18,9 @@ Stage layout (``<id>`` is the env index in the batch)::
               .../mesh                       Mesh referencing its prototype (geometry stored once)
         /World/env_<id>/<deformable>         Mesh, time-sampled ``points`` and ``extent``; cut faces hidden
                                              by time-sampled ``holeIndices`` (or rewritten topology)
-        /World/env_<id>/<rod>                BasisCurves (linear), time-sampled ``points``, ``widths`` = 2 r
+        /World/env_<id>/<rod>                BasisCurves (linear), time-sampled ``points``, ``widths`` = 2 r; a rod
+                                             with cut segments (``face_active`` per segment) is split into one
+                                             curve per intact run (time-sampled ``curveVertexCounts``)
 
 Conventions: metres (``metersPerUnit = 1``); the stage's up axis is +Y by default because lapwarp cameras
 look along -Z with +Y up (USD's camera convention), so a viewer's default orbit matches the env camera;
@@ -371,11 +373,29 @@ class UsdRecorder:
                 pad = float(obj.radius) if obj.kind == "rod" else 0.0
                 lo, hi = pts.min(0) - pad, pts.max(0) + pad
                 prim.GetExtentAttr().Set(Vt.Vec3fArray([Gf.Vec3f(*lo.tolist()), Gf.Vec3f(*hi.tolist())]), t)
-                if masks is not None:
+                if masks is not None and obj.kind == "rod":
+                    self._write_cut_segments(prim, pts, masks[slot], t)
+                elif masks is not None:
                     self._write_cut_faces(path, prim, obj, masks[slot], t)
         self.num_frames += 1
         self.stage.SetEndTimeCode(t)
         return int(t)
+
+    def _write_cut_segments(self, curves, pts: np.ndarray, active: np.ndarray, t: float) -> None:
+        """A rod with removed segments: one linear curve per run of present segments (an isolated node becomes a
+        zero-length curve, so the points still cover every node); counts and points are time-sampled."""
+        Vt = self._pxr[4]
+        runs, start = [], 0
+        for k, present in enumerate(np.asarray(active).reshape(-1)):
+            if present == 0:
+                runs.append((start, k))
+                start = k + 1
+        runs.append((start, len(pts) - 1))
+        counts = [max(b - a + 1, 2) for a, b in runs]
+        # written every frame (before a first sample USD would hold the first sample's counts)
+        points = np.concatenate([pts[a:b + 1] if b > a else pts[[a, a]] for a, b in runs])
+        curves.GetPointsAttr().Set(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(points, dtype=np.float32)), t)
+        curves.GetCurveVertexCountsAttr().Set(Vt.IntArray(counts), t)
 
     def _write_cut_faces(self, path: str, mesh, obj: VisualObject, active: np.ndarray, t: float) -> None:
         """Hide inactive faces; a sample is written only when the set changes (int arrays hold their value)."""

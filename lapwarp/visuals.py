@@ -36,7 +36,7 @@ class VisualObject:
     faces: np.ndarray | None = None  # (F, 3) int32
     transforms: wp.array | None = None  # rigid: (num_envs, instances) wp.transform
     points: wp.array | None = None  # deformable / rod: (num_envs, n) wp.vec3
-    face_active: wp.array | None = None  # deformable: (num_envs, F) int32, 0 = removed by cutting
+    face_active: wp.array | None = None  # deformable: (num_envs, F) int32, 0 = removed by cutting; rod: per segment
     radius: float = 0.0  # rod: tube radius (m)
     visible: bool = True
 

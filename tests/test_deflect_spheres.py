@@ -11,7 +11,8 @@ import torch
 
 import lapwarp
 from lapwarp.experts import make_expert
-from lapwarp.tasks.spatial.deflect_spheres import CUTTING_CENTER_OFFSET, DONE
+from lapwarp.tasks.rig import CAUTER_CUTTING_CENTER as CUTTING_CENTER_OFFSET
+from lapwarp.tasks.spatial.deflect_spheres import DONE
 
 WS_LOW = np.array([-0.06, -0.06, -0.01])
 WS_HIGH = np.array([0.06, 0.06, 0.09])

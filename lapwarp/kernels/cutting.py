@@ -8,6 +8,8 @@ segments). Element ``e`` has up to four particles ``elem_nodes[e]`` (-1 padded),
 
 import warp as wp
 
+from lapwarp.kernels.geometry import closest_segment_segment
+
 wp.set_module_options({"enable_backward": False})
 
 KIND_TET = wp.constant(0)
@@ -115,7 +117,9 @@ def cut_elements(
     cut_happened: wp.array(dtype=wp.int32),
     cut_dirty: wp.array2d(dtype=wp.int32),
 ):
-    """Remove every live element whose centroid lies within ``radius + carving_distance`` of a tool capsule."""
+    """Remove every live element within ``radius + carving_distance`` of a tool capsule: tets and triangles by their
+    centroid, rod segments by their closest point (SOFA carves line models along their length; a rope's 5 mm
+    segments would otherwise need the tool at their midpoint, where contact may never let it go)."""
     env, e = wp.tid()
     if tool_active[env] == 0:
         return  # most envs most steps: one load and out
@@ -135,7 +139,17 @@ def cut_elements(
     c = c / cnt
     hit = int(0)
     for k in range(tool_a.shape[1]):
-        if point_segment_distance(c, tool_a[env, k], tool_b[env, k]) <= tool_radius[k] + carving_distance:
+        d = float(0.0)
+        if kind == KIND_SEG:
+            a = q[env, nd[0]]
+            b = q[env, nd[1]]
+            ta = tool_a[env, k]
+            tb = tool_b[env, k]
+            st = closest_segment_segment(a, b, ta, tb)
+            d = wp.length((a + (b - a) * st[0]) - (ta + (tb - ta) * st[1]))
+        else:
+            d = point_segment_distance(c, tool_a[env, k], tool_b[env, k])
+        if d <= tool_radius[k] + carving_distance:
             hit = 1
     if hit == 0:
         return

@@ -25,10 +25,10 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
-from lapwarp.instrument_shapes import InstrumentShape
+from lapwarp.instrument_shapes import CAUTER_CUTTING_CENTER, InstrumentShape
 from lapwarp.instruments import STATE_LIMITS_VIOLATED, WORKSPACE_VIOLATED, TPSDConfig, TPSDInstruments
 from lapwarp.kernels.bodies import hinged_jaw_pose
-from lapwarp.tasks.spec import ActionBlock, ActionLayout
+from lapwarp.tasks.spec import ActionBlock, ActionLayout, to_unit
 
 wp.set_module_options({"enable_backward": False})
 
@@ -86,6 +86,38 @@ class RigState:
     flags: wp.array2d(dtype=wp.int32)
     active: wp.array2d(dtype=wp.int32)
     jaw_angle: wp.array2d(dtype=float)
+
+
+@wp.struct
+class RigBounds:
+    """What normalises a TPSD task's observations and distances: the tips' Cartesian workspace (m), the PTSD state
+    limits (rad, m) and one over the workspace diagonal (sofa_env's distance factor). :meth:`InstrumentRig.bounds`."""
+
+    ws_low: wp.vec3
+    ws_high: wp.vec3
+    state_low: wp.vec4
+    state_high: wp.vec4
+    inv_diagonal: float
+
+
+@wp.func
+def write_unit_point(out: wp.array2d(dtype=wp.float32), env: int, col: int, x: wp.vec3, b: RigBounds):
+    """A position mapped from the workspace box to [-1, 1] into ``out[env, col:col + 3]``."""
+    for i in range(3):
+        out[env, col + i] = to_unit(x[i], b.ws_low[i], b.ws_high[i])
+
+
+@wp.func
+def write_unit_ptsd(out: wp.array2d(dtype=wp.float32), env: int, col: int, s: wp.vec4, b: RigBounds):
+    """A PTSD state mapped from the state limits to [-1, 1] into ``out[env, col:col + 4]``."""
+    for i in range(4):
+        out[env, col + i] = to_unit(s[i], b.state_low[i], b.state_high[i])
+
+
+@wp.func
+def cutting_center(tip: wp.transform) -> wp.vec3:
+    """The electrocautery hook's cutting centre (on the shaft axis, ``CAUTER_CUTTING_CENTER`` beyond the tip)."""
+    return wp.transform_point(tip, wp.vec3(0.0, 0.0, CAUTER_CUTTING_CENTER))
 
 
 @wp.func
@@ -377,6 +409,14 @@ class InstrumentRig:
         """``(num_envs, K)`` int32 bits of the last update (``STATE_LIMITS_VIOLATED``, ``WORKSPACE_VIOLATED``)."""
         return self.instruments.flags
 
+    def bounds(self, workspace_low, workspace_high) -> RigBounds:
+        """``RigBounds`` of the given Cartesian workspace (m) and the first instrument's state limits."""
+        b = RigBounds()
+        b.ws_low, b.ws_high = wp.vec3(*workspace_low), wp.vec3(*workspace_high)
+        b.state_low, b.state_high = self.state_limits()
+        b.inv_diagonal = 1.0 / float(np.linalg.norm(np.subtract(workspace_high, workspace_low)))
+        return b
+
     def state_limits(self) -> tuple[wp.vec4, wp.vec4]:
         """(low, high) PTSD state limits of the first instrument in rad / m (for observation normalisation)."""
         to_internal = np.array([math.pi / 180.0] * 3 + [1.0])
@@ -384,5 +424,6 @@ class InstrumentRig:
         return (wp.vec4(*(np.asarray(t.state_low) * to_internal)), wp.vec4(*(np.asarray(t.state_high) * to_internal)))
 
 
-__all__ = ["InstrumentRig", "InstrumentSpec", "RigContacts", "RigState", "STATE_LIMITS_VIOLATED", "WORKSPACE_VIOLATED",
-           "count_flag", "instrument_touches"]
+__all__ = ["CAUTER_CUTTING_CENTER", "InstrumentRig", "InstrumentSpec", "RigBounds", "RigContacts", "RigState",
+           "STATE_LIMITS_VIOLATED", "WORKSPACE_VIOLATED", "count_flag", "cutting_center", "instrument_touches",
+           "write_unit_point", "write_unit_ptsd"]

@@ -1,1 +1,1 @@
-"""Dissection track: RopeCutting, PrecisionCutting, TissueDissection (not implemented yet)."""
+"""Dissection track: RopeCutting (``rope_cutting``); PrecisionCutting and TissueDissection are not implemented yet."""

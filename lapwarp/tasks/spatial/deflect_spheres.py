@@ -52,16 +52,21 @@ from lapwarp.kernels.random import rand_uniform
 from lapwarp.tasks.camera import fixed_camera
 from lapwarp.tasks.deformable import DeformableObject
 from lapwarp.tasks.rig import (
+    CAUTER_CUTTING_CENTER,
     STATE_LIMITS_VIOLATED,
     WORKSPACE_VIOLATED,
     InstrumentRig,
     InstrumentSpec,
+    RigBounds,
     RigContacts,
     RigState,
     count_flag,
+    cutting_center,
     instrument_touches,
+    write_unit_point,
+    write_unit_ptsd,
 )
-from lapwarp.tasks.spec import Feature, ObservationLayout, ObservationSpec, RewardSpec, to_unit
+from lapwarp.tasks.spec import Feature, ObservationLayout, ObservationSpec, RewardSpec
 from lapwarp.tasks.targets import draw_index, draw_index_where, sample_separated
 from lapwarp.visuals import VisualObject, VisualScene, sphere_mesh
 from lapwarp.world import World
@@ -89,8 +94,6 @@ CRITIC = OBS.extend("deflections", "offset_to_active", "tip_contact")
 #: Sphere states (sofa_env's ``Post.State``) and their colours.
 IDLE, ACTIVE_RIGHT, ACTIVE_LEFT, DONE = 0, 1, 2, 3
 SPHERE_COLORS = ((0.7, 0.7, 0.7), (0.0, 0.0, 1.0), (1.0, 0.0, 0.0), (0.0, 1.0, 0.0))
-#: The cauter's cutting centre in its tip frame (sofa_env's ``cutting_center_index``): 14.4 mm along the shaft.
-CUTTING_CENTER_OFFSET = 0.0144
 _HIDDEN = wp.constant(wp.vec3(0.0, 0.0, -1000.0))  # far beyond the camera's far plane: culled
 _SPHERE_TRIES = wp.constant(200)  # candidate positions per sphere at reset (rejection sampling, minimum distance)
 
@@ -224,21 +227,12 @@ class Spheres:
 class Params:
     """Constants of a configuration (SI units, radians)."""
 
-    ws_low: wp.vec3
-    ws_high: wp.vec3
-    state_low: wp.vec4
-    state_high: wp.vec4
-    inv_diagonal: float
+    bounds: RigBounds
     min_deflection: float
     tool_collision_distance: float
     tool_only: int  # 1 - allow_deflection_with_instrument_shaft
     num_to_win: int
     without_replacement: int
-
-
-@wp.func
-def cutting_center(pose: wp.transform) -> wp.vec3:
-    return wp.transform_point(pose, wp.vec3(0.0, 0.0, CUTTING_CENTER_OFFSET))
 
 
 @wp.func
@@ -308,7 +302,7 @@ def eval_deflect_features(env_mask: wp.array(dtype=wp.int32), q: wp.array2d(dtyp
     features_out[env, F.ACTION_VIOLATED_CARTESIAN_WORKSPACE] = float(count_flag(rig.flags, env, WORKSPACE_VIOLATED))
     features_out[env, F.ACTION_VIOLATED_STATE_LIMITS] = float(count_flag(rig.flags, env, STATE_LIMITS_VIOLATED))
     features_out[env, F.TOOL_COLLISION] = collision
-    features_out[env, F.DISTANCE_TO_ACTIVE_SPHERE] = wp.clamp(dist * p.inv_diagonal, -1.0, 1.0)
+    features_out[env, F.DISTANCE_TO_ACTIVE_SPHERE] = wp.clamp(dist * p.bounds.inv_diagonal, -1.0, 1.0)
     features_out[env, F.DEFLECTION_OF_INACTIVE_SPHERES] = inactive
     features_out[env, F.DEFLECTION_OF_ACTIVE_SPHERE] = float(valid) * deflection / p.min_deflection
     features_out[env, F.DONE_WITH_ACTIVE_SPHERE] = done
@@ -334,24 +328,16 @@ def update_active_sphere(q: wp.array2d(dtype=wp.vec3), rig: RigState, features: 
     spheres.previous_active[env] = a
     activate_sphere(spheres, env, pick)
     dist = wp.length(cutting_center(rig.pose[env, pick[1]]) - q[env, pick[0]])
-    baselines[env, F.DISTANCE_TO_ACTIVE_SPHERE] = wp.clamp(dist * p.inv_diagonal, -1.0, 1.0)
+    baselines[env, F.DISTANCE_TO_ACTIVE_SPHERE] = wp.clamp(dist * p.bounds.inv_diagonal, -1.0, 1.0)
     deflection = wp.length(q[env, pick[0]] - spheres.anchors[env, pick[0]])
     baselines[env, F.DEFLECTION_OF_ACTIVE_SPHERE] = deflection / p.min_deflection
 
 
 @wp.func
-def write_position(out: wp.array2d(dtype=float), env: int, col: int, x: wp.vec3, p: Params):
-    for i in range(3):
-        out[env, col + i] = to_unit(x[i], p.ws_low[i], p.ws_high[i])
-
-
-@wp.func
 def write_hook(out: wp.array2d(dtype=float), env: int, col: int, rig: RigState, k: int, p: Params):
     """PTSD (by the state limits) and tip position (by the workspace) in [-1, 1], then the tip quaternion (xyzw)."""
-    s = rig.ptsd[env, k]
-    for i in range(4):
-        out[env, col + i] = to_unit(s[i], p.state_low[i], p.state_high[i])
-    write_position(out, env, col + 4, wp.transform_get_translation(rig.pose[env, k]), p)
+    write_unit_ptsd(out, env, col, rig.ptsd[env, k], p.bounds)
+    write_unit_point(out, env, col + 4, wp.transform_get_translation(rig.pose[env, k]), p.bounds)
     rot = wp.transform_get_rotation(rig.pose[env, k])
     for i in range(4):
         out[env, col + 7 + i] = rot[i]
@@ -367,8 +353,8 @@ def observe_deflect(q: wp.array2d(dtype=wp.vec3), rig: RigState, spheres: Sphere
     num = q.shape[1]
     pa = q[env, spheres.active[env]]
     for k in range(num):
-        write_position(obs_out, env, o.spheres + 3 * k, q[env, k], p)
-    write_position(obs_out, env, o.active_sphere, pa, p)
+        write_unit_point(obs_out, env, o.spheres + 3 * k, q[env, k], p.bounds)
+    write_unit_point(obs_out, env, o.active_sphere, pa, p.bounds)
     write_hook(obs_out, env, o.right_hook, rig, 0, p)
     if rig.pose.shape[1] > 1:
         obs_out[env, o.active_hook] = float(spheres.active_hook[env])
@@ -377,7 +363,7 @@ def observe_deflect(q: wp.array2d(dtype=wp.vec3), rig: RigState, spheres: Sphere
         return
     for k in range(num):  # the critic's leading blocks are the policy's (copied by the env base)
         critic_out[env, c.deflections + k] = wp.length(q[env, k] - spheres.anchors[env, k]) / p.min_deflection
-    rel = (pa - cutting_center(rig.pose[env, spheres.active_hook[env]])) * p.inv_diagonal
+    rel = (pa - cutting_center(rig.pose[env, spheres.active_hook[env]])) * p.bounds.inv_diagonal
     for i in range(3):
         critic_out[env, c.offset_to_active + i] = rel[i]
     critic_out[env, c.tip_contact] = float(spheres.tip_contact[env])
@@ -415,8 +401,8 @@ def expert_ptsd_errors(q: wp.array2d(dtype=wp.vec3), rig: RigState, spheres: Sph
     target = anchor + wp.normalize(u) * (contact_distance - push)
     s = rig.ptsd[env, h]
     goal = point_to_ptsd(rig.rcm[env, h], target, s[2])
-    # the cutting centre lies on the shaft axis, CUTTING_CENTER_OFFSET beyond the TPSD tip
-    error_out[env, h] = wp.vec4(goal[0] - s[0], goal[1] - s[1], 0.0, goal[3] - CUTTING_CENTER_OFFSET - s[3])
+    # the cutting centre lies on the shaft axis, CAUTER_CUTTING_CENTER beyond the TPSD tip
+    error_out[env, h] = wp.vec4(goal[0] - s[0], goal[1] - s[1], 0.0, goal[3] - CAUTER_CUTTING_CENTER - s[3])
 
 
 # ---------------------------------------------------------------------------- env
@@ -470,11 +456,8 @@ class DeflectSpheresEnv(BatchedEnv):
             setattr(self.task, name, wp.zeros(n, dtype=wp.int32, device=dev))
         low, high = cfg.workspace
         self.workspace_diagonal = float(np.linalg.norm(high - low))
-        self.params = Params()
-        p = self.params
-        p.ws_low, p.ws_high = wp.vec3(*low), wp.vec3(*high)
-        p.state_low, p.state_high = self.rig.state_limits()
-        p.inv_diagonal, p.min_deflection = 1.0 / self.workspace_diagonal, cfg.min_deflection_distance
+        self.params = p = Params()
+        p.bounds, p.min_deflection = self.rig.bounds(low, high), cfg.min_deflection_distance
         p.tool_collision_distance, p.tool_only = cfg.tool_collision_distance, int(
             not cfg.allow_deflection_with_instrument_shaft)
         p.num_to_win, p.without_replacement = cfg.num_deflect_to_win, int(cfg.sampling_mode == "WITHOUT_REPLACEMENT")
