@@ -2,6 +2,8 @@
 
     python benchmarks/bench_env.py --task Reach --device cuda:0 --num-envs 1 64 1024 16384 65536 --out reach.json
 
+``--policy expert`` times the task's scripted expert with each step (the regime where instruments cut and grasp).
+
 Regime: env step only (physics + observations + rewards + dones + masked auto-resets, the whole
 ``env.step`` as rsl-rl calls it, including the returned clones and log tensors); no policy. Actions are
 drawn once per benchmark into a pool of random batches and cycled, so action generation is not timed.
@@ -21,6 +23,7 @@ import torch
 import warp as wp
 
 import lapwarp
+from lapwarp.experts import make_expert
 
 
 def device_name(device: str) -> str:
@@ -34,23 +37,32 @@ def sync(device: str) -> None:
         torch.cuda.synchronize(torch.device(device))
 
 
-def bench_one(task: str, num_envs: int, device: str, seconds: float, invalid_actions: str, overrides: dict) -> dict:
+def bench_one(task: str, num_envs: int, device: str, seconds: float, invalid_actions: str, overrides: dict,
+              policy: str = "random") -> dict:
     env = lapwarp.make(task, num_envs=num_envs, device=device, invalid_actions=invalid_actions, **overrides)
     gen = torch.Generator(device=env.device).manual_seed(0)
-    if env.is_discrete:
+    if policy == "expert":
+        # The scripted expert acts on the live state every step (its own device work is timed too): this is the
+        # regime where instruments really cut, grasp and touch, and where cut envs are reset.
+        expert = make_expert(env)
+        pool = None
+    elif env.is_discrete:
         pool = [torch.randint(0, 2 * env.action_dim + 1, (num_envs,), device=env.device, generator=gen)
                 for _ in range(8)]
     else:
         pool = [torch.rand(num_envs, env.num_actions, device=env.device, generator=gen) * 2 - 1 for _ in range(8)]
+
+    def action(i: int):
+        return expert() if pool is None else pool[i % 8]
     for i in range(5):  # compile kernels, capture the CUDA graph, warm caches
-        env.step(pool[i % 8])
+        env.step(action(i))
     sync(env.device)
     steps, elapsed = 0, 0.0
     batch = 10
     start = time.perf_counter()
     while elapsed < seconds:
         for i in range(batch):
-            env.step(pool[(steps + i) % 8])
+            env.step(action(steps + i))
         steps += batch
         sync(env.device)
         elapsed = time.perf_counter() - start
@@ -58,7 +70,8 @@ def bench_one(task: str, num_envs: int, device: str, seconds: float, invalid_act
     result = {
         "task": task, "num_envs": num_envs, "env_steps": steps * num_envs, "seconds": elapsed,
         "env_steps_per_s": steps * num_envs / elapsed, "step_ms": 1e3 * elapsed / steps,
-        "invalid_actions": invalid_actions, "frame_skip": env.cfg.frame_skip, "time_step": env.cfg.time_step,
+        "invalid_actions": invalid_actions, "policy": policy, "frame_skip": env.cfg.frame_skip,
+        "time_step": env.cfg.time_step,
         "observation_type": env.cfg.observation_type, "cuda_graph": env._use_cuda_graph,
         "resolution": list(env.cfg.image_shape) if env.uses_images else None,
     }
@@ -78,6 +91,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--image-size", type=int, default=64, help="square image side for image observations")
     parser.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
                         help="extra config overrides, values parsed as JSON (e.g. sphere_radius=0.02)")
+    parser.add_argument("--policy", choices=["random", "expert"], default="random",
+                        help="random actions from a pre-drawn pool, or the scripted expert (timed with the step)")
     parser.add_argument("--out", default=None, help="JSON output path")
     args = parser.parse_args(argv)
 
@@ -96,10 +111,10 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{'task':<10} {'num_envs':>9} {'nan mode':>8} {'env-steps/s':>14} {'step ms':>9}")
     for n in args.num_envs:
         for mode in modes:
-            r = bench_one(args.task, n, args.device, args.seconds, mode, overrides)
+            r = bench_one(args.task, n, args.device, args.seconds, mode, overrides, args.policy)
             results.append(r)
             print(f"{r['task']:<10} {n:>9} {mode:>8} {r['env_steps_per_s']:>14,.0f} {r['step_ms']:>9.3f}", flush=True)
-    report = {"benchmark": "env_step", "regime": "env step only, random actions", "device": args.device,
+    report = {"benchmark": "env_step", "regime": f"env step only, {args.policy} actions", "device": args.device,
               "device_name": device_name(args.device), "warp": wp.__version__, "torch": torch.__version__,
               "results": results}
     if args.out:

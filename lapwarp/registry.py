@@ -11,6 +11,7 @@ _TASKS: dict[str, str] = {
     "SearchForPoint": "lapwarp.tasks.spatial.search_for_point:SearchForPointEnv",
     "DeflectSpheres": "lapwarp.tasks.spatial.deflect_spheres:DeflectSpheresEnv",
     "RopeCutting": "lapwarp.tasks.dissection.rope_cutting:RopeCuttingEnv",
+    "PrecisionCutting": "lapwarp.tasks.dissection.precision_cutting:PrecisionCuttingEnv",
 }
 
 

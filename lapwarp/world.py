@@ -281,7 +281,9 @@ class World:
         lam = self._lam
         for sub in range(substeps):
             launch(xpbd.integrate_particles, (n, m.particle_count),
-                   [m.particle_inv_mass, m.particle_damping, m.gravity, h, s.particle_q, s.particle_qd], [self._q_pred])
+                   [m.particle_inv_mass, m.particle_damping, m.gravity, h,
+                    s.particle_active if s.particle_active is not None else self._dummy_mask,
+                    int(s.particle_active is not None), s.particle_q, s.particle_qd], [self._q_pred])
             if m.segment_count:
                 launch(xpbd.integrate_segments, (n, m.segment_count),
                        [m.segment_inv_inertia, m.segment_damping, h, s.segment_q, s.segment_qd], [self._sq_prev])

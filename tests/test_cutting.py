@@ -56,6 +56,26 @@ def test_hook_cuts_hanging_rope(device):
     assert not world.unstable.numpy().any()
 
 
+def test_orphaned_particle_stays_put_and_stable(device):
+    """A node whose segments are both cut belongs to nothing: it must not fall for ever (after ~5 s its speed would
+    pass the stability limit and reset the env) but stay where it was, like sofa_env's removed points."""
+    world, rope = _rope(device, 2)
+    cut = CuttingSystem(world, carving_distance=1.0e-3, num_tools=1, tool_radius=0.5e-3)
+    cut.add_object(rope)
+    cut.finalize()
+    world.simulate(0.3, DT)
+    # a short hook along the rope over node 10 removes segments 9 and 10 (their closest points are within reach)
+    cut.set_tools([[0.0, 0.0, -0.0495]], [[0.0, 0.0, -0.0505]], active=[1, 0])
+    cut.cut()
+    act = world.state.segment_active.numpy()
+    assert act[0, 9] == 0 and act[0, 10] == 0 and act[1].min() == 1
+    assert world.state.particle_active.numpy()[0, 10] == 0
+    orphan = world.positions(rope)[0, 10].copy()
+    world.simulate(8.0, DT)  # free fall would reach 78 m/s, past the 50 m/s limit
+    np.testing.assert_array_equal(world.positions(rope)[0, 10], orphan)
+    assert not world.unstable.numpy().any()
+
+
 def test_scissors_cut_cloth_along_line(device):
     b = SceneBuilder()
     nx, h = 13, 0.005

@@ -35,6 +35,8 @@ def integrate_particles(
     damping: wp.array2d(dtype=float),
     gravity: wp.vec3,
     dt: float,
+    active: wp.array2d(dtype=wp.int32),
+    use_active: int,
     q: wp.array2d(dtype=wp.vec3),
     qd: wp.array2d(dtype=wp.vec3),
     q_pred_out: wp.array2d(dtype=wp.vec3),
@@ -42,6 +44,11 @@ def integrate_particles(
     env, i = wp.tid()
     x = q[env, i]
     w = inv_mass[env % inv_mass.shape[0], i]
+    # a particle whose elements were all cut away (``active`` 0) belongs to nothing: it stays where it was (sofa_env
+    # removes such points) instead of falling for ever and tripping the stability check
+    if use_active != 0:
+        if active[env, i] == 0:
+            w = 0.0
     if w == 0.0:
         qd[env, i] = wp.vec3(0.0)
         q_pred_out[env, i] = x

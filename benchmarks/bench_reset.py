@@ -1,0 +1,107 @@
+"""Cost of resetting cut envs against uncut ones, for the cutting tasks, written as JSON.
+
+    python benchmarks/bench_reset.py --tasks RopeCutting --device cuda:0 --num-envs 4096 --out reset.json
+
+Resets are in place: masks, surfaces and rest state of the masked envs are restored from their initial rows (no
+rebuild, no reallocation), so a cut env should cost what an uncut one costs. Measured per task:
+
+* ``uncut``: ``env.reset()`` of every env right after a reset (nothing cut), median over ``--repeats``;
+* ``cut``: ``env.reset()`` of every env after ``--expert-steps`` steps of the scripted expert (which cuts),
+  median over ``--repeats``; the number of removed elements per env at the moment of the reset is reported too.
+
+Each reset is timed alone, with a device sync before and after (it is a host call that launches the masked reset
+and the observation kernels; no CUDA graph).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import time
+
+import torch
+import warp as wp
+from bench_env import device_name, sync
+
+import lapwarp
+from lapwarp.experts import make_expert
+
+
+def removed_elements(env) -> float:
+    """Mean number of removed (cut) elements per env, over every cuttable element kind."""
+    state = env.world.state
+    total = 0
+    for name in ("tet_active", "tri_active", "segment_active"):
+        mask = getattr(state, name, None)
+        if mask is not None:
+            total += int((wp.to_torch(mask) == 0).sum().item())
+    return total / env.num_envs
+
+
+def timed_reset(env) -> float:
+    sync(env.device)
+    start = time.perf_counter()
+    env.reset()
+    sync(env.device)
+    return time.perf_counter() - start
+
+
+def bench_task(task: str, num_envs: int, device: str, repeats: int, expert_steps: int, overrides: dict) -> dict:
+    env = lapwarp.make(task, num_envs=num_envs, device=device, invalid_actions="zero", **overrides)
+    expert = make_expert(env)
+    env.reset()
+    for _ in range(3):  # compile and warm every reset and step kernel
+        env.step(expert())
+        timed_reset(env)
+    uncut = [timed_reset(env) for _ in range(repeats)]
+    cut, removed = [], []
+    for _ in range(repeats):
+        for _ in range(expert_steps):
+            env.step(expert())
+        removed.append(removed_elements(env))
+        cut.append(timed_reset(env))
+    env.close()
+    return {
+        "task": task, "num_envs": num_envs, "repeats": repeats, "expert_steps_before_cut_reset": expert_steps,
+        "uncut_reset_ms": 1e3 * statistics.median(uncut), "cut_reset_ms": 1e3 * statistics.median(cut),
+        "cut_over_uncut": statistics.median(cut) / statistics.median(uncut),
+        "removed_elements_per_env_at_cut_reset": statistics.mean(removed),
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--tasks", nargs="+", default=["RopeCutting"])
+    parser.add_argument("--device", default="cuda:0" if torch.cuda.is_available() else "cpu")
+    parser.add_argument("--num-envs", type=int, default=4096)
+    parser.add_argument("--repeats", type=int, default=10)
+    parser.add_argument("--expert-steps", type=int, default=40, help="expert steps before each timed cut reset")
+    parser.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
+                        help="config overrides (JSON values); a task that ends at its first cut needs more cuts to "
+                             "leave cut envs standing, e.g. RopeCutting num_ropes_to_cut=3")
+    parser.add_argument("--out", default=None, help="JSON output path")
+    args = parser.parse_args(argv)
+    wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)
+    overrides = {}
+    for item in args.set:
+        key, _, value = item.partition("=")
+        overrides[key] = json.loads(value)
+    results = []
+    for task in args.tasks:
+        r = bench_task(task, args.num_envs, args.device, args.repeats, args.expert_steps, overrides)
+        r["overrides"] = overrides
+        results.append(r)
+        print(f"{task:<18} uncut {r['uncut_reset_ms']:.3f} ms  cut {r['cut_reset_ms']:.3f} ms  "
+              f"ratio {r['cut_over_uncut']:.3f}  removed/env {r['removed_elements_per_env_at_cut_reset']:.1f}",
+              flush=True)
+    report = {"benchmark": "reset_cost", "device": args.device, "device_name": device_name(args.device),
+              "warp": wp.__version__, "torch": torch.__version__, "results": results}
+    if args.out:
+        with open(args.out, "w") as f:
+            json.dump(report, f, indent=2)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

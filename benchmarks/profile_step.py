@@ -1,0 +1,87 @@
+"""Where an env step's device time goes: Warp kernel times summed by kernel name, written as JSON.
+
+    python benchmarks/profile_step.py --task RopeCutting --num-envs 4096 --steps 5 --out profile.json
+
+The env is built without CUDA-graph capture (graph replays are not broken down per kernel) and driven by the
+scripted expert (``--policy random`` for random actions); after warm-up, ``--steps`` steps run under
+``wp.ScopedTimer(cuda_filter=wp.TIMING_KERNEL)``. Reported per kernel: launches per env step and device
+milliseconds per env step, sorted by time. The total is device kernel time only (no launch gaps, no torch ops), so
+it is a lower bound of the graph-replayed step.
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import json
+
+import torch
+import warp as wp
+
+import lapwarp
+from lapwarp.experts import make_expert
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--task", default="RopeCutting", choices=lapwarp.list_tasks())
+    parser.add_argument("--device", default="cuda:0")
+    parser.add_argument("--num-envs", type=int, default=4096)
+    parser.add_argument("--steps", type=int, default=5)
+    parser.add_argument("--policy", choices=["random", "expert"], default="expert")
+    parser.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="config overrides (JSON values)")
+    parser.add_argument("--top", type=int, default=25, help="kernels printed")
+    parser.add_argument("--out", default=None)
+    args = parser.parse_args(argv)
+    wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)
+    overrides = {}
+    for item in args.set:
+        key, _, value = item.partition("=")
+        try:
+            overrides[key] = json.loads(value)
+        except json.JSONDecodeError:
+            overrides[key] = value
+    env = lapwarp.make(args.task, num_envs=args.num_envs, device=args.device, use_cuda_graph=False,
+                       invalid_actions="zero", **overrides)
+    if args.policy == "expert":
+        expert = make_expert(env)
+    else:
+        gen = torch.Generator(device=env.device).manual_seed(0)
+
+    def action():
+        if args.policy == "expert":
+            return expert()
+        if env.is_discrete:
+            return torch.randint(0, 2 * env.action_dim + 1, (env.num_envs,), device=env.device, generator=gen)
+        return torch.rand(env.num_envs, env.num_actions, device=env.device, generator=gen) * 2 - 1
+
+    for _ in range(3):
+        env.step(action())
+    actions = [action() for _ in range(args.steps)]  # expert actions drawn outside the timed region
+    with wp.ScopedTimer("profile", cuda_filter=wp.TIMING_KERNEL, print=False, synchronize=True) as timer:
+        for a in actions:
+            env.step(a)
+    per_kernel = collections.defaultdict(lambda: [0, 0.0])
+    for r in timer.timing_results:
+        per_kernel[r.name][0] += 1
+        per_kernel[r.name][1] += r.elapsed
+    rows = sorted(((name, n / args.steps, ms / args.steps) for name, (n, ms) in per_kernel.items()),
+                  key=lambda row: -row[2])
+    total = sum(row[2] for row in rows)
+    print(f"{args.task}, {args.num_envs} envs: {total:.3f} ms kernel time per env step, "
+          f"{sum(row[1] for row in rows):.0f} launches")
+    for name, launches, ms in rows[: args.top]:
+        print(f"  {ms:8.3f} ms {100 * ms / total:5.1f}%  {launches:6.0f} x  {name}")
+    if args.out:
+        with open(args.out, "w") as f:
+            json.dump({"task": args.task, "num_envs": args.num_envs, "steps": args.steps, "policy": args.policy,
+                       "overrides": overrides, "kernel_ms_per_step": total,
+                       "device_name": torch.cuda.get_device_name(torch.device(args.device)),
+                       "kernels": [{"name": n, "launches_per_step": k, "ms_per_step": t} for n, k, t in rows]},
+                      f, indent=2)
+    env.close()
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
