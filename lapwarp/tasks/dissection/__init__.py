@@ -1,1 +1,2 @@
-"""Dissection track: RopeCutting (``rope_cutting``); PrecisionCutting and TissueDissection are not implemented yet."""
+"""Dissection track: RopeCutting (``rope_cutting``) and PrecisionCutting (``precision_cutting``); TissueDissection
+is not implemented yet."""

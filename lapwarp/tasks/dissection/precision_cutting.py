@@ -8,9 +8,9 @@ rows, 80 vertices) and at its two near corners. A cutting path, a line ``x = a u
 
 Physics (SI; sofa_env's millimetres converted, its gravity 981 mm/s^2 along -z): the cloth is
 ``SceneBuilder.add_cloth(cuttable=True)`` with sofa_env's spring stiffness (``MeshSpringForceField`` 90 N/m on every
-triangle edge: membrane stiffness 90 N/m gives 90 N/m axis springs on this grid), its mass (30 g in all) and no bending (sofa_env has none), solved by the
-converged chain solver. The scissors' blades and shaft are kinematic capsules that push the cloth (contact with the
-triangle interiors, so a blade cannot slip between vertices).
+triangle edge: membrane stiffness 90 N/m gives 90 N/m axis springs on this grid), its mass (30 g in all) and no bending
+(sofa_env has none), solved by the converged chain solver. The scissors' blades and shaft are kinematic capsules that
+push the cloth (contact with the triangle interiors, so a blade cannot slip between vertices).
 
 Cutting (``lapwarp.cutting``): the cutting edge of each blade (its inner edge, from 1 mm to the blade's end) is a tool
 capsule; a triangle whose centroid comes within ``blade_edge_radius + carving_distance`` of an edge is removed. As in
