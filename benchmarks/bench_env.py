@@ -23,6 +23,7 @@ import torch
 import warp as wp
 
 import lapwarp
+from lapwarp.cli import parse_overrides
 from lapwarp.experts import make_expert
 
 
@@ -101,12 +102,7 @@ def main(argv: list[str] | None = None) -> int:
     overrides = {"observation_type": args.obs}
     if args.obs != "STATE":
         overrides["image_shape"] = (args.image_size, args.image_size)
-    for item in args.set:
-        key, _, value = item.partition("=")
-        try:
-            overrides[key] = json.loads(value)
-        except json.JSONDecodeError:
-            overrides[key] = value
+    overrides.update(parse_overrides(args.set))
     results = []
     print(f"{'task':<10} {'num_envs':>9} {'nan mode':>8} {'env-steps/s':>14} {'step ms':>9}")
     for n in args.num_envs:

@@ -25,6 +25,7 @@ import warp as wp
 from bench_env import device_name, sync
 
 import lapwarp
+from lapwarp.cli import parse_overrides
 from lapwarp.experts import make_expert
 
 
@@ -83,10 +84,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", default=None, help="JSON output path")
     args = parser.parse_args(argv)
     wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)
-    overrides = {}
-    for item in args.set:
-        key, _, value = item.partition("=")
-        overrides[key] = json.loads(value)
+    overrides = parse_overrides(args.set)
     results = []
     for task in args.tasks:
         r = bench_task(task, args.num_envs, args.device, args.repeats, args.expert_steps, overrides)

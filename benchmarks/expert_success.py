@@ -18,18 +18,8 @@ import torch
 import warp as wp
 
 import lapwarp
+from lapwarp.cli import parse_overrides
 from lapwarp.experts import make_expert
-
-
-def parse(items: list[str]) -> dict:
-    out = {}
-    for item in items:
-        key, _, value = item.partition("=")
-        try:
-            out[key] = json.loads(value)
-        except json.JSONDecodeError:
-            out[key] = value
-    return out
 
 
 def run(task: str, overrides: dict, action_type: str, num_envs: int, episodes: int, max_steps: int,
@@ -68,7 +58,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", default=None)
     args = parser.parse_args(argv)
     wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)
-    configs = [parse(c) for c in (args.config or [[]])]
+    configs = [parse_overrides(c) for c in (args.config or [[]])]
     records = []
     for overrides in configs:
         for action_type in args.action_types:

@@ -19,6 +19,7 @@ import torch
 import warp as wp
 
 import lapwarp
+from lapwarp.cli import parse_overrides
 from lapwarp.experts import make_expert
 
 
@@ -34,13 +35,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", default=None)
     args = parser.parse_args(argv)
     wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)
-    overrides = {}
-    for item in args.set:
-        key, _, value = item.partition("=")
-        try:
-            overrides[key] = json.loads(value)
-        except json.JSONDecodeError:
-            overrides[key] = value
+    overrides = parse_overrides(args.set)
     env = lapwarp.make(args.task, num_envs=args.num_envs, device=args.device, use_cuda_graph=False,
                        invalid_actions="zero", **overrides)
     if args.policy == "expert":

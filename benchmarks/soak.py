@@ -28,7 +28,7 @@ import time
 import torch
 
 import lapwarp
-from lapwarp.cli import quiet_warp
+from lapwarp.cli import parse_overrides, quiet_warp
 
 POOL = 16  # pre-drawn action batches, cycled
 
@@ -144,13 +144,7 @@ def main(argv: list[str] | None = None) -> int:
     unknown = sorted(set(tasks) - set(lapwarp.list_tasks()))
     if unknown or args.num_envs < 1 or args.env_steps < 1:
         parser.error(f"unknown tasks {unknown}" if unknown else "--num-envs and --env-steps must be positive")
-    overrides = {}
-    for item in args.set:
-        key, _, value = item.partition("=")
-        try:
-            overrides[key] = json.loads(value)
-        except json.JSONDecodeError:
-            overrides[key] = value
+    overrides = parse_overrides(args.set)
     quiet_warp()
     failures = 0
     for task in tasks:
