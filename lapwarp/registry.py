@@ -12,6 +12,7 @@ _TASKS: dict[str, str] = {
     "DeflectSpheres": "lapwarp.tasks.spatial.deflect_spheres:DeflectSpheresEnv",
     "RopeCutting": "lapwarp.tasks.dissection.rope_cutting:RopeCuttingEnv",
     "PrecisionCutting": "lapwarp.tasks.dissection.precision_cutting:PrecisionCuttingEnv",
+    "TissueDissection": "lapwarp.tasks.dissection.tissue_dissection:TissueDissectionEnv",
 }
 
 

@@ -142,6 +142,8 @@ class World:
         self._rod_scratch = self._chain_scratch(m.rod_chains)
         # per (env, tet) rotation of the last projection: the warm start of the next one (identity at rest)
         self._tet_rotation = wp.full((n, max(m.tet_count, 1)), wp.quat_identity(), dtype=wp.quat, device=dev)
+        # ... and at the start state (saved and restored with it, so a reset episode repeats bit for bit)
+        self._start_tet_rotation = wp.clone(self._tet_rotation) if m.tet_count else None
         self._no_rotation = wp.zeros((1, 0), dtype=wp.quat, device=dev)
         self._edge_scratch = self._chain_scratch(m.edge_chains)
         if self.state.body_q is not None:
@@ -153,6 +155,8 @@ class World:
         self._no_map_i = wp.zeros(0, dtype=wp.int32, device=dev)
         self._no_mask = wp.zeros((1, 0), dtype=wp.int32, device=dev)
         self._dummy_mask = wp.zeros((1, 1), dtype=wp.int32, device=dev)
+        #: ``(num_envs, particles)`` external forces (N), allocated by :meth:`enable_external_forces`
+        self.particle_force = None
         self._lam = {}
         self._alloc_lambdas()
         self._cmds: list = []
@@ -217,6 +221,17 @@ class World:
 
     #: fewest automatic substeps (cloth edge chains and rods converge from here at 0.1 s steps)
     MIN_AUTO_SUBSTEPS = 10
+
+    def enable_external_forces(self) -> wp.array:
+        """Allocate (once) and return ``particle_force``, a ``(num_envs, particles)`` ``wp.vec3`` array of external
+        forces in N, zero at first, added to gravity in every substep (a constant force field such as sofa_env's
+        ``ConstantForceField``). Tasks write it from kernels; it is control input, not State, so a reset does not
+        touch it. Particles with inverse mass 0 (pinned, or orphaned by cutting) ignore it."""
+        if self.particle_force is None:
+            self.particle_force = wp.zeros((self.num_envs, max(self.model.particle_count, 1)), dtype=wp.vec3,
+                                           device=self.device)
+            self._cmd_key = None  # re-record the step with the force term
+        return self.particle_force
 
     def substeps_for(self, dt: float) -> int:
         """Substeps of a ``step(dt)``: the fixed count, or automatically ``max(10, ceil(dt / model.max_substep))``."""
@@ -283,7 +298,9 @@ class World:
             launch(xpbd.integrate_particles, (n, m.particle_count),
                    [m.particle_inv_mass, m.particle_damping, m.gravity, h,
                     s.particle_active if s.particle_active is not None else self._dummy_mask,
-                    int(s.particle_active is not None), s.particle_q, s.particle_qd], [self._q_pred])
+                    int(s.particle_active is not None),
+                    self.particle_force if self.particle_force is not None else self._dummy_v3,
+                    int(self.particle_force is not None), s.particle_q, s.particle_qd], [self._q_pred])
             if m.segment_count:
                 launch(xpbd.integrate_segments, (n, m.segment_count),
                        [m.segment_inv_inertia, m.segment_damping, h, s.segment_q, s.segment_qd], [self._sq_prev])
@@ -425,8 +442,22 @@ class World:
                   inputs=[env_mask, start if restore else live, live if restore else start, body_prev,
                           int(restore and self._body_q_prev is not None)], device=self.device)
 
+    def _copy_tet_rotations(self, env_mask: wp.array, restore: bool) -> None:
+        if self._start_tet_rotation is None:
+            return
+        src, dst = ((self._start_tet_rotation, self._tet_rotation) if restore
+                    else (self._tet_rotation, self._start_tet_rotation))
+        wp.launch(world_kernels.copy_masked_quat_rows, dim=src.shape, inputs=[env_mask, src], outputs=[dst],
+                  device=self.device)
+
     def _restore(self, env_mask: wp.array) -> None:
         self._copy_rows(env_mask, self._start_state, self.state, restore=True)
+        self._copy_tet_rotations(env_mask, restore=True)
+        if self.state.cut_dirty is not None:
+            # the restored masks differ from what the cutting system last counted: its surfaces, pieces and counters
+            # of these envs are recomputed by its next update (the saved start state may hold a clean flag)
+            wp.launch(world_kernels.mark_masked_rows, dim=self.num_envs, inputs=[env_mask],
+                      outputs=[self.state.cut_dirty], device=self.device)
 
     def reset(self, env_mask: wp.array) -> None:
         """Restore the start state of the envs whose ``env_mask`` entry is non-zero, in place; then let every
@@ -442,8 +473,9 @@ class World:
         """Make the current state of the masked envs (all envs without a mask) their start state: what ``reset``
         and a stability restore return to. The env base calls it after every task reset, so a randomised start
         written into ``state`` is kept for the episode (one launch, graph-capturable)."""
-        self._copy_rows(env_mask if env_mask is not None else self._all_envs(), self.state, self._start_state,
-                        restore=False)
+        mask = env_mask if env_mask is not None else self._all_envs()
+        self._copy_rows(mask, self.state, self._start_state, restore=False)
+        self._copy_tet_rotations(mask, restore=False)
 
     def set_body_poses(self, poses: wp.array, bodies: wp.array, teleport_mask: wp.array | None = None) -> None:
         """Pose kinematic bodies: ``state.body_q[env, bodies[k]] = poses[env, k]`` for every env.

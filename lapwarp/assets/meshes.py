@@ -16,6 +16,7 @@ import numpy as np
 __all__ = [
     "box_tets",
     "cloth_grid",
+    "grid_tets",
     "hollow_cylinder_tets",
     "rod_circle",
     "rod_polyline",
@@ -54,6 +55,26 @@ def box_tets(size=(0.1, 0.1, 0.1), cells=(4, 4, 4), origin=(0.0, 0.0, 0.0)):
     verts = g.reshape(-1, 3) * (np.asarray(size, dtype=np.float64) / np.array([nx, ny, nz])) + np.asarray(origin)
     cl = np.stack(np.meshgrid(np.arange(nx), np.arange(ny), np.arange(nz), indexing="ij"), axis=-1).reshape(-1, 3)
     tets = _hex_grid_tets(cl, lambda i, j, k: (i * (ny + 1) + j) * (nz + 1) + k)
+    return verts, tets
+
+
+def grid_tets(nodes=(2, 2, 2), low=(0.0, 0.0, 0.0), high=(1.0, 1.0, 1.0)):
+    """Tetrahedralised grid in SOFA's ``RegularGridTopology`` node order (x fastest: vertex ``ix + nx iy + nx ny
+    iz``), 6 tets per hexahedron, so node indices match a sofa_env scene's.
+
+    Args:
+        nodes: vertices along x, y, z (at least 2 each).
+        low, high: the grid's corners, m.
+    """
+    nx, ny, nz = (int(c) for c in nodes)
+    if min(nx, ny, nz) < 2:
+        raise ValueError(f"a grid needs at least 2 nodes per axis, got {nodes}")
+    axes = [np.linspace(lo, hi, k) for lo, hi, k in zip(low, high, (nx, ny, nz), strict=True)]
+    z, y, x = np.meshgrid(axes[2], axes[1], axes[0], indexing="ij")
+    verts = np.stack([x.ravel(), y.ravel(), z.ravel()], axis=1)
+    cl = np.stack(np.meshgrid(np.arange(nx - 1), np.arange(ny - 1), np.arange(nz - 1), indexing="ij"),
+                  axis=-1).reshape(-1, 3)
+    tets = _hex_grid_tets(cl, lambda i, j, k: i + nx * (j + ny * k))
     return verts, tets
 
 

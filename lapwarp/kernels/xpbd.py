@@ -37,6 +37,8 @@ def integrate_particles(
     dt: float,
     active: wp.array2d(dtype=wp.int32),
     use_active: int,
+    force: wp.array2d(dtype=wp.vec3),
+    use_force: int,
     q: wp.array2d(dtype=wp.vec3),
     qd: wp.array2d(dtype=wp.vec3),
     q_pred_out: wp.array2d(dtype=wp.vec3),
@@ -56,7 +58,10 @@ def integrate_particles(
     d = damping[env % damping.shape[0], i]
     # implicit damping factor 1 / (1 + d dt) on the old velocity only: stable for any rate d, and it does
     # not scale gravity, so a static equilibrium does not depend on the damping
-    v = qd[env, i] / (1.0 + d * dt) + gravity * dt
+    acc = gravity
+    if use_force != 0:
+        acc = acc + force[env, i] * w  # external force (World.particle_force), N
+    v = qd[env, i] / (1.0 + d * dt) + acc * dt
     qd[env, i] = v
     xp = x + v * dt
     q[env, i] = xp

@@ -114,10 +114,30 @@ def write_unit_ptsd(out: wp.array2d(dtype=wp.float32), env: int, col: int, s: wp
         out[env, col + i] = to_unit(s[i], b.state_low[i], b.state_high[i])
 
 
+#: The hook's cutting tip (sofa_env's carving sphere 0, the end of the cross bar) in the tip frame, m.
+CAUTER_TIP = wp.constant(wp.vec3(0.0, -1.5e-3, CAUTER_CUTTING_CENTER))
+
+
 @wp.func
 def cutting_center(tip: wp.transform) -> wp.vec3:
     """The electrocautery hook's cutting centre (on the shaft axis, ``CAUTER_CUTTING_CENTER`` beyond the tip)."""
     return wp.transform_point(tip, wp.vec3(0.0, 0.0, CAUTER_CUTTING_CENTER))
+
+
+@wp.kernel
+def place_hook_tools(pose: wp.array2d(dtype=wp.transform), active: wp.array2d(dtype=wp.int32),
+                     tool_a: wp.array2d(dtype=wp.vec3), tool_b: wp.array2d(dtype=wp.vec3),
+                     tool_active: wp.array(dtype=wp.int32)):
+    """Thread per env: the electrocautery hook's (instrument 0) two cutting capsules in the env frame for a
+    ``CuttingSystem`` with ``num_tools=2`` -- the cross bar at the tip and the last 7 mm of the hook, the part
+    sofa_env's carving spheres cover -- and whether the hook is switched on."""
+    env = wp.tid()
+    tf = pose[env, 0]
+    tool_a[env, 0] = wp.transform_point(tf, wp.vec3(0.0, -1.5e-3, CAUTER_CUTTING_CENTER))
+    tool_b[env, 0] = wp.transform_point(tf, wp.vec3(0.0, 1.6e-3, CAUTER_CUTTING_CENTER))
+    tool_a[env, 1] = wp.transform_point(tf, wp.vec3(0.0, 0.0, 7.4e-3))
+    tool_b[env, 1] = wp.transform_point(tf, wp.vec3(0.0, 0.0, CAUTER_CUTTING_CENTER))
+    tool_active[env] = active[env, 0]
 
 
 @wp.func

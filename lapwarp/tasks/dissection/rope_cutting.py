@@ -65,6 +65,7 @@ from lapwarp.tasks.rig import (
     RigBounds,
     count_flag,
     cutting_center,
+    place_hook_tools,
     write_unit_point,
     write_unit_ptsd,
 )
@@ -352,21 +353,6 @@ def update_ropes(q: wp.array2d(dtype=wp.vec3), live: wp.array2d(dtype=wp.int32),
 
 
 @wp.kernel
-def place_cutting_tools(pose: wp.array2d(dtype=wp.transform), active: wp.array2d(dtype=wp.int32),
-                        tool_a: wp.array2d(dtype=wp.vec3), tool_b: wp.array2d(dtype=wp.vec3),
-                        tool_active: wp.array(dtype=wp.int32)):
-    """The hook's cutting capsules in the env frame (the cross bar at the tip and the last 7 mm of the hook, the part
-    sofa_env's carving spheres cover) and whether the hook is switched on."""
-    env = wp.tid()
-    tf = pose[env, 0]
-    tool_a[env, 0] = wp.transform_point(tf, wp.vec3(0.0, -1.5e-3, CAUTER_CUTTING_CENTER))
-    tool_b[env, 0] = wp.transform_point(tf, wp.vec3(0.0, 1.6e-3, CAUTER_CUTTING_CENTER))
-    tool_a[env, 1] = wp.transform_point(tf, wp.vec3(0.0, 0.0, 7.4e-3))
-    tool_b[env, 1] = wp.transform_point(tf, wp.vec3(0.0, 0.0, CAUTER_CUTTING_CENTER))
-    tool_active[env] = active[env, 0]
-
-
-@wp.kernel
 def observe_ropes(q: wp.array2d(dtype=wp.vec3), live: wp.array2d(dtype=wp.int32), ptsd: wp.array2d(dtype=wp.vec4),
                   pose: wp.array2d(dtype=wp.transform), active: wp.array2d(dtype=wp.int32), ropes: Ropes, p: Params,
                   o: OBS.Columns, c: CRITIC.Columns, privileged: int, obs_out: wp.array2d(dtype=float),
@@ -530,7 +516,7 @@ class RopeCuttingEnv(BatchedEnv):
     def _before_physics_step(self) -> None:
         super()._before_physics_step()  # move the hook
         cut = self.cutting
-        wp.launch(place_cutting_tools, dim=self.num_envs, inputs=[self.rig.pose, self.rig.active],
+        wp.launch(place_hook_tools, dim=self.num_envs, inputs=[self.rig.pose, self.rig.active],
                   outputs=[cut.tool_a, cut.tool_b, cut.tool_active], device=self.wp_device)
         cut.cut()
 
