@@ -309,6 +309,13 @@ def board_contacts(tf: wp.transform, with_board: int) -> int:
     return count
 
 
+@wp.func
+def spread_force(env: int, f: wp.vec3, p: Params, force_out: wp.array2d(dtype=wp.vec3)):
+    """The retraction force split evenly over the four free-end nodes (sofa_env's ``totalForce``)."""
+    for k in range(4):
+        force_out[env, p.flap_first + _FORCE_NODES[k]] = f * 0.25
+
+
 @wp.kernel
 def apply_retraction(actions: wp.array2d(dtype=wp.float32), p: Params, tissue: Tissue,
                      force_out: wp.array2d(dtype=wp.vec3)):
@@ -320,8 +327,7 @@ def apply_retraction(actions: wp.array2d(dtype=wp.float32), p: Params, tissue: T
         for i in range(3):
             f[i] = wp.clamp(f[i] + actions[env, p.force_column + i] * p.force_step, -p.force_limit, p.force_limit)
         tissue.force[env] = f
-    for k in range(4):
-        force_out[env, p.flap_first + _FORCE_NODES[k]] = f * 0.25
+    spread_force(env, f, p, force_out)
 
 
 @wp.kernel
@@ -423,8 +429,7 @@ def reset_tissue(env_mask: wp.array(dtype=wp.int32), p: Params, tissue: Tissue, 
     tissue.force[env] = p.force0
     tissue.flap_prev[env] = p.flap_tets
     tissue.ct_prev[env] = p.ct_tets
-    for k in range(4):
-        force_out[env, p.flap_first + _FORCE_NODES[k]] = p.force0 * 0.25
+    spread_force(env, p.force0, p, force_out)
 
 
 @wp.func
