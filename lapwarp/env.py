@@ -216,6 +216,10 @@ class BatchedEnv(VecEnv):
     def update_visuals(self) -> None:
         """Bring the per-env visual transforms/points of ``visual_scene()`` up to date (launches only)."""
 
+    def _draw_overlays(self, rgb: wp.array, fov_deg: float) -> None:
+        """Draw 2-D overlays (sofa_env's image markers) into freshly rendered images: ``rgb`` is uint8 ``(num_envs,
+        3, H, W)``, ``fov_deg`` the camera's vertical field of view. Launches only; nothing by default."""
+
     def visual_scene(self):
         """The ``lapwarp.visuals.VisualScene`` renderers and exporters draw (camera and objects), built on first use."""
         if self._visual_scene is None:
@@ -349,6 +353,7 @@ class BatchedEnv(VecEnv):
     def _observe_images(self, push_mode: int) -> None:
         self.update_visuals()
         self.camera.render()
+        self._draw_overlays(self._camera_rgb, self.camera.scene.camera.fov_deg)
         kind = self.cfg.observation_type
         height, width = self.cfg.image_shape
         wp.launch(env_kernels.write_image_frame, dim=(self.num_envs, height, width),
@@ -600,6 +605,7 @@ class BatchedEnv(VecEnv):
         with self._torch_stream_scope():
             self.update_visuals()
             self._human_camera.render()
+            self._draw_overlays(wp.from_torch(self._human_camera.rgb), self._human_camera.scene.camera.fov_deg)
         return self._human_camera.rgb.clone()
 
     def close(self) -> None:

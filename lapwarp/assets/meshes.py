@@ -20,6 +20,7 @@ __all__ = [
     "hollow_cylinder_tets",
     "rod_circle",
     "rod_polyline",
+    "ruled_sheet_tets",
     "tet_surface",
     "voxel_tets",
 ]
@@ -76,6 +77,32 @@ def grid_tets(nodes=(2, 2, 2), low=(0.0, 0.0, 0.0), high=(1.0, 1.0, 1.0)):
                   axis=-1).reshape(-1, 3)
     tets = _hex_grid_tets(cl, lambda i, j, k: i + nx * (j + ny * k))
     return verts, tets
+
+
+def ruled_sheet_tets(left, right, rows: int, columns: int, thickness: float, layers: int = 2):
+    """Tetrahedralised sheet between two outline curves in the xz plane, extruded along -y (a flat organ flap).
+
+    Row ``i`` runs straight from the point at arc-length fraction ``i / (rows - 1)`` of ``left`` to the same fraction of
+    ``right``, with ``columns`` nodes on it; the sheet spans ``y`` in ``[-thickness, 0]`` with ``layers`` node layers.
+    Node order is ``grid_tets``'s over ``(columns, layers, rows)`` (column fastest), 6 tets per cell.
+
+    Args:
+        left, right: ``(k, 2)`` polylines of (x, z) points, both from the sheet's base to its top, m.
+        rows, columns, layers: nodes along the outlines, across the sheet and through its thickness (>= 2 each).
+        thickness: m.
+    """
+    def at_fractions(curve, t):
+        curve = np.asarray(curve, dtype=np.float64).reshape(-1, 2)
+        s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(curve, axis=0), axis=1))])
+        return np.stack([np.interp(t * s[-1], s, curve[:, a]) for a in range(2)], axis=1)
+
+    verts, tets = grid_tets((columns, layers, rows))  # unit box: x across, y through, z along
+    t = verts[:, 2]
+    a, b = at_fractions(left, t), at_fractions(right, t)
+    v = verts[:, 0:1]
+    xz = (1.0 - v) * a + v * b
+    out = np.stack([xz[:, 0], (verts[:, 1] - 1.0) * thickness, xz[:, 1]], axis=1)
+    return out, tets
 
 
 def hollow_cylinder_tets(inner_radius=0.005, outer_radius=0.025, height=0.03, radial=2, angular=10, vertical=10,

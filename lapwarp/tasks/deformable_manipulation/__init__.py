@@ -1,1 +1,2 @@
-"""Deformable Manipulation track: TissueManipulation, PickAndPlace, GraspLiftAndTouch (not implemented yet)."""
+"""Deformable Manipulation track: TissueManipulation (``tissue_manipulation``); PickAndPlace and GraspLiftAndTouch
+are not implemented yet."""

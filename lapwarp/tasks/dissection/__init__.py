@@ -1,2 +1,2 @@
-"""Dissection track: RopeCutting (``rope_cutting``) and PrecisionCutting (``precision_cutting``); TissueDissection
-is not implemented yet."""
+"""Dissection track: RopeCutting (``rope_cutting``), PrecisionCutting (``precision_cutting``) and TissueDissection
+(``tissue_dissection``)."""
