@@ -26,8 +26,18 @@ from lapwarp.tasks.deformable_manipulation.tissue_manipulation import (
 FIXED_LANDMARK = dict(randomize_landmark=False, randomize_grasping_point=False)
 
 
+DEVICE = "cpu"
+
+
+@pytest.fixture(autouse=True)
+def _on_the_test_device(device):
+    """Every env of this module on the device the suite runs on (``--device``)."""
+    global DEVICE
+    DEVICE = device
+
+
 def make(num_envs=1, **overrides) -> TissueManipulationEnv:
-    return lapwarp.make("TissueManipulation", num_envs=num_envs, **overrides)
+    return lapwarp.make("TissueManipulation", num_envs=num_envs, device=DEVICE, **overrides)
 
 
 def point_in_polygon(poly: np.ndarray, x: float, z: float) -> bool:
@@ -49,7 +59,7 @@ def test_scene_follows_sofa_env():
     assert len(patch) >= 12 and np.all(v[patch, 2] >= 0.135)
     env = make(**FIXED_LANDMARK)
     # every candidate landmark is embedded in the sheet, on its camera-facing side, where sofa_env has it
-    np.testing.assert_allclose(env.landmark_positions()[0].numpy(), LANDMARKS, atol=2.5e-3)
+    np.testing.assert_allclose(env.landmark_positions()[0].cpu().numpy(), LANDMARKS, atol=2.5e-3)
     fixed = env.world.model.particle_inv_mass.numpy().reshape(-1)[: len(v)] == 0.0
     np.testing.assert_array_equal(fixed, v[:, 2] < FIXED_BELOW_Z)
 
@@ -58,8 +68,8 @@ def drive(env: TissueManipulationEnv, moves) -> list[np.ndarray]:
     """Landmark positions (all candidates, env 0) after each of the grasper moves (continuous actions)."""
     out = []
     for a in moves:
-        env.step(torch.tensor([a], dtype=torch.float32))
-        out.append(env.landmark_positions()[0].numpy())
+        env.step(torch.tensor([a], dtype=torch.float32, device=env.device))
+        out.append(env.landmark_positions()[0].cpu().numpy())
     return out
 
 
@@ -91,7 +101,8 @@ def test_default_substeps_stay_close_to_the_converged_answer():
 def test_reachable_polygons_are_this_physics_and_match_sofa_env_boxes():
     stored = load_reachable_polygons()
     assert stored.shape == (NUM_LANDMARKS, 48, 2)
-    np.testing.assert_allclose(trace_reachable_polygons(), stored, atol=1e-5)
+    # float rounding differs between devices; the buckled flap amplifies it a little
+    np.testing.assert_allclose(trace_reachable_polygons(DEVICE), stored, atol=2e-4)
     # sofa_env's polygons (traced by its own scene) span these bounding boxes (task-cards §2), m
     low, high = stored.min(axis=1), stored.max(axis=1)
     margin = 3.5e-3  # our tets are not sofa_env's mesh: the largest deviation is 3.1 mm (landmark 8's top)
@@ -106,32 +117,32 @@ def test_reset_draws_landmarks_and_targets_as_sofa_env():
     polygons = load_reachable_polygons()
     for _ in range(2):
         s = env.privileged_state()
-        index = s["landmark_index"].numpy()
+        index = s["landmark_index"].cpu().numpy()
         assert len(set(index.tolist())) >= 7  # uniform over the 9 candidates
-        target, landmark = s["target"].numpy(), s["landmark"].numpy()
+        target, landmark = s["target"].cpu().numpy(), s["landmark"].cpu().numpy()
         assert np.all(np.linalg.norm((target - landmark)[:, [0, 2]], axis=1) > 0.01)
         np.testing.assert_allclose(target[:, 1], landmark[:, 1], atol=1e-7)
         assert all(point_in_polygon(polygons[k], x, z) for k, (x, _, z) in zip(index, target, strict=True))
-        np.testing.assert_allclose(s["grasper"].numpy(), np.tile(grasp_patch_center(), (64, 1)), atol=1e-6)
+        np.testing.assert_allclose(s["grasper"].cpu().numpy(), np.tile(grasp_patch_center(), (64, 1)), atol=1e-6)
         env.reset()
     fixed = make(num_envs=8, landmark_index=6, **FIXED_LANDMARK)
-    assert np.all(fixed.privileged_state()["landmark_index"].numpy() == 6)
+    assert np.all(fixed.privileged_state()["landmark_index"].cpu().numpy() == 6)
 
 
 def test_workspace_keeps_old_component_and_flags_it():
     env = make(**FIXED_LANDMARK)
     high_x = env.cfg.workspace_high[0]
-    start = env.privileged_state()["grasper"][0].numpy().copy()
+    start = env.privileged_state()["grasper"][0].cpu().numpy().copy()
     steps = int(np.ceil((high_x - start[0]) / 0.001))
     invalid = []
     for _ in range(steps + 3):
-        env.step(torch.tensor([[1.0, 0.0]]))
+        env.step(torch.tensor([[1.0, 0.0]], device=env.device))
         invalid.append(env._t["features"][0, 3].item())
-    g = env.privileged_state()["grasper"][0].numpy()
+    g = env.privileged_state()["grasper"][0].cpu().numpy()
     assert g[0] <= high_x + 1e-7 and g[0] > high_x - 1e-3
     np.testing.assert_allclose(g[[1, 2]], start[[1, 2]], atol=1e-7)  # y fixed, z untouched
     assert invalid[-1] == 1.0 and invalid[0] == 0.0
-    obs = env.get_observations()["policy"][0].numpy()
+    obs = env.get_observations()["policy"][0].cpu().numpy()
     assert obs[1] == 0.0 and obs[4] == 0.0 and obs[7] == 0.0  # y set to 0 (sofa_env)
     assert abs(obs[0] - (2 * (g[0] + 0.035) / 0.1 - 1)) < 1e-5
 
@@ -139,7 +150,7 @@ def test_workspace_keeps_old_component_and_flags_it():
 def test_standing_still_ends_stuck_after_50_steps():
     env = make(**FIXED_LANDMARK)
     for step in range(1, 51):
-        _, reward, done, _ = env.step(torch.zeros(1, 2))
+        _, reward, done, _ = env.step(torch.zeros(1, 2, device=env.device))
         if step < 50:
             assert not done[0]
     assert done[0] and env._t["last_episode_success"][0] == 0
@@ -150,13 +161,13 @@ def test_standing_still_ends_stuck_after_50_steps():
 
 def test_target_overlay_is_drawn_at_the_target():
     env = make(num_envs=2, observation_type="RGB", seed=2)
-    image = env.get_observations()["image"].numpy()  # (N, 3, 64, 64) in [0, 1]
+    image = env.get_observations()["image"].cpu().numpy()  # (N, 3, 64, 64) in [0, 1]
     turquoise = np.all(np.abs(image * 255 - np.array([51, 223, 255])[None, :, None, None]) < 1.0, axis=1)
     assert turquoise[0].sum() >= 4 and turquoise[1].sum() >= 4
     rows, cols = np.nonzero(turquoise[0])
     assert np.ptp(rows) <= 3 and np.ptp(cols) <= 3  # a dot of radius round(64 / 64) = 1 px
     off = make(num_envs=2, observation_type="RGB", seed=2, show_target=False)
-    image = off.get_observations()["image"].numpy()
+    image = off.get_observations()["image"].cpu().numpy()
     assert not np.any(np.all(np.abs(image * 255 - np.array([51, 223, 255])[None, :, None, None]) < 1.0, axis=1))
 
 
@@ -176,7 +187,7 @@ def test_invalid_configurations_raise(overrides, message):
 def test_expert_solves_the_paper_configurations(threshold, randomize):
     env = make(num_envs=12, end_position_threshold=threshold, randomize_landmark=randomize, seed=11)
     expert = make_expert(env)
-    first = torch.full((12,), -1)
+    first = torch.full((12,), -1, device=env.device)
     for _ in range(80):
         _, _, done, _ = env.step(expert())
         first[(first < 0) & done] = env._t["last_episode_success"][(first < 0) & done].long()
