@@ -6,9 +6,10 @@ from lapwarp.assets.meshes import (
     hollow_cylinder_tets,
     rod_circle,
     rod_polyline,
+    ruled_sheet_tets,
     tet_surface,
     voxel_tets,
 )
 
-__all__ = ["box_tets", "cloth_grid", "hollow_cylinder_tets", "rod_circle", "rod_polyline", "tet_surface",
-           "voxel_tets"]
+__all__ = ["box_tets", "cloth_grid", "hollow_cylinder_tets", "rod_circle", "rod_polyline", "ruled_sheet_tets",
+           "tet_surface", "voxel_tets"]
