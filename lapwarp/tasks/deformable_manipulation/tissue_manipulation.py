@@ -214,7 +214,8 @@ def load_reachable_polygons() -> np.ndarray:
 @wp.struct
 class Task:
     """Per-env task state: the grasper's motion target and its visual offset, the landmark (candidate index), the
-    target, the workspace flag of this step, the stuck window and the positions at the start of the physics step."""
+    target, the workspace flag of this step, the stuck window and the particle positions at the start of the physics
+    step."""
 
     grasper: wp.array(dtype=wp.vec3)
     visual_offset: wp.array(dtype=wp.vec3)
@@ -259,11 +260,10 @@ def xz_distance(a: wp.vec3, b: wp.vec3) -> float:
 
 
 @wp.kernel
-def move_grasper(actions: wp.array2d(dtype=wp.float32), p: Params, task: Task, q: wp.array2d(dtype=wp.vec3),
+def move_grasper(actions: wp.array2d(dtype=wp.float32), p: Params, task: Task,
                  poses_out: wp.array2d(dtype=wp.transform)):
     """Per physics step: the grasper moves by ``action x step_length`` along x and z; a component that would leave
-    the workspace keeps its old value and flags the step (sofa_env's ``valid_action``). Also remembers the tissue's
-    positions at the start of the physics step (for the stability feature)."""
+    the workspace keeps its old value and flags the step (sofa_env's ``valid_action``)."""
     env = wp.tid()
     g = task.grasper[env]
     for i in range(2):
@@ -275,8 +275,6 @@ def move_grasper(actions: wp.array2d(dtype=wp.float32), p: Params, task: Task, q
             g[axis] = value
     task.grasper[env] = g
     poses_out[env, 0] = wp.transform(g, wp.quat_identity())
-    for k in range(p.tissue_count):
-        task.q_start[env, k] = q[env, p.tissue_first + k]
 
 
 @wp.kernel
@@ -304,7 +302,7 @@ def eval_manipulation_features(env_mask: wp.array(dtype=wp.int32), advance: int,
             stuck = wp.where(hi - lo < p.stuck_range, 1.0, 0.0)
     moved = float(0.0)
     for k in range(p.tissue_count):
-        moved = wp.max(moved, wp.length(q[env, p.tissue_first + k] - task.q_start[env, k]))
+        moved = wp.max(moved, wp.length(q[env, p.tissue_first + k] - task.q_start[env, p.tissue_first + k]))
     feature = d * p.inv_diagonal
     if p.squared != 0:
         feature = d * d * p.inv_diagonal
@@ -355,8 +353,6 @@ def reset_manipulation(env_mask: wp.array(dtype=wp.int32), rng: wp.array(dtype=w
     poses_out[env, 0] = wp.transform(p.start, wp.quat_identity())
     task.invalid[env] = 0
     task.history_count[env] = 0
-    for i in range(p.tissue_count):
-        task.q_start[env, i] = q[env, p.tissue_first + i]
     mark = landmark_position(q, env, k, tets, embed_tet, embed_w)
     lo = poly_low[k]
     hi = poly_high[k]
@@ -478,7 +474,6 @@ class TissueManipulationEnv(BatchedEnv):
         self._poses = wp.full((n, 1), wp.transform(wp.vec3(*start), wp.quat_identity()), dtype=wp.transform,
                               device=dev)
 
-        nodes = self.tissue.particle_count
         self.task = s = Task()
         s.grasper = wp.full(n, wp.vec3(*start), dtype=wp.vec3, device=dev)
         s.visual_offset = wp.zeros(n, dtype=wp.vec3, device=dev)
@@ -487,7 +482,7 @@ class TissueManipulationEnv(BatchedEnv):
         s.invalid = wp.zeros(n, dtype=wp.int32, device=dev)
         s.history = wp.zeros((n, _STUCK_WINDOW), dtype=float, device=dev)
         s.history_count = wp.zeros(n, dtype=wp.int32, device=dev)
-        s.q_start = wp.zeros((n, nodes), dtype=wp.vec3, device=dev)
+        s.q_start = wp.zeros_like(world.state.particle_q)
         low, high = np.asarray(cfg.workspace_low), np.asarray(cfg.workspace_high)
         self.params = p = Params()
         p.low, p.high = wp.vec2(*low), wp.vec2(*high)
@@ -498,7 +493,7 @@ class TissueManipulationEnv(BatchedEnv):
         p.randomize_landmark, p.fixed_landmark = int(cfg.randomize_landmark), cfg.landmark_index
         p.randomize_grasp, p.min_target_distance = int(cfg.randomize_grasping_point), cfg.minimum_target_distance
         p.start = wp.vec3(*start)
-        p.tissue_first, p.tissue_count = self.tissue.particle_start, nodes
+        p.tissue_first, p.tissue_count = self.tissue.particle_start, self.tissue.particle_count
         return world
 
     def _reachable_polygons(self) -> np.ndarray:
@@ -523,8 +518,8 @@ class TissueManipulationEnv(BatchedEnv):
         self.task.invalid.zero_()  # the workspace flag covers this env step's physics steps
 
     def _before_physics_step(self) -> None:
-        s = self.world.state
-        wp.launch(move_grasper, dim=self.num_envs, inputs=[self.actions, self.params, self.task, s.particle_q],
+        wp.copy(self.task.q_start, self.world.state.particle_q)  # for the stability feature of this physics step
+        wp.launch(move_grasper, dim=self.num_envs, inputs=[self.actions, self.params, self.task],
                   outputs=[self._poses], device=self.wp_device)
         self.world.set_body_poses(self._poses, self._bodies)
 
