@@ -9,7 +9,8 @@ its particles along): attachment slots ``[slot_start, slot_start + slots)`` of `
 with a small compliance. For rod nodes the adjacent segment's orientation is held at the jaw rotation times its
 orientation at grasp time (projected in every sweep). Held particles stop colliding with the jaws (the
 ContactSystem's ``ignore_bodies`` mask), so the jaws do not squeeze them out. Opening the jaws to
-``release_threshold`` or more releases them; a held particle dragged farther than ``max_offset`` from its jaw
+``release_threshold`` or more releases them (with ``jaws_pass_while_grasped``, sofa_env's rule, no graspable particle
+collides with the jaws while the env holds a grasp); a held particle dragged farther than ``max_offset`` from its jaw
 target (torn out by the scene) releases the grasp and raises ``lost_grasp`` for that step.
 
 State: ``grasped`` ``(num_envs,)`` int32 (sticky), ``lost_grasp`` ``(num_envs,)`` int32 (the event of the last
@@ -43,11 +44,16 @@ class GraspSystem:
         cone_margin: tolerance of the jaw-cone test, m.
         max_offset: distance (m) from the jaw target beyond which a grasp counts as lost.
         hold_orientation: project grasped rod segments' orientations onto the jaw rotation.
+        hold_up: with ``hold_orientation``, a held segment turns only with the jaw's rotation about this (world) axis
+            and keeps its tilt (None: it turns with the jaw). PickAndPlace's torus stays level when the shaft tilts.
+        jaws_pass_while_grasped: while an env holds a grasp, none of its graspable particles collides with the
+            jaws (sofa_env switches the jaws' collision models off while grasping); otherwise only held ones.
     """
 
     def __init__(self, contact, instrument, jaw_angle_deg: wp.array, groups=None, grasp_threshold: float = 10.0,
                  release_threshold: float = 15.0, slot_start: int = 0, slots: int = 1, compliance: float = 1.0e-6,
-                 cone_margin: float = 3.0e-3, max_offset: float = 0.01, hold_orientation: bool = True):
+                 cone_margin: float = 3.0e-3, max_offset: float = 0.01, hold_orientation: bool = True,
+                 hold_up=None, jaws_pass_while_grasped: bool = False):
         if not instrument.articulated:
             raise ValueError(f"{instrument.kind} has no jaws")
         if release_threshold < grasp_threshold:
@@ -64,6 +70,7 @@ class GraspSystem:
         self.slot_start, self.slots, self.compliance = int(slot_start), int(slots), float(compliance)
         self.cone_margin, self.max_offset = float(cone_margin), float(max_offset)
         self.hold_orientation = bool(hold_orientation) and world.model.segment_count > 0
+        self.jaws_pass_while_grasped = bool(jaws_pass_while_grasped)
         n, dev, m = world.num_envs, world.device, world.model
         graspable = np.zeros(max(m.particle_count, 1), dtype=np.int32)
         for g in (range(len(contact.groups)) if groups is None else np.atleast_1d(groups)):
@@ -88,7 +95,9 @@ class GraspSystem:
                                     grasp_threshold=self.grasp_threshold, release_threshold=self.release_threshold,
                                     cone_margin=self.cone_margin, max_offset=self.max_offset,
                                     slot_start=self.slot_start, slots=self.slots, compliance=self.compliance,
-                                    graspable=self.graspable, particle_segment=self.particle_segment)
+                                    graspable=self.graspable, particle_segment=self.particle_segment,
+                                    hold_up=wp.vec3(*(np.zeros(3) if hold_up is None else
+                                                      np.asarray(hold_up, float) / np.linalg.norm(hold_up))))
         s = world.state
         attach = make_struct(gk.Attachments, particle=s.attach_particle, body=s.attach_body, offset=s.attach_offset,
                              compliance=s.attach_compliance)
@@ -113,6 +122,9 @@ class GraspSystem:
             c = self.contact
             launch(gk.update_grasp, world.num_envs,
                    [self._grasper, self.jaw_angle, c.shape_table, c.reports, self._scene], [self._state])
+            if self.jaws_pass_while_grasped:
+                launch(gk.sync_jaw_contact, (world.num_envs, self.graspable.shape[0]), [self._grasper],
+                       [self._state])
 
     # host-side (reset time) -------------------------------------------------------------------------
     def start_grasped(self, particle: int, env_mask: wp.array | None = None) -> None:
@@ -123,6 +135,9 @@ class GraspSystem:
         mask = env_mask if env_mask is not None else wp.ones(w.num_envs, dtype=wp.int32, device=w.device)
         wp.launch(gk.start_grasp, dim=w.num_envs, inputs=[mask, int(particle), self._grasper, self._scene],
                   outputs=[self._state], device=w.device)
+        if self.jaws_pass_while_grasped:
+            wp.launch(gk.sync_jaw_contact, dim=(w.num_envs, self.graspable.shape[0]),
+                      inputs=[self._grasper], outputs=[self._state], device=w.device)
 
     def reset(self, env_mask: wp.array) -> None:
         """Forget the grasps of the masked envs (``world.reset`` restores the attachment slots themselves)."""

@@ -132,3 +132,52 @@ def test_instrument_poses_and_jaw_limits(device):
         meshes = sh.visual_meshes()
         assert meshes and all(m.is_watertight for _, _, m in meshes)
         assert sh.articulated == (kind == "scissors")
+
+
+@pytest.mark.parametrize("hold_up", [None, (0.0, 0.0, 1.0)])
+def test_hold_up_keeps_the_tilt(device, hold_up):
+    """A torus node held by a jaw (start_grasped), then the tip tilted by 30 degrees about world x within a step: with
+    ``hold_up`` = +z the held segment turns only with the jaw's twist about z (none here) and keeps its orientation
+    (within 3 degrees: the rest of the ring pulls on it between projections); without it the segment turns with the
+    jaw by the full 30 degrees (within 3). With ``jaws_pass_while_grasped`` every torus node of the holding env ignores
+    the jaws, and none after the release."""
+    b = SceneBuilder(gravity=(0.0, 0.0, 0.0))
+    r = 2.0e-3
+    obj = b.add_rod(rod_circle(0.014, 30, center=(0, 0, r)), radius=r, youngs_modulus=1e6, closed=True, damping=2.0)
+    ins = InstrumentShape(b, "grasper", name="grasper")
+    w = b.finalize(num_envs=1, device=device, substeps=10, attachment_capacity=1)
+    cs = ContactSystem(w, body_ignore_mask=True)
+    g = cs.add_particle_group(obj, radius=r, segments=True)
+    ins.add_colliders(cs, thickness=0.0)
+    cs.finalize()
+    angle = wp.array(np.zeros(1, np.float32), dtype=float, device=device)
+    gs = GraspSystem(cs, ins, angle, groups=[g], hold_up=hold_up, jaws_pass_while_grasped=True)
+    grip = np.array([0.0, 0.014, r])
+    _drive(w, ins, angle, [grip + [0, 0, 0.015]], [0.0])
+    node = obj.particle_start + 7  # node 7 of 30 lies near +y (angle 84 deg): its segment is the one held
+    gs.start_grasped(node)
+    seg = obj.segment_start + 7
+    q0 = w.state.segment_q.numpy()[0, seg].copy()
+    ignore = cs.ignore.bodies.numpy()[0, obj.particle_start:obj.particle_start + obj.particle_count]
+    assert np.all(ignore & gs.jaw_mask == gs.jaw_mask)
+    tilt = math.radians(30.0)
+    q_tilt = np.array([math.sin(tilt / 2), 0.0, 0.0, math.cos(tilt / 2)])
+    down = np.array(DOWN)
+    # compose q_tilt * DOWN (xyzw)
+    x1, y1, z1, w1 = q_tilt
+    x2, y2, z2, w2 = down
+    quat = [w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2, w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2,
+            w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2, w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2]
+    tip = wp.array(tip_poses_numpy([grip + [0, 0, 0.015]], [quat]), dtype=wp.transform, device=device)
+    ins.pose(w, tip, 0, angle)
+    w.step(0.1)
+    q1 = w.state.segment_q.numpy()[0, seg]
+    turned = math.degrees(2.0 * math.acos(min(1.0, abs(float(np.dot(q0, q1))))))
+    assert gs.grasped.numpy()[0] == 1
+    if hold_up is None:
+        assert abs(turned - 30.0) < 3.0
+    else:
+        assert turned < 3.0
+    gs.start_grasped(-1)  # release: the jaws collide again
+    ignore = cs.ignore.bodies.numpy()[0, obj.particle_start:obj.particle_start + obj.particle_count]
+    assert np.all(ignore & gs.jaw_mask == 0)

@@ -32,6 +32,21 @@ class Grasper:
     compliance: float
     graspable: wp.array(dtype=wp.int32)  # per particle
     particle_segment: wp.array(dtype=wp.int32)  # per particle: an adjacent rod segment, -1 for none
+    hold_up: wp.vec3  # zero: held segments turn with the jaw; else only with the jaw's turn about this axis
+
+
+@wp.func
+def held_rotation(grasper: Grasper, rot: wp.quat) -> wp.quat:
+    """The rotation a held segment follows: the jaw's, or only its twist about ``hold_up`` (swing-twist split)."""
+    up = grasper.hold_up
+    if wp.length(up) == 0.0:
+        return rot
+    v = wp.vec3(rot[0], rot[1], rot[2])
+    p = up * wp.dot(v, up)
+    twist = wp.quat(p[0], p[1], p[2], rot[3])
+    if wp.length(twist) < 1.0e-9:
+        return wp.quat_identity()
+    return wp.normalize(twist)
 
 
 @wp.struct
@@ -94,7 +109,7 @@ def attach_to_jaw(env: int, k: int, particle: int, body: int, grasper: Grasper, 
     grasp.attach.compliance[env, s] = grasper.compliance
     seg = grasper.particle_segment[particle]
     if seg >= 0:
-        rot = wp.transform_get_rotation(jaw)
+        rot = held_rotation(grasper, wp.transform_get_rotation(jaw))
         grasp.grasp_delta[env, k] = wp.mul(wp.quat_inverse(rot), scene.segment_q[env, seg])
     if grasp.ignore.enabled != 0:
         grasp.ignore.bodies[env, particle] = grasp.ignore.bodies[env, particle] | jaw_mask(grasper)
@@ -209,7 +224,21 @@ def hold_grasped_orientations(
     if seg < 0:
         return
     tf = body_pose(motion, env, grasp.attach.body[env, grasper.slot_start + k], motion.blend)
-    segment_q[env, seg] = wp.normalize(wp.mul(wp.transform_get_rotation(tf), grasp.grasp_delta[env, k]))
+    segment_q[env, seg] = wp.normalize(wp.mul(held_rotation(grasper, wp.transform_get_rotation(tf)),
+                                              grasp.grasp_delta[env, k]))
+
+
+@wp.kernel
+def sync_jaw_contact(grasper: Grasper, grasp: GraspState):
+    """Thread (env, particle): every graspable particle ignores the jaws while its env holds a grasp (sofa_env
+    switches the jaws' collision models off while grasping)."""
+    env, i = wp.tid()
+    if grasper.graspable[i] == 0 or grasp.ignore.enabled == 0:
+        return
+    if grasp.grasped[env] != 0:
+        grasp.ignore.bodies[env, i] = grasp.ignore.bodies[env, i] | jaw_mask(grasper)
+    else:
+        grasp.ignore.bodies[env, i] = grasp.ignore.bodies[env, i] & (~jaw_mask(grasper))
 
 
 @wp.kernel
