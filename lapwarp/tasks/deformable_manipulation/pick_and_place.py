@@ -752,8 +752,9 @@ class PickAndPlaceEnv(BatchedEnv):
             speed = np.linalg.norm(world.state.particle_qd.numpy()[:, first:first + NODES], axis=2).mean(axis=1)
             held = self.grasp.grasped.numpy()
             for e in np.nonzero((speed < SETTLED_SPEED) & (held > 0 if cfg.start_grasped else True))[0]:
-                bank_q.append(q[e, first:first + NODES])
-                bank_sq.append(sq[e, S:S + NODES])
+                # copies: on the CPU ``numpy()`` is a view of the live state, which the next round overwrites
+                bank_q.append(q[e, first:first + NODES].copy())
+                bank_sq.append(sq[e, S:S + NODES].copy())
             if len(bank_q) >= size:
                 break
         if len(bank_q) < size:
