@@ -340,6 +340,31 @@ def jaw_peg_overlaps(tip: wp.transform, angle: float) -> int:
     return count
 
 
+@wp.func
+def store_history(task: Task, env: int, held: int, tip_pos: wp.vec3, d_center: float, lift: float, d_peg: float):
+    """This step's raw values, which the next step's delta features start from."""
+    task.was_grasped[env] = held
+    task.last_tip[env] = tip_pos
+    task.last_center_distance[env] = d_center
+    task.last_lift[env] = lift
+    task.had_lift[env] = held
+    task.last_peg_distance[env] = d_peg
+
+
+@wp.func
+def nearest_peg(task: Task, env: int, x: wp.vec3) -> wp.vec3:
+    """The target of the active peg nearest to ``x`` in x, z."""
+    best = float(1.0e9)
+    peg = wp.vec3(0.0)
+    for k in range(task.pegs.shape[1]):
+        c = peg_target(task.pegs[env, k])
+        d = (c[0] - x[0]) * (c[0] - x[0]) + (c[2] - x[2]) * (c[2] - x[2])
+        if d < best:
+            best = d
+            peg = c
+    return peg
+
+
 @wp.kernel
 def eval_pick_and_place(env_mask: wp.array(dtype=wp.int32), mode: int, q: wp.array2d(dtype=wp.vec3),
                         qd: wp.array2d(dtype=wp.vec3), pose: wp.array2d(dtype=wp.transform),
@@ -384,12 +409,7 @@ def eval_pick_and_place(env_mask: wp.array(dtype=wp.int32), mode: int, q: wp.arr
     speed = speed / float(_NODES)
     tip_speed = wp.length(tip_pos - task.last_tip[env]) / p.control_dt
     if mode == 2:  # reset: only the history
-        task.was_grasped[env] = held
-        task.last_tip[env] = tip_pos
-        task.last_center_distance[env] = d_center
-        task.last_lift[env] = lift
-        task.had_lift[env] = held
-        task.last_peg_distance[env] = d_peg
+        store_history(task, env, held, tip_pos, d_center, lift, d_peg)
         return
     # phase (sofa_env switches before the reward, so the new phase's features count on the switching step)
     phase = task.phase[env]
@@ -439,12 +459,7 @@ def eval_pick_and_place(env_mask: wp.array(dtype=wp.int32), mode: int, q: wp.arr
     features_out[env, F.SUCCESSFUL_TASK] = success
     if mode == 1:
         task.phase[env] = phase
-        task.was_grasped[env] = held
-        task.last_tip[env] = tip_pos
-        task.last_center_distance[env] = d_center
-        task.last_lift[env] = lift
-        task.had_lift[env] = held
-        task.last_peg_distance[env] = d_peg
+        store_history(task, env, held, tip_pos, d_center, lift, d_peg)
 
 
 @wp.kernel
@@ -601,14 +616,7 @@ def expert_commands(q: wp.array2d(dtype=wp.vec3), ptsd: wp.array2d(dtype=wp.vec4
     elif task.phase[env] == PICK:
         goal = tip_pos + wp.vec3(0.0, p.lift_height - com[1] + 0.005, 0.0)  # lift
     else:
-        best = float(1.0e9)
-        peg = wp.vec3(0.0)
-        for k in range(task.pegs.shape[1]):
-            c = peg_target(task.pegs[env, k])
-            d = (c[0] - com[0]) * (c[0] - com[0]) + (c[2] - com[2]) * (c[2] - com[2])
-            if d < best:
-                best = d
-                peg = c
+        peg = nearest_peg(task, env, com)
         lowest = float(1.0e9)
         highest = float(-1.0e9)
         for i in range(_NODES):
@@ -728,8 +736,7 @@ class PickAndPlaceEnv(BatchedEnv):
         size = max(cfg.torus_bank_size, n) if cfg.randomize_torus_position else 1
         rng = np.random.default_rng(cfg.seed)
         all_envs = wp.ones(n, dtype=wp.int32, device=dev)
-        self.rig.instruments.reset(all_envs, None)  # the noise-free start
-        self.rig._pose_bodies(all_envs)
+        self.rig.reset(all_envs, None)  # the noise-free start
         self._bank_tip = wp.transform(*self.rig.instruments.pose.numpy()[0, 0])
         first, S = self.torus.particle_start, self.torus.segment_start
         bank_q, bank_sq = [], []
