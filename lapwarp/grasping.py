@@ -24,6 +24,7 @@ import warp as wp
 
 from lapwarp.contact import make_struct
 from lapwarp.kernels import grasping as gk
+from lapwarp.kernels.contact import IgnoreMask
 
 
 class GraspSystem:
@@ -142,3 +143,23 @@ class GraspSystem:
     def reset(self, env_mask: wp.array) -> None:
         """Forget the grasps of the masked envs (``world.reset`` restores the attachment slots themselves)."""
         self.start_grasped(-1, env_mask)
+
+    def snapshot(self):
+        """A copy of every env's grasp (flag, held slots, orientation offsets, ignore mask) for :meth:`restore`: a
+        task that starts its episodes grasped saves the grasp its build-time script made."""
+        s = self._state
+
+        def copy(a):
+            return wp.clone(a)
+
+        attach = make_struct(gk.Attachments, particle=copy(s.attach.particle), body=copy(s.attach.body),
+                             offset=copy(s.attach.offset), compliance=copy(s.attach.compliance))
+        ignore = make_struct(IgnoreMask, bodies=copy(s.ignore.bodies), enabled=s.ignore.enabled)
+        return make_struct(gk.GraspState, grasped=copy(s.grasped), lost_grasp=copy(s.lost_grasp),
+                           grasp_delta=copy(s.grasp_delta), attach=attach, ignore=ignore)
+
+    def restore(self, env_mask: wp.array, snapshot) -> None:
+        """Put the masked envs' grasps back to a :meth:`snapshot` (after ``world.reset``, whose reset of this system
+        released them); one launch, graph-capturable."""
+        wp.launch(gk.restore_grasp, dim=self.world.num_envs, inputs=[env_mask, self._grasper, snapshot],
+                  outputs=[self._state], device=self.world.device)

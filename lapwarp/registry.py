@@ -13,6 +13,7 @@ _TASKS: dict[str, str] = {
     "RopeCutting": "lapwarp.tasks.dissection.rope_cutting:RopeCuttingEnv",
     "PrecisionCutting": "lapwarp.tasks.dissection.precision_cutting:PrecisionCuttingEnv",
     "TissueDissection": "lapwarp.tasks.dissection.tissue_dissection:TissueDissectionEnv",
+    "GraspLiftAndTouch": "lapwarp.tasks.deformable_manipulation.grasp_lift_touch:GraspLiftAndTouchEnv",
     "TissueManipulation": "lapwarp.tasks.deformable_manipulation.tissue_manipulation:TissueManipulationEnv",
     "PickAndPlace": "lapwarp.tasks.deformable_manipulation.pick_and_place:PickAndPlaceEnv",
 }

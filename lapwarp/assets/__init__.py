@@ -3,6 +3,7 @@
 from lapwarp.assets.meshes import (
     box_tets,
     cloth_grid,
+    ellipsoid_tets,
     hollow_cylinder_tets,
     rod_circle,
     rod_polyline,
@@ -11,5 +12,5 @@ from lapwarp.assets.meshes import (
     voxel_tets,
 )
 
-__all__ = ["box_tets", "cloth_grid", "hollow_cylinder_tets", "rod_circle", "rod_polyline", "ruled_sheet_tets",
-           "tet_surface", "voxel_tets"]
+__all__ = ["box_tets", "cloth_grid", "ellipsoid_tets", "hollow_cylinder_tets", "rod_circle", "rod_polyline",
+           "ruled_sheet_tets", "tet_surface", "voxel_tets"]

@@ -264,3 +264,25 @@ def start_grasp(
         body = grasper.jaw_a
     attach_to_jaw(env, 0, particle, body, grasper, scene, grasp)
     grasp.grasped[env] = 1
+
+
+@wp.kernel
+def restore_grasp(env_mask: wp.array(dtype=wp.int32), grasper: Grasper, saved: GraspState, grasp: GraspState):
+    """Thread per env: the masked envs' grasp (flag, held slots, their orientation offsets and the jaw bits of the
+    ignore mask) back to a saved copy (``GraspSystem.snapshot``)."""
+    env = wp.tid()
+    if env_mask[env] == 0:
+        return
+    grasp.grasped[env] = saved.grasped[env]
+    grasp.lost_grasp[env] = 0
+    for k in range(grasper.slots):
+        s = grasper.slot_start + k
+        grasp.attach.particle[env, s] = saved.attach.particle[env, s]
+        grasp.attach.body[env, s] = saved.attach.body[env, s]
+        grasp.attach.offset[env, s] = saved.attach.offset[env, s]
+        grasp.attach.compliance[env, s] = saved.attach.compliance[env, s]
+        grasp.grasp_delta[env, k] = saved.grasp_delta[env, k]
+    if grasp.ignore.enabled != 0:
+        m = jaw_mask(grasper)
+        for i in range(grasp.ignore.bodies.shape[1]):
+            grasp.ignore.bodies[env, i] = (grasp.ignore.bodies[env, i] & (~m)) | (saved.ignore.bodies[env, i] & m)

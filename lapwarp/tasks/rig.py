@@ -28,6 +28,8 @@ import warp as wp
 from lapwarp.instrument_shapes import CAUTER_CUTTING_CENTER, InstrumentShape
 from lapwarp.instruments import STATE_LIMITS_VIOLATED, WORKSPACE_VIOLATED, TPSDConfig, TPSDInstruments
 from lapwarp.kernels.bodies import hinged_jaw_pose
+from lapwarp.kernels.kinematics import ptsd_to_transform
+from lapwarp.kernels.random import rand_uniform
 from lapwarp.tasks.spec import ActionBlock, ActionLayout, to_unit
 
 wp.set_module_options({"enable_backward": False})
@@ -48,6 +50,8 @@ class InstrumentSpec:
         jaw_speed_deg: jaw angle speed at action 1 (deg/s) for articulated shapes; None = no jaw action.
         jaw_discrete_speed_deg: jaw speed of a discrete action (deg/s); default ``jaw_speed_deg``.
         jaw_start_deg: jaw angle at reset (deg).
+        jaw_noise_deg: uniform reset noise of the jaw angle, +- deg around ``jaw_start_deg`` (clipped to the jaw's
+            angle limits; drawn only when non-zero, so other instruments' RNG streams do not change).
         activation: add an activation component: outside the dead zone its sign switches the instrument on/off.
         activation_deadzone: dead zone of the activation component.
     """
@@ -58,6 +62,7 @@ class InstrumentSpec:
     jaw_speed_deg: float | None = None
     jaw_discrete_speed_deg: float | None = None
     jaw_start_deg: float = 0.0
+    jaw_noise_deg: float = 0.0
     activation: bool = False
     activation_deadzone: float = 0.1
 
@@ -200,11 +205,36 @@ def apply_activation(actions: wp.array2d(dtype=wp.float32), column: int, deadzon
 
 @wp.kernel
 def reset_rig_state(env_mask: wp.array(dtype=wp.int32), jaw_start: wp.array(dtype=float),
+                    jaw_noise: wp.array(dtype=float), jaw_limits: wp.array(dtype=wp.vec2),
+                    rng: wp.array(dtype=wp.uint32), use_rng: int,
                     jaw_angle: wp.array2d(dtype=float), active: wp.array2d(dtype=wp.int32)):
+    """Thread per env (the instruments in order, so each env's RNG stream is drawn in a fixed order)."""
+    env = wp.tid()
+    if env_mask[env] == 0:
+        return
+    for k in range(jaw_start.shape[0]):
+        angle = jaw_start[k]
+        if use_rng != 0 and jaw_noise[k] > 0.0:
+            angle = wp.clamp(angle + rand_uniform(rng, env, -jaw_noise[k], jaw_noise[k]), jaw_limits[k][0],
+                             jaw_limits[k][1])
+        jaw_angle[env, k] = angle
+        active[env, k] = 0
+
+
+@wp.kernel
+def restore_rig_state(env_mask: wp.array(dtype=wp.int32), ptsd_in: wp.array2d(dtype=wp.vec4),
+                      rcm_in: wp.array2d(dtype=wp.transform), jaw_in: wp.array2d(dtype=float),
+                      ptsd: wp.array2d(dtype=wp.vec4), rcm: wp.array2d(dtype=wp.transform),
+                      pose: wp.array2d(dtype=wp.transform), flags: wp.array2d(dtype=wp.int32),
+                      jaw_angle: wp.array2d(dtype=float), active: wp.array2d(dtype=wp.int32)):
     env, k = wp.tid()
     if env_mask[env] == 0:
         return
-    jaw_angle[env, k] = jaw_start[k]
+    ptsd[env, k] = ptsd_in[env, k]
+    rcm[env, k] = rcm_in[env, k]
+    pose[env, k] = ptsd_to_transform(rcm_in[env, k], ptsd_in[env, k])
+    flags[env, k] = 0
+    jaw_angle[env, k] = jaw_in[env, k]
     active[env, k] = 0
 
 
@@ -291,6 +321,12 @@ class InstrumentRig:
         self.active = wp.zeros((n, K), dtype=wp.int32, device=dev)
         self._jaw_start = wp.array(np.array([s.jaw_start_deg for s in self.specs], np.float32), dtype=float,
                                    device=dev)
+        self._jaw_noise = wp.array(np.array([s.jaw_noise_deg for s in self.specs], np.float32), dtype=float,
+                                   device=dev)
+        limits = [shape.angle_limits if shape is not None and shape.articulated else (0.0, 0.0)
+                  for shape in self.shapes]
+        self._jaw_limits = wp.array(np.asarray(limits, np.float32), dtype=wp.vec2, device=dev)
+        self._no_rng = wp.zeros(1, dtype=wp.uint32, device=dev)
         self._jaw_views = [self.jaw_angle[:, k] for k in range(K)]
         #: ``RigState`` view of the arrays above, for kernels.
         self.state = RigState()
@@ -368,8 +404,22 @@ class InstrumentRig:
         start angle, switch activations off and teleport the bodies there (start state of the World)."""
         w = self.world
         self.instruments.reset(env_mask, rng)
-        wp.launch(reset_rig_state, dim=(w.num_envs, self.num_instruments), inputs=[env_mask, self._jaw_start],
+        wp.launch(reset_rig_state, dim=w.num_envs,
+                  inputs=[env_mask, self._jaw_start, self._jaw_noise, self._jaw_limits,
+                          rng if rng is not None else self._no_rng, int(rng is not None)],
                   outputs=[self.jaw_angle, self.active], device=w.device)
+        self._pose_bodies(env_mask)
+
+    def snapshot(self) -> tuple[wp.array, wp.array, wp.array]:
+        """Copies of every env's (PTSD, RCM, jaw angle) for :meth:`restore`."""
+        return wp.clone(self.instruments.ptsd), wp.clone(self.instruments.rcm), wp.clone(self.jaw_angle)
+
+    def restore(self, env_mask: wp.array, snapshot: tuple[wp.array, wp.array, wp.array]) -> None:
+        """Put the masked envs' instruments back to a :meth:`snapshot` (activations off, flags cleared) and teleport
+        their bodies there (a task that starts its episodes from a scripted state); graph-capturable."""
+        w, ins = self.world, self.instruments
+        wp.launch(restore_rig_state, dim=(w.num_envs, self.num_instruments), inputs=[env_mask, *snapshot],
+                  outputs=[ins.ptsd, ins.rcm, ins.pose, ins.flags, self.jaw_angle, self.active], device=w.device)
         self._pose_bodies(env_mask)
 
     def _pose_bodies(self, teleport_mask: wp.array | None) -> None:

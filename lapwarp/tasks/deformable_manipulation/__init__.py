@@ -1,2 +1,2 @@
-"""Deformable Manipulation track: TissueManipulation (``tissue_manipulation``) and PickAndPlace (``pick_and_place``);
-GraspLiftAndTouch is not implemented yet."""
+"""Deformable Manipulation track: TissueManipulation (``tissue_manipulation``), PickAndPlace (``pick_and_place``) and
+GraspLiftAndTouch (``grasp_lift_touch``)."""
