@@ -305,7 +305,7 @@ class GraspLiftAndTouchConfig(EnvConfig):
     anchor_stiffness: Positive = 1.0e4
     damping: NonNegative = 10.0
     gravity: float = 0.00981
-    physics_substeps: Count(10_000) = 10
+    physics_substeps: Count(10_000) = 5
     contact_capacity: Count(4096) = 128
 
     def validate(self, reward_features, supported_observations) -> None:
@@ -695,9 +695,11 @@ def ptsd_error_toward(rcm: wp.transform, tip_pos: wp.vec3, s: wp.vec4, goal: wp.
 @wp.kernel
 def expert_commands(q: wp.array2d(dtype=wp.vec3), ptsd: wp.array2d(dtype=wp.vec4),
                     pose: wp.array2d(dtype=wp.transform), rcm: wp.array2d(dtype=wp.transform),
-                    jaw_angle: wp.array2d(dtype=float), grasped: wp.array(dtype=wp.int32), organs: Organs,
-                    neck_tip: wp.array(dtype=wp.int32), across: wp.vec3, p: Params, task: Task, hold_depth: float,
-                    standoff: float, retract: float, max_step: float, error_out: wp.array2d(dtype=float)):
+                    jaw_angle: wp.array2d(dtype=float), active: wp.array2d(dtype=wp.int32),
+                    grasped: wp.array(dtype=wp.int32), organs: Organs, neck_tip: wp.array(dtype=wp.int32),
+                    across: wp.vec3, p: Params, task: Task, hold_depth: float,
+                    standoff: float, retract: float, max_step: float, closing: wp.array(dtype=wp.int32),
+                    error_out: wp.array2d(dtype=float)):
     """The scripted grasper and hook (``GraspLiftAndTouchExpert``): PTSD, jaw and activation errors per env."""
     env = wp.tid()
     g_tip = pose[env, 0]
@@ -729,17 +731,26 @@ def expert_commands(q: wp.array2d(dtype=wp.vec3), ptsd: wp.array2d(dtype=wp.vec4
             turn = turn - wp.pi
         if turn < -0.5 * wp.pi:
             turn = turn + wp.pi
+        # close once in place with the jaws open, and keep closing (one discrete step does one thing: the position
+        # waits) unless the tip left the neck or the jaws shut on nothing; then open and try again
         jaw = float(45.0) - jaw_angle[env, 0]
-        if wp.length(g_pos - hold) < 0.0015:
+        off_hold = wp.length(g_pos - hold)
+        if closing[env] != 0 and (off_hold > 0.006 or jaw_angle[env, 0] < 1.0):
+            closing[env] = 0
+        elif closing[env] == 0 and off_hold < 0.0015 and jaw_angle[env, 0] > 44.0:
+            closing[env] = 1
+        if closing[env] != 0:
             jaw = -60.0
         error_out[env, 0] = e[0]
         error_out[env, 1] = e[1]
         error_out[env, 2] = turn
         error_out[env, 3] = e[3]
         error_out[env, 4] = jaw
-    else:
-        error_out[env, 4] = -60.0  # keep the jaws closed
-        if phase == LIFT or phase == GRASP:
+    else:  # a held grasp keeps its jaw angle (closing further is blocked)
+        closing[env] = 0
+        if phase == GRASP:  # held, but not the infundibulum on both jaws: let go and try again
+            error_out[env, 4] = 45.0 - jaw_angle[env, 0]
+        elif phase == LIFT:
             error_out[env, 3] = -retract  # pull the neck back towards the trocar
     # the hook: along its line from the RCM to the target, stand off until the target is exposed, then touch
     c_tip = pose[env, 1]
@@ -756,7 +767,8 @@ def expert_commands(q: wp.array2d(dtype=wp.vec3), ptsd: wp.array2d(dtype=wp.vec4
     error_out[env, 6] = e[1]
     error_out[env, 8] = e[3]
     near = wp.length(cutting_center(c_tip) - target) < 0.8 * p.tolerance
-    error_out[env, 9] = wp.where(phase == TOUCH and near, 1.0, -1.0)
+    switch_on = wp.where(phase == TOUCH and near, 1, 0)
+    error_out[env, 9] = float(switch_on - active[env, 1])  # switch only when needed (a discrete step does one thing)
 
 
 # ---------------------------------------------------------------------------- env
@@ -806,14 +818,20 @@ class GraspLiftAndTouchEnv(BatchedEnv):
         gall.finalize(world)
         self.rig.finalize(world)
         self.contact = c = ContactSystem(world, capacity=cfg.contact_capacity, body_ignore_mask=True)
+        # every gallbladder node meets the instruments (a squeezed neck's inner nodes reach the jaws: a firmer grasp),
+        # its surface vertices meet the liver, and the liver's surface vertices meet the instruments
         self.gb_group = c.add_particle_group(self.gallbladder, radius=PARTICLE_RADIUS, triangles=True)
-        self.liver_group = c.add_particle_group(self.liver, radius=PARTICLE_RADIUS, triangles=True)
-        c.add_surface(self.liver, groups=[self.gb_group], name="liver_surface")
+        gb_surface = c.add_particle_group(np.unique(self.gallbladder.surface_tris), radius=PARTICLE_RADIUS,
+                                          name="gallbladder_surface")
+        self.liver_group = c.add_particle_group(np.unique(self.liver.surface_tris), radius=PARTICLE_RADIUS,
+                                                name="liver", triangles=self.liver.surface_tris)
+        c.add_surface(self.liver, groups=[gb_surface], name="liver_surface")
         self.rig.add_colliders(c, groups=[self.gb_group, self.liver_group])
         c.finalize()
         self.grasp = self.rig.add_grasping("gripper", c, groups=[self.gb_group], grasp_threshold=cfg.grasp_threshold,
                                            release_threshold=cfg.grasp_threshold, slot_start=slot_start,
-                                           slots=cfg.grasp_slots, max_offset=0.02, jaws_pass_while_grasped=True)
+                                           slots=cfg.grasp_slots, max_offset=0.02, cone_margin=0.005,
+                                           jaws_pass_while_grasped=True)
         self._rig_contacts = self.rig.contacts()
 
         # organs: infundibulum flags, masses, surfaces, the liver's rest surface (a static mesh)
@@ -884,6 +902,7 @@ class GraspLiftAndTouchEnv(BatchedEnv):
         self.rig.reset(everything, rng)
         self.grasp.reset(everything)
         error = wp.zeros((n, 10), dtype=float, device=dev)
+        closing = wp.zeros(n, dtype=wp.int32, device=dev)
         dt = cfg.time_step * cfg.frame_skip
         to_internal = np.array([math.pi / 180.0] * 3 + [1.0])
         step = np.asarray(cfg.maximum_state_velocity) * to_internal * dt
@@ -898,11 +917,12 @@ class GraspLiftAndTouchEnv(BatchedEnv):
             for _ in range(cfg.grasped_start_steps):
                 wp.launch(expert_commands, dim=n,
                           inputs=[world.state.particle_q, self.rig.ptsd, self.rig.pose, self.rig.rcm,
-                                  self.rig.jaw_angle, self.grasp.grasped, self.organs, self._neck_tip, self._across,
-                                  self.params, t, 0.012, 0.015, 0.0025, 0.0025], outputs=[error], device=dev)
+                                  self.rig.jaw_angle, self.rig.active, self.grasp.grasped, self.organs,
+                                  self._neck_tip, self._across,
+                                  self.params, t, 0.012, 0.015, 0.0025, 0.0025], outputs=[closing, error], device=dev)
                 a = np.clip(error.numpy() / scale, -1.0, 1.0)
                 a[done] = 0.0
-                a[:, 9] = -1.0  # the hook stays off
+                a[:, 9] = 0.0  # the hook stays off
                 actions.assign(a.astype(np.float32))
                 self.rig.apply_actions(actions, cfg.time_step)
                 for _ in range(cfg.frame_skip):
@@ -1046,6 +1066,7 @@ class GraspLiftAndTouchExpert(Expert):
         self.hold_depth, self.standoff, self.retract = float(hold_depth), float(standoff), float(retract)
         self.max_step = float(max_step if max_step is not None else (1.0 if env.is_discrete else 0.0025))
         self.error = wp.zeros((env.num_envs, 10), dtype=float, device=env.wp_device)
+        self.closing = wp.zeros(env.num_envs, dtype=wp.int32, device=env.wp_device)  # per env: closing the jaws
         cfg = env.cfg
         dt = cfg.time_step * cfg.frame_skip
         to_internal = [math.pi / 180.0] * 3 + [1.0]
@@ -1056,8 +1077,8 @@ class GraspLiftAndTouchExpert(Expert):
         env, rig, s = self.env, self.env.rig, self.env.world.state
         with env._torch_stream_scope():
             wp.launch(expert_commands, dim=env.num_envs,
-                      inputs=[s.particle_q, rig.ptsd, rig.pose, rig.rcm, rig.jaw_angle, env.grasp.grasped,
-                              env.organs, env._neck_tip, env._across, env.params, env.task, self.hold_depth,
-                              self.standoff, self.retract, self.max_step],
-                      outputs=[self.error], device=env.wp_device)
+                      inputs=[s.particle_q, rig.ptsd, rig.pose, rig.rcm, rig.jaw_angle, rig.active,
+                              env.grasp.grasped, env.organs, env._neck_tip, env._across, env.params, env.task,
+                              self.hold_depth, self.standoff, self.retract, self.max_step],
+                      outputs=[self.closing, self.error], device=env.wp_device)
         return self.policy_actions(wp.to_torch(self.error) / self.step_size)
