@@ -12,12 +12,13 @@ target positions and the workspace are sofa_env's). sofa_env's organ meshes are 
 procedural and placed to play the same roles:
 
 * Liver: a tetrahedralised ellipsoid (``ellipsoid_tets``: 100 nodes, 288 tets; sofa_env: 98, 273), semi-axes
-  72 x 86 x 78 mm, placed so that the three targets lie on its surface; co-rotated FEM E = 3 MPa, nu = 0, 15 kg,
+  72 x 86 x 78 mm, placed so that the three targets lie on the ellipsoid (the coarse mesh's flat faces lie 0.9-3 mm
+  below them: the 4.5 mm target spheres sit in its surface); co-rotated FEM E = 3 MPa, nu = 0, 15 kg,
   held by springs (1e4 N/m) on the volume nodes of its back half (sofa_env: the volume nodes in a box at its back).
 * Gallbladder: a pear (a tapered ellipsoid, 300 nodes, 1,080 tets; sofa_env: 367, 1,063), 90 x 57 x 48 mm, wrapped
   onto the liver's surface over the targets (they are hidden from the camera under it), its neck (the
-  infundibulum, the last 30 mm) curving 10 mm off the liver; E = 1.5 MPa, nu = 0, 5 kg, held by springs (1e4 N/m) on
-  the 24 surface vertices of its bed nearest the liver in its fundus half (sofa_env: 24 bed vertices).
+  infundibulum, the last 30 mm) curving up to 10 mm off the liver; E = 1.5 MPa, nu = 0, 5 kg, held by springs
+  (1e4 N/m) on the 24 surface vertices of its bed nearest the liver in its fundus half (sofa_env: 24 bed vertices).
 * Gravity (0, +0.00981, 0) m/s^2: sofa_env's +9.81 *mm*/s^2 along +y (practically none), kept.
 * Contact: the gallbladder's surface vertices against the liver's deforming surface (two-way). **sofa_env puts both
   organs in one collision group, so they pass through each other; here they collide** (the overlap feature then
@@ -212,8 +213,12 @@ def gallbladder_mesh() -> dict[str, np.ndarray]:
     across = v[:, 1] * 0.5 * GB_WIDTH * scale
     height = (v[:, 2] + 1.0) * 0.5 * GB_THICKNESS * scale  # above the slice's lowest point
     base, normal = _liver_surface_point(target + along[:, None] * u + across[:, None] * w)
-    lift = GB_GAP + GB_NECK_LIFT * np.clip((s - 0.75) / 0.25, 0.0, 1.0) ** 2
+    lift = GB_GAP + GB_NECK_LIFT * np.clip((s - 0.6) / 0.4, 0.0, 1.0) ** 2
     x = base + normal * (height + lift)[:, None]
+    # the shaping must not turn a tet inside out (the builder would silently re-order it and keep the fold)
+    signs = [np.sign(np.linalg.det(np.stack([p[t[:, i]] - p[t[:, 0]] for i in (1, 2, 3)], axis=2))) for p in (grid, x)]
+    if np.any(signs[0] != signs[1]):
+        raise RuntimeError(f"{int((signs[0] != signs[1]).sum())} gallbladder tets inverted by the shaping")
     surface = np.unique(tet_surface(t))
     low = surface[s[surface] < 0.5]
     bed = low[np.argsort(height[low] + 1e-3 * np.abs(across[low]))[:BED_VERTICES]]
@@ -698,7 +703,8 @@ def expert_commands(q: wp.array2d(dtype=wp.vec3), ptsd: wp.array2d(dtype=wp.vec4
                     jaw_angle: wp.array2d(dtype=float), active: wp.array2d(dtype=wp.int32),
                     grasped: wp.array(dtype=wp.int32), organs: Organs, neck_tip: wp.array(dtype=wp.int32),
                     across: wp.vec3, p: Params, task: Task, hold_depth: float,
-                    standoff: float, retract: float, max_step: float, closing: wp.array(dtype=wp.int32),
+                    standoff: float, retract: float, max_step: float, in_place: float, lateral_first: int,
+                    closing: wp.array(dtype=wp.int32),
                     error_out: wp.array2d(dtype=float)):
     """The scripted grasper and hook (``GraspLiftAndTouchExpert``): PTSD, jaw and activation errors per env."""
     env = wp.tid()
@@ -721,9 +727,11 @@ def expert_commands(q: wp.array2d(dtype=wp.vec3), ptsd: wp.array2d(dtype=wp.vec4
         # the point of the approach line nearest the tip: off the line, go to the stand-off point first
         off_line = wp.length(wp.cross(g_pos - hold, axis))
         goal = hold
-        if off_line > 0.003:
+        if off_line > 2.0 * in_place:
             goal = approach
         e = ptsd_error_toward(g_rcm, g_pos, g_s, goal, max_step)
+        if lateral_first != 0 and off_line > in_place:
+            e = wp.vec4(e[0], e[1], e[2], 0.0)  # a discrete step does one thing: line up before advancing
         opening = wp.transform_vector(g_tip, wp.vec3(0.0, 1.0, 0.0))
         want = wp.normalize(across - axis * wp.dot(across, axis))
         turn = wp.atan2(wp.dot(wp.cross(opening, want), axis), wp.dot(opening, want))
@@ -737,7 +745,7 @@ def expert_commands(q: wp.array2d(dtype=wp.vec3), ptsd: wp.array2d(dtype=wp.vec4
         off_hold = wp.length(g_pos - hold)
         if closing[env] != 0 and (off_hold > 0.006 or jaw_angle[env, 0] < 1.0):
             closing[env] = 0
-        elif closing[env] == 0 and off_hold < 0.0015 and jaw_angle[env, 0] > 44.0:
+        elif closing[env] == 0 and off_hold < in_place and jaw_angle[env, 0] > 44.0:
             closing[env] = 1
         if closing[env] != 0:
             jaw = -60.0
@@ -919,7 +927,8 @@ class GraspLiftAndTouchEnv(BatchedEnv):
                           inputs=[world.state.particle_q, self.rig.ptsd, self.rig.pose, self.rig.rcm,
                                   self.rig.jaw_angle, self.rig.active, self.grasp.grasped, self.organs,
                                   self._neck_tip, self._across,
-                                  self.params, t, 0.012, 0.015, 0.0025, 0.0025], outputs=[closing, error], device=dev)
+                                  self.params, t, 0.012, 0.015, 0.0025, 0.0025, 0.0015, 0], outputs=[closing, error],
+                          device=dev)
                 a = np.clip(error.numpy() / scale, -1.0, 1.0)
                 a[done] = 0.0
                 a[:, 9] = 0.0  # the hook stays off
@@ -1065,6 +1074,9 @@ class GraspLiftAndTouchExpert(Expert):
         super().__init__(env)
         self.hold_depth, self.standoff, self.retract = float(hold_depth), float(standoff), float(retract)
         self.max_step = float(max_step if max_step is not None else (1.0 if env.is_discrete else 0.0025))
+        # how close to the hold point the jaws start closing: a discrete step of 1 degree moves the tip ~3 mm at the
+        # neck's depth, so discrete actions cannot come closer than that
+        self.in_place = 0.0035 if env.is_discrete else 0.0015
         self.error = wp.zeros((env.num_envs, 10), dtype=float, device=env.wp_device)
         self.closing = wp.zeros(env.num_envs, dtype=wp.int32, device=env.wp_device)  # per env: closing the jaws
         cfg = env.cfg
@@ -1079,6 +1091,7 @@ class GraspLiftAndTouchExpert(Expert):
             wp.launch(expert_commands, dim=env.num_envs,
                       inputs=[s.particle_q, rig.ptsd, rig.pose, rig.rcm, rig.jaw_angle, rig.active,
                               env.grasp.grasped, env.organs, env._neck_tip, env._across, env.params, env.task,
-                              self.hold_depth, self.standoff, self.retract, self.max_step],
+                              self.hold_depth, self.standoff, self.retract, self.max_step, self.in_place,
+                              int(env.is_discrete)],
                       outputs=[self.closing, self.error], device=env.wp_device)
         return self.policy_actions(wp.to_torch(self.error) / self.step_size)
