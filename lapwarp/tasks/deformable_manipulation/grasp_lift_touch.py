@@ -35,10 +35,11 @@ rays from the camera to points of the target sphere's camera-facing half (the ne
 around it) against the gallbladder's and the liver's deforming surfaces; visible if one reaches its point. The
 instruments do not occlude (they do in sofa_env's image).
 
-Reward features (Table A's weights, the paper's; sofa_zoo's differ where noted in ``REWARDS``): distances over the
-workspace diagonal (571.6 mm), not clipped (sofa_env's). Phase-gated features read 0 outside their phase.
-Table A weighs the cauter-target distance -5 in TOUCH and -0.5 elsewhere: two features (``distance_cauter_target``,
-``distance_cauter_target_touch``), likewise its change (-1 in both; sofa_zoo: -1 and -5).
+Reward features (Table A's weights, the paper's, but for ``gallbladder_is_grasped``, see below; sofa_zoo's differ
+where noted in ``REWARDS``): distances over the workspace diagonal (571.6 mm), not clipped (sofa_env's).
+Phase-gated features read 0 outside their phase. Table A weighs the cauter-target distance -5 in TOUCH and -0.5
+elsewhere: two features (``distance_cauter_target``, ``distance_cauter_target_touch``), likewise its change (-1 in
+both; sofa_zoo: -1 and -5).
 
 STATE observation (59, Table D): grasper tip pose (7), hook tip pose (7), grasper PTSD + jaw angle (5), hook PTSD +
 activation (5), grasp established (1), target (3), phase id (1), 10 gallbladder surface vertices (30; farthest-point
@@ -49,7 +50,10 @@ Deliberate differences from sofa_env (task-cards §4, §12):
 
 * The liver and the gallbladder collide (sofa_env's same-group bug fixed). No gallbladder self-contact (sofa_env
   has it; a grasp pinches the neck, it never folds onto itself here).
-* The +20 "gallbladder is grasped" weight is applied (sofa_zoo's key is misspelt, so it never is).
+* ``gallbladder_is_grasped`` weighs 0, not Table A's +20: sofa_zoo misspells the key, so the paper's runs had 0.
+  Applied, +20 per step makes holding the grasp worth more than finishing (700 steps x 20 against a +200 success
+  that ends the episode): PPO (gpu preset, 150 iterations, H100) then learned to grasp and hold, return 12,200 and
+  0 % success, against 97.3 % success with 0. ``reward_weights={"gallbladder_is_grasped": 20}`` restores it.
 * Success is ``phase >= end_in_phase`` (sofa_env: equality, so a grasp that exposes the target at once skips LIFT
   and never completes configuration Gr).
 * ``dynamic_force_on_gallbladder`` is the summed magnitude of the net force on the gallbladder's nodes over the env
@@ -118,7 +122,7 @@ REWARDS = RewardSpec(
     Feature("target_visible", 0.0),
     Feature("gripper_distance_to_infundibulum", -0.2),  # GRASP
     Feature("delta_gripper_distance_to_infundibulum", -10.0),  # GRASP
-    Feature("gallbladder_is_grasped", 20.0),  # sofa_zoo's key is misspelt: never applied there
+    Feature("gallbladder_is_grasped", 0.0),  # Table A: +20, never applied in the paper's runs (module docstring)
     Feature("new_grasp_on_gallbladder", 10.0),
     Feature("lost_grasp_on_gallbladder", -10.0),
     Feature("active_grasping_springs", 0.0),
