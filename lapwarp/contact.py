@@ -465,7 +465,7 @@ class ContactSystem:
                 owner_start=int(owner[0]), owner_end=int(owner[1]), closed=int(sh.surface["closed"]),
                 face_col=face_col, face_active=face_mask)))
         if self._surfaces:
-            self.surf_delta = wp.zeros((n, P), dtype=wp.vec3, device=dev)
+            self.surf_delta = wp.zeros((n, P, 3), dtype=wp.int64, device=dev)  # fixed point, see the kernel
             self.surf_count = wp.zeros((n, P), dtype=wp.int32, device=dev)
 
         self._self_arrays = []

@@ -34,6 +34,10 @@ from lapwarp.kernels.geometry import (
 
 wp.set_module_options({"enable_backward": False})
 
+#: Deforming-surface corrections are summed in fixed point (1 nm units): atomic float sums depend on the order the
+#: threads land in, so two identical GPU runs would drift apart; integer sums do not.
+SURFACE_DELTA_SCALE = wp.constant(1.0e9)
+
 SHAPE_SPHERE = wp.constant(0)
 SHAPE_CAPSULE = wp.constant(1)
 SHAPE_BOX = wp.constant(2)
@@ -585,7 +589,7 @@ def collide_surface(
     report: int,
     report_margin: float,
     q: wp.array2d(dtype=wp.vec3),
-    surf_delta: wp.array2d(dtype=wp.vec3),
+    surf_delta: wp.array3d(dtype=wp.int64),
     surf_count: wp.array2d(dtype=wp.int32),
     reports: ContactReports,
 ):
@@ -693,21 +697,25 @@ def collide_surface(
     for j in range(3):
         wj = solve.inv_mass[pe, t[j]]
         if wj > 0.0:
-            wp.atomic_add(surf_delta, env, t[j], -dp * (best_bw[j] * wj / (w + wt)))
+            share = -dp * (best_bw[j] * wj / (w + wt))
+            for axis in range(3):  # fixed point: integer sums do not depend on the order of the atomics
+                wp.atomic_add(surf_delta, env, t[j], axis, wp.int64(wp.round(share[axis] * SURFACE_DELTA_SCALE)))
             wp.atomic_add(surf_count, env, t[j], 1)
     wp.atomic_add(reports.report_force, env, pair, pen / (w + wt) * solve.force_scale)
 
 
 @wp.kernel
-def apply_surface_deltas(verts: wp.array(dtype=wp.int32), surf_delta: wp.array2d(dtype=wp.vec3),
+def apply_surface_deltas(verts: wp.array(dtype=wp.int32), surf_delta: wp.array3d(dtype=wp.int64),
                          surf_count: wp.array2d(dtype=wp.int32), q: wp.array2d(dtype=wp.vec3)):
     # Jacobi with averaging: a vertex pushed by several particles moves by their mean correction
     env, k = wp.tid()
     i = verts[k]
     c = surf_count[env, i]
     if c > 0:
-        q[env, i] = q[env, i] + surf_delta[env, i] / float(c)
-        surf_delta[env, i] = wp.vec3(0.0)
+        d = wp.vec3(float(surf_delta[env, i, 0]), float(surf_delta[env, i, 1]), float(surf_delta[env, i, 2]))
+        q[env, i] = q[env, i] + d / (SURFACE_DELTA_SCALE * float(c))
+        for a in range(3):
+            surf_delta[env, i, a] = wp.int64(0)
         surf_count[env, i] = 0
 
 
