@@ -343,6 +343,7 @@ def collide_particles(
     x = q[env, i]
     x0 = start_position(solve, env, i)
     ignore_bits = ignored_bodies(ignore, env, i)
+    moved = int(0)
     for s in range(shapes.kind.shape[0]):
         pair = shapes.pair_index[s, g]
         if pair < 0 or shapes.kind[s] == SHAPE_SURFACE:
@@ -367,7 +368,12 @@ def collide_particles(
         xs0 = wp.transform_point(tf0, wp.transform_point(wp.transform_inverse(tf), x))
         x = x + friction_correction((x - x0) - (x - xs0), n, pen, shapes.mu[s])
         wp.atomic_add(reports.report_force, env, pair, pen / w * solve.force_scale)
-    q[env, i] = x
+        moved = 1
+    # only a moved particle is written: a particle in two groups (GraspLiftAndTouch's gallbladder surface meets the
+    # instruments in one and the liver in another) has two threads here, and an unconditional write of the other
+    # thread's stale copy would race
+    if moved != 0:
+        q[env, i] = x
 
 
 # ----------------------------------------------------------------------------------------------------
