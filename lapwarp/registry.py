@@ -14,6 +14,7 @@ _TASKS: dict[str, str] = {
     "PrecisionCutting": "lapwarp.tasks.dissection.precision_cutting:PrecisionCuttingEnv",
     "TissueDissection": "lapwarp.tasks.dissection.tissue_dissection:TissueDissectionEnv",
     "GraspLiftAndTouch": "lapwarp.tasks.deformable_manipulation.grasp_lift_touch:GraspLiftAndTouchEnv",
+    "ThreadInHole": "lapwarp.tasks.thread_manipulation.thread_in_hole:ThreadInHoleEnv",
     "TissueManipulation": "lapwarp.tasks.deformable_manipulation.tissue_manipulation:TissueManipulationEnv",
     "PickAndPlace": "lapwarp.tasks.deformable_manipulation.pick_and_place:PickAndPlaceEnv",
 }

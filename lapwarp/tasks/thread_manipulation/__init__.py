@@ -1,1 +1,2 @@
-"""Thread Manipulation track: ThreadInHole, RopeThreading, LigatingLoop (not implemented yet)."""
+"""Thread Manipulation track: ThreadInHole (``thread_in_hole``); RopeThreading and LigatingLoop are not
+implemented yet."""

@@ -1,0 +1,673 @@
+"""ThreadInHoleEnv: insert the free end of a grasped thread into a deformable hollow cylinder (sofa_env's
+ThreadInHoleEnv; task-cards §8).
+
+A grasper holds the top end of a thread (it starts grasped and never lets go; no jaw action). The thread hangs from
+it under gravity; the task is to insert the thread's lower part into the bore of a soft hollow cylinder standing on
+the floor: success when every frame of the last ``insertion_ratio_threshold`` of the thread is inside the cylinder.
+
+Physics (SI, sofa_env's millimetres converted; z up, gravity 0.981 m/s^2 along -z: sofa_env's -981 mm/s^2):
+
+* Thread: a Cosserat rod of ``N = floor(L / 2 r)`` nodes spaced ``L / N`` (sofa_env's ``Rope``), bending and torsion of
+  a ``beam_radius`` cross-section, Young's modulus E, total mass, velocity damping; it collides as a tube of radius
+  ``r`` with the cylinder's deforming surface (its nodes against the triangles; the nodes are ``L / N`` ~ 2 r apart).
+* Hole: sofa_env's Cavity, a hollow cylinder of 2 radial x 10 angular x 10 vertical nodes (200 nodes, 540 tets),
+  co-rotated XPBD FEM, its bottom ring fixed; the thread collides with its inner and outer walls and caps.
+* Grasp: the thread's first node is attached to the grasper's jaw and its first segment keeps its orientation relative
+  to the jaw (``GraspSystem.start_grasped``; sofa_env: a 1e9 N/m spring and the root frame forced to the gripper's
+  orientation). The jaws and shaft collide with the cylinder.
+
+Configurations (``configuration``; task-cards §8 table, the paper's three): ``normal`` (thread 50 mm, 12 nodes, E 4 MPa,
+beam radius 5 mm, 1 kg; hole r 5 / 25 mm, 30 mm tall, 5 MPa, 10 kg), ``flexible`` (thread 80 mm, 20 nodes, 1 MPa, beam
+3 mm; bore 6 mm), ``inverted`` (a stiff thread, 100 MPa, 10 kg, in a soft narrow tube: r 6 / 15 mm, 60 mm tall, 0.5 MPa,
+1 kg). The inner wall is a decagon (apothem 4.76 mm for r 5 mm).
+
+Episode logic (sofa_env's): success when every node of ``indices_to_check`` (the last ``insertion_ratio_threshold`` of
+the thread; lowered when that part is longer than the cylinder, e.g. flexible: nodes 12-19) is inside the cylinder's
+outer hull. The hull is the cylinder through the deformed top ring's centre (sofa_env: the generalized winding number
+of its deformed outer shell with caps). The hole opening is the centre of the outer top ring. The grasper is reset with
+sofa_env's noise (PTSD +-[15, 15, 0, 20], RCM +-[10, 10, 10] mm and +-[5, 5, 5] deg); the thread, settled hanging
+from the noise-free start once at build, is carried along with the grasper's tip and settles during the first steps
+(sofa_env settles 50 physics steps inside every reset).
+
+Reward features (Table A's weights; distances over the workspace diagonal 346.4 mm, clipped to [-1, 1]): the thread's
+free end, centre and nearest tracking node to the hole opening and their changes (the last one's change is the
+smallest per-node change, sofa_env's rule), unstable deformation (mean thread speed above 1.5 x the grasper's and above
+25 mm/s), thread and grasper speeds, the two limit flags, the fraction of nodes inside the hull and its change, the jaw
+contacts with the hole (sofa_env counts the contacts of its jaw spheres; here the contacts of the grasper's capsules
+with the cylinder's nodes), success (+100).
+
+STATE observation (29 with T = 4, Table D): PTSD (state limits to [-1, 1]), grasper tip pose (7; position normalised by
+the workspace, quaternion xyzw), thread centre (3), T tracking nodes at ``linspace(0, N - 1, T)`` (3 T), hole opening
+(3).
+
+Deliberate differences from sofa_env (task-cards §8, §12):
+
+* The inside test uses the cylinder through the deformed top ring, not the deformed shell's winding number (the
+  same for a straight or tilted tube; a bent one differs near its wall).
+* The thread collides through its nodes (sofa_env: spheres on every frame, the same).
+* Each reset carries the settled thread with the grasper instead of settling 50 physics steps per reset; sofa_env
+  resets again if a node starts inside the hull, which the carried start cannot do (the thread hangs above it).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Annotated, Literal
+
+import numpy as np
+import torch
+import trimesh
+import warp as wp
+
+from lapwarp.assets import hollow_cylinder_tets
+from lapwarp.builder import SceneBuilder
+from lapwarp.config import PTSD, Count, EnvConfig, NonNegative, Positive, Range
+from lapwarp.contact import ContactSystem
+from lapwarp.env import BatchedEnv
+from lapwarp.experts import Expert
+from lapwarp.instruments import TPSDConfig, tpsd_from_config
+from lapwarp.kernels.kinematics import point_to_ptsd
+from lapwarp.tasks.rig import (
+    STATE_LIMITS_VIOLATED,
+    WORKSPACE_VIOLATED,
+    InstrumentRig,
+    InstrumentSpec,
+    RigBounds,
+    RigContacts,
+    count_flag,
+    write_unit_point,
+    write_unit_ptsd,
+)
+from lapwarp.tasks.spec import Feature, ObservationLayout, ObservationSpec, RewardSpec, write_transform
+from lapwarp.visuals import CameraSpec, VisualObject, VisualScene, look_at_transform
+from lapwarp.world import World
+
+wp.set_module_options({"enable_backward": False})
+
+REWARDS = RewardSpec(
+    Feature("thread_tip_distance_to_hole", -0.1),
+    Feature("delta_thread_tip_distance_to_hole", -0.1),
+    Feature("thread_center_distance_to_hole", 0.0),
+    Feature("delta_thread_center_distance_to_hole", 0.0),
+    Feature("thread_points_distance_to_hole", 0.0),
+    Feature("delta_thread_points_distance_to_hole", 0.0),
+    Feature("unstable_deformation", 0.0),
+    Feature("thread_velocity", 0.0),
+    Feature("gripper_velocity", 0.0),
+    Feature("action_violated_state_limits", 0.0),
+    Feature("action_violated_cartesian_workspace", 0.0),
+    Feature("ratio_rope_in_hole", 0.1),
+    Feature("delta_ratio_rope_in_hole", 1.0),
+    Feature("gripper_collisions", -0.1),  # sofa_zoo: -1
+    Feature("successful_task", 100.0),
+)
+F = REWARDS.F
+OBS = ObservationSpec("ptsd", "pose", "center", "tracking", "opening")
+CRITIC = OBS.extend("tip_to_opening", "ratio")
+
+MM = 1.0e-3
+#: per configuration: thread (length, collision radius, E, beam radius, mass) and hole (inner, outer radius, height,
+#: E, mass), SI (task-cards §8)
+CONFIGURATIONS = {
+    "normal": dict(thread=(0.05, 0.002, 4.0e6, 0.005, 1.0), hole=(0.005, 0.025, 0.03, 5.0e6, 10.0)),
+    "flexible": dict(thread=(0.08, 0.002, 1.0e6, 0.003, 1.0), hole=(0.006, 0.025, 0.03, 5.0e6, 10.0)),
+    "inverted": dict(thread=(0.05, 0.002, 1.0e8, 0.005, 10.0), hole=(0.006, 0.015, 0.06, 5.0e5, 1.0)),
+}
+HOLE_RADIAL, HOLE_ANGULAR, HOLE_VERTICAL = 2, 10, 10
+WORKSPACE = ((-0.1, -0.1, 0.0), (0.1, 0.1, 0.2))
+SETTLED_SPEED = 0.025
+THREAD_COLOR, HOLE_COLOR, GRIPPER_COLOR = (0.85, 0.75, 0.35), (0.2, 0.8, 0.85), (0.7, 0.72, 0.75)
+
+
+@dataclass(kw_only=True)
+class ThreadInHoleConfig(EnvConfig):
+    """ThreadInHoleEnv parameters (Tables B, C: the paper's = sofa_zoo's values); metres, degrees, kg.
+
+    Attributes:
+        configuration: ``normal``, ``flexible`` or ``inverted`` (the paper's; see the module docstring).
+        insertion_ratio_threshold: the fraction of the thread (from its free end) that must be inside.
+        num_thread_tracking_points: thread nodes in the observation (``linspace(0, N - 1, T)``).
+        start_ptsd / ptsd_noise (deg, deg, deg, m), rcm_position_noise (m), rcm_euler_noise (deg): sofa_env's start
+            and uniform reset noise of the grasper.
+        state_low / state_high: the grasper's state limits (deg, deg, deg, m).
+        maximum_state_velocity / discrete_action_magnitude: speeds of a continuous action of 1 and of a discrete
+            action (deg/s, deg/s, deg/s, m/s).
+        thread_damping: velocity damping rate of the thread, 1/s. hole_damping: of the cylinder, 1/s.
+        gravity: m/s^2 along -z (sofa_env's -981 mm/s^2).
+        poisson_ratio: thread and hole (sofa_env's 0.3).
+        settle_steps: physics steps the thread settles at build (sofa_env's 50, after every reset).
+        physics_substeps: XPBD substeps per physics step.
+        camera_position / camera_look_at: sofa_env's camera (vertical FoV 62 degrees), m.
+        camera_reset_noise: uniform +- noise of the camera's position and look-at point per reset, m (the paper's
+            image configuration with camera noise: 0.02; 0: none).
+        contact_capacity: contact records kept per env per step.
+    """
+
+    time_step: Positive = 0.01
+    frame_skip: Count(1000) = 10
+    max_episode_steps: Count(1_000_000) = 300
+    configuration: Literal["normal", "flexible", "inverted"] = "normal"
+    insertion_ratio_threshold: Annotated[float, Range(gt=0.0, le=1.0)] = 0.5
+    num_thread_tracking_points: Annotated[int, Range(ge=0, le=20)] = 4
+    start_ptsd: PTSD = (60.0, 0.0, 180.0, 0.09)
+    ptsd_noise: tuple[NonNegative, NonNegative, NonNegative, NonNegative] = (15.0, 15.0, 0.0, 0.02)
+    rcm_position_noise: tuple[NonNegative, NonNegative, NonNegative] = (0.01, 0.01, 0.01)
+    rcm_euler_noise: tuple[NonNegative, NonNegative, NonNegative] = (5.0, 5.0, 5.0)
+    state_low: PTSD = (-90.0, -90.0, -32767.0, 0.0)
+    state_high: PTSD = (90.0, 90.0, 32767.0, 0.2)
+    maximum_state_velocity: tuple[Positive, Positive, Positive, Positive] = (20.0, 20.0, 20.0, 0.02)
+    discrete_action_magnitude: tuple[Positive, Positive, Positive, Positive] = (15.0, 15.0, 15.0, 0.01)
+    thread_damping: NonNegative = 5.0
+    hole_damping: NonNegative = 10.0
+    gravity: NonNegative = 0.981
+    poisson_ratio: Annotated[float, Range(ge=0.0, lt=0.5)] = 0.3
+    settle_steps: Annotated[int, Range(ge=1, le=10_000)] = 50
+    physics_substeps: Count(10_000) = 10
+    camera_position: tuple[float, float, float] = (0.0, -0.135, 0.1)
+    camera_look_at: tuple[float, float, float] = (0.0, 0.0, 0.045)
+    camera_reset_noise: NonNegative = 0.0
+    contact_capacity: Count(4096) = 64
+
+    def validate(self, reward_features, supported_observations) -> None:
+        super().validate(reward_features, supported_observations)
+        self.gripper_tpsd()
+        if self.num_thread_tracking_points > self.thread_nodes:
+            raise ValueError(f"num_thread_tracking_points={self.num_thread_tracking_points} exceeds the "
+                             f"{self.thread_nodes} thread nodes of configuration {self.configuration!r}")
+
+    @property
+    def thread_nodes(self) -> int:
+        length, radius = CONFIGURATIONS[self.configuration]["thread"][:2]
+        return int(math.floor(length / (2.0 * radius) + 1e-9))
+
+    def gripper_tpsd(self) -> TPSDConfig:
+        """sofa_env's grasper: RCM at (100, 0, 150) mm pointing down (Euler (0, 180, 0))."""
+        return tpsd_from_config(self, rcm_position=(0.1, 0.0, 0.15), rcm_euler_deg=(0.0, 180.0, 0.0),
+                                start_ptsd="start_ptsd", state_low="state_low", state_high="state_high",
+                                workspace_low=WORKSPACE[0], workspace_high=WORKSPACE[1],
+                                max_velocity="maximum_state_velocity", discrete_magnitude="discrete_action_magnitude",
+                                ptsd_noise="ptsd_noise", rcm_position_noise="rcm_position_noise",
+                                rcm_euler_noise_deg="rcm_euler_noise")
+
+
+def indices_to_check(num_nodes: int, length: float, height: float, ratio: float) -> np.ndarray:
+    """sofa_env's success window: the last ``ratio`` of the nodes; when that part of the thread is longer than the
+    hole, the ratio drops to ``floor(h / segment) / (N - 1)``."""
+    segment = length / num_nodes
+    span = segment * (num_nodes - 1)
+    if span * ratio >= height:
+        ratio = math.floor(height / segment) / (num_nodes - 1)
+    return np.arange(num_nodes)[int((1.0 - ratio) * num_nodes):]
+
+
+def tracking_nodes(num_nodes: int, count: int) -> np.ndarray:
+    return np.linspace(0, num_nodes - 1, count).astype(np.int32) if count > 0 else np.zeros(0, np.int32)
+
+
+# ---------------------------------------------------------------------------- kernels
+@wp.struct
+class Task:
+    """Per-env task state: the last step's raw values for the delta features and the grasper's last tip position."""
+
+    last_tip_distance: wp.array(dtype=float)
+    last_center_distance: wp.array(dtype=float)
+    last_points: wp.array2d(dtype=float)
+    last_ratio: wp.array(dtype=float)
+    last_grasper: wp.array(dtype=wp.vec3)
+
+
+@wp.struct
+class Params:
+    bounds: RigBounds
+    thread_first: int
+    nodes: int
+    hole_first: int
+    outer_radius: float
+    control_dt: float
+    tracking: wp.array(dtype=wp.int32)
+    check: wp.array(dtype=wp.int32)
+    top_ring: wp.array(dtype=wp.int32)  # the outer top ring (global particle indices)
+    bottom_center: wp.vec3
+
+
+@wp.func
+def opening(q: wp.array2d(dtype=wp.vec3), env: int, p: Params) -> wp.vec3:
+    """The hole opening: the centre of the outer top ring (sofa_env's top cap centre)."""
+    c = wp.vec3(0.0)
+    for k in range(p.top_ring.shape[0]):
+        c += q[env, p.top_ring[k]]
+    return c / float(p.top_ring.shape[0])
+
+
+@wp.func
+def inside_hull(x: wp.vec3, bottom: wp.vec3, top: wp.vec3, radius: float) -> int:
+    """Inside the cylinder from ``bottom`` to ``top`` of ``radius``."""
+    axis = top - bottom
+    h = wp.length(axis)
+    a = axis / h
+    s = wp.dot(x - bottom, a)
+    if s < 0.0 or s > h:
+        return 0
+    if wp.length((x - bottom) - a * s) > radius:
+        return 0
+    return 1
+
+
+@wp.func
+def thread_center(q: wp.array2d(dtype=wp.vec3), env: int, p: Params) -> wp.vec3:
+    c = wp.vec3(0.0)
+    for i in range(p.nodes):
+        c += q[env, p.thread_first + i]
+    return c / float(p.nodes)
+
+
+@wp.func
+def normalized(x: float, inv_diagonal: float) -> float:
+    return wp.clamp(x * inv_diagonal, -1.0, 1.0)
+
+
+@wp.kernel
+def eval_thread_in_hole(env_mask: wp.array(dtype=wp.int32), mode: int, q: wp.array2d(dtype=wp.vec3),
+                        qd: wp.array2d(dtype=wp.vec3), pose: wp.array2d(dtype=wp.transform),
+                        flags: wp.array2d(dtype=wp.int32), contacts: RigContacts, hole_group: int, p: Params,
+                        task: Task, features_out: wp.array2d(dtype=float)):
+    """sofa_env's reward features. ``mode`` 1 (the step's evaluation) also stores this step's raw values for the next
+    step's deltas; mode 2 (reset) only stores them."""
+    env = wp.tid()
+    if env_mask[env] == 0:
+        return
+    hole = opening(q, env, p)
+    tip = q[env, p.thread_first + p.nodes - 1]
+    center = thread_center(q, env, p)
+    d_tip = wp.length(tip - hole)
+    d_center = wp.length(center - hole)
+    d_points = float(1.0e9)
+    delta_points = float(1.0e9)
+    for t in range(p.tracking.shape[0]):
+        d = wp.length(q[env, p.thread_first + p.tracking[t]] - hole)
+        d_points = wp.min(d_points, d)
+        delta_points = wp.min(delta_points, d - task.last_points[env, t])
+        if mode != 0:
+            task.last_points[env, t] = d
+    if p.tracking.shape[0] == 0:
+        d_points = 0.0
+        delta_points = 0.0
+    inside = int(0)
+    for i in range(p.nodes):
+        inside += inside_hull(q[env, p.thread_first + i], p.bottom_center, hole, p.outer_radius)
+    ratio = float(inside) / float(p.nodes)
+    done = int(1)
+    for k in range(p.check.shape[0]):
+        if inside_hull(q[env, p.thread_first + p.check[k]], p.bottom_center, hole, p.outer_radius) == 0:
+            done = 0
+    grasper = wp.transform_get_translation(pose[env, 0])
+    if mode == 2:
+        task.last_tip_distance[env] = d_tip
+        task.last_center_distance[env] = d_center
+        task.last_ratio[env] = ratio
+        task.last_grasper[env] = grasper
+        return
+    speed = float(0.0)
+    for i in range(p.nodes):
+        speed += wp.length(qd[env, p.thread_first + i])
+    speed = speed / float(p.nodes)
+    grasper_speed = wp.length(grasper - task.last_grasper[env]) / p.control_dt
+    collisions = int(0)
+    for s in range(contacts.shape_instrument.shape[0]):
+        if contacts.shape_instrument[s] == 0:
+            pair = contacts.pair_index[s, hole_group]
+            if pair >= 0:
+                collisions += contacts.report_count[env, pair]
+    inv = p.bounds.inv_diagonal
+    features_out[env, F.THREAD_TIP_DISTANCE_TO_HOLE] = normalized(d_tip, inv)
+    features_out[env, F.DELTA_THREAD_TIP_DISTANCE_TO_HOLE] = normalized(d_tip - task.last_tip_distance[env], inv)
+    features_out[env, F.THREAD_CENTER_DISTANCE_TO_HOLE] = normalized(d_center, inv)
+    features_out[env, F.DELTA_THREAD_CENTER_DISTANCE_TO_HOLE] = normalized(d_center - task.last_center_distance[env],
+                                                                           inv)
+    features_out[env, F.THREAD_POINTS_DISTANCE_TO_HOLE] = normalized(d_points, inv)
+    features_out[env, F.DELTA_THREAD_POINTS_DISTANCE_TO_HOLE] = normalized(delta_points, inv)
+    features_out[env, F.UNSTABLE_DEFORMATION] = wp.where(speed > 1.5 * grasper_speed and speed > SETTLED_SPEED,
+                                                         1.0, 0.0)
+    features_out[env, F.THREAD_VELOCITY] = normalized(speed, inv)
+    features_out[env, F.GRIPPER_VELOCITY] = normalized(grasper_speed, inv)
+    features_out[env, F.ACTION_VIOLATED_STATE_LIMITS] = float(count_flag(flags, env, STATE_LIMITS_VIOLATED))
+    features_out[env, F.ACTION_VIOLATED_CARTESIAN_WORKSPACE] = float(count_flag(flags, env, WORKSPACE_VIOLATED))
+    features_out[env, F.RATIO_ROPE_IN_HOLE] = ratio
+    features_out[env, F.DELTA_RATIO_ROPE_IN_HOLE] = ratio - task.last_ratio[env]
+    features_out[env, F.GRIPPER_COLLISIONS] = float(collisions)
+    features_out[env, F.SUCCESSFUL_TASK] = float(done)
+    if mode == 1:
+        task.last_tip_distance[env] = d_tip
+        task.last_center_distance[env] = d_center
+        task.last_ratio[env] = ratio
+        task.last_grasper[env] = grasper
+
+
+@wp.kernel
+def carry_thread(env_mask: wp.array(dtype=wp.int32), p: Params, start_q: wp.array(dtype=wp.vec3),
+                 start_segment_q: wp.array(dtype=wp.quat), start_tip: wp.transform,
+                 pose: wp.array2d(dtype=wp.transform), segment_first: int, q: wp.array2d(dtype=wp.vec3),
+                 qd: wp.array2d(dtype=wp.vec3), segment_q: wp.array2d(dtype=wp.quat),
+                 segment_qd: wp.array2d(dtype=wp.vec3)):
+    """The thread settled at the noise-free start, carried rigidly with the grasper's (noisy) tip."""
+    env, i = wp.tid()
+    if env_mask[env] == 0:
+        return
+    carry = wp.transform_multiply(pose[env, 0], wp.transform_inverse(start_tip))
+    q[env, p.thread_first + i] = wp.transform_point(carry, start_q[i])
+    qd[env, p.thread_first + i] = wp.vec3(0.0)
+    if i < start_segment_q.shape[0]:
+        segment_q[env, segment_first + i] = wp.normalize(wp.transform_get_rotation(carry) * start_segment_q[i])
+        segment_qd[env, segment_first + i] = wp.vec3(0.0)
+
+
+@wp.kernel
+def observe_thread_in_hole(q: wp.array2d(dtype=wp.vec3), ptsd: wp.array2d(dtype=wp.vec4),
+                           pose: wp.array2d(dtype=wp.transform), p: Params, o: OBS.Columns, c: CRITIC.Columns,
+                           privileged: int, obs_out: wp.array2d(dtype=float), critic_out: wp.array2d(dtype=float)):
+    env = wp.tid()
+    b = p.bounds
+    write_unit_ptsd(obs_out, env, o.ptsd, ptsd[env, 0], b)
+    tip = pose[env, 0]
+    write_transform(obs_out, env, o.pose, tip)
+    write_unit_point(obs_out, env, o.pose, wp.transform_get_translation(tip), b)
+    write_unit_point(obs_out, env, o.center, thread_center(q, env, p), b)
+    for t in range(p.tracking.shape[0]):
+        write_unit_point(obs_out, env, o.tracking + 3 * t, q[env, p.thread_first + p.tracking[t]], b)
+    hole = opening(q, env, p)
+    write_unit_point(obs_out, env, o.opening, hole, b)
+    if privileged == 0:
+        return
+    rel = (hole - q[env, p.thread_first + p.nodes - 1]) * b.inv_diagonal
+    inside = int(0)
+    for i in range(p.nodes):
+        inside += inside_hull(q[env, p.thread_first + i], p.bottom_center, hole, p.outer_radius)
+    for i in range(3):
+        critic_out[env, c.tip_to_opening + i] = rel[i]
+    critic_out[env, c.ratio] = float(inside) / float(p.nodes)
+
+
+@wp.kernel
+def place_thread_visual(q: wp.array2d(dtype=wp.vec3), p: Params, points_out: wp.array2d(dtype=wp.vec3)):
+    env, i = wp.tid()
+    points_out[env, i] = q[env, p.thread_first + i]
+
+
+@wp.kernel
+def jitter_cameras(env_mask: wp.array(dtype=wp.int32), rng: wp.array(dtype=wp.uint32), eye: wp.vec3,
+                   target: wp.vec3, noise: float, poses: wp.array(dtype=wp.transform)):
+    """sofa_env's camera reset noise: position and look-at point uniform in +-noise per axis (z up)."""
+    env = wp.tid()
+    if env_mask[env] == 0:
+        return
+    s = rng[env]
+    e = eye + wp.vec3(wp.randf(s, -noise, noise), wp.randf(s, -noise, noise), wp.randf(s, -noise, noise))
+    t = target + wp.vec3(wp.randf(s, -noise, noise), wp.randf(s, -noise, noise), wp.randf(s, -noise, noise))
+    rng[env] = s
+    fwd = wp.normalize(t - e)
+    right = wp.normalize(wp.cross(fwd, wp.vec3(0.0, 0.0, 1.0)))
+    up = wp.cross(right, fwd)
+    m = wp.mat33(right[0], up[0], -fwd[0], right[1], up[1], -fwd[1], right[2], up[2], -fwd[2])
+    poses[env] = wp.transform(e, wp.quat_from_matrix(m))
+
+
+@wp.kernel
+def expert_commands(q: wp.array2d(dtype=wp.vec3), qd: wp.array2d(dtype=wp.vec3), ptsd: wp.array2d(dtype=wp.vec4),
+                    pose: wp.array2d(dtype=wp.transform), rcm: wp.array2d(dtype=wp.transform), p: Params,
+                    hover: float, descent: float, aligned: float, gain: float, damping: float, max_step: float,
+                    error_out: wp.array2d(dtype=float)):
+    """The scripted grasper (``ThreadInHoleExpert``): PTSD errors per env."""
+    env = wp.tid()
+    tip_pos = wp.transform_get_translation(pose[env, 0])
+    hole = opening(q, env, p)
+    end = q[env, p.thread_first + p.nodes - 1]
+    v = qd[env, p.thread_first + p.nodes - 1]
+    off = wp.vec3(hole[0] - end[0], hole[1] - end[1], 0.0)
+    lateral = wp.length(off)
+    # the hanging end swings like a pendulum: move by a fraction of its offset, less its swing
+    swing = wp.vec3(v[0], v[1], 0.0) * (damping * p.control_dt)
+    dz = float(0.0)
+    if end[2] > hole[2] - 0.002:
+        # above the opening: hover there until the free end is over it and still, then go down
+        dz = hole[2] + hover - end[2]
+        if lateral < aligned and wp.length(swing) < 0.5 * aligned:
+            dz = -descent
+        off = off * gain - swing
+    else:
+        # inside: keep going down, re-centring the node at the opening
+        dz = -descent
+        best = float(1.0e9)
+        for i in range(p.nodes):
+            x = q[env, p.thread_first + i]
+            h = wp.abs(x[2] - hole[2])
+            if h < best:
+                best = h
+                off = wp.vec3(hole[0] - x[0], hole[1] - x[1], 0.0)
+        if end[2] < p.bottom_center[2] + 0.001:
+            dz = 0.0
+        off = off * gain - swing
+    move = off + wp.vec3(0.0, 0.0, dz)
+    if wp.length(move) > max_step:
+        move = move * (max_step / wp.length(move))
+    s = ptsd[env, 0]
+    target = point_to_ptsd(rcm[env, 0], tip_pos + move, s[2])
+    error_out[env, 0] = target[0] - s[0]
+    error_out[env, 1] = target[1] - s[1]
+    error_out[env, 2] = 0.0
+    error_out[env, 3] = target[3] - s[3]
+
+
+# ---------------------------------------------------------------------------- env
+class ThreadInHoleEnv(BatchedEnv):
+    """LapGym's ThreadInHoleEnv, batched. See the module docstring and ``ThreadInHoleConfig``.
+
+    Actions: 4, the grasper's PTSD over its maximum speeds. Discrete: ``Discrete(9)``.
+
+    Privileged critic observation (``privileged_critic=True``): the policy values, the free end to opening offset
+    (over the workspace diagonal; 3) and the fraction of nodes inside (1).
+    """
+
+    config_class = ThreadInHoleConfig
+    task_name = "ThreadInHole"
+    rewards = REWARDS
+    supported_observations = ("STATE", "RGB", "RGBD", "DEPTH")
+    expert = "lapwarp.tasks.thread_manipulation.thread_in_hole:ThreadInHoleExpert"
+    cfg: ThreadInHoleConfig
+
+    def _build(self) -> World:
+        cfg, n, dev = self.cfg, self.num_envs, self.wp_device
+        conf = CONFIGURATIONS[cfg.configuration]
+        length, radius, thread_e, beam_radius, thread_mass = conf["thread"]
+        r_in, r_out, height, hole_e, hole_mass = conf["hole"]
+        self.thread_radius, self.outer_radius, self.hole_height = radius, r_out, height
+        builder = SceneBuilder(gravity=(0.0, 0.0, -cfg.gravity))
+        self.rig = InstrumentRig([InstrumentSpec(name="gripper", tpsd=cfg.gripper_tpsd(), shape="grasper",
+                                                 jaw_start_deg=5.0)], builder)
+        # the thread hangs along -z from the grasper's noise-free start tip
+        start = self._noise_free_tip()
+        top = np.asarray(wp.transform_get_translation(start))
+        N = cfg.thread_nodes
+        spacing = length / N
+        points = top[None, :] - np.outer(np.arange(N), [0.0, 0.0, spacing])
+        self.thread = builder.add_rod(points, radius=beam_radius,
+                                      density=thread_mass / (math.pi * beam_radius**2 * spacing * (N - 1)),
+                                      youngs_modulus=thread_e,
+                                      shear_modulus=thread_e / (2.0 * (1.0 + cfg.poisson_ratio)),
+                                      damping=cfg.thread_damping, name="thread")
+        hv, ht = hollow_cylinder_tets(r_in, r_out, height, HOLE_RADIAL, HOLE_ANGULAR, HOLE_VERTICAL)
+        volume = math.pi * (r_out**2 - r_in**2) * height
+        self.hole = builder.add_tet_mesh(hv, ht, density=hole_mass / volume, youngs_modulus=hole_e,
+                                         poisson_ratio=cfg.poisson_ratio, damping=cfg.hole_damping,
+                                         fixed=np.nonzero(hv[:, 2] < 1.0e-3)[0], name="hole")
+        self.hole_rest = (hv, ht)
+        world = builder.finalize(num_envs=n, device=str(dev), substeps=cfg.physics_substeps, seed=cfg.seed,
+                                 attachment_capacity=1)
+        self.rig.finalize(world)
+        self.contact = c = ContactSystem(world, capacity=cfg.contact_capacity, body_ignore_mask=True)
+        thread_group = c.add_particle_group(self.thread, radius=radius, name="thread")
+        self.hole_group = c.add_particle_group(self.hole, radius=0.5e-3, triangles=True, name="hole")
+        c.add_surface(self.hole, groups=[thread_group], name="hole_surface", mu_static=0.0)
+        self.rig.add_colliders(c, groups=[self.hole_group])
+        c.finalize()
+        self.grasp = self.rig.add_grasping("gripper", c, groups=[thread_group], grasp_threshold=60.0,
+                                           release_threshold=1.0e9, slots=1, max_offset=1.0e9)
+        self._rig_contacts = self.rig.contacts()
+
+        first = self.hole.particle_start
+        ring = [first + (1 * HOLE_ANGULAR + j) * HOLE_VERTICAL + HOLE_VERTICAL - 1 for j in range(HOLE_ANGULAR)]
+        self.task = t = Task()
+        for name, dtype in (("last_tip_distance", float), ("last_center_distance", float), ("last_ratio", float),
+                            ("last_grasper", wp.vec3)):
+            setattr(t, name, wp.zeros(n, dtype=dtype, device=dev))
+        T = cfg.num_thread_tracking_points
+        t.last_points = wp.zeros((n, max(T, 1)), dtype=float, device=dev)
+        self.params = p = Params()
+        p.bounds = self.rig.bounds(*WORKSPACE)
+        p.thread_first, p.nodes, p.hole_first = self.thread.particle_start, N, first
+        p.outer_radius, p.control_dt = r_out, cfg.time_step * cfg.frame_skip
+        p.tracking = wp.array(tracking_nodes(N, T), dtype=wp.int32, device=dev)
+        self.check = indices_to_check(N, length, height, cfg.insertion_ratio_threshold)
+        p.check = wp.array(self.check.astype(np.int32), dtype=wp.int32, device=dev)
+        p.top_ring = wp.array(np.asarray(ring, np.int32), dtype=wp.int32, device=dev)
+        p.bottom_center = wp.vec3(0.0, 0.0, 0.0)
+
+        # settle the hanging thread once, held at the noise-free start (sofa_env settles after every reset)
+        everything = wp.ones(n, dtype=wp.int32, device=dev)
+        self.rig.reset(everything, None)
+        self.grasp.start_grasped(self.thread.particle_start, everything)
+        for _ in range(cfg.settle_steps):
+            self.rig.step()
+            world.step(cfg.time_step)
+        S = self.thread.segment_start
+        self._start_tip = start
+        self._start_q = wp.array(world.state.particle_q.numpy()[0, p.thread_first:p.thread_first + N].copy(),
+                                 dtype=wp.vec3, device=dev)
+        self._start_segment_q = wp.array(world.state.segment_q.numpy()[0, S:S + N - 1].copy(), dtype=wp.quat,
+                                         device=dev)
+        world.save_start_state()
+        return world
+
+    def _noise_free_tip(self) -> wp.transform:
+        """The grasper's noise-free start tip (host, at build)."""
+        from lapwarp.instruments import TPSDInstruments
+
+        ins = TPSDInstruments([self.cfg.gripper_tpsd()], 1, device="cpu")
+        ins.reset(None, None)
+        return wp.transform(*ins.pose.numpy()[0, 0])
+
+    # ------------------------------------------------------------------ BatchedEnv hooks
+    def _checked_state(self) -> list[wp.array]:
+        return [*super()._checked_state(), self.task.last_grasper]
+
+    def _observation_layout(self) -> ObservationLayout:
+        T = self.cfg.num_thread_tracking_points
+        return OBS.layout(ptsd=(4, -1.0, 1.0), pose=(7, -1.0, 1.0), center=(3, -2.0, 2.0),
+                          tracking=(3 * T, -2.0, 2.0), opening=(3, -2.0, 2.0))
+
+    def _critic_layout(self) -> ObservationLayout:
+        return self.obs_layout.extend(CRITIC, tip_to_opening=(3, -2.0, 2.0), ratio=(1, 0.0, 1.0))
+
+    def _features(self, env_mask: wp.array, mode: int, features_out: wp.array2d) -> None:
+        s, rig = self.world.state, self.rig
+        wp.launch(eval_thread_in_hole, dim=self.num_envs,
+                  inputs=[env_mask, mode, s.particle_q, s.particle_qd, rig.pose, rig.flags, self._rig_contacts,
+                          self.hole_group, self.params, self.task],
+                  outputs=[features_out], device=self.wp_device)
+
+    def _compute_features(self, env_mask: wp.array, features_out: wp.array2d) -> None:
+        # the points delta is the smallest per-node change (sofa_env's): computed in-task, once per step
+        self._features(env_mask, 1 if features_out is self.features else 0, features_out)
+
+    def _reset_task(self, env_mask: wp.array) -> None:
+        w, s = self.world, self.world.state
+        self.rig.reset(env_mask, w.rng)
+        wp.launch(carry_thread, dim=(self.num_envs, self.params.nodes),
+                  inputs=[env_mask, self.params, self._start_q, self._start_segment_q, self._start_tip, self.rig.pose,
+                          self.thread.segment_start],
+                  outputs=[s.particle_q, s.particle_qd, s.segment_q, s.segment_qd], device=self.wp_device)
+        self.grasp.start_grasped(self.thread.particle_start, env_mask)
+        if self.cfg.camera_reset_noise > 0.0 and self._visual_scene is not None:
+            cfg = self.cfg
+            wp.launch(jitter_cameras, dim=self.num_envs,
+                      inputs=[env_mask, w.rng, wp.vec3(*cfg.camera_position), wp.vec3(*cfg.camera_look_at),
+                              float(cfg.camera_reset_noise)],
+                      outputs=[self._visual_scene.camera.poses], device=self.wp_device)
+        self._features(env_mask, 2, self.features)
+
+    def _compute_observations(self) -> None:
+        s, rig = self.world.state, self.rig
+        wp.launch(observe_thread_in_hole, dim=self.num_envs,
+                  inputs=[s.particle_q, rig.ptsd, rig.pose, self.params, self.obs_layout.columns,
+                          self.critic_layout.columns, int(self.cfg.privileged_critic)],
+                  outputs=[self.obs_frame, self.critic_frame], device=self.wp_device)
+
+    # ------------------------------------------------------------------ visuals
+    def _build_visual_scene(self) -> VisualScene:
+        """The hole (cyan), the thread (a tube of its collision radius), a floor and the grasper; sofa_env's camera at
+        (0, -135, 100) mm looking at (0, 0, 45) mm, vertical FoV 62 degrees, near 1 mm, far 250 mm."""
+        n, dev, cfg = self.num_envs, self.wp_device, self.cfg
+        q = self.world.state.particle_q
+        hv, _ = self.hole_rest
+        h = self.hole
+        objects = [VisualObject("hole", "deformable", HOLE_COLOR, 1, hv, h.surface_tris - h.particle_start,
+                                points=q[:, h.particle_start:h.particle_start + h.particle_count])]
+        self._thread_points = wp.zeros((n, self.params.nodes), dtype=wp.vec3, device=dev)
+        objects.append(VisualObject("thread", "rod", THREAD_COLOR, 2, points=self._thread_points,
+                                    radius=self.thread_radius))
+        floor = trimesh.creation.box(extents=(0.3, 0.3, 0.004))
+        floor.apply_translation((0.0, 0.0, -0.002))
+        static = wp.full((n, 1), wp.transform_identity(), dtype=wp.transform, device=dev)
+        objects.append(VisualObject("floor", "rigid", (0.35, 0.3, 0.28), 3, floor.vertices, floor.faces, static))
+        objects += self.rig.visual_objects([GRIPPER_COLOR], first_segmentation_id=4)
+        pose = look_at_transform(cfg.camera_position, cfg.camera_look_at, up=(0.0, 0.0, 1.0))
+        camera = CameraSpec(poses=wp.array([pose] * n, dtype=wp.transform, device=dev), fov_deg=62.0, near=0.001,
+                            far=0.25)
+        return VisualScene(camera=camera, objects=objects, background=(0.05, 0.05, 0.08))
+
+    def update_visuals(self) -> None:
+        if self._visual_scene is None:
+            return
+        wp.launch(place_thread_visual, dim=(self.num_envs, self.params.nodes),
+                  inputs=[self.world.state.particle_q, self.params], outputs=[self._thread_points],
+                  device=self.wp_device)
+
+    # ------------------------------------------------------------------ privileged access (experts, tests)
+    def privileged_state(self) -> dict[str, torch.Tensor]:
+        """Torch views: thread nodes ``(N, n, 3)``, hole nodes ``(N, 200, 3)``, the grasper's tip pose ``(N, 7)``."""
+        q = wp.to_torch(self.world.state.particle_q)
+        t, h = self.thread, self.hole
+        return dict(thread=q[:, t.particle_start:t.particle_start + t.particle_count],
+                    hole=q[:, h.particle_start:h.particle_start + h.particle_count],
+                    tip=wp.to_torch(self.rig.pose)[:, 0])
+
+
+# ---------------------------------------------------------------------------- expert
+class ThreadInHoleExpert(Expert):
+    """Scripted grasper from the privileged state: it brings the thread's free end ``hover`` above the hole opening
+    (moving by ``gain`` x the end's lateral offset, less ``damping`` x its swing over a step: the hanging end swings
+    like a pendulum and a full correction would overshoot), and once the end is within ``aligned`` of the opening's
+    axis lowers it by ``descent`` per step, keeping the node at the opening's height centred; it stops when the end
+    is 1 mm above the bottom. Moves follow straight lines in legs of ``max_step``."""
+
+    def __init__(self, env: ThreadInHoleEnv, hover: float = 0.005, descent: float = 0.0015, aligned: float = 0.0015,
+                 gain: float = 0.2, damping: float = 0.0, max_step: float | None = None):
+        super().__init__(env)
+        self.hover, self.descent, self.aligned = float(hover), float(descent), float(aligned)
+        self.gain, self.damping = float(gain), float(damping)
+        self.max_step = float(max_step if max_step is not None else (1.0 if env.is_discrete else 0.002))
+        self.error = wp.zeros((env.num_envs, 4), dtype=float, device=env.wp_device)
+        cfg = env.cfg
+        dt = cfg.time_step * cfg.frame_skip
+        to_internal = [math.pi / 180.0] * 3 + [1.0]
+        self.step_size = torch.tensor([v * k * dt for v, k in zip(cfg.maximum_state_velocity, to_internal,
+                                                                  strict=True)], device=env.device)
+
+    def __call__(self, obs=None) -> torch.Tensor:
+        env, rig, s = self.env, self.env.rig, self.env.world.state
+        with env._torch_stream_scope():
+            wp.launch(expert_commands, dim=env.num_envs,
+                      inputs=[s.particle_q, s.particle_qd, rig.ptsd, rig.pose, rig.rcm, env.params, self.hover,
+                              self.descent, self.aligned, self.gain, self.damping, self.max_step],
+                      outputs=[self.error], device=env.wp_device)
+        return self.policy_actions(wp.to_torch(self.error) / self.step_size)
