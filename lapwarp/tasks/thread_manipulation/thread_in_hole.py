@@ -137,7 +137,8 @@ class ThreadInHoleConfig(EnvConfig):
         gravity: m/s^2 along -z (sofa_env's -981 mm/s^2).
         poisson_ratio: thread and hole (sofa_env's 0.3).
         settle_steps: physics steps the thread settles at build (sofa_env's 50, after every reset).
-        physics_substeps: XPBD substeps per physics step.
+        physics_substeps: XPBD substeps per physics step (10 physics steps per env step). The settled hanging
+            thread at 4 lies within 6 um of its shape at 40 (normal; inverted 8 um; CPU).
         camera_position / camera_look_at: sofa_env's camera (vertical FoV 62 degrees), m.
         camera_reset_noise: uniform +- noise of the camera's position and look-at point per reset, m (the paper's
             image configuration with camera noise: 0.02; 0: none).
@@ -163,7 +164,7 @@ class ThreadInHoleConfig(EnvConfig):
     gravity: NonNegative = 0.981
     poisson_ratio: Annotated[float, Range(ge=0.0, lt=0.5)] = 0.3
     settle_steps: Annotated[int, Range(ge=1, le=10_000)] = 50
-    physics_substeps: Count(10_000) = 10
+    physics_substeps: Count(10_000) = 4
     camera_position: tuple[float, float, float] = (0.0, -0.135, 0.1)
     camera_look_at: tuple[float, float, float] = (0.0, 0.0, 0.045)
     camera_reset_noise: NonNegative = 0.0
