@@ -22,13 +22,16 @@ procedural and placed to play the same roles:
 * Gravity (0, +0.00981, 0) m/s^2: sofa_env's +9.81 *mm*/s^2 along +y (practically none), kept.
 * Contact: the gallbladder's surface vertices against the liver's deforming surface (two-way). **sofa_env puts both
   organs in one collision group, so they pass through each other; here they collide** (the overlap feature then
-  only counts what the contact solver lets through). The grasper's jaws and shaft and the hook's capsules collide
-  with both organs' surface vertices and triangles.
+  only counts what the contact solver lets through; only the gallbladder's vertices are tested against the liver's
+  triangles, not the liver's against the gallbladder's). The grasper's jaws and shaft and the hook's capsules collide
+  with every gallbladder node (a neck squeezed between the jaws brings its inner nodes to them), the liver's surface
+  vertices, and both organs' surface triangles.
 
 Grasping (``lapwarp.grasping``, sofa_env's rule): while the jaw angle is below 10 degrees and both jaws touch the
-gallbladder, up to ``grasp_slots`` of its surface vertices between the jaws are attached to them; the jaws then pass
-through the gallbladder (sofa_env switches them off); opening to 10 degrees or more releases it. "Gallbladder
-grasped" (sofa_env's ``gallblader_is_grasped``) needs a held vertex of the infundibulum on each jaw.
+gallbladder, up to ``grasp_slots`` of its nodes touching a jaw inside the jaw cone (5 mm margin; sofa_env accepts a
+triangle vertex within 3.2 mm of a contact) are attached to them; the jaws then pass through the gallbladder (sofa_env
+switches them off); opening to 10 degrees or more releases it. "Gallbladder grasped" (sofa_env's
+``gallblader_is_grasped``) needs a held node of the infundibulum on each jaw.
 
 Target visibility (sofa_env renders the scene every step and looks for white pixels near the projected target): five
 rays from the camera to points of the target sphere's camera-facing half (the nearest point and four 60 degrees
