@@ -106,6 +106,13 @@ class RigBounds:
 
 
 @wp.func
+def over_diagonal(x: float, inv_diagonal: float) -> float:
+    """sofa_env's normalisation of distance and velocity features: x over the workspace diagonal, clipped to
+    [-1, 1]."""
+    return wp.clamp(x * inv_diagonal, -1.0, 1.0)
+
+
+@wp.func
 def write_unit_point(out: wp.array2d(dtype=wp.float32), env: int, col: int, x: wp.vec3, b: RigBounds):
     """A position mapped from the workspace box to [-1, 1] into ``out[env, col:col + 3]``."""
     for i in range(3):
@@ -305,6 +312,15 @@ class InstrumentRig:
                 offset += 1
         #: The continuous action vector of this rig and its discrete table (``ActionLayout``).
         self.action_layout = ActionLayout(blocks)
+        # what an action of 1 moves per second, per action column: rad/s (pan, tilt, spin), m/s, deg/s (jaw), and 1 for
+        # an activation switch (``action_scale``)
+        rates = []
+        for name in order:
+            spec = self.specs[names.index(name)]
+            rates += [v * k for v, k in zip(spec.tpsd.max_velocity, (math.pi / 180.0,) * 3 + (1.0,), strict=True)]
+            rates += [spec.jaw_speed_deg] if spec.jaw_speed_deg is not None else []
+            rates += [math.inf] if spec.activation else []
+        self._rates = np.asarray(rates, dtype=np.float64)
         self.world = None
         self.grasps: dict[str, object] = {}
 
@@ -340,6 +356,12 @@ class InstrumentRig:
             self._body_role_arr = wp.array(self._body_role, dtype=wp.int32, device=dev)
             self.body_poses = wp.zeros((n, self.num_bodies), dtype=wp.transform, device=dev)
         return self
+
+    def action_scale(self, control_dt: float) -> np.ndarray:
+        """What a continuous action of 1 changes in one env step of ``control_dt`` seconds, per action column (rad,
+        rad, rad, m, then deg for a jaw; 1 for an activation switch): scripted experts divide their state errors by
+        it to get actions."""
+        return np.where(np.isinf(self._rates), 1.0, self._rates * float(control_dt))
 
     def add_colliders(self, contact, **kwargs) -> dict[str, dict[str, list[int]]]:
         """Add every shaped instrument's capsules to a ``ContactSystem`` (before its ``finalize``); keyword arguments
@@ -496,4 +518,4 @@ class InstrumentRig:
 
 __all__ = ["CAUTER_CUTTING_CENTER", "InstrumentRig", "InstrumentSpec", "RigBounds", "RigContacts", "RigState",
            "STATE_LIMITS_VIOLATED", "WORKSPACE_VIOLATED", "count_flag", "cutting_center", "instrument_touches",
-           "write_unit_point", "write_unit_ptsd"]
+           "over_diagonal", "write_unit_point", "write_unit_ptsd"]

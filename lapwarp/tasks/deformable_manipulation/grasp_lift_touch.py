@@ -511,6 +511,19 @@ def held_infundibulum_sides(attach_particle: wp.array2d(dtype=wp.int32), attach_
     return wp.vec3i(count, a, b)
 
 
+@wp.func
+def store_history(task: Task, env: int, grasped: int, d_cauter: float, d_infundibulum: float, springs: float,
+                  d_trocar: float, overlap: float, in_target: float):
+    """This step's raw values, which the next step's delta features start from."""
+    task.was_grasped[env] = grasped
+    task.last_cauter_distance[env] = d_cauter
+    task.last_infundibulum_distance[env] = d_infundibulum
+    task.last_springs[env] = springs
+    task.last_trocar_distance[env] = d_trocar
+    task.last_overlap[env] = overlap
+    task.last_activation[env] = in_target
+
+
 @wp.kernel
 def eval_grasp_lift_touch(env_mask: wp.array(dtype=wp.int32), mode: int, q: wp.array2d(dtype=wp.vec3),
                           qd: wp.array2d(dtype=wp.vec3), pose: wp.array2d(dtype=wp.transform),
@@ -554,13 +567,7 @@ def eval_grasp_lift_touch(env_mask: wp.array(dtype=wp.int32), mode: int, q: wp.a
             task.last_velocity[env, i] = v
     force = force / p.control_dt * 1.0e3 * p.force_scale  # N -> mN (sofa_env's mm scene), then its scale
     if mode == 2:
-        task.was_grasped[env] = is_grasped
-        task.last_cauter_distance[env] = d_cauter
-        task.last_infundibulum_distance[env] = d_infundibulum
-        task.last_springs[env] = springs
-        task.last_trocar_distance[env] = d_trocar
-        task.last_overlap[env] = overlap
-        task.last_activation[env] = in_target
+        store_history(task, env, is_grasped, d_cauter, d_infundibulum, springs, d_trocar, overlap, in_target)
         return
     # phase (sofa_env's order: grasp, then lift / touch from visibility and overlap, then done)
     old = task.phase[env]
@@ -630,13 +637,7 @@ def eval_grasp_lift_touch(env_mask: wp.array(dtype=wp.int32), mode: int, q: wp.a
     features_out[env, F.SUCCESSFUL_TASK] = wp.where(phase >= p.end_phase, 1.0, 0.0)
     if mode == 1:
         task.phase[env] = phase
-        task.was_grasped[env] = is_grasped
-        task.last_cauter_distance[env] = d_cauter
-        task.last_infundibulum_distance[env] = d_infundibulum
-        task.last_springs[env] = springs
-        task.last_trocar_distance[env] = d_trocar
-        task.last_overlap[env] = overlap
-        task.last_activation[env] = in_target
+        store_history(task, env, is_grasped, d_cauter, d_infundibulum, springs, d_trocar, overlap, in_target)
 
 
 @wp.kernel
@@ -903,6 +904,7 @@ class GraspLiftAndTouchEnv(BatchedEnv):
         world.save_start_state()
         self._start_rig = self._start_grasp = None
         if p.start_phase > GRASP:
+            self.world = world  # the base sets it after the build; the script's feature evaluation reads it
             self._prepare_grasped_starts(world)
         return world
 
@@ -918,15 +920,10 @@ class GraspLiftAndTouchEnv(BatchedEnv):
         self.grasp.reset(everything)
         error = wp.zeros((n, 10), dtype=float, device=dev)
         closing = wp.zeros(n, dtype=wp.int32, device=dev)
-        dt = cfg.time_step * cfg.frame_skip
-        to_internal = np.array([math.pi / 180.0] * 3 + [1.0])
-        step = np.asarray(cfg.maximum_state_velocity) * to_internal * dt
-        scale = np.concatenate([step, [cfg.jaw_speed * dt], step, [1.0]])
+        scale = self.rig.action_scale(cfg.time_step * cfg.frame_skip)
         actions = wp.zeros((n, 10), dtype=wp.float32, device=dev)
         done = np.zeros(n, dtype=bool)
-        slot = slice(self.params.slot_start, self.params.slot_start + cfg.grasp_slots)
-        infundibulum = self.organs.infundibulum.numpy()
-        jaws = (self.params.jaw_a, self.params.jaw_b)
+        scratch = wp.zeros((n, REWARDS.size), dtype=wp.float32, device=dev)  # the base allocates features later
         for _ in range(3):
             t.phase.assign(np.full(n, GRASP, np.int32))
             for _ in range(cfg.grasped_start_steps):
@@ -944,13 +941,8 @@ class GraspLiftAndTouchEnv(BatchedEnv):
                 for _ in range(cfg.frame_skip):
                     self.rig.step()
                     world.step(cfg.time_step)
-                particle = world.state.attach_particle.numpy()[:, slot]
-                body = world.state.attach_body.numpy()[:, slot]
-                held = particle >= 0
-                local = np.where(held, particle - self.gallbladder.particle_start, 0)
-                neck = held & (infundibulum[local] != 0)
-                grasped = (self.grasp.grasped.numpy() != 0) & np.all(
-                    [(neck & (body == j)).any(axis=1) for j in jaws], axis=0)
+                self._features(everything, 0, scratch)  # mode 0: features only, no history
+                grasped = scratch.numpy()[:, F.GALLBLADDER_IS_GRASPED] > 0.0
                 phase = np.where(grasped, LIFT, GRASP).astype(np.int32)
                 if self.params.start_phase == LIFT:
                     done |= grasped
@@ -1087,10 +1079,8 @@ class GraspLiftAndTouchExpert(Expert):
         self.error = wp.zeros((env.num_envs, 10), dtype=float, device=env.wp_device)
         self.closing = wp.zeros(env.num_envs, dtype=wp.int32, device=env.wp_device)  # per env: closing the jaws
         cfg = env.cfg
-        dt = cfg.time_step * cfg.frame_skip
-        to_internal = [math.pi / 180.0] * 3 + [1.0]
-        step = [v * k * dt for v, k in zip(cfg.maximum_state_velocity, to_internal, strict=True)]
-        self.step_size = torch.tensor([*step, cfg.jaw_speed * dt, *step, 1.0], device=env.device)
+        self.step_size = torch.tensor(env.rig.action_scale(cfg.time_step * cfg.frame_skip), dtype=torch.float32,
+                                      device=env.device)
 
     def __call__(self, obs=None) -> torch.Tensor:
         env, rig, s = self.env, self.env.rig, self.env.world.state

@@ -88,6 +88,7 @@ from lapwarp.tasks.rig import (
     InstrumentSpec,
     RigBounds,
     count_flag,
+    over_diagonal,
     write_unit_point,
     write_unit_ptsd,
 )
@@ -316,12 +317,6 @@ def grasp_center(tip: wp.transform) -> wp.vec3:
 
 
 @wp.func
-def normalized(x: float, inv_diagonal: float) -> float:
-    """sofa_env's normalisation of distance and velocity features: x over the diagonal, clipped to [-1, 1]."""
-    return wp.clamp(x * inv_diagonal, -1.0, 1.0)
-
-
-@wp.func
 def jaw_peg_overlaps(tip: wp.transform, angle: float) -> int:
     """(jaw, peg) pairs whose capsules overlap (sofa_env counts the jaws' sphere contacts with the pegs)."""
     count = int(0)
@@ -438,21 +433,21 @@ def eval_pick_and_place(env_mask: wp.array(dtype=wp.int32), mode: int, q: wp.arr
     # a grasp lost this step, by opening the jaws or torn out (sofa_env's: grasped before, not now)
     features_out[env, F.LOST_GRASP] = wp.where(held == 0 and task.was_grasped[env] != 0, 1.0, 0.0)
     features_out[env, F.ESTABLISHED_GRASP] = established * pick
-    features_out[env, F.GRIPPER_DISTANCE_TO_TORUS_CENTER] = normalized(d_center, inv) * pick
-    features_out[env, F.DELTA_GRIPPER_DISTANCE_TO_TORUS_CENTER] = normalized(
+    features_out[env, F.GRIPPER_DISTANCE_TO_TORUS_CENTER] = over_diagonal(d_center, inv) * pick
+    features_out[env, F.DELTA_GRIPPER_DISTANCE_TO_TORUS_CENTER] = over_diagonal(
         d_center - task.last_center_distance[env], inv) * pick
-    features_out[env, F.GRIPPER_DISTANCE_TO_TORUS_TRACKING_POINTS] = normalized(d_track_min, inv) * pick
-    features_out[env, F.DELTA_GRIPPER_DISTANCE_TO_TORUS_TRACKING_POINTS] = normalized(delta_track_min, inv) * pick
-    features_out[env, F.DISTANCE_TO_MINIMUM_PICK_HEIGHT] = normalized(lift_now, inv) * pick
-    features_out[env, F.DELTA_DISTANCE_TO_MINIMUM_PICK_HEIGHT] = normalized(delta_lift, inv) * pick
-    features_out[env, F.TORUS_DISTANCE_TO_ACTIVE_PEGS] = normalized(d_peg, inv) * place
-    features_out[env, F.DELTA_TORUS_DISTANCE_TO_ACTIVE_PEGS] = normalized(d_peg - task.last_peg_distance[env],
+    features_out[env, F.GRIPPER_DISTANCE_TO_TORUS_TRACKING_POINTS] = over_diagonal(d_track_min, inv) * pick
+    features_out[env, F.DELTA_GRIPPER_DISTANCE_TO_TORUS_TRACKING_POINTS] = over_diagonal(delta_track_min, inv) * pick
+    features_out[env, F.DISTANCE_TO_MINIMUM_PICK_HEIGHT] = over_diagonal(lift_now, inv) * pick
+    features_out[env, F.DELTA_DISTANCE_TO_MINIMUM_PICK_HEIGHT] = over_diagonal(delta_lift, inv) * pick
+    features_out[env, F.TORUS_DISTANCE_TO_ACTIVE_PEGS] = over_diagonal(d_peg, inv) * place
+    features_out[env, F.DELTA_TORUS_DISTANCE_TO_ACTIVE_PEGS] = over_diagonal(d_peg - task.last_peg_distance[env],
                                                                           inv) * place
     features_out[env, F.GRIPPER_JAW_PEG_COLLISIONS] = float(jaw_peg_overlaps(tip, jaw_angle[env, 0]))
     features_out[env, F.GRIPPER_JAW_FLOOR_COLLISIONS] = wp.where(gc[1] < 0.0, 1.0, 0.0)
     features_out[env, F.UNSTABLE_DEFORMATION] = unstable
-    features_out[env, F.TORUS_VELOCITY] = normalized(speed, inv)
-    features_out[env, F.GRIPPER_VELOCITY] = normalized(tip_speed, inv)
+    features_out[env, F.TORUS_VELOCITY] = over_diagonal(speed, inv)
+    features_out[env, F.GRIPPER_VELOCITY] = over_diagonal(tip_speed, inv)
     features_out[env, F.TORUS_DROPPED_OFF_BOARD] = off_board
     features_out[env, F.ACTION_VIOLATED_STATE_LIMITS] = float(count_flag(flags, env, STATE_LIMITS_VIOLATED))
     features_out[env, F.ACTION_VIOLATED_CARTESIAN_WORKSPACE] = float(count_flag(flags, env, WORKSPACE_VIOLATED))
@@ -918,10 +913,8 @@ class PickAndPlaceExpert(Expert):
         self.max_step = float(max_step if max_step is not None else (1.0 if env.is_discrete else 0.0015))
         self.error = wp.zeros((env.num_envs, 5), dtype=float, device=env.wp_device)
         cfg = env.cfg
-        dt = cfg.time_step * cfg.frame_skip
-        to_internal = [math.pi / 180.0] * 3 + [1.0]
-        step = [v * k * dt for v, k in zip(cfg.maximum_state_velocity, to_internal, strict=True)]
-        self.step_size = torch.tensor([*step, cfg.jaw_speed * dt], device=env.device)
+        self.step_size = torch.tensor(env.rig.action_scale(cfg.time_step * cfg.frame_skip), dtype=torch.float32,
+                                      device=env.device)
 
     def __call__(self, obs=None) -> torch.Tensor:
         env, rig, s = self.env, self.env.rig, self.env.world.state

@@ -81,6 +81,7 @@ from lapwarp.tasks.rig import (
     RigBounds,
     RigContacts,
     count_flag,
+    over_diagonal,
     write_unit_point,
     write_unit_ptsd,
 )
@@ -270,8 +271,12 @@ def thread_center(q: wp.array2d(dtype=wp.vec3), env: int, p: Params) -> wp.vec3:
 
 
 @wp.func
-def normalized(x: float, inv_diagonal: float) -> float:
-    return wp.clamp(x * inv_diagonal, -1.0, 1.0)
+def store_history(task: Task, env: int, d_tip: float, d_center: float, ratio: float, grasper: wp.vec3):
+    """This step's raw values, which the next step's delta features start from."""
+    task.last_tip_distance[env] = d_tip
+    task.last_center_distance[env] = d_center
+    task.last_ratio[env] = ratio
+    task.last_grasper[env] = grasper
 
 
 @wp.kernel
@@ -310,10 +315,7 @@ def eval_thread_in_hole(env_mask: wp.array(dtype=wp.int32), mode: int, q: wp.arr
             done = 0
     grasper = wp.transform_get_translation(pose[env, 0])
     if mode == 2:
-        task.last_tip_distance[env] = d_tip
-        task.last_center_distance[env] = d_center
-        task.last_ratio[env] = ratio
-        task.last_grasper[env] = grasper
+        store_history(task, env, d_tip, d_center, ratio, grasper)
         return
     speed = float(0.0)
     for i in range(p.nodes):
@@ -327,17 +329,17 @@ def eval_thread_in_hole(env_mask: wp.array(dtype=wp.int32), mode: int, q: wp.arr
             if pair >= 0:
                 collisions += contacts.report_count[env, pair]
     inv = p.bounds.inv_diagonal
-    features_out[env, F.THREAD_TIP_DISTANCE_TO_HOLE] = normalized(d_tip, inv)
-    features_out[env, F.DELTA_THREAD_TIP_DISTANCE_TO_HOLE] = normalized(d_tip - task.last_tip_distance[env], inv)
-    features_out[env, F.THREAD_CENTER_DISTANCE_TO_HOLE] = normalized(d_center, inv)
-    features_out[env, F.DELTA_THREAD_CENTER_DISTANCE_TO_HOLE] = normalized(d_center - task.last_center_distance[env],
+    features_out[env, F.THREAD_TIP_DISTANCE_TO_HOLE] = over_diagonal(d_tip, inv)
+    features_out[env, F.DELTA_THREAD_TIP_DISTANCE_TO_HOLE] = over_diagonal(d_tip - task.last_tip_distance[env], inv)
+    features_out[env, F.THREAD_CENTER_DISTANCE_TO_HOLE] = over_diagonal(d_center, inv)
+    features_out[env, F.DELTA_THREAD_CENTER_DISTANCE_TO_HOLE] = over_diagonal(d_center - task.last_center_distance[env],
                                                                            inv)
-    features_out[env, F.THREAD_POINTS_DISTANCE_TO_HOLE] = normalized(d_points, inv)
-    features_out[env, F.DELTA_THREAD_POINTS_DISTANCE_TO_HOLE] = normalized(delta_points, inv)
+    features_out[env, F.THREAD_POINTS_DISTANCE_TO_HOLE] = over_diagonal(d_points, inv)
+    features_out[env, F.DELTA_THREAD_POINTS_DISTANCE_TO_HOLE] = over_diagonal(delta_points, inv)
     features_out[env, F.UNSTABLE_DEFORMATION] = wp.where(speed > 1.5 * grasper_speed and speed > SETTLED_SPEED,
                                                          1.0, 0.0)
-    features_out[env, F.THREAD_VELOCITY] = normalized(speed, inv)
-    features_out[env, F.GRIPPER_VELOCITY] = normalized(grasper_speed, inv)
+    features_out[env, F.THREAD_VELOCITY] = over_diagonal(speed, inv)
+    features_out[env, F.GRIPPER_VELOCITY] = over_diagonal(grasper_speed, inv)
     features_out[env, F.ACTION_VIOLATED_STATE_LIMITS] = float(count_flag(flags, env, STATE_LIMITS_VIOLATED))
     features_out[env, F.ACTION_VIOLATED_CARTESIAN_WORKSPACE] = float(count_flag(flags, env, WORKSPACE_VIOLATED))
     features_out[env, F.RATIO_ROPE_IN_HOLE] = ratio
@@ -345,10 +347,7 @@ def eval_thread_in_hole(env_mask: wp.array(dtype=wp.int32), mode: int, q: wp.arr
     features_out[env, F.GRIPPER_COLLISIONS] = float(collisions)
     features_out[env, F.SUCCESSFUL_TASK] = float(done)
     if mode == 1:
-        task.last_tip_distance[env] = d_tip
-        task.last_center_distance[env] = d_center
-        task.last_ratio[env] = ratio
-        task.last_grasper[env] = grasper
+        store_history(task, env, d_tip, d_center, ratio, grasper)
 
 
 @wp.kernel
@@ -703,10 +702,8 @@ class ThreadInHoleExpert(Expert):
         self.max_step = float(max_step if max_step is not None else (1.0 if env.is_discrete else 0.002))
         self.error = wp.zeros((env.num_envs, 4), dtype=float, device=env.wp_device)
         cfg = env.cfg
-        dt = cfg.time_step * cfg.frame_skip
-        to_internal = [math.pi / 180.0] * 3 + [1.0]
-        self.step_size = torch.tensor([v * k * dt for v, k in zip(cfg.maximum_state_velocity, to_internal,
-                                                                  strict=True)], device=env.device)
+        self.step_size = torch.tensor(env.rig.action_scale(cfg.time_step * cfg.frame_skip), dtype=torch.float32,
+                                      device=env.device)
 
     def __call__(self, obs=None) -> torch.Tensor:
         env, rig, s = self.env, self.env.rig, self.env.world.state
