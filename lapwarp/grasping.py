@@ -88,6 +88,7 @@ class GraspSystem:
         self.lost_grasp = wp.zeros(n, dtype=wp.int32, device=dev)
         self.grasp_delta = wp.zeros((n, self.slots), dtype=wp.quat, device=dev)
         self._dummy_q = wp.zeros((1, 1), dtype=wp.quat, device=dev)
+        self._no_particles = wp.zeros(0, dtype=wp.int32, device=dev)
         self.jaw_mask = (1 << instrument.jaw_a) | (1 << instrument.jaw_b)
         if contact not in world.solvers:
             raise ValueError("finalize() the ContactSystem before creating the GraspSystem")
@@ -128,13 +129,18 @@ class GraspSystem:
                        [self._state])
 
     # host-side (reset time) -------------------------------------------------------------------------
-    def start_grasped(self, particle: int, env_mask: wp.array | None = None) -> None:
+    def start_grasped(self, particle: int | wp.array, env_mask: wp.array | None = None) -> None:
         """Release the masked envs' grasps and, if ``particle >= 0``, attach that global particle at its current
         offset to the jaw on its side of the jaws' mid-plane (call after ``world.reset`` and after posing the
-        instrument)."""
+        instrument). ``particle`` may be a ``(num_envs,)`` int32 device array: one particle per env (a randomised
+        grasp index; graph-capturable)."""
         w = self.world
         mask = env_mask if env_mask is not None else wp.ones(w.num_envs, dtype=wp.int32, device=w.device)
-        wp.launch(gk.start_grasp, dim=w.num_envs, inputs=[mask, int(particle), self._grasper, self._scene],
+        each = particle if isinstance(particle, wp.array) else self._no_particles
+        if each.shape != (0,) and each.shape != (w.num_envs,):
+            raise ValueError(f"per-env grasp particles must have shape ({w.num_envs},), got {each.shape}")
+        single = -1 if isinstance(particle, wp.array) else int(particle)
+        wp.launch(gk.start_grasp, dim=w.num_envs, inputs=[mask, single, each, self._grasper, self._scene],
                   outputs=[self._state], device=w.device)
         if self.jaws_pass_while_grasped:
             wp.launch(gk.sync_jaw_contact, dim=(w.num_envs, self.graspable.shape[0]),

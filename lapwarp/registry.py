@@ -15,6 +15,7 @@ _TASKS: dict[str, str] = {
     "TissueDissection": "lapwarp.tasks.dissection.tissue_dissection:TissueDissectionEnv",
     "GraspLiftAndTouch": "lapwarp.tasks.deformable_manipulation.grasp_lift_touch:GraspLiftAndTouchEnv",
     "ThreadInHole": "lapwarp.tasks.thread_manipulation.thread_in_hole:ThreadInHoleEnv",
+    "RopeThreading": "lapwarp.tasks.thread_manipulation.rope_threading:RopeThreadingEnv",
     "TissueManipulation": "lapwarp.tasks.deformable_manipulation.tissue_manipulation:TissueManipulationEnv",
     "PickAndPlace": "lapwarp.tasks.deformable_manipulation.pick_and_place:PickAndPlaceEnv",
 }

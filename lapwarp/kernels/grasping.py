@@ -244,7 +244,8 @@ def sync_jaw_contact(grasper: Grasper, grasp: GraspState):
 @wp.kernel
 def start_grasp(
     env_mask: wp.array(dtype=wp.int32),
-    particle: int,
+    particle_all: int,
+    particle_each: wp.array(dtype=wp.int32),
     grasper: Grasper,
     scene: GraspScene,
     grasp: GraspState,
@@ -255,6 +256,10 @@ def start_grasp(
     release_slots(env, grasper, grasp)
     grasp.lost_grasp[env] = 0
     grasp.grasped[env] = 0
+    # one particle for every env, or (a non-empty ``particle_each``) one per env
+    particle = particle_all
+    if particle_each.shape[0] > 0:
+        particle = particle_each[env]
     if particle < 0:
         return
     # the jaw on the particle's side of the mid-plane holds it (jaw A closes from local -y, jaw B from +y)

@@ -1,0 +1,916 @@
+"""RopeThreadingEnv: pass the free end of a grasped rope through eyelets, in order and in the right direction
+(sofa_env's RopeThreadingEnv; task-cards §9).
+
+The right grasper starts holding a 200 mm rope lying along +x; the task is to pass the rope's free end (node 0)
+through each eye's ring against the eye's normal (from the -normal side to the +normal side). In the bimanual
+configuration a passed eye is done only once the left grasper also holds the rope and the two graspers are on opposite
+sides of the eye's plane (sofa_env's regrasp step).
+
+Physics (SI, sofa_env's millimetres converted; z up, gravity 0.981 m/s^2 along -z: sofa_env's -981 mm/s^2):
+
+* Rope: a Cosserat rod of 100 nodes 2 mm apart (sofa_env's 100 frames of ``poses_for_linear_rope``), bending and
+  torsion of a 2 mm ``beam_radius`` cross-section, E 50 MPa (sofa 5e4 in its kg-mm-s units), nu 0, 5 kg (50 g per
+  node), velocity damping 1/s; it collides as a tube of radius 1 mm with the eyes, the floor (frictionless, sofa_env's
+  penalty plane) and the graspers' jaws and shafts; no self-contact (as in sofa_env).
+* Eyes: rigid and fixed, sofa_env's eleven collision spheres of radius 2 mm (a stem of three and a ring of eight, ring
+  centre (1.55, 0, 18.7) mm in the eye frame, ring normal the eye's local y), posed per env by (x, y, z, phi about z)
+  on kinematic bodies. The clear opening is ~2.7 mm in radius: the 1 mm rope passes with ~1.7 mm to spare.
+* Graspers: sofa_env's ArticulatedGripper (jaws 25 mm, grasp on contact of both jaws below 10 deg, release at 15
+  deg, 0.5 deg per step of jaw action); the right one starts holding rope node ``grasp_index`` (sofa_env's frame 15,
+  drawn from 10..29 with ``randomize_grasp_index``) 15 mm along its jaws (sofa_env's jaw sphere 5); while grasping,
+  the rope passes through that grasper's jaws.
+
+Episode logic (sofa_env's ``_get_reward``): the active eye is NEXT; rope nodes within 4 mm of its ring centre decide
+a pass: the first of them (nearest the free end) must lie beyond the ring plane and the last before it, and with
+``fraction_of_rope_to_pass`` the free end must have passed by that fraction of the rope ((first + 1) / N). A pass
+pays ``passed_eye`` and makes the eye DONE (bimanual: TRANSITION, DONE after the regrasp, paying
+``bimanual_grasp``); the next eye becomes active. An eye before the active one (or the active one in TRANSITION) whose
+4 mm sphere holds no rope node any more is reopened (``lost_eye``; the rope slipped back). Success when the last eye
+is DONE.
+
+Reset: the graspers get sofa_env's noise (PTSD +-[10, 10, 45, 10 mm], the left jaw +-20 deg), the grasp index is
+drawn, and the rope takes the shape it settles to when held at that index (simulated once per index when the env is
+built, ``settle_steps`` physics steps; sofa_env settles 20 after every reset), carried with the grasper's position and
+heading (yaw), nodes kept above the floor. The eyes get sofa_zoo's noise +-[20, 20, 0 mm, 15 deg]; a draw whose eye
+spheres would touch the rope is drawn again (up to ``REDRAWS`` times, then the noise-free pose).
+
+Reward features (Table A's weights; distances over the workspace diagonal 320.2 mm): passed and lost eyes, success,
+the free end's distance to the active eye's centre and its change (Table A's "delta distance" -200; sofa_env's
+moved-towards / moved-away pair, the same thing; 0 on a step that passes an eye), lost grasp (every step in which no
+grasper holds the rope), the right grasper's distance to its start node while no grasp holds and its change, the
+fraction of rope passed and its change (the change masked by the side test, sofa_env's), the bimanual terms (the
+non-grasping grasper's distance to the free end and its change, the regrasp bonus), jaw-eye sphere overlaps
+(sofa_env: contacts of its jaw spheres with the eye spheres), jaw spheres below the floor, the two limit flags.
+
+STATE observation (50 single / 63 bimanual with T = 10, Table D): per grasper (bimanual: left first) has_grasped (1),
+PTSD and jaw angle (state limits to [-1, 1]; 5), tip pose (7; position normalised by the workspace, quaternion xyzw);
+the rope's free end (3), T tracking nodes at ``linspace(0, 99, T)`` (3 T), the active eye's ring centre (3) and its
+angle phi (over 180 deg; 1).
+
+Deliberate differences from sofa_env (task-cards §9, §12):
+
+* The pass direction uses the eye's rotated normal (sofa_env's ``Eye.normal_vector`` is computed once and not
+  updated by the reset noise, so a rotated eye is tested against the unrotated normal: a bug, fixed).
+* The bimanual rule follows ``bimanual`` (sofa_env runs it only when the ``bimanual_grasp`` reward weight is
+  non-zero); ``lost_grasp`` is paid every step without a grasp, as in sofa_env. The lost-rope distance uses the right
+  grasper (sofa_env's sign test always picks it).
+* ``successful_task`` weighs Table A's 100 (sofa_zoo's misspelt ``goal_reached`` key gave its runs 0); the limit
+  flags weigh Table A's 0 (sofa_zoo: -0.01).
+* The base configuration has only the right grasper (the paper-era scene kept an idle left one far from the eye).
+* The settled rope is carried to each reset's grasper pose instead of settling 20 physics steps per reset.
+* The distance baseline restarts at the new active eye after a pass or a lost eye (sofa_env's next delta spans two
+  eyes).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Annotated
+
+import numpy as np
+import torch
+import trimesh
+import warp as wp
+
+from lapwarp.builder import SceneBuilder
+from lapwarp.config import PTSD, Count, EnvConfig, NonNegative, Positive, Range
+from lapwarp.contact import ContactSystem
+from lapwarp.env import BatchedEnv
+from lapwarp.experts import Expert
+from lapwarp.instruments import TPSDConfig, tpsd_from_config
+from lapwarp.kernels.bodies import hinged_jaw_pose
+from lapwarp.kernels.geometry import closest_segment_segment
+from lapwarp.kernels.kinematics import point_to_ptsd
+from lapwarp.kernels.random import rand_uniform
+from lapwarp.tasks.rig import (
+    STATE_LIMITS_VIOLATED,
+    WORKSPACE_VIOLATED,
+    InstrumentRig,
+    InstrumentSpec,
+    RigBounds,
+    count_flag,
+    over_diagonal,
+    write_unit_point,
+    write_unit_ptsd,
+)
+from lapwarp.tasks.spec import Feature, ObservationLayout, ObservationSpec, RewardSpec, to_unit, write_transform
+from lapwarp.visuals import CameraSpec, VisualObject, VisualScene
+from lapwarp.world import World
+
+wp.set_module_options({"enable_backward": False})
+
+REWARDS = RewardSpec(
+    Feature("passed_eye", 10.0),
+    Feature("lost_eye", -20.0),
+    Feature("distance_to_active_eye", 0.0),
+    Feature("delta_distance_to_active_eye", -200.0),
+    Feature("lost_grasp", -0.1),
+    Feature("distance_to_lost_rope", 0.0),
+    Feature("delta_distance_to_lost_rope", 0.0),
+    Feature("fraction_rope_passed", 0.0),
+    Feature("delta_fraction_rope_passed", 200.0),
+    Feature("distance_to_bimanual_grasp", 0.0),
+    Feature("delta_distance_to_bimanual_grasp", -200.0),
+    Feature("bimanual_grasp", 100.0),
+    Feature("collision", -0.1),
+    Feature("floor_collision", -0.1),
+    Feature("action_violated_state_limits", 0.0),
+    Feature("action_violated_cartesian_workspace", 0.0),
+    Feature("successful_task", 100.0),
+)
+F = REWARDS.F
+OBS = ObservationSpec("left_grasped", "left_ptsda", "left_pose", "right_grasped", "right_ptsda", "right_pose", "tip",
+                      "tracking", "eye")
+CRITIC = OBS.extend("tip_to_eye", "passed")
+
+MM = 1.0e-3
+WORKSPACE = ((-0.02, -0.02, 0.0), (0.23, 0.18, 0.1))
+#: sofa_env's eye collision spheres (eye frame, m): the stem, then the ring
+EYE_SPHERES = np.array([(0, 0, 2), (0, 0, 6), (0, 0, 10), (1.6, 0, 13.5), (-2, 0, 15.5), (-3.3, 0, 19), (-2, 0, 22),
+                        (1.6, 0, 23.5), (5, 0, 22), (6.3, 0, 19), (5, 0, 15.5)], np.float64) * MM
+EYE_SPHERE_RADIUS = 2.0 * MM
+RING_CENTER = (1.55 * MM, 0.0, 18.7 * MM)
+PASS_RADIUS = 4.0 * MM  # sofa_env's get_indices_in_sphere
+GRASP_CENTER = 0.015  # sofa_env's jaw sphere 5: 15 mm along the jaws
+JAW_LENGTH, JAW_RADIUS = 0.025, 0.001
+JAW_MIN, JAW_MAX = 0.0, 60.0  # the jaw angle's limits, deg
+REDRAWS = 8
+OPEN, NEXT, TRANSITION, DONE = 0, 1, 2, 3
+EYE_COLORS = ((0.85, 0.12, 0.1), (0.12, 0.3, 0.9), (0.95, 0.85, 0.1), (0.15, 0.75, 0.2))  # OPEN, NEXT, TRANSITION, DONE
+ROPE_COLOR, GRIPPER_COLOR = (0.9, 0.9, 0.85), (0.7, 0.72, 0.75)
+_RING_CENTER = wp.constant(wp.vec3(*RING_CENTER))
+_HIDDEN = wp.constant(wp.vec3(0.0, 0.0, -5.0))  # far beyond the camera's far plane
+
+
+@dataclass(kw_only=True)
+class RopeThreadingConfig(EnvConfig):
+    """RopeThreadingEnv parameters (Tables B, C: the paper's = sofa_zoo's values); metres, degrees, kg.
+
+    Attributes:
+        bimanual: add the left grasper (10-D actions ``[left | right]``) and sofa_env's regrasp step.
+        eyes: (x, y, z, phi) per eye in threading order (m, m, m, deg; phi about z). The paper: one eye at
+            (60, 10, 0) mm, 90 deg; its two-eye variant adds (10, 10, 0) mm, 90 deg.
+        eye_reset_noise: uniform +- noise of (x, y, z, phi) per eye and reset (sofa_zoo's randomised eyes).
+        fraction_of_rope_to_pass: a pass needs (first node in the eye's sphere + 1) / N at least this (0: off).
+        num_rope_tracking_points: rope nodes in the observation (``linspace(0, N - 1, T)``).
+        grasp_index, grasp_index_noise: the rope node the right grasper starts holding and the uniform integer offset
+            [low, high) drawn per reset (sofa_zoo's 15 + U[-5, 15): nodes 10..29; (0, 1): none).
+        right_start_ptsd / left_start_ptsd, ptsd_noise (deg, deg, deg, m), left_jaw_noise (deg): sofa_env's start
+            states and ``randomize_gripper`` noise.
+        state_low / state_high: both graspers' state limits (deg, deg, deg, m).
+        maximum_state_velocity (deg/s, deg/s, deg/s, m/s), jaw_speed (deg/s): a continuous action of 1 (sofa_env's
+            [12, 12, 25, 12, 5]); discrete_action_magnitude, jaw_discrete_speed: a discrete action.
+        rope_youngs_modulus (Pa), rope_mass (kg): sofa_env's rope. rope_damping: velocity damping rate, 1/s (sofa_env's
+            UniformVelocityDamping of 1 N s/m on each 50 g node).
+        gravity: m/s^2 along -z (sofa_env's -981 mm/s^2).
+        settle_steps: physics steps the rope settles at build, once per grasp index.
+        physics_substeps: XPBD substeps per physics step (10 physics steps per env step).
+        max_episode_steps: None = 200 + 150 per eye after the first (Table C).
+        contact_capacity: contact records kept per env per step.
+    """
+
+    time_step: Positive = 0.01
+    frame_skip: Count(1000) = 10
+    max_episode_steps: Count(1_000_000) | None = None
+    bimanual: bool = False
+    eyes: tuple[tuple[float, float, float, float], ...] = ((0.06, 0.01, 0.0, 90.0),)
+    eye_reset_noise: tuple[NonNegative, NonNegative, NonNegative, NonNegative] = (0.02, 0.02, 0.0, 15.0)
+    fraction_of_rope_to_pass: Annotated[float, Range(ge=0.0, le=1.0)] = 0.05
+    num_rope_tracking_points: Annotated[int, Range(ge=0, le=100)] = 10
+    grasp_index: Annotated[int, Range(ge=1, le=98)] = 15
+    grasp_index_noise: tuple[int, int] = (-5, 15)
+    right_start_ptsd: PTSD = (0.0, 0.0, 180.0, 0.05)
+    left_start_ptsd: PTSD = (0.0, 0.0, 180.0, 0.05)
+    ptsd_noise: tuple[NonNegative, NonNegative, NonNegative, NonNegative] = (10.0, 10.0, 45.0, 0.01)
+    left_jaw_noise: NonNegative = 20.0
+    state_low: PTSD = (-90.0, -90.0, -32767.0, 0.0)
+    state_high: PTSD = (90.0, 90.0, 32767.0, 0.1)
+    maximum_state_velocity: tuple[Positive, Positive, Positive, Positive] = (12.0, 12.0, 25.0, 0.012)
+    jaw_speed: Positive = 5.0
+    discrete_action_magnitude: tuple[Positive, Positive, Positive, Positive] = (12.0, 12.0, 25.0, 0.012)
+    jaw_discrete_speed: Positive = 5.0
+    rope_youngs_modulus: Positive = 5.0e7
+    rope_mass: Positive = 5.0
+    rope_damping: NonNegative = 20.0
+    gravity: NonNegative = 0.981
+    settle_steps: Annotated[int, Range(ge=1, le=10_000)] = 100
+    physics_substeps: Count(10_000) = 20
+    contact_capacity: Count(4096) = 64
+
+    def validate(self, reward_features, supported_observations) -> None:
+        super().validate(reward_features, supported_observations)
+        if not self.eyes:
+            raise ValueError("RopeThreadingConfig.eyes needs at least one eye")
+        if len(self.eyes) > 8:
+            raise ValueError(f"RopeThreadingConfig.eyes has {len(self.eyes)} eyes; at most 8")
+        low, high = self.grasp_index_noise
+        if high <= low:
+            raise ValueError(f"grasp_index_noise={self.grasp_index_noise} must be a non-empty range [low, high)")
+        if self.grasp_index + low < 1 or self.grasp_index + high - 1 > ROPE_NODES - 2:
+            raise ValueError(f"grasp_index={self.grasp_index} with grasp_index_noise={self.grasp_index_noise} reaches "
+                             f"beyond rope nodes 1..{ROPE_NODES - 2}")
+        if self.max_episode_steps is None:
+            self.max_episode_steps = 200 + 150 * (len(self.eyes) - 1)  # Table C
+        for side in ("right", "left") if self.bimanual else ("right",):
+            self.grasper_tpsd(side)
+
+    def grasper_tpsd(self, side: str) -> TPSDConfig:
+        """sofa_env's graspers: RCM (100, 0, 100) mm (right) or (0, 0, 100) mm (left), pointing down."""
+        return tpsd_from_config(self, rcm_position=(0.1 if side == "right" else 0.0, 0.0, 0.1),
+                                rcm_euler_deg=(0.0, 180.0, 0.0), start_ptsd=f"{side}_start_ptsd",
+                                state_low="state_low", state_high="state_high", workspace_low=WORKSPACE[0],
+                                workspace_high=WORKSPACE[1], max_velocity="maximum_state_velocity",
+                                discrete_magnitude="discrete_action_magnitude", ptsd_noise="ptsd_noise")
+
+
+ROPE_NODES, ROPE_LENGTH, ROPE_RADIUS, BEAM_RADIUS = 100, 0.2, 1.0e-3, 2.0e-3
+
+
+def tracking_nodes(num_nodes: int, count: int) -> np.ndarray:
+    return np.linspace(0, num_nodes - 1, count).astype(np.int32) if count > 0 else np.zeros(0, np.int32)
+
+
+def eye_transform(x: float, y: float, z: float, phi_deg: float) -> wp.transform:
+    return wp.transform(wp.vec3(x, y, z), wp.quat_from_axis_angle(wp.vec3(0.0, 0.0, 1.0), math.radians(phi_deg)))
+
+
+def eye_mesh() -> trimesh.Trimesh:
+    """The eye drawn from its collision spheres: a stem capsule and a torus through the ring spheres (eye frame)."""
+    stem = trimesh.creation.capsule(height=0.008, radius=EYE_SPHERE_RADIUS, count=(8, 8))
+    stem.apply_translation((0.0, 0.0, 0.006))
+    ring_radius = float(np.mean(np.linalg.norm(EYE_SPHERES[3:] - np.asarray(RING_CENTER), axis=1)))
+    ring = trimesh.creation.torus(major_radius=ring_radius, minor_radius=EYE_SPHERE_RADIUS, major_sections=24,
+                                  minor_sections=8)
+    ring.apply_transform(trimesh.transformations.rotation_matrix(math.pi / 2.0, (1.0, 0.0, 0.0)))
+    ring.apply_translation(RING_CENTER)
+    return trimesh.util.concatenate([stem, ring])
+
+
+# ---------------------------------------------------------------------------- kernels
+@wp.struct
+class Params:
+    bounds: RigBounds
+    rope_first: int
+    nodes: int
+    num_eyes: int
+    bimanual: int
+    right: int  # the right grasper's rig column (0 base, 1 bimanual)
+    fraction: float
+    control_dt: float
+    tracking: wp.array(dtype=wp.int32)
+    eye_spheres: wp.array(dtype=wp.vec3)
+    eye_start: wp.array(dtype=wp.vec4)  # (x, y, z, phi rad) per eye
+    eye_noise: wp.vec4
+
+
+@wp.struct
+class Task:
+    """Per-env task state: the eyes' poses, the active eye and its state, the right grasper's start node and the raw
+    values of the last step for the delta features."""
+
+    eye_pose: wp.array2d(dtype=wp.transform)
+    active: wp.array(dtype=wp.int32)
+    active_state: wp.array(dtype=wp.int32)
+    grasp_index: wp.array(dtype=wp.int32)
+    grasp_particle: wp.array(dtype=wp.int32)
+    last_distance: wp.array(dtype=float)
+    last_lost: wp.array(dtype=float)
+    last_fraction: wp.array(dtype=float)
+    last_bimanual: wp.array(dtype=float)
+
+
+@wp.func
+def eye_center(pose: wp.transform) -> wp.vec3:
+    return wp.transform_point(pose, _RING_CENTER)
+
+
+@wp.func
+def eye_normal(pose: wp.transform) -> wp.vec3:
+    return wp.transform_vector(pose, wp.vec3(0.0, 1.0, 0.0))
+
+
+@wp.func
+def grasp_center(tip: wp.transform) -> wp.vec3:
+    return wp.transform_point(tip, wp.vec3(0.0, 0.0, GRASP_CENTER))
+
+
+@wp.func
+def eye_state(task: Task, env: int, k: int) -> int:
+    """OPEN after the active eye, DONE before it, the active eye's own state."""
+    a = task.active[env]
+    if k < a:
+        return DONE
+    if k > a:
+        return OPEN
+    return task.active_state[env]
+
+
+@wp.func
+def nodes_in_sphere(q: wp.array2d(dtype=wp.vec3), env: int, p: Params, c: wp.vec3) -> wp.vec2i:
+    """First and last rope node within ``PASS_RADIUS`` of ``c`` (-1, -1: none)."""
+    first = int(-1)
+    last = int(-1)
+    for i in range(p.nodes):
+        if wp.length(q[env, p.rope_first + i] - c) < PASS_RADIUS:
+            if first < 0:
+                first = i
+            last = i
+    return wp.vec2i(first, last)
+
+
+@wp.func
+def beyond(x: wp.vec3, c: wp.vec3, n: wp.vec3) -> int:
+    """sofa_env's side test: sign(dot(c - x, n)) < 0, i.e. ``x`` lies past the ring plane along the normal."""
+    return wp.where(wp.dot(c - x, n) < 0.0, 1, 0)
+
+
+@wp.func
+def jaw_eye_overlaps(tip: wp.transform, angle: float, eye: wp.transform, p: Params) -> int:
+    """(jaw, eye sphere) pairs that overlap (sofa_env counts its jaw spheres' contacts with the eye spheres)."""
+    count = int(0)
+    for side in range(2):
+        jaw = hinged_jaw_pose(tip, wp.where(side == 0, angle, -angle))
+        a = wp.transform_get_translation(jaw)
+        b = wp.transform_point(jaw, wp.vec3(0.0, 0.0, JAW_LENGTH))
+        for s in range(p.eye_spheres.shape[0]):
+            x = wp.transform_point(eye, p.eye_spheres[s])
+            st = closest_segment_segment(a, b, x, x)
+            if wp.length(a + (b - a) * st[0] - x) < EYE_SPHERE_RADIUS + JAW_RADIUS:
+                count += 1
+    return count
+
+
+@wp.func
+def jaw_spheres_below_floor(tip: wp.transform, angle: float) -> int:
+    """sofa_env's jaw spheres (local z = 5, 7, ..., 23 mm on each jaw) at or below the floor."""
+    count = int(0)
+    for side in range(2):
+        jaw = hinged_jaw_pose(tip, wp.where(side == 0, angle, -angle))
+        for s in range(10):
+            if wp.transform_point(jaw, wp.vec3(0.0, 0.0, 0.005 + 0.002 * float(s)))[2] <= 0.0:
+                count += 1
+    return count
+
+
+@wp.kernel
+def eval_rope_threading(env_mask: wp.array(dtype=wp.int32), mode: int, q: wp.array2d(dtype=wp.vec3),
+                        pose: wp.array2d(dtype=wp.transform), jaw: wp.array2d(dtype=float),
+                        flags: wp.array2d(dtype=wp.int32), right_grasped: wp.array(dtype=wp.int32),
+                        left_grasped: wp.array(dtype=wp.int32), p: Params, task: Task,
+                        features_out: wp.array2d(dtype=float)):
+    """sofa_env's reward logic. ``mode`` 1 (the step's evaluation) advances the eyes' states and stores this step's
+    raw values for the next step's deltas; mode 0 only evaluates; mode 2 (reset) only stores the raw values."""
+    env = wp.tid()
+    if env_mask[env] == 0:
+        return
+    E = p.num_eyes
+    k = task.active[env]
+    state = task.active_state[env]
+    free_end = q[env, p.rope_first]
+    inv = p.bounds.inv_diagonal
+    r_tip = pose[env, p.right]
+    r_center = grasp_center(r_tip)
+    l_center = r_center
+    held_l = int(0)
+    if p.bimanual != 0:
+        l_center = grasp_center(pose[env, 0])
+        held_l = left_grasped[env]
+    held_r = right_grasped[env]
+    lost_grasp = wp.where(held_r == 0 and held_l == 0, 1.0, 0.0)
+    d_lost = wp.length(r_center - q[env, task.grasp_particle[env]]) * lost_grasp
+
+    lost = int(0)
+    passed = int(0)
+    regrasp = int(0)
+    fraction = float(0.0)
+    masked_fraction = float(0.0)
+    d_bimanual = float(0.0)
+    if mode != 2 and k < E:
+        # an eye already passed whose sphere holds no rope node any more is reopened (the rope slipped back)
+        while k > 0:
+            ends = nodes_in_sphere(q, env, p, eye_center(task.eye_pose[env, k - 1]))
+            if ends[0] >= 0:
+                break
+            k -= 1
+            state = OPEN
+            lost += 1
+        if state == TRANSITION:
+            ends = nodes_in_sphere(q, env, p, eye_center(task.eye_pose[env, k]))
+            if ends[0] < 0:
+                state = OPEN
+                lost += 1
+        if state != TRANSITION:
+            state = NEXT
+        eye = task.eye_pose[env, k]
+        c = eye_center(eye)
+        n = eye_normal(eye)
+        ends = nodes_in_sphere(q, env, p, c)
+        if ends[0] >= 0:
+            fraction = float(ends[0] + 1) / float(p.nodes)
+            side_ok = beyond(q[env, p.rope_first + ends[0]], c, n) * (1 - beyond(q[env, p.rope_first + ends[1]], c, n))
+            masked_fraction = fraction * float(side_ok)
+            if state == NEXT and side_ok != 0 and fraction >= p.fraction:
+                passed = 1
+                state = wp.where(p.bimanual != 0, TRANSITION, DONE)
+        if state == TRANSITION:
+            # the grasper that does not hold the rope goes for the free end; done when both hold it on either side
+            other = l_center
+            if held_l != 0 and held_r == 0:
+                other = r_center
+            d_bimanual = wp.length(other - free_end)
+            if held_l != 0 and held_r != 0 and beyond(l_center, c, n) != beyond(r_center, c, n):
+                regrasp = 1
+                state = DONE
+        if state == DONE:
+            k += 1
+            state = NEXT
+    success = wp.where(k >= E, 1, 0)
+    d_eye = wp.length(free_end - eye_center(task.eye_pose[env, wp.min(k, E - 1)]))
+    if mode == 2:
+        task.last_distance[env] = d_eye
+        task.last_lost[env] = d_lost
+        task.last_fraction[env] = 0.0
+        task.last_bimanual[env] = 0.0
+        return
+    keep = wp.where(passed != 0 or lost != 0 or success != 0, 0.0, 1.0)  # the distance terms of an eye switch are 0
+    features_out[env, F.PASSED_EYE] = float(passed)
+    features_out[env, F.LOST_EYE] = float(lost)
+    features_out[env, F.DISTANCE_TO_ACTIVE_EYE] = over_diagonal(d_eye, inv) * keep
+    features_out[env, F.DELTA_DISTANCE_TO_ACTIVE_EYE] = over_diagonal(d_eye - task.last_distance[env], inv) * keep
+    features_out[env, F.LOST_GRASP] = lost_grasp
+    features_out[env, F.DISTANCE_TO_LOST_ROPE] = over_diagonal(d_lost, inv)
+    features_out[env, F.DELTA_DISTANCE_TO_LOST_ROPE] = over_diagonal(d_lost - task.last_lost[env], inv) * lost_grasp
+    features_out[env, F.FRACTION_ROPE_PASSED] = fraction
+    features_out[env, F.DELTA_FRACTION_ROPE_PASSED] = (masked_fraction - task.last_fraction[env]) * keep
+    b_keep = wp.where(d_bimanual > 0.0 and task.last_bimanual[env] > 0.0, 1.0, 0.0)
+    features_out[env, F.DISTANCE_TO_BIMANUAL_GRASP] = over_diagonal(d_bimanual, inv)
+    features_out[env, F.DELTA_DISTANCE_TO_BIMANUAL_GRASP] = over_diagonal(d_bimanual - task.last_bimanual[env],
+                                                                          inv) * b_keep
+    features_out[env, F.BIMANUAL_GRASP] = float(regrasp)
+    collisions = int(0)
+    below = int(0)
+    for g in range(1 + p.bimanual):
+        for e in range(E):
+            collisions += jaw_eye_overlaps(pose[env, g], jaw[env, g], task.eye_pose[env, e], p)
+        below += jaw_spheres_below_floor(pose[env, g], jaw[env, g])
+    features_out[env, F.COLLISION] = float(collisions)
+    features_out[env, F.FLOOR_COLLISION] = float(below)
+    features_out[env, F.ACTION_VIOLATED_STATE_LIMITS] = float(count_flag(flags, env, STATE_LIMITS_VIOLATED))
+    features_out[env, F.ACTION_VIOLATED_CARTESIAN_WORKSPACE] = float(count_flag(flags, env, WORKSPACE_VIOLATED))
+    features_out[env, F.SUCCESSFUL_TASK] = float(success)
+    if mode == 1:
+        task.active[env] = k
+        task.active_state[env] = state
+        task.last_distance[env] = d_eye
+        task.last_lost[env] = d_lost
+        task.last_fraction[env] = masked_fraction
+        task.last_bimanual[env] = d_bimanual
+
+
+@wp.func
+def heading(tip: wp.transform) -> float:
+    """The yaw of the tip frame's local x axis (the rope's heading turns with it)."""
+    x = wp.transform_vector(tip, wp.vec3(1.0, 0.0, 0.0))
+    return wp.atan2(x[1], x[0])
+
+
+@wp.kernel
+def draw_grasp_index(env_mask: wp.array(dtype=wp.int32), rng: wp.array(dtype=wp.uint32), base: int, low: int,
+                     high: int, rope_first: int, task: Task):
+    env = wp.tid()
+    if env_mask[env] == 0:
+        return
+    g = base + low
+    if high - low > 1:
+        g = base + wp.min(low + int(rand_uniform(rng, env, 0.0, float(high - low))), high - 1)
+    task.grasp_index[env] = g
+    task.grasp_particle[env] = rope_first + g
+
+
+@wp.kernel
+def carry_rope(env_mask: wp.array(dtype=wp.int32), p: Params, bank_q: wp.array2d(dtype=wp.vec3),
+               bank_segment_q: wp.array2d(dtype=wp.quat), bank_first: int, start_tip: wp.transform,
+               pose: wp.array2d(dtype=wp.transform), task: Task, segment_first: int,
+               q: wp.array2d(dtype=wp.vec3), qd: wp.array2d(dtype=wp.vec3), segment_q: wp.array2d(dtype=wp.quat),
+               segment_qd: wp.array2d(dtype=wp.vec3)):
+    """The rope settled at the env's grasp index, moved with the right grasper's grasp centre and turned with its
+    heading (yaw) from the noise-free start; nodes kept above the floor."""
+    env, i = wp.tid()
+    if env_mask[env] == 0:
+        return
+    b = task.grasp_index[env] - bank_first
+    tip = pose[env, p.right]
+    turn = wp.quat_from_axis_angle(wp.vec3(0.0, 0.0, 1.0), heading(tip) - heading(start_tip))
+    c0 = grasp_center(start_tip)
+    x = grasp_center(tip) + wp.quat_rotate(turn, bank_q[b, i] - c0)
+    q[env, p.rope_first + i] = wp.vec3(x[0], x[1], wp.max(x[2], ROPE_RADIUS))
+    qd[env, p.rope_first + i] = wp.vec3(0.0)
+    if i < p.nodes - 1:
+        segment_q[env, segment_first + i] = wp.normalize(turn * bank_segment_q[b, i])
+        segment_qd[env, segment_first + i] = wp.vec3(0.0)
+
+
+@wp.func
+def eye_touches_rope(q: wp.array2d(dtype=wp.vec3), env: int, p: Params, eye: wp.transform) -> int:
+    for s in range(p.eye_spheres.shape[0]):
+        x = wp.transform_point(eye, p.eye_spheres[s])
+        for i in range(p.nodes):
+            if wp.length(q[env, p.rope_first + i] - x) < EYE_SPHERE_RADIUS + ROPE_RADIUS + 0.5e-3:
+                return 1
+    return 0
+
+
+@wp.kernel
+def draw_eyes(env_mask: wp.array(dtype=wp.int32), rng: wp.array(dtype=wp.uint32), q: wp.array2d(dtype=wp.vec3),
+              p: Params, task: Task, eye_bodies_out: wp.array2d(dtype=wp.transform)):
+    """sofa_zoo's eye noise per eye; a draw touching the rope is drawn again (``REDRAWS``), then the noise-free pose.
+    The first eye becomes NEXT."""
+    env = wp.tid()
+    if env_mask[env] == 0:
+        return
+    z = wp.vec3(0.0, 0.0, 1.0)
+    for e in range(p.num_eyes):
+        s = p.eye_start[e]
+        nz = p.eye_noise
+        pose = wp.transform(wp.vec3(s[0], s[1], s[2]), wp.quat_from_axis_angle(z, s[3]))
+        for _t in range(REDRAWS):
+            x = s[0] + rand_uniform(rng, env, -nz[0], nz[0])
+            y = s[1] + rand_uniform(rng, env, -nz[1], nz[1])
+            h = s[2] + rand_uniform(rng, env, -nz[2], nz[2])
+            phi = s[3] + rand_uniform(rng, env, -nz[3], nz[3])
+            candidate = wp.transform(wp.vec3(x, y, h), wp.quat_from_axis_angle(z, phi))
+            if eye_touches_rope(q, env, p, candidate) == 0:
+                pose = candidate
+                break
+        task.eye_pose[env, e] = pose
+        eye_bodies_out[env, e] = pose
+    task.active[env] = 0
+    task.active_state[env] = NEXT
+
+
+@wp.kernel
+def observe_rope_threading(q: wp.array2d(dtype=wp.vec3), ptsd: wp.array2d(dtype=wp.vec4),
+                           pose: wp.array2d(dtype=wp.transform), jaw: wp.array2d(dtype=float),
+                           right_grasped: wp.array(dtype=wp.int32), left_grasped: wp.array(dtype=wp.int32),
+                           p: Params, task: Task, o: OBS.Columns, c: CRITIC.Columns, privileged: int,
+                           obs_out: wp.array2d(dtype=float), critic_out: wp.array2d(dtype=float)):
+    env = wp.tid()
+    b = p.bounds
+    for g in range(1 + p.bimanual):
+        col = o.right_grasped
+        held = right_grasped[env]
+        if p.bimanual != 0 and g == 0:
+            col = o.left_grasped
+            held = left_grasped[env]
+        obs_out[env, col] = float(held)
+        write_unit_ptsd(obs_out, env, col + 1, ptsd[env, g], b)
+        obs_out[env, col + 5] = to_unit(jaw[env, g], JAW_MIN, JAW_MAX)
+        write_transform(obs_out, env, col + 6, pose[env, g])
+        write_unit_point(obs_out, env, col + 6, wp.transform_get_translation(pose[env, g]), b)
+    free_end = q[env, p.rope_first]
+    write_unit_point(obs_out, env, o.tip, free_end, b)
+    for t in range(p.tracking.shape[0]):
+        write_unit_point(obs_out, env, o.tracking + 3 * t, q[env, p.rope_first + p.tracking[t]], b)
+    k = wp.min(task.active[env], p.num_eyes - 1)
+    eye = task.eye_pose[env, k]
+    center = eye_center(eye)
+    write_unit_point(obs_out, env, o.eye, center, b)
+    n = eye_normal(eye)
+    obs_out[env, o.eye + 3] = wp.atan2(-n[0], n[1]) / wp.pi  # phi over 180 deg
+    if privileged == 0:
+        return
+    rel = (center - free_end) * b.inv_diagonal
+    for i in range(3):
+        critic_out[env, c.tip_to_eye + i] = rel[i]
+    critic_out[env, c.passed] = float(task.active[env]) / float(p.num_eyes)
+
+
+@wp.kernel
+def place_rope_visuals(q: wp.array2d(dtype=wp.vec3), p: Params, task: Task, points_out: wp.array2d(dtype=wp.vec3),
+                       eyes_out: wp.array3d(dtype=wp.transform)):
+    """Rope points and the eyes' colour copies: each eye's copy of its state's colour at its pose, the others
+    hidden."""
+    env, i = wp.tid()
+    points_out[env, i] = q[env, p.rope_first + i]
+    if i < p.num_eyes:
+        s = eye_state(task, env, i)
+        for colour in range(4):
+            pose = task.eye_pose[env, i]
+            if colour != s:
+                pose = wp.transform(_HIDDEN, wp.quat_identity())
+            eyes_out[colour, env, i] = pose
+
+
+@wp.kernel
+def expert_commands(q: wp.array2d(dtype=wp.vec3), ptsd: wp.array2d(dtype=wp.vec4),
+                    pose: wp.array2d(dtype=wp.transform), rcm: wp.array2d(dtype=wp.transform), p: Params, task: Task,
+                    approach: float, tolerance: float, gain: float, spin_gain: float, advance: float, max_step: float,
+                    error_out: wp.array2d(dtype=float)):
+    """The scripted right grasper (``RopeThreadingExpert``): PTSD errors per env."""
+    env = wp.tid()
+    r = p.right
+    for j in range(error_out.shape[1]):
+        error_out[env, j] = 0.0
+    k = wp.min(task.active[env], p.num_eyes - 1)
+    eye = task.eye_pose[env, k]
+    c = eye_center(eye)
+    n = eye_normal(eye)
+    tip = pose[env, r]
+    end = q[env, p.rope_first]
+    # heading: the held segment towards the free end along the normal (it turns with the jaws at once; the free end
+    # lags and swings)
+    g = task.grasp_particle[env]
+    lead = q[env, g - 1] - q[env, g]
+    yaw_error = wp.atan2(lead[0] * n[1] - lead[1] * n[0], lead[0] * n[0] + lead[1] * n[1])
+    axis = wp.transform_vector(tip, wp.vec3(0.0, 0.0, 1.0))
+    spin = yaw_error * axis[2] * spin_gain  # a spin about the downward shaft turns the heading the other way
+    # where the rope crosses the ring plane (or, before it gets there, its free end)
+    x = end
+    s0 = wp.dot(end - c, n)
+    if s0 > 0.0:
+        for i in range(p.nodes - 1):
+            a = q[env, p.rope_first + i]
+            bnode = q[env, p.rope_first + i + 1]
+            sa = wp.dot(a - c, n)
+            sb = wp.dot(bnode - c, n)
+            if sa >= 0.0 and sb < 0.0:
+                x = a + (bnode - a) * (sa / (sa - sb))
+                break
+    off = c - x
+    lateral = off - n * wp.dot(off, n)
+    move = lateral * gain
+    if s0 < -approach:
+        move = (c - n * approach - end) * gain
+    elif wp.length(lateral) < tolerance and wp.abs(yaw_error) < 0.1:
+        move = move + n * advance
+    if wp.length(move) > max_step:
+        move = move * (max_step / wp.length(move))
+    s = ptsd[env, r]
+    tip_pos = wp.transform_get_translation(tip)
+    target = point_to_ptsd(rcm[env, r], tip_pos + move, s[2])
+    col = 5 * r
+    error_out[env, col + 0] = target[0] - s[0]
+    error_out[env, col + 1] = target[1] - s[1]
+    error_out[env, col + 2] = spin
+    error_out[env, col + 3] = target[3] - s[3]
+
+
+# ---------------------------------------------------------------------------- env
+class RopeThreadingEnv(BatchedEnv):
+    """LapGym's RopeThreadingEnv, batched. See the module docstring and ``RopeThreadingConfig``.
+
+    Actions: 5 per grasper (PTSD and the jaw angle over their maximum speeds); bimanual: 10, ``[left | right]``.
+    Discrete: ``Discrete(11)`` / ``Discrete(21)`` (sofa_env has none).
+
+    Privileged critic observation (``privileged_critic=True``): the policy values, the free end to active eye
+    offset (over the workspace diagonal; 3) and the fraction of eyes done (1).
+    """
+
+    config_class = RopeThreadingConfig
+    task_name = "RopeThreading"
+    rewards = REWARDS
+    supported_observations = ("STATE", "RGB", "RGBD", "DEPTH")
+    expert = "lapwarp.tasks.thread_manipulation.rope_threading:RopeThreadingExpert"
+    cfg: RopeThreadingConfig
+
+    def _graspers(self, builder: SceneBuilder, bimanual: bool) -> InstrumentRig:
+        cfg = self.cfg
+        right = InstrumentSpec(name="right", tpsd=cfg.grasper_tpsd("right"), shape="grasper",
+                               jaw_speed_deg=cfg.jaw_speed, jaw_discrete_speed_deg=cfg.jaw_discrete_speed,
+                               jaw_start_deg=5.0)
+        if not bimanual:
+            return InstrumentRig([right], builder)
+        left = InstrumentSpec(name="left", tpsd=cfg.grasper_tpsd("left"), shape="grasper",
+                              jaw_speed_deg=cfg.jaw_speed, jaw_discrete_speed_deg=cfg.jaw_discrete_speed,
+                              jaw_start_deg=20.0, jaw_noise_deg=cfg.left_jaw_noise)
+        return InstrumentRig([left, right], builder)
+
+    def _rope_scene(self, num_envs: int, bimanual: bool, eyes: int):
+        """The rope, the graspers, the floor and (``eyes`` > 0) the eyes' bodies, their contact and grasping: the
+        env's world, and (no eyes, one grasper) the world that settles the rope bank at build."""
+        cfg, dev = self.cfg, self.wp_device
+        builder = SceneBuilder(gravity=(0.0, 0.0, -cfg.gravity))
+        rig = self._graspers(builder, bimanual)
+        center = np.asarray(wp.transform_point(self._start_tip, wp.vec3(0.0, 0.0, GRASP_CENTER)))
+        spacing = ROPE_LENGTH / ROPE_NODES
+        points = center[None, :] + np.outer(np.arange(ROPE_NODES) - cfg.grasp_index, [spacing, 0.0, 0.0])
+        rope = builder.add_rod(points, radius=BEAM_RADIUS,
+                               density=cfg.rope_mass / (math.pi * BEAM_RADIUS**2 * spacing * (ROPE_NODES - 1)),
+                               youngs_modulus=cfg.rope_youngs_modulus, shear_modulus=cfg.rope_youngs_modulus / 2.0,
+                               damping=cfg.rope_damping, name="rope")
+        eye_bodies = [builder.add_body(f"eye{e}") for e in range(eyes)]
+        world = builder.finalize(num_envs=num_envs, device=str(dev), substeps=cfg.physics_substeps, seed=cfg.seed,
+                                 attachment_capacity=2)
+        rig.finalize(world)
+        c = ContactSystem(world, capacity=cfg.contact_capacity, body_ignore_mask=True)
+        group = c.add_particle_group(rope, radius=ROPE_RADIUS, name="rope")
+        c.add_plane(groups=[group], mu_static=0.0, name="floor")
+        for e, body in enumerate(eye_bodies):
+            for s, x in enumerate(EYE_SPHERES):
+                c.add_sphere(EYE_SPHERE_RADIUS, body=body, transform=tuple(x), groups=[group], mu_static=0.0,
+                             name=f"eye{e}/sphere{s}")
+        rig.add_colliders(c, groups=[group])
+        c.finalize()
+        grasps = {}
+        for slot, spec in enumerate(rig.specs):
+            grasps[spec.name] = rig.add_grasping(spec.name, c, groups=[group], grasp_threshold=10.0,
+                                                 release_threshold=15.0, slot_start=slot, slots=1,
+                                                 jaws_pass_while_grasped=True)
+        return world, rig, rope, c, grasps, eye_bodies
+
+    def _build(self) -> World:
+        cfg, n, dev = self.cfg, self.num_envs, self.wp_device
+        self._start_tip = self._noise_free_tip()
+        low, high = cfg.grasp_index_noise
+        self._bank_first = cfg.grasp_index + low
+        self._settle_bank(high - low)
+        world, self.rig, self.rope, self.contact, grasps, eye_bodies = self._rope_scene(n, cfg.bimanual,
+                                                                                       len(cfg.eyes))
+        self.right_grasp = grasps["right"]
+        self.left_grasp = grasps.get("left")
+        self._eye_body_ids = wp.array(np.asarray(eye_bodies, np.int32), dtype=wp.int32, device=dev)
+        E, T = len(cfg.eyes), cfg.num_rope_tracking_points
+        self.task = t = Task()
+        t.eye_pose = wp.zeros((n, E), dtype=wp.transform, device=dev)
+        self._eye_bodies = wp.zeros((n, E), dtype=wp.transform, device=dev)
+        for name in ("active", "active_state", "grasp_index", "grasp_particle"):
+            setattr(t, name, wp.zeros(n, dtype=wp.int32, device=dev))
+        for name in ("last_distance", "last_lost", "last_fraction", "last_bimanual"):
+            setattr(t, name, wp.zeros(n, dtype=float, device=dev))
+        self.params = p = Params()
+        p.bounds = self.rig.bounds(*WORKSPACE)
+        p.rope_first, p.nodes, p.num_eyes = self.rope.particle_start, ROPE_NODES, E
+        p.bimanual, p.right = int(cfg.bimanual), int(cfg.bimanual)
+        p.fraction, p.control_dt = cfg.fraction_of_rope_to_pass, cfg.time_step * cfg.frame_skip
+        p.tracking = wp.array(tracking_nodes(ROPE_NODES, T), dtype=wp.int32, device=dev)
+        p.eye_spheres = wp.array(EYE_SPHERES.astype(np.float32), dtype=wp.vec3, device=dev)
+        p.eye_start = wp.array(np.asarray([(x, y, z, math.radians(phi)) for x, y, z, phi in cfg.eyes], np.float32),
+                               dtype=wp.vec4, device=dev)
+        nx, ny, nz, nphi = cfg.eye_reset_noise
+        p.eye_noise = wp.vec4(nx, ny, nz, math.radians(nphi))
+        world.save_start_state()
+        return world
+
+    def _noise_free_tip(self) -> wp.transform:
+        """The right grasper's noise-free start tip (host, at build)."""
+        from lapwarp.instruments import TPSDInstruments
+
+        ins = TPSDInstruments([self.cfg.grasper_tpsd("right")], 1, device="cpu")
+        ins.reset(None, None)
+        return wp.transform(*ins.pose.numpy()[0, 0])
+
+    def _settle_bank(self, count: int) -> None:
+        """Settle the rope held at each grasp index of the reset's range (one env each, noise-free grasper, no eyes)
+        and keep the shapes for the resets."""
+        cfg, dev = self.cfg, self.wp_device
+        world, rig, rope, _c, grasps, _ = self._rope_scene(count, False, 0)
+        spacing = ROPE_LENGTH / ROPE_NODES
+        q = world.state.particle_q.numpy()
+        index = self._bank_first + np.arange(count)
+        q[:, rope.particle_start:rope.particle_start + ROPE_NODES, 0] += ((cfg.grasp_index - index) * spacing)[:, None]
+        world.state.particle_q.assign(q)
+        everything = wp.ones(count, dtype=wp.int32, device=dev)
+        rig.reset(everything, None)
+        grasps["right"].start_grasped(wp.array((rope.particle_start + index).astype(np.int32), dtype=wp.int32,
+                                               device=dev), everything)
+        rig.apply_actions(wp.zeros((count, rig.action_layout.size), dtype=wp.float32, device=dev), cfg.time_step)
+        for _ in range(cfg.settle_steps):
+            rig.step()
+            world.step(cfg.time_step)
+        first, S = rope.particle_start, rope.segment_start
+        self._bank_q = wp.array(world.state.particle_q.numpy()[:, first:first + ROPE_NODES].copy(), dtype=wp.vec3,
+                                device=dev)
+        self._bank_segment_q = wp.array(world.state.segment_q.numpy()[:, S:S + ROPE_NODES - 1].copy(), dtype=wp.quat,
+                                        device=dev)
+
+    # ------------------------------------------------------------------ BatchedEnv hooks
+    def _checked_state(self) -> list[wp.array]:
+        return [*super()._checked_state(), self.task.last_distance]
+
+    def _observation_layout(self) -> ObservationLayout:
+        T = self.cfg.num_rope_tracking_points
+        grasper = dict(grasped=(1, 0.0, 1.0), ptsda=(5, -1.0, 1.0), pose=(7, -1.0, 1.0))
+        blocks = {f"right_{k}": v for k, v in grasper.items()}
+        # the left grasper's blocks are empty in the base configuration
+        blocks.update({f"left_{k}": v if self.cfg.bimanual else 0 for k, v in grasper.items()})
+        return OBS.layout(**blocks, tip=(3, -2.0, 2.0), tracking=(3 * T, -2.0, 2.0), eye=(4, -2.0, 2.0))
+
+    def _critic_layout(self) -> ObservationLayout:
+        return self.obs_layout.extend(CRITIC, tip_to_eye=(3, -2.0, 2.0), passed=(1, 0.0, 1.0))
+
+    def _features(self, env_mask: wp.array, mode: int, features_out: wp.array2d) -> None:
+        s, rig = self.world.state, self.rig
+        left = self.left_grasp.grasped if self.left_grasp is not None else self.right_grasp.grasped
+        wp.launch(eval_rope_threading, dim=self.num_envs,
+                  inputs=[env_mask, mode, s.particle_q, rig.pose, rig.jaw_angle, rig.flags, self.right_grasp.grasped,
+                          left, self.params, self.task],
+                  outputs=[features_out], device=self.wp_device)
+
+    def _compute_features(self, env_mask: wp.array, features_out: wp.array2d) -> None:
+        # the eyes' states advance in the step's own evaluation, once per step
+        self._features(env_mask, 1 if features_out is self.features else 0, features_out)
+
+    def _reset_task(self, env_mask: wp.array) -> None:
+        w, cfg, dev = self.world, self.cfg, self.wp_device
+        s = w.state
+        self.rig.reset(env_mask, w.rng)
+        low, high = cfg.grasp_index_noise
+        wp.launch(draw_grasp_index, dim=self.num_envs,
+                  inputs=[env_mask, w.rng, cfg.grasp_index, low, high, self.rope.particle_start], outputs=[self.task],
+                  device=dev)
+        wp.launch(carry_rope, dim=(self.num_envs, ROPE_NODES),
+                  inputs=[env_mask, self.params, self._bank_q, self._bank_segment_q, self._bank_first,
+                          self._start_tip, self.rig.pose, self.task, self.rope.segment_start],
+                  outputs=[s.particle_q, s.particle_qd, s.segment_q, s.segment_qd], device=dev)
+        wp.launch(draw_eyes, dim=self.num_envs, inputs=[env_mask, w.rng, s.particle_q, self.params, self.task],
+                  outputs=[self._eye_bodies], device=dev)
+        w.set_body_poses(self._eye_bodies, self._eye_body_ids, env_mask)
+        self.right_grasp.start_grasped(self.task.grasp_particle, env_mask)
+        if self.left_grasp is not None:
+            self.left_grasp.reset(env_mask)
+        self._features(env_mask, 2, self.features)
+
+    def _compute_observations(self) -> None:
+        s, rig = self.world.state, self.rig
+        left = self.left_grasp.grasped if self.left_grasp is not None else self.right_grasp.grasped
+        wp.launch(observe_rope_threading, dim=self.num_envs,
+                  inputs=[s.particle_q, rig.ptsd, rig.pose, rig.jaw_angle, self.right_grasp.grasped, left,
+                          self.params, self.task, self.obs_layout.columns, self.critic_layout.columns,
+                          int(self.cfg.privileged_critic)],
+                  outputs=[self.obs_frame, self.critic_frame], device=self.wp_device)
+
+    # ------------------------------------------------------------------ visuals
+    def _build_visual_scene(self) -> VisualScene:
+        """The eyes (in their state's colour: open red, next blue, transition yellow, done green), the rope (a 1 mm
+        tube), a board under the eyes and the graspers; sofa_env's camera at (115, -60, 75) mm with its orientation,
+        vertical FoV 45 degrees, near 1 mm, far 480 mm (1.5 x the workspace diagonal)."""
+        n, dev = self.num_envs, self.wp_device
+        E = self.params.num_eyes
+        self._rope_points = wp.zeros((n, ROPE_NODES), dtype=wp.vec3, device=dev)
+        objects = [VisualObject("rope", "rod", ROPE_COLOR, 1, points=self._rope_points, radius=ROPE_RADIUS)]
+        self._eye_visuals = wp.zeros((4, n, E), dtype=wp.transform, device=dev)
+        mesh = eye_mesh()
+        for colour, name in enumerate(("open", "next", "transition", "done")):
+            objects.append(VisualObject(f"eyes_{name}", "rigid", EYE_COLORS[colour], 2, mesh.vertices, mesh.faces,
+                                        self._eye_visuals[colour]))
+        board = trimesh.creation.box(extents=(0.25, 0.2, 0.005))
+        board.apply_translation((0.1, 0.06, -0.0025))
+        static = wp.full((n, 1), wp.transform_identity(), dtype=wp.transform, device=dev)
+        objects.append(VisualObject("board", "rigid", (0.62, 0.45, 0.27), 3, board.vertices, board.faces, static))
+        objects += self.rig.visual_objects([GRIPPER_COLOR] * self.rig.num_instruments, first_segmentation_id=4)
+        pose = wp.transform(wp.vec3(0.115, -0.06, 0.075), wp.normalize(wp.quat(0.4213, 0.1472, 0.2985, 0.8436)))
+        camera = CameraSpec(poses=wp.array([pose] * n, dtype=wp.transform, device=dev), fov_deg=45.0, near=0.001,
+                            far=1.5 / self.params.bounds.inv_diagonal)
+        return VisualScene(camera=camera, objects=objects, background=(0.05, 0.05, 0.08))
+
+    def update_visuals(self) -> None:
+        if self._visual_scene is None:
+            return
+        wp.launch(place_rope_visuals, dim=(self.num_envs, ROPE_NODES),
+                  inputs=[self.world.state.particle_q, self.params, self.task],
+                  outputs=[self._rope_points, self._eye_visuals], device=self.wp_device)
+
+    # ------------------------------------------------------------------ privileged access (experts, tests)
+    def privileged_state(self) -> dict[str, torch.Tensor]:
+        """Torch views: rope nodes ``(N, 100, 3)``, eye poses ``(N, E, 7)``, the active eye and its state ``(N,)``,
+        the right grasper's start node ``(N,)``, grasp flags and tip poses ``(N, K, 7)``."""
+        q = wp.to_torch(self.world.state.particle_q)
+        r, t = self.rope, self.task
+        out = dict(rope=q[:, r.particle_start:r.particle_start + ROPE_NODES], eyes=wp.to_torch(t.eye_pose),
+                   active=wp.to_torch(t.active), active_state=wp.to_torch(t.active_state),
+                   grasp_index=wp.to_torch(t.grasp_index), right_grasped=wp.to_torch(self.right_grasp.grasped),
+                   tips=wp.to_torch(self.rig.pose))
+        if self.left_grasp is not None:
+            out["left_grasped"] = wp.to_torch(self.left_grasp.grasped)
+        return out
+
+
+# ---------------------------------------------------------------------------- expert
+class RopeThreadingExpert(Expert):
+    """Scripted right grasper from the privileged state: it turns the rope (spin) until the part from the grasped
+    node to the free end runs along the active eye's normal, brings the free end to ``approach`` before the ring
+    centre, then advances along the normal by ``advance`` per step while keeping the point where the rope crosses
+    the ring plane centred (``gain`` x its offset; it advances only while that offset is below ``tolerance``). Moves
+    follow straight lines in legs of ``max_step``. The bimanual regrasp is not scripted (the left grasper idles)."""
+
+    def __init__(self, env: RopeThreadingEnv, approach: float = 0.006, tolerance: float = 0.0008, gain: float = 0.3,
+                 spin_gain: float = 1.0, advance: float = 0.001, max_step: float | None = None):
+        super().__init__(env)
+        self.approach, self.tolerance, self.gain = float(approach), float(tolerance), float(gain)
+        self.spin_gain = float(spin_gain)
+        self.advance = float(advance)
+        self.max_step = float(max_step if max_step is not None else (1.0 if env.is_discrete else 0.002))
+        self.error = wp.zeros((env.num_envs, env.action_dim), dtype=float, device=env.wp_device)
+        cfg = env.cfg
+        self.step_size = torch.tensor(env.rig.action_scale(cfg.time_step * cfg.frame_skip), dtype=torch.float32,
+                                      device=env.device)
+
+    def __call__(self, obs=None) -> torch.Tensor:
+        env, rig, s = self.env, self.env.rig, self.env.world.state
+        with env._torch_stream_scope():
+            wp.launch(expert_commands, dim=env.num_envs,
+                      inputs=[s.particle_q, rig.ptsd, rig.pose, rig.rcm, env.params, env.task, self.approach,
+                              self.tolerance, self.gain, self.spin_gain, self.advance, self.max_step],
+                      outputs=[self.error], device=env.wp_device)
+        return self.policy_actions(wp.to_torch(self.error) / self.step_size)
