@@ -1,2 +1,2 @@
-"""Thread Manipulation track: ThreadInHole (``thread_in_hole``); RopeThreading and LigatingLoop are not
-implemented yet."""
+"""Thread Manipulation track: ThreadInHole (``thread_in_hole``), RopeThreading (``rope_threading``); LigatingLoop is
+not implemented yet."""
