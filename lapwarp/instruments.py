@@ -395,3 +395,11 @@ class TPSDInstruments:
         if not dt > 0.0 or not math.isfinite(dt):
             raise ValueError(f"dt must be finite and > 0, got {dt}")
         return dt
+
+
+def start_tip(config: TPSDConfig) -> wp.transform:
+    """The tip pose of one instrument at its noise-free start state (host, at build: tasks that lay an object into
+    the jaws, e.g. a grasped thread or rope)."""
+    ins = TPSDInstruments([config], 1, device="cpu")
+    ins.reset(None, None)
+    return wp.transform(*ins.pose.numpy()[0, 0])

@@ -85,6 +85,12 @@ class RewardSpec:
 
 
 # ---------------------------------------------------------------------------------------------------- observations
+def tracking_nodes(num_nodes: int, count: int) -> np.ndarray:
+    """``count`` node indices evenly spread from the first to the last of ``num_nodes`` (sofa_env's
+    ``linspace(0, N - 1, T)`` tracking points of a thread or rope), int32; empty for ``count`` 0."""
+    return np.linspace(0, num_nodes - 1, count).astype(np.int32) if count > 0 else np.zeros(0, np.int32)
+
+
 @wp.func
 def to_unit(x: float, low: float, high: float) -> float:
     """``x`` in [low, high] mapped to [-1, 1] (how observations normalise positions and instrument states)."""

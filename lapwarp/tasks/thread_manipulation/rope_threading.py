@@ -78,7 +78,7 @@ from lapwarp.config import PTSD, Count, EnvConfig, NonNegative, Positive, Range
 from lapwarp.contact import ContactSystem
 from lapwarp.env import BatchedEnv
 from lapwarp.experts import Expert
-from lapwarp.instruments import TPSDConfig, tpsd_from_config
+from lapwarp.instruments import TPSDConfig, start_tip, tpsd_from_config
 from lapwarp.kernels.bodies import hinged_jaw_pose
 from lapwarp.kernels.geometry import closest_segment_segment
 from lapwarp.kernels.kinematics import point_to_ptsd
@@ -94,7 +94,15 @@ from lapwarp.tasks.rig import (
     write_unit_point,
     write_unit_ptsd,
 )
-from lapwarp.tasks.spec import Feature, ObservationLayout, ObservationSpec, RewardSpec, to_unit, write_transform
+from lapwarp.tasks.spec import (
+    Feature,
+    ObservationLayout,
+    ObservationSpec,
+    RewardSpec,
+    to_unit,
+    tracking_nodes,
+    write_transform,
+)
 from lapwarp.visuals import CameraSpec, VisualObject, VisualScene
 from lapwarp.world import World
 
@@ -231,9 +239,6 @@ class RopeThreadingConfig(EnvConfig):
 
 ROPE_NODES, ROPE_LENGTH, ROPE_RADIUS, BEAM_RADIUS = 100, 0.2, 1.0e-3, 2.0e-3
 
-
-def tracking_nodes(num_nodes: int, count: int) -> np.ndarray:
-    return np.linspace(0, num_nodes - 1, count).astype(np.int32) if count > 0 else np.zeros(0, np.int32)
 
 
 def eye_transform(x: float, y: float, z: float, phi_deg: float) -> wp.transform:
@@ -495,7 +500,7 @@ def draw_grasp_index(env_mask: wp.array(dtype=wp.int32), rng: wp.array(dtype=wp.
 
 @wp.kernel
 def carry_rope(env_mask: wp.array(dtype=wp.int32), p: Params, bank_q: wp.array2d(dtype=wp.vec3),
-               bank_segment_q: wp.array2d(dtype=wp.quat), bank_first: int, start_tip: wp.transform,
+               bank_segment_q: wp.array2d(dtype=wp.quat), bank_first: int, start_pose: wp.transform,
                pose: wp.array2d(dtype=wp.transform), task: Task, segment_first: int,
                q: wp.array2d(dtype=wp.vec3), qd: wp.array2d(dtype=wp.vec3), segment_q: wp.array2d(dtype=wp.quat),
                segment_qd: wp.array2d(dtype=wp.vec3)):
@@ -506,8 +511,8 @@ def carry_rope(env_mask: wp.array(dtype=wp.int32), p: Params, bank_q: wp.array2d
         return
     b = task.grasp_index[env] - bank_first
     tip = pose[env, p.right]
-    turn = wp.quat_from_axis_angle(wp.vec3(0.0, 0.0, 1.0), heading(tip) - heading(start_tip))
-    c0 = grasp_center(start_tip)
+    turn = wp.quat_from_axis_angle(wp.vec3(0.0, 0.0, 1.0), heading(tip) - heading(start_pose))
+    c0 = grasp_center(start_pose)
     x = grasp_center(tip) + wp.quat_rotate(turn, bank_q[b, i] - c0)
     q[env, p.rope_first + i] = wp.vec3(x[0], x[1], wp.max(x[2], ROPE_RADIUS))
     qd[env, p.rope_first + i] = wp.vec3(0.0)
@@ -731,7 +736,7 @@ class RopeThreadingEnv(BatchedEnv):
 
     def _build(self) -> World:
         cfg, n, dev = self.cfg, self.num_envs, self.wp_device
-        self._start_tip = self._noise_free_tip()
+        self._start_tip = start_tip(self.cfg.grasper_tpsd("right"))
         low, high = cfg.grasp_index_noise
         self._bank_first = cfg.grasp_index + low
         self._settle_bank(high - low)
@@ -761,14 +766,6 @@ class RopeThreadingEnv(BatchedEnv):
         p.eye_noise = wp.vec4(nx, ny, nz, math.radians(nphi))
         world.save_start_state()
         return world
-
-    def _noise_free_tip(self) -> wp.transform:
-        """The right grasper's noise-free start tip (host, at build)."""
-        from lapwarp.instruments import TPSDInstruments
-
-        ins = TPSDInstruments([self.cfg.grasper_tpsd("right")], 1, device="cpu")
-        ins.reset(None, None)
-        return wp.transform(*ins.pose.numpy()[0, 0])
 
     def _settle_bank(self, count: int) -> None:
         """Settle the rope held at each grasp index of the reset's range (one env each, noise-free grasper, no eyes)

@@ -71,7 +71,7 @@ from lapwarp.config import PTSD, Count, EnvConfig, NonNegative, Positive, Range
 from lapwarp.contact import ContactSystem
 from lapwarp.env import BatchedEnv
 from lapwarp.experts import Expert
-from lapwarp.instruments import TPSDConfig, tpsd_from_config
+from lapwarp.instruments import TPSDConfig, start_tip, tpsd_from_config
 from lapwarp.kernels.kinematics import point_to_ptsd
 from lapwarp.tasks.rig import (
     STATE_LIMITS_VIOLATED,
@@ -85,7 +85,7 @@ from lapwarp.tasks.rig import (
     write_unit_point,
     write_unit_ptsd,
 )
-from lapwarp.tasks.spec import Feature, ObservationLayout, ObservationSpec, RewardSpec, write_transform
+from lapwarp.tasks.spec import Feature, ObservationLayout, ObservationSpec, RewardSpec, tracking_nodes, write_transform
 from lapwarp.visuals import CameraSpec, VisualObject, VisualScene, look_at_transform
 from lapwarp.world import World
 
@@ -208,9 +208,6 @@ def indices_to_check(num_nodes: int, length: float, height: float, ratio: float)
         ratio = math.floor(height / segment) / (num_nodes - 1)
     return np.arange(num_nodes)[int((1.0 - ratio) * num_nodes):]
 
-
-def tracking_nodes(num_nodes: int, count: int) -> np.ndarray:
-    return np.linspace(0, num_nodes - 1, count).astype(np.int32) if count > 0 else np.zeros(0, np.int32)
 
 
 # ---------------------------------------------------------------------------- kernels
@@ -352,7 +349,7 @@ def eval_thread_in_hole(env_mask: wp.array(dtype=wp.int32), mode: int, q: wp.arr
 
 @wp.kernel
 def carry_thread(env_mask: wp.array(dtype=wp.int32), p: Params, start_q: wp.array(dtype=wp.vec3),
-                 start_segment_q: wp.array(dtype=wp.quat), start_tip: wp.transform,
+                 start_segment_q: wp.array(dtype=wp.quat), start_pose: wp.transform,
                  pose: wp.array2d(dtype=wp.transform), segment_first: int, q: wp.array2d(dtype=wp.vec3),
                  qd: wp.array2d(dtype=wp.vec3), segment_q: wp.array2d(dtype=wp.quat),
                  segment_qd: wp.array2d(dtype=wp.vec3)):
@@ -360,7 +357,7 @@ def carry_thread(env_mask: wp.array(dtype=wp.int32), p: Params, start_q: wp.arra
     env, i = wp.tid()
     if env_mask[env] == 0:
         return
-    carry = wp.transform_multiply(pose[env, 0], wp.transform_inverse(start_tip))
+    carry = wp.transform_multiply(pose[env, 0], wp.transform_inverse(start_pose))
     q[env, p.thread_first + i] = wp.transform_point(carry, start_q[i])
     qd[env, p.thread_first + i] = wp.vec3(0.0)
     if i < start_segment_q.shape[0]:
@@ -508,7 +505,7 @@ class ThreadInHoleEnv(BatchedEnv):
         self.rig = InstrumentRig([InstrumentSpec(name="gripper", tpsd=cfg.gripper_tpsd(), shape="grasper",
                                                  jaw_start_deg=5.0)], builder)
         # the thread hangs along -z from the grasper's noise-free start tip
-        start = self._noise_free_tip()
+        start = start_tip(self.cfg.gripper_tpsd())
         top = np.asarray(wp.transform_get_translation(start))
         N = cfg.thread_nodes
         spacing = length / N
@@ -571,14 +568,6 @@ class ThreadInHoleEnv(BatchedEnv):
                                          device=dev)
         world.save_start_state()
         return world
-
-    def _noise_free_tip(self) -> wp.transform:
-        """The grasper's noise-free start tip (host, at build)."""
-        from lapwarp.instruments import TPSDInstruments
-
-        ins = TPSDInstruments([self.cfg.gripper_tpsd()], 1, device="cpu")
-        ins.reset(None, None)
-        return wp.transform(*ins.pose.numpy()[0, 0])
 
     # ------------------------------------------------------------------ BatchedEnv hooks
     def _checked_state(self) -> list[wp.array]:
