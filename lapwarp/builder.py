@@ -475,6 +475,7 @@ class SceneBuilder:
         name: str = "rod",
         cuttable: bool = False,
         stretch_rest_scale: float = 1.0,
+        inertia_scale: float = 1.0,
     ) -> SceneObject:
         """Cosserat rod: centreline particles plus one orientation quaternion per segment.
 
@@ -496,9 +497,16 @@ class SceneBuilder:
                 (1: the given shape is at rest). Below 1 the rod is pre-tensioned: sofa_env's rope-cutting ropes
                 are springs of rest length 0.2 x their initial length (scale 0.2), so a cut rope snaps back. The
                 stretch compliance stays ``l / (E A)`` of the given length ``l``, i.e. a spring constant ``E A / l``.
+            inertia_scale: multiplies the segments' rotational inertia (mass scaling of the orientations). A thin,
+                heavy rod's segments turn so easily that each stretch-shear projection moves its orientations and
+                barely its nodes, so its bending reaches the node positions only over very many sweeps; heavier
+                orientations let a quasi-static rod's shape converge at the control rate (equilibria do not
+                change; rotational dynamics slow down).
         """
         if not stretch_rest_scale > 0.0:
             raise ValueError(f"stretch_rest_scale must be positive, got {stretch_rest_scale!r}")
+        if not inertia_scale > 0.0:
+            raise ValueError(f"inertia_scale must be positive, got {inertia_scale!r}")
         x = np.asarray(points, dtype=np.float64).reshape(-1, 3)
         m = len(x)
         nseg = m if closed else m - 1
@@ -525,7 +533,7 @@ class SceneBuilder:
             quats.append(_quat_from_frame(d1, d2, tang[s]))
         quats = np.asarray(quats)
         # quaternion inverse mass 1 / (4 I), I = m (r^2/4 + l^2/12) (scalar inertia of a short cylinder)
-        inertia_base = area * L * (radius**2 / 4.0 + L**2 / 12.0)
+        inertia_base = area * L * (radius**2 / 4.0 + L**2 / 12.0) * float(inertia_scale)
         E = _per_env(youngs_modulus, "youngs_modulus")
         G = _per_env(shear_modulus if shear_modulus is not None else E / 2.0, "shear_modulus")
         I_b = np.pi * radius**4 / 4.0

@@ -16,6 +16,7 @@ _TASKS: dict[str, str] = {
     "GraspLiftAndTouch": "lapwarp.tasks.deformable_manipulation.grasp_lift_touch:GraspLiftAndTouchEnv",
     "ThreadInHole": "lapwarp.tasks.thread_manipulation.thread_in_hole:ThreadInHoleEnv",
     "RopeThreading": "lapwarp.tasks.thread_manipulation.rope_threading:RopeThreadingEnv",
+    "LigatingLoop": "lapwarp.tasks.thread_manipulation.ligating_loop:LigatingLoopEnv",
     "TissueManipulation": "lapwarp.tasks.deformable_manipulation.tissue_manipulation:TissueManipulationEnv",
     "PickAndPlace": "lapwarp.tasks.deformable_manipulation.pick_and_place:PickAndPlaceEnv",
 }

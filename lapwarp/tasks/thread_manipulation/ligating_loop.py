@@ -1,0 +1,867 @@
+"""LigatingLoopEnv: slip a ligating loop over a soft hollow cylinder onto a coloured band and close it there
+(sofa_env's LigatingLoopEnv; task-cards §10).
+
+Physics (SI, sofa_env's millimetres converted; y up, gravity 0.981 m/s^2 along -y: sofa_env's -981 mm/s^2):
+
+* Cavity: sofa_env's Cavity, a hollow cylinder (inner radius 8 mm, outer 10 mm, 50 mm long) along +z from a wall at
+  z = 0, of 2 radial x 15 angular x 25 axial nodes (750 nodes, 360 hexahedra, 2,160 tets), co-rotated XPBD FEM with
+  E 2 MPa, nu 0 and 0.1 kg; the nodes of its first 5 mm (three rings) are fixed. A band of the outer surface
+  (``marking_width`` long, starting at a per-env ``U(20, 40)`` mm) is the marking.
+* Loop: a Cosserat rod of N nodes (``num_loop_points``) on a circle of ``loop_radius`` through the instrument's tip,
+  total mass 10 kg (sofa_env's unphysical value), beam radius 0.08 mm, E 5 TPa (soft) or 50 TPa (stiff), colliding
+  as spheres of 1 mm with the cavity's surface triangles (two-way, frictionless). Its node 0 and its nodes from the
+  active index on are held by the instrument (``LoopClosure``): node 0 at the tip, node ``a + i`` i pitches inside
+  the shaft. The circle lies in the plane of the shaft and the tip frame's y axis, tangent to the shaft at the tip
+  (sofa_env's ``poses_for_circular_rope`` turned by the 9e20 springs onto the tip's orientation), so with the start
+  spin of 180 degrees the loop hangs below the tip in the vertical plane z = 65 mm.
+* Instrument: pivotized about an RCM at (-50, 0, 65) mm with Euler (0, 90, 0) degrees (the shaft along +x), start
+  PTSD (0, 0, 180 deg, 30 mm); its shaft (a 1 mm capsule) collides with the cavity's nodes.
+
+Episode logic (sofa_env's): the action's fifth component closes the loop by one index when >= 0.5 and opens it by one
+when <= -0.5 (index in [5, N - 1]; closed ratio ``(a - N + 1) / (6 - N)``). Features: the distance of the loop's
+centre of mass (nodes 0 .. a - 1) to the centre of the band's current nodes and its change; the loop COM inside the
+cavity's deformed outer hull (the winding number of its outer wall closed over both end rings, sofa_env's test); the
+tip outside it; shaft contacts with the cavity; the overlap (the fraction of the band's outer
+triangles within ``touch_distance`` of a loop sphere); closed ratio x overlap x in-cavity x tip-outside ("closed
+around the marking"); closed ratio x (1 - in-cavity) ("closed in thin air"); success (closed around > 0, overlap >
+``target_loop_overlap_ratio``, ratio > ``target_loop_closed_ratio``) ends the episode.
+
+Reset (sofa_env's with ``randomize_loop_state``): closedness c ~ U[0, 1] gives the active index
+``round(5 + (1 - c)(N - 6))``; PTSD noise +-(20, 20, 0 deg, 10 mm); the band start ~ U(20, 40) mm. The loop state
+for each active index is simulated once at build (closed one index per physics step from open, then settled, as
+sofa_env does in every reset) and carried with the tip; a start whose loop touches the cavity is drawn again
+(``REDRAWS`` times, then the noise-free pose).
+
+STATE observation (59, Table D): PTSD (4, state limits to [-1, 1]), closed ratio (1), 6 loop nodes at
+``linspace(0, N, 6, endpoint=False)`` (18), 9 cavity nodes on the inner radius at z = 0, 25, 50 mm x 0, 120, 240
+degrees (27), 3 marking nodes (9): positions over the workspace to [-1, 1].
+
+Deliberate differences from sofa_env (task-cards §10, §12):
+
+* STATE holds the closed ratio (Table D) instead of sofa_env's raw active index, and the marking nodes of the env's
+  current band (the first ring inside it at 0/120/240 degrees) instead of the band of scene creation, which
+  sofa_env never updates.
+* The closed-ratio target is 0.8 (what sofa_zoo runs: its "0.5 when stiff" reads the wrong parameter).
+* The closing action acts once per env step (``index_steps_per_action`` = 1): sofa_env meant that (it zeroes the
+  component after the first sub-step) but with sofa_zoo's frame skip 2 applies it twice; 2 reproduces that.
+* Band triangles are the outer-surface triangles whose rest centroid lies in the band (sofa_env: those whose first
+  vertex is a band node, an artefact of its triangle order); "touched" means a loop node within the sphere radius
+  plus ``touch_distance`` (sofa_env's contact listener reports pairs within its 3 mm alarm distance).
+* No cavity self-contact (sofa_env's is on); no ``with_gripper`` variant; no POSITION actions.
+* The loop's damping is a velocity damping rate (``loop_damping``) standing in for sofa_env's implicit Euler.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Annotated, Literal
+
+import numpy as np
+import torch
+import trimesh
+import warp as wp
+
+from lapwarp.assets import hollow_cylinder_tets
+from lapwarp.builder import SceneBuilder
+from lapwarp.config import PTSD, Count, EnvConfig, Fraction, NonNegative, Positive, Range
+from lapwarp.contact import ContactSystem
+from lapwarp.env import BatchedEnv
+from lapwarp.experts import Expert
+from lapwarp.instruments import TPSDConfig, start_tip, tpsd_from_config
+from lapwarp.kernels.geometry import closest_point_triangle
+from lapwarp.kernels.kinematics import point_to_ptsd
+from lapwarp.kernels.random import rand_uniform
+from lapwarp.tasks.rig import (
+    InstrumentRig,
+    InstrumentSpec,
+    RigBounds,
+    RigContacts,
+    over_diagonal,
+    write_unit_point,
+    write_unit_ptsd,
+)
+from lapwarp.tasks.spec import ActionBlock, ActionLayout, Feature, ObservationLayout, ObservationSpec, RewardSpec
+from lapwarp.tasks.thread_manipulation.loop_closure import LoopClosure
+from lapwarp.visuals import CameraSpec, VisualObject, VisualScene
+from lapwarp.world import World
+
+wp.set_module_options({"enable_backward": False})
+
+REWARDS = RewardSpec(
+    Feature("distance_loop_to_marking_center", -0.05),
+    Feature("delta_distance_loop_to_marking_center", -100.0, delta_of="distance_loop_to_marking_center"),
+    Feature("loop_center_in_cavity", 0.0),
+    Feature("instrument_not_in_cavity", 0.0),
+    Feature("instrument_shaft_collisions", 0.0),  # sofa_zoo: -0.05
+    Feature("loop_marking_overlap", 0.8),  # sofa_zoo: 1.0
+    Feature("loop_closed_around_marking", 0.5),  # sofa_zoo: 6.0
+    Feature("loop_closed_in_thin_air", -0.1),
+    Feature("successful_task", 100.0),
+)
+F = REWARDS.F
+OBS = ObservationSpec("ptsd", "closed", "loop", "cavity", "marking")
+CRITIC = OBS.extend("com_to_marking", "overlap")
+
+MM = 1.0e-3
+#: Young's modulus of the loop per stiffness, Pa (sofa_env's 5e9 / 5e10 in mm-kg-s units)
+LOOP_MODULUS = {"soft": 5.0e12, "stiff": 5.0e13}
+LOOP_BEAM_RADIUS, LOOP_MASS, LOOP_SPHERE = 0.08 * MM, 10.0, 1.0 * MM
+MIN_INDEX = 5
+CAVITY_INNER, CAVITY_OUTER, CAVITY_LENGTH = 8.0 * MM, 10.0 * MM, 50.0 * MM
+CAVITY_RADIAL, CAVITY_ANGULAR, CAVITY_AXIAL = 2, 15, 25
+CAVITY_FIXED = 5.0 * MM
+RCM_POSITION, RCM_EULER = (-0.05, 0.0, 0.065), (0.0, 90.0, 0.0)
+WORKSPACE = ((-0.05, -0.05, 0.0), (0.05, 0.05, 0.1))
+REDRAWS = 8
+#: the config fields the settled loop bank depends on, and the banks built so far (per device and those fields)
+BANK_FIELDS = ("loop_stiffness", "num_loop_points", "loop_radius", "start_ptsd", "loop_damping", "loop_inertia_scale",
+               "gravity", "bank_settle_steps", "physics_substeps", "time_step")
+_BANKS: dict = {}
+LOOP_COLOR, CAVITY_COLOR, MARKING_COLOR, SHAFT_COLOR = (0.9, 0.9, 0.85), (0.85, 0.45, 0.45), (0.95, 0.85, 0.1), \
+    (0.7, 0.72, 0.75)
+
+
+@dataclass(kw_only=True)
+class LigatingLoopConfig(EnvConfig):
+    """LigatingLoopEnv parameters (Tables B, C: the paper's = sofa_zoo's values); metres, degrees, kg.
+
+    Attributes:
+        loop_stiffness: ``soft`` (E 5 TPa) or ``stiff`` (50 TPa), sofa_zoo's two loops.
+        num_loop_points / loop_radius: nodes and radius of the loop (sofa_zoo small: 50, 18 mm; large: 90, 30 mm).
+        marking_width: length of the band along the cavity, m.
+        randomize_marking_position: band start ~ U(``marking_start_range``) per reset; else ``marking_start``.
+        randomize_loop_state: closedness ~ U[0, 1] per reset (else fully open).
+        target_loop_closed_ratio / target_loop_overlap_ratio: success thresholds.
+        index_steps_per_action: index changes per closing action (sofa_zoo's frame skip 2 applied it twice).
+        touch_distance: how far beyond the loop's 1 mm spheres a band triangle counts as touched, m.
+        start_ptsd / ptsd_noise: start and uniform reset noise (deg, deg, deg, m).
+        state_low / state_high: PTSD state limits.
+        maximum_state_velocity / discrete_action_magnitude: speeds of a continuous action of 1 and of a discrete
+            action (deg/s, deg/s, deg/s, m/s).
+        loop_damping, cavity_damping: velocity damping rates, 1/s.
+        loop_inertia_scale: the loop segments' rotational inertia over a cylinder's (``SceneBuilder.add_rod``'s
+            ``inertia_scale``): with 1000 the open loop's hanging shape at 20 substeps is within 0.3 mm of its shape at
+            320 substeps (at 1: 20 mm narrower, the bending far from converged).
+        gravity: m/s^2 along -y (sofa_env's -981 mm/s^2).
+        bank_settle_steps: physics steps the loop settles at each closure index at build (sofa_env: 50 per reset).
+        physics_substeps: XPBD substeps per physics step (2 physics steps per env step).
+        contact_capacity: contact records per env per step.
+    """
+
+    time_step: Positive = 0.05
+    frame_skip: Count(1000) = 2
+    max_episode_steps: Count(1_000_000) = 500
+    loop_stiffness: Literal["soft", "stiff"] = "stiff"
+    num_loop_points: Annotated[int, Range(ge=12, le=200)] = 50
+    loop_radius: Annotated[float, Range(ge=0.012, le=0.04)] = 0.018
+    marking_width: Annotated[float, Range(gt=0.0, le=0.02)] = 0.006
+    randomize_marking_position: bool = True
+    marking_start_range: tuple[Annotated[float, Range(ge=0.005, le=0.045)],
+                               Annotated[float, Range(ge=0.005, le=0.045)]] = (0.02, 0.04)
+    marking_start: Annotated[float, Range(ge=0.005, le=0.045)] = 0.035
+    randomize_loop_state: bool = True
+    target_loop_closed_ratio: Fraction = 0.8
+    target_loop_overlap_ratio: Fraction = 0.1
+    index_steps_per_action: Annotated[int, Range(ge=1, le=10)] = 1
+    touch_distance: NonNegative = 0.003
+    start_ptsd: PTSD = (0.0, 0.0, 180.0, 0.03)
+    ptsd_noise: tuple[NonNegative, NonNegative, NonNegative, NonNegative] = (20.0, 20.0, 0.0, 0.01)
+    state_low: PTSD = (-90.0, -90.0, -65504.0, 0.0)
+    state_high: PTSD = (90.0, 90.0, 65504.0, 0.1)
+    maximum_state_velocity: tuple[Positive, Positive, Positive, Positive] = (20.0, 20.0, 20.0, 0.02)
+    discrete_action_magnitude: tuple[Positive, Positive, Positive, Positive] = (20.0, 20.0, 20.0, 0.02)
+    loop_damping: NonNegative = 5.0
+    loop_inertia_scale: Annotated[float, Range(ge=1.0, le=1.0e6)] = 1000.0
+    cavity_damping: NonNegative = 10.0
+    gravity: NonNegative = 0.981
+    bank_settle_steps: Annotated[int, Range(ge=1, le=10_000)] = 30
+    physics_substeps: Count(10_000) = 20
+    contact_capacity: Count(8192) = 256
+
+    def validate(self, reward_features, supported_observations) -> None:
+        super().validate(reward_features, supported_observations)
+        low, high = self.marking_start_range
+        if low > high:
+            raise ValueError(f"marking_start_range={self.marking_start_range} must be (low, high) with low <= high")
+        for start in (high, self.marking_start):
+            if start + self.marking_width > CAVITY_LENGTH:
+                raise ValueError(f"a band from {start} m of width {self.marking_width} m ends beyond the cavity's "
+                                 f"{CAVITY_LENGTH} m")
+        self.loop_tpsd()
+
+    @property
+    def pitch(self) -> float:
+        """The loop's node spacing: the chord of one of its N - 1 arcs."""
+        return 2.0 * self.loop_radius * math.sin(math.pi / (self.num_loop_points - 1))
+
+    def loop_tpsd(self) -> TPSDConfig:
+        return tpsd_from_config(self, rcm_position=RCM_POSITION, rcm_euler_deg=RCM_EULER, start_ptsd="start_ptsd",
+                                state_low="state_low", state_high="state_high", workspace_low=WORKSPACE[0],
+                                workspace_high=WORKSPACE[1], max_velocity="maximum_state_velocity",
+                                discrete_magnitude="discrete_action_magnitude", ptsd_noise="ptsd_noise")
+
+
+def loop_points(tip: wp.transform, radius: float, num: int) -> np.ndarray:
+    """The loop's nodes on its circle: in the tip frame ``(0, R (1 - cos phi), -R sin phi)``, phi from 0 to 2 pi (the
+    first and last node at the tip, leaving and entering along the shaft's -z)."""
+    phi = np.linspace(0.0, 2.0 * np.pi, num)
+    local = np.stack([np.zeros(num), radius * (1.0 - np.cos(phi)), -radius * np.sin(phi)], axis=1)
+    return np.asarray([wp.transform_point(tip, wp.vec3(*[float(c) for c in x])) for x in local], np.float64)
+
+
+def closed_ratio(index, num_points: int):
+    """sofa_env's closed ratio of an active index: 0 open (N - 1), 1 closed (5)."""
+    return (index - num_points + 1) / (6.0 - num_points)
+
+
+# ---------------------------------------------------------------------------- kernels
+@wp.struct
+class Params:
+    bounds: RigBounds
+    loop_first: int
+    nodes: int
+    cavity_first: int
+    axial: int
+    angular: int
+    outer_radius: float
+    band_width: float
+    touch: float
+    target_ratio: float
+    target_overlap: float
+    ring_z: wp.array(dtype=float)  # rest z of each axial ring
+    outer_tris: wp.array(dtype=wp.vec3i)  # the outer wall's triangles (global indices)
+    outer_tri_z: wp.array(dtype=float)  # their rest centroids' z
+    loop_tracking: wp.array(dtype=wp.int32)
+    cavity_points: wp.array(dtype=wp.int32)
+    marking_angles: wp.array(dtype=wp.int32)
+
+
+@wp.struct
+class Task:
+    band_start: wp.array(dtype=float)
+    active_index: wp.array(dtype=wp.int32)
+
+
+@wp.func
+def outer_node(p: Params, angle: int, ring: int) -> int:
+    return p.cavity_first + (p.angular + angle) * p.axial + ring
+
+
+@wp.func
+def end_center(q: wp.array2d(dtype=wp.vec3), env: int, p: Params) -> wp.vec3:
+    """Centre of the cavity's free end (its outer end ring)."""
+    c = wp.vec3(0.0)
+    for j in range(p.angular):
+        c += q[env, outer_node(p, j, p.axial - 1)]
+    return c / float(p.angular)
+
+
+@wp.func
+def solid_angle(p: wp.vec3, x0: wp.vec3, x1: wp.vec3, x2: wp.vec3) -> float:
+    """Signed solid angle of triangle x0 x1 x2 seen from p (Van Oosterom and Strackee 1983)."""
+    a = x0 - p
+    b = x1 - p
+    c = x2 - p
+    la = wp.length(a)
+    lb = wp.length(b)
+    lc = wp.length(c)
+    num = wp.dot(a, wp.cross(b, c))
+    den = la * lb * lc + wp.dot(a, b) * lc + wp.dot(a, c) * lb + wp.dot(b, c) * la
+    return 2.0 * wp.atan2(num, den)
+
+
+@wp.func
+def inside_cavity(q: wp.array2d(dtype=wp.vec3), env: int, p: Params, x: wp.vec3) -> int:
+    """Inside the cavity's deformed outer hull (its outer wall closed by flat caps over both end rings): the
+    generalized winding number of that closed surface at ``x`` above 1/2 (sofa_env's test)."""
+    total = float(0.0)
+    for t in range(p.outer_tris.shape[0]):
+        tri = p.outer_tris[t]
+        total += solid_angle(x, q[env, tri[0]], q[env, tri[1]], q[env, tri[2]])
+    base = wp.vec3(0.0)
+    top = wp.vec3(0.0)
+    for j in range(p.angular):
+        base += q[env, outer_node(p, j, 0)]
+        top += q[env, outer_node(p, j, p.axial - 1)]
+    base = base / float(p.angular)
+    top = top / float(p.angular)
+    for j in range(p.angular):
+        jn = (j + 1) % p.angular
+        total += solid_angle(x, top, q[env, outer_node(p, j, p.axial - 1)], q[env, outer_node(p, jn, p.axial - 1)])
+        total += solid_angle(x, base, q[env, outer_node(p, jn, 0)], q[env, outer_node(p, j, 0)])
+    if total > 2.0 * wp.pi:
+        return 1
+    return 0
+
+
+@wp.func
+def loop_com(q: wp.array2d(dtype=wp.vec3), env: int, p: Params, a: int) -> wp.vec3:
+    """sofa_env's loop centre of mass: the mean of nodes 0 .. a - 1."""
+    c = wp.vec3(0.0)
+    for k in range(a):
+        c += q[env, p.loop_first + k]
+    return c / float(a)
+
+
+@wp.func
+def in_band(z: float, start: float, width: float) -> int:
+    if z > start and z < start + width:
+        return 1
+    return 0
+
+
+@wp.func
+def band_center(q: wp.array2d(dtype=wp.vec3), env: int, p: Params, start: float) -> wp.vec3:
+    """The mean of the band's outer nodes (their current positions)."""
+    c = wp.vec3(0.0)
+    count = int(0)
+    for k in range(p.axial):
+        if in_band(p.ring_z[k], start, p.band_width) == 1:
+            for j in range(p.angular):
+                c += q[env, outer_node(p, j, k)]
+                count += 1
+    return c / float(wp.max(count, 1))
+
+
+@wp.func
+def marking_overlap(q: wp.array2d(dtype=wp.vec3), env: int, p: Params, start: float, a: int) -> float:
+    """The fraction of the band's outer triangles within the sphere radius + ``touch`` of a free loop node."""
+    total = int(0)
+    touched = int(0)
+    reach = p.touch + 0.001
+    for t in range(p.outer_tris.shape[0]):
+        if in_band(p.outer_tri_z[t], start, p.band_width) == 0:
+            continue
+        total += 1
+        tri = p.outer_tris[t]
+        x0 = q[env, tri[0]]
+        x1 = q[env, tri[1]]
+        x2 = q[env, tri[2]]
+        lo = wp.min(wp.min(x0, x1), x2) - wp.vec3(reach)
+        hi = wp.max(wp.max(x0, x1), x2) + wp.vec3(reach)
+        hit = int(0)
+        for k in range(a):
+            x = q[env, p.loop_first + k]
+            if x[0] < lo[0] or x[1] < lo[1] or x[2] < lo[2] or x[0] > hi[0] or x[1] > hi[1] or x[2] > hi[2]:
+                continue
+            w = closest_point_triangle(x, x0, x1, x2)
+            c = x0 * w[0] + x1 * w[1] + x2 * w[2]
+            if wp.length(x - c) <= reach:
+                hit = 1
+                break
+        touched += hit
+    return float(touched) / float(wp.max(total, 1))
+
+
+@wp.kernel
+def eval_ligating_loop(q: wp.array2d(dtype=wp.vec3), pose: wp.array2d(dtype=wp.transform), contacts: RigContacts,
+                       cavity_group: int, p: Params, task: Task, num_nodes: int,
+                       features_out: wp.array2d(dtype=float)):
+    """sofa_env's reward features (a pure function of the state)."""
+    env = wp.tid()
+    a = task.active_index[env]
+    start = task.band_start[env]
+    com = loop_com(q, env, p, a)
+    band = band_center(q, env, p, start)
+    tip = wp.transform_get_translation(pose[env, 0])
+    in_cavity = inside_cavity(q, env, p, com)
+    tip_outside = 1 - inside_cavity(q, env, p, tip)
+    overlap = marking_overlap(q, env, p, start, a)
+    ratio = float(a - num_nodes + 1) / float(6 - num_nodes)
+    collisions = int(0)
+    for s in range(contacts.shape_instrument.shape[0]):
+        if contacts.shape_instrument[s] == 0:
+            pair = contacts.pair_index[s, cavity_group]
+            if pair >= 0:
+                collisions += contacts.report_count[env, pair]
+    around = ratio * overlap * float(in_cavity * tip_outside)
+    features_out[env, F.DISTANCE_LOOP_TO_MARKING_CENTER] = over_diagonal(wp.length(band - com), p.bounds.inv_diagonal)
+    features_out[env, F.LOOP_CENTER_IN_CAVITY] = float(in_cavity)
+    features_out[env, F.INSTRUMENT_NOT_IN_CAVITY] = float(tip_outside)
+    features_out[env, F.INSTRUMENT_SHAFT_COLLISIONS] = float(collisions)
+    features_out[env, F.LOOP_MARKING_OVERLAP] = overlap
+    features_out[env, F.LOOP_CLOSED_AROUND_MARKING] = around
+    features_out[env, F.LOOP_CLOSED_IN_THIN_AIR] = ratio * float(1 - in_cavity)
+    done = float(0.0)
+    if around > 0.0 and overlap > p.target_overlap and ratio > p.target_ratio:
+        done = 1.0
+    features_out[env, F.SUCCESSFUL_TASK] = done
+
+
+@wp.kernel
+def apply_closing(actions: wp.array2d(dtype=wp.float32), column: int, steps: int, num_nodes: int,
+                  active_index: wp.array(dtype=wp.int32)):
+    """sofa_env's closing action: >= 0.5 closes the loop by one index, <= -0.5 opens it (``steps`` times)."""
+    env = wp.tid()
+    u = actions[env, column]
+    a = active_index[env]
+    if u >= 0.5:
+        a -= steps
+    elif u <= -0.5:
+        a += steps
+    active_index[env] = wp.clamp(a, 5, num_nodes - 1)
+
+
+@wp.kernel
+def draw_loop_state(env_mask: wp.array(dtype=wp.int32), rng: wp.array(dtype=wp.uint32), randomize_loop: int,
+                    randomize_band: int, band_low: float, band_high: float, band_fixed: float, num_nodes: int,
+                    task: Task):
+    """sofa_env's reset draws: closedness c ~ U[0, 1] -> index round(5 + (1 - c)(N - 6)); the band's start."""
+    env = wp.tid()
+    if env_mask[env] == 0:
+        return
+    a = num_nodes - 1
+    if randomize_loop != 0:
+        c = rand_uniform(rng, env, 0.0, 1.0)
+        a = int(wp.round(5.0 + (1.0 - c) * float(num_nodes - 6)))
+    task.active_index[env] = wp.clamp(a, 5, num_nodes - 1)
+    start = band_fixed
+    if randomize_band != 0:
+        start = rand_uniform(rng, env, band_low, band_high)
+    task.band_start[env] = start
+
+
+@wp.kernel
+def carry_loop(env_mask: wp.array(dtype=wp.int32), p: Params, task: Task, bank_q: wp.array2d(dtype=wp.vec3),
+               bank_rel: wp.array2d(dtype=wp.quat), pose: wp.array2d(dtype=wp.transform), segment_first: int,
+               q: wp.array2d(dtype=wp.vec3), qd: wp.array2d(dtype=wp.vec3), segment_q: wp.array2d(dtype=wp.quat),
+               segment_qd: wp.array2d(dtype=wp.vec3)):
+    """The loop settled at the env's active index (stored in the tip frame), placed at the env's tip."""
+    env, i = wp.tid()
+    if env_mask[env] == 0:
+        return
+    b = task.active_index[env] - 5
+    tip = pose[env, 0]
+    q[env, p.loop_first + i] = wp.transform_point(tip, bank_q[b, i])
+    qd[env, p.loop_first + i] = wp.vec3(0.0)
+    if i < p.nodes - 1:
+        segment_q[env, segment_first + i] = wp.normalize(wp.transform_get_rotation(tip) * bank_rel[b, i])
+        segment_qd[env, segment_first + i] = wp.vec3(0.0)
+
+
+@wp.kernel
+def flag_touching_starts(env_mask: wp.array(dtype=wp.int32), q: wp.array2d(dtype=wp.vec3), p: Params,
+                         margin: float, redraw: wp.array(dtype=wp.int32)):
+    """1 for the masked envs whose loop has a node within ``margin`` of the cavity (its rest hull)."""
+    env = wp.tid()
+    redraw[env] = 0
+    if env_mask[env] == 0:
+        return
+    for i in range(p.nodes):
+        x = q[env, p.loop_first + i]
+        if x[2] < p.ring_z[p.axial - 1] + margin and wp.sqrt(x[0] * x[0] + x[1] * x[1]) < p.outer_radius + margin:
+            redraw[env] = 1
+
+
+@wp.kernel
+def observe_ligating_loop(q: wp.array2d(dtype=wp.vec3), ptsd: wp.array2d(dtype=wp.vec4), p: Params, task: Task,
+                          num_nodes: int, o: OBS.Columns, c: CRITIC.Columns, privileged: int,
+                          obs_out: wp.array2d(dtype=float), critic_out: wp.array2d(dtype=float)):
+    env = wp.tid()
+    b = p.bounds
+    a = task.active_index[env]
+    write_unit_ptsd(obs_out, env, o.ptsd, ptsd[env, 0], b)
+    obs_out[env, o.closed] = float(a - num_nodes + 1) / float(6 - num_nodes)
+    for t in range(p.loop_tracking.shape[0]):
+        write_unit_point(obs_out, env, o.loop + 3 * t, q[env, p.loop_first + p.loop_tracking[t]], b)
+    for t in range(p.cavity_points.shape[0]):
+        write_unit_point(obs_out, env, o.cavity + 3 * t, q[env, p.cavity_points[t]], b)
+    start = task.band_start[env]
+    ring = int(0)
+    for k in range(p.axial - 1, -1, -1):
+        if p.ring_z[k] > start:
+            ring = k
+    for t in range(p.marking_angles.shape[0]):
+        write_unit_point(obs_out, env, o.marking + 3 * t, q[env, outer_node(p, p.marking_angles[t], ring)], b)
+    if privileged == 0:
+        return
+    rel = (band_center(q, env, p, start) - loop_com(q, env, p, a)) * b.inv_diagonal
+    for i in range(3):
+        critic_out[env, c.com_to_marking + i] = rel[i]
+    critic_out[env, c.overlap] = marking_overlap(q, env, p, start, a)
+
+
+@wp.kernel
+def mark_band_faces(p: Params, task: Task, outer_face: wp.array(dtype=wp.int32),
+                    cavity_active: wp.array2d(dtype=wp.int32), marking_active: wp.array2d(dtype=wp.int32)):
+    """Visuals: a cavity surface face is hidden where the marking (its band's outer faces) is drawn instead."""
+    env, f = wp.tid()
+    t = outer_face[f]
+    shown = int(1)
+    if t >= 0:
+        inside = in_band(p.outer_tri_z[t], task.band_start[env], p.band_width)
+        marking_active[env, t] = inside
+        shown = 1 - inside
+    cavity_active[env, f] = shown
+
+
+@wp.kernel
+def place_loop_visual(q: wp.array2d(dtype=wp.vec3), p: Params, task: Task, points_out: wp.array2d(dtype=wp.vec3),
+                      segment_active: wp.array2d(dtype=wp.int32)):
+    """The loop's tube: its nodes, the segments inside the shaft hidden."""
+    env, i = wp.tid()
+    points_out[env, i] = q[env, p.loop_first + i]
+    if i < p.nodes - 1:
+        segment_active[env, i] = wp.where(i >= task.active_index[env], 0, 1)
+
+
+# ---------------------------------------------------------------------------- env
+class LigatingLoopEnv(BatchedEnv):
+    """LapGym's LigatingLoopEnv, batched. See the module docstring and ``LigatingLoopConfig``.
+
+    Actions: 5, the instrument's PTSD over its maximum speeds and the closing component. Discrete: ``Discrete(11)``.
+
+    Privileged critic observation (``privileged_critic=True``): the policy values, the loop COM to band centre offset
+    (over the workspace diagonal; 3) and the overlap (1).
+    """
+
+    config_class = LigatingLoopConfig
+    task_name = "LigatingLoop"
+    rewards = REWARDS
+    supported_observations = ("STATE", "RGB", "RGBD", "DEPTH")
+    expert = "lapwarp.tasks.thread_manipulation.ligating_loop:LigatingLoopExpert"
+    cfg: LigatingLoopConfig
+
+    def _scene(self, num_envs: int, cavity: bool):
+        """The loop and its instrument (and ``cavity``: the cavity and the contacts): the env's world, or the world
+        that settles the loop bank at build (one env per active index, no cavity)."""
+        cfg, dev = self.cfg, self.wp_device
+        builder = SceneBuilder(gravity=(0.0, -cfg.gravity, 0.0))
+        rig = InstrumentRig([InstrumentSpec(name="loop", tpsd=cfg.loop_tpsd(), shape="loop")], builder)
+        N = cfg.num_loop_points
+        points = loop_points(self._start_tip, cfg.loop_radius, N)
+        lengths = np.linalg.norm(np.diff(points, axis=0), axis=1)
+        loop = builder.add_rod(points, radius=LOOP_BEAM_RADIUS,
+                               density=LOOP_MASS / (math.pi * LOOP_BEAM_RADIUS**2 * lengths.sum()),
+                               youngs_modulus=LOOP_MODULUS[cfg.loop_stiffness],
+                               shear_modulus=LOOP_MODULUS[cfg.loop_stiffness] / 2.0, damping=cfg.loop_damping,
+                               inertia_scale=cfg.loop_inertia_scale, name="loop")
+        hole = None
+        if cavity:
+            hv, ht = hollow_cylinder_tets(CAVITY_INNER, CAVITY_OUTER, CAVITY_LENGTH, CAVITY_RADIAL, CAVITY_ANGULAR,
+                                          CAVITY_AXIAL)
+            volume = math.pi * (CAVITY_OUTER**2 - CAVITY_INNER**2) * CAVITY_LENGTH
+            hole = builder.add_tet_mesh(hv, ht, density=0.1 / volume, youngs_modulus=2.0e6, poisson_ratio=0.0,
+                                        damping=cfg.cavity_damping, fixed=np.nonzero(hv[:, 2] < CAVITY_FIXED)[0],
+                                        name="cavity")
+            self.cavity_rest = (hv, ht)
+        world = builder.finalize(num_envs=num_envs, device=str(dev), substeps=cfg.physics_substeps, seed=cfg.seed,
+                                 attachment_capacity=N)
+        rig.finalize(world)
+        closure = LoopClosure(world, loop, rig.shapes[0].shaft_body, wp.transform_get_rotation(self._start_tip),
+                              cfg.pitch)
+        contact = None
+        if cavity:
+            contact = ContactSystem(world, capacity=cfg.contact_capacity, body_ignore_mask=True)
+            loop_group = contact.add_particle_group(loop, radius=LOOP_SPHERE, name="loop")
+            self.cavity_group = contact.add_particle_group(hole, radius=0.5 * MM, name="cavity")
+            contact.add_surface(hole, groups=[loop_group], name="cavity_surface", mu_static=0.0)
+            rig.add_colliders(contact, groups=[self.cavity_group], mu_static=0.0)
+            contact.finalize()
+        return world, rig, loop, hole, closure, contact
+
+    def _build(self) -> World:
+        cfg, n, dev = self.cfg, self.num_envs, self.wp_device
+        N = cfg.num_loop_points
+        self._start_tip = start_tip(cfg.loop_tpsd())
+        self._settle_bank()
+        world, self.rig, self.loop, self.cavity, self.closure, self.contact = self._scene(n, cavity=True)
+        self._rig_contacts = self.rig.contacts()
+        self.task = t = Task()
+        t.band_start = wp.full(n, cfg.marking_start, dtype=float, device=dev)
+        t.active_index = self.closure.active_index
+        hv, _ = self.cavity_rest
+        first = self.cavity.particle_start
+        self.params = p = Params()
+        p.bounds = self.rig.bounds(*WORKSPACE)
+        p.loop_first, p.nodes, p.cavity_first = self.loop.particle_start, N, first
+        p.axial, p.angular, p.outer_radius = CAVITY_AXIAL, CAVITY_ANGULAR, CAVITY_OUTER
+        p.band_width, p.touch = cfg.marking_width, cfg.touch_distance
+        p.target_ratio, p.target_overlap = cfg.target_loop_closed_ratio, cfg.target_loop_overlap_ratio
+        p.ring_z = wp.array(hv[:CAVITY_AXIAL, 2].astype(np.float32), dtype=float, device=dev)
+        surf = np.asarray(self.cavity.surface_tris) - first
+        outer = np.all(surf >= CAVITY_ANGULAR * CAVITY_AXIAL, axis=1)
+        self._outer_face = np.where(outer, np.cumsum(outer) - 1, -1).astype(np.int32)
+        outer_tris = surf[outer]
+        p.outer_tris = wp.array((outer_tris + first).astype(np.int32), dtype=wp.vec3i, device=dev)
+        p.outer_tri_z = wp.array(hv[outer_tris].mean(axis=1)[:, 2].astype(np.float32), dtype=float, device=dev)
+        p.loop_tracking = wp.array(np.linspace(0, N, 6, endpoint=False).astype(np.int32), dtype=wp.int32, device=dev)
+        rings = [0, (CAVITY_AXIAL - 1) // 2, CAVITY_AXIAL - 1]
+        angles = [0, CAVITY_ANGULAR // 3, 2 * CAVITY_ANGULAR // 3]
+        p.cavity_points = wp.array(np.asarray([first + j * CAVITY_AXIAL + k for k in rings for j in angles], np.int32),
+                                   dtype=wp.int32, device=dev)
+        p.marking_angles = wp.array(np.asarray(angles, np.int32), dtype=wp.int32, device=dev)
+        self._redraw = wp.zeros(n, dtype=wp.int32, device=dev)
+        world.save_start_state()
+        return world
+
+    def _settle_bank(self) -> None:
+        """The loop at every active index (one env each, noise-free pose, no cavity): closed one index per physics step
+        from fully open, as sofa_env's reset does, then settled; kept in the tip frame for the resets. Envs of the
+        same loop on the same device share one bank (it depends on nothing else)."""
+        cfg, dev = self.cfg, self.wp_device
+        key = (str(dev), *(getattr(cfg, f) for f in BANK_FIELDS))
+        if key in _BANKS:
+            self._bank_q, self._bank_rel, self._bank_stable = _BANKS[key]
+            return
+        N = cfg.num_loop_points
+        count = N - MIN_INDEX
+        world, rig, loop, _h, closure, _c = self._scene(count, cavity=False)
+        everything = wp.ones(count, dtype=wp.int32, device=dev)
+        rig.reset(everything, None)
+        closure.settle(everything)
+        rig.apply_actions(wp.zeros((count, rig.action_layout.size), dtype=wp.float32, device=dev), cfg.time_step)
+        target = np.arange(MIN_INDEX, N, dtype=np.int32)
+        for step in range(N - 1 - MIN_INDEX + cfg.bank_settle_steps):
+            closure.active_index.assign(np.maximum(target, N - 1 - step).astype(np.int32))
+            rig.step()
+            closure.pre_step(cfg.time_step)
+            world.step(cfg.time_step)
+        inv = wp.transform_inverse(self._start_tip)
+        x = world.state.particle_q.numpy()[:, loop.particle_start:loop.particle_start + N]
+        rot = np.asarray(wp.transform_get_rotation(inv))
+        local = np.einsum("ij,ekj->eki", _rotation_matrix(rot), x) + np.asarray(wp.transform_get_translation(inv))
+        S = loop.segment_start
+        seg = world.state.segment_q.numpy()[:, S:S + N - 1]
+        rel = _quat_mul_many(rot, seg)
+        self._bank_q = wp.array(local.astype(np.float32), dtype=wp.vec3, device=dev)
+        self._bank_rel = wp.array(rel.astype(np.float32), dtype=wp.quat, device=dev)
+        self._bank_stable = not world.unstable.numpy().any()
+        _BANKS[key] = (self._bank_q, self._bank_rel, self._bank_stable)
+
+    # ------------------------------------------------------------------ BatchedEnv hooks
+    def _action_layout(self) -> ActionLayout:
+        return ActionLayout([*self.rig.action_layout.blocks, ActionBlock("loop/close", 1, (1.0,))])
+
+    def _apply_actions(self, actions: wp.array2d) -> None:
+        self.rig.apply_actions(actions, self.cfg.time_step)
+        wp.launch(apply_closing, dim=self.num_envs,
+                  inputs=[actions, self.action_layout.columns["loop/close"], self.cfg.index_steps_per_action,
+                          self.cfg.num_loop_points], outputs=[self.closure.active_index], device=self.wp_device)
+
+    def _before_physics_step(self) -> None:
+        self.rig.step()
+        self.closure.pre_step(self.cfg.time_step)
+
+    def _observation_layout(self) -> ObservationLayout:
+        return OBS.layout(ptsd=(4, -1.0, 1.0), closed=(1, 0.0, 1.0), loop=(18, -2.0, 2.0), cavity=(27, -2.0, 2.0),
+                          marking=(9, -2.0, 2.0))
+
+    def _critic_layout(self) -> ObservationLayout:
+        return self.obs_layout.extend(CRITIC, com_to_marking=(3, -2.0, 2.0), overlap=(1, 0.0, 1.0))
+
+    def _compute_features(self, env_mask: wp.array, features_out: wp.array2d) -> None:
+        s, rig = self.world.state, self.rig
+        wp.launch(eval_ligating_loop, dim=self.num_envs,
+                  inputs=[s.particle_q, rig.pose, self._rig_contacts, self.cavity_group, self.params, self.task,
+                          self.cfg.num_loop_points], outputs=[features_out], device=self.wp_device)
+
+    def _reset_task(self, env_mask: wp.array) -> None:
+        cfg, w = self.cfg, self.world
+        low, high = cfg.marking_start_range
+        wp.launch(draw_loop_state, dim=self.num_envs,
+                  inputs=[env_mask, w.rng, int(cfg.randomize_loop_state), int(cfg.randomize_marking_position), low,
+                          high, cfg.marking_start, cfg.num_loop_points], outputs=[self.task], device=self.wp_device)
+        self._place(env_mask, w.rng)
+        # a start whose loop touches the cavity is drawn again (a fixed number of times, so the reset stays one
+        # recorded sequence), then falls back to the noise-free pose
+        for rng in [w.rng] * REDRAWS + [None]:
+            wp.launch(flag_touching_starts, dim=self.num_envs,
+                      inputs=[env_mask, w.state.particle_q, self.params, 2.0 * LOOP_SPHERE], outputs=[self._redraw],
+                      device=self.wp_device)
+            self._place(self._redraw, rng)
+        self.closure.settle(env_mask)
+        if self._visual_scene is not None:
+            self._mark_band()
+
+    def _place(self, env_mask: wp.array, rng: wp.array | None) -> None:
+        s = self.world.state
+        self.rig.reset(env_mask, rng)
+        wp.launch(carry_loop, dim=(self.num_envs, self.cfg.num_loop_points),
+                  inputs=[env_mask, self.params, self.task, self._bank_q, self._bank_rel, self.rig.pose,
+                          self.loop.segment_start],
+                  outputs=[s.particle_q, s.particle_qd, s.segment_q, s.segment_qd], device=self.wp_device)
+
+    def _compute_observations(self) -> None:
+        s = self.world.state
+        wp.launch(observe_ligating_loop, dim=self.num_envs,
+                  inputs=[s.particle_q, self.rig.ptsd, self.params, self.task, self.cfg.num_loop_points,
+                          self.obs_layout.columns, self.critic_layout.columns, int(self.cfg.privileged_critic)],
+                  outputs=[self.obs_frame, self.critic_frame], device=self.wp_device)
+
+    # ------------------------------------------------------------------ visuals
+    def _build_visual_scene(self) -> VisualScene:
+        """The cavity (its band drawn as the yellow marking), the loop (a 1 mm tube, its part inside the shaft
+        hidden), a wall and the instrument; sofa_env's camera at (70, 70, 120) mm, vertical FoV 38 degrees."""
+        n, dev = self.num_envs, self.wp_device
+        q = self.world.state.particle_q
+        hv, _ = self.cavity_rest
+        c = self.cavity
+        points = q[:, c.particle_start:c.particle_start + c.particle_count]
+        surf = np.asarray(c.surface_tris) - c.particle_start
+        self._cavity_faces = wp.ones((n, len(surf)), dtype=wp.int32, device=dev)
+        outer = surf[self._outer_face >= 0]
+        self._marking_faces = wp.zeros((n, len(outer)), dtype=wp.int32, device=dev)
+        self._outer_face_arr = wp.array(self._outer_face, dtype=wp.int32, device=dev)
+        objects = [VisualObject("cavity", "deformable", CAVITY_COLOR, 1, hv, surf, points=points,
+                                face_active=self._cavity_faces),
+                   VisualObject("marking", "deformable", MARKING_COLOR, 2, hv, outer, points=points,
+                                face_active=self._marking_faces)]
+        N = self.cfg.num_loop_points
+        self._loop_points = wp.zeros((n, N), dtype=wp.vec3, device=dev)
+        self._loop_segments = wp.ones((n, N - 1), dtype=wp.int32, device=dev)
+        objects.append(VisualObject("loop", "rod", LOOP_COLOR, 3, points=self._loop_points, radius=LOOP_SPHERE,
+                                    face_active=self._loop_segments))
+        wall = trimesh.creation.box(extents=(0.1, 0.1, 0.005))
+        wall.apply_translation((0.0, 0.0, -0.0025))
+        static = wp.full((n, 1), wp.transform_identity(), dtype=wp.transform, device=dev)
+        objects.append(VisualObject("wall", "rigid", (0.35, 0.3, 0.28), 4, wall.vertices, wall.faces, static))
+        objects += self.rig.visual_objects([SHAFT_COLOR], first_segmentation_id=5)
+        pose = wp.transform(wp.vec3(0.07, 0.07, 0.12), wp.normalize(wp.quat(-0.2778, 0.3650, 0.1151, 0.8811)))
+        camera = CameraSpec(poses=wp.array([pose] * n, dtype=wp.transform, device=dev), fov_deg=38.0, near=0.02,
+                            far=0.22)
+        scene = VisualScene(camera=camera, objects=objects, background=(0.05, 0.05, 0.08))
+        self._mark_band()
+        return scene
+
+    def _mark_band(self) -> None:
+        if not hasattr(self, "_cavity_faces"):
+            return
+        wp.launch(mark_band_faces, dim=self._cavity_faces.shape, inputs=[self.params, self.task, self._outer_face_arr],
+                  outputs=[self._cavity_faces, self._marking_faces], device=self.wp_device)
+
+    def update_visuals(self) -> None:
+        if self._visual_scene is None:
+            return
+        wp.launch(place_loop_visual, dim=(self.num_envs, self.cfg.num_loop_points),
+                  inputs=[self.world.state.particle_q, self.params, self.task],
+                  outputs=[self._loop_points, self._loop_segments], device=self.wp_device)
+
+    # ------------------------------------------------------------------ privileged access (experts, tests)
+    def privileged_state(self) -> dict[str, torch.Tensor]:
+        """Torch views: loop nodes ``(N, n, 3)``, cavity nodes ``(N, 750, 3)``, the tip pose ``(N, 7)``, the active
+        index ``(N,)`` and the band start ``(N,)``."""
+        q = wp.to_torch(self.world.state.particle_q)
+        lo, c = self.loop, self.cavity
+        return dict(loop=q[:, lo.particle_start:lo.particle_start + lo.particle_count],
+                    cavity=q[:, c.particle_start:c.particle_start + c.particle_count],
+                    tip=wp.to_torch(self.rig.pose)[:, 0], active_index=wp.to_torch(self.task.active_index),
+                    band_start=wp.to_torch(self.task.band_start))
+
+
+def _rotation_matrix(q: np.ndarray) -> np.ndarray:
+    x, y, z, w = q
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+
+
+def _quat_mul_many(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``a * b`` for one xyzw quaternion ``a`` and an array ``b`` (..., 4)."""
+    ax, ay, az, aw = a
+    bx, by, bz, bw = np.moveaxis(b, -1, 0)
+    return np.stack([aw * bx + ax * bw + ay * bz - az * by, aw * by - ax * bz + ay * bw + az * bx,
+                     aw * bz + ax * by - ay * bx + az * bw, aw * bw - ax * bx - ay * by - az * bz], axis=-1)
+
+
+# ---------------------------------------------------------------------------- expert
+APPROACH, SLIDE, CLOSE = 0, 1, 2
+
+
+@wp.kernel
+def expert_commands(q: wp.array2d(dtype=wp.vec3), ptsd: wp.array2d(dtype=wp.vec4),
+                    pose: wp.array2d(dtype=wp.transform), rcm: wp.array2d(dtype=wp.transform), p: Params, task: Task,
+                    episode_length: wp.array(dtype=wp.int32), num_nodes: int, pitch: float, hover: float,
+                    depth: float,
+                    speed: float, tolerance: float, gain: float, clearance: float, max_step: float,
+                    phase: wp.array(dtype=wp.int32),
+                    error_out: wp.array2d(dtype=float)):
+    """The scripted instrument (``LigatingLoopExpert``): PTSD errors and the closing command per env."""
+    env = wp.tid()
+    if episode_length[env] == 0:
+        phase[env] = APPROACH
+    a = task.active_index[env]
+    com = loop_com(q, env, p, a)
+    # the cylinder's axis from the fixed base centre (origin) to the free end's centre
+    top = end_center(q, env, p)
+    axis = wp.normalize(top)
+    band = task.band_start[env] + 0.5 * p.band_width
+    # the loop's opening: the centre of the free nodes' bounding circle is near the COM, a little further from the tip
+    tip = wp.transform_get_translation(pose[env, 0])
+    center = com + wp.normalize(com - tip) * depth
+    on_axis = axis * wp.dot(center, axis)
+    off_axis = wp.length(center - on_axis)
+    ph = phase[env]
+    target = wp.vec3(top[0], top[1], top[2] + hover)
+    if ph == APPROACH:
+        if wp.length(center - target) < tolerance:
+            ph = SLIDE
+    if ph == SLIDE:
+        z = wp.max(band, center[2] - speed)
+        target = axis * (z / axis[2])
+        if off_axis > 3.0 * tolerance and center[2] > top[2]:
+            target = wp.vec3(top[0], top[1], center[2])
+        if center[2] < band + tolerance:
+            ph = CLOSE
+    tip_target = tip + (target - center) * gain
+    if ph == CLOSE:
+        # hold the tip just outside the cylinder beside the band while the loop tightens (chasing the shrinking
+        # loop's centre would push the shaft into the cavity)
+        ring = band_center(q, env, p, task.band_start[env])
+        radial = tip - ring
+        radial = radial - axis * wp.dot(radial, axis)
+        tip_target = ring + wp.normalize(radial) * (p.outer_radius + clearance)
+    phase[env] = ph
+    move = tip_target - tip
+    if wp.length(move) > max_step:
+        move = move * (max_step / wp.length(move))
+    # spin: the loop's plane (the shaft and the tip frame's y) as close to the cylinder's cross-section as it can be
+    s = ptsd[env, 0]
+    shaft = wp.normalize(tip - wp.transform_get_translation(rcm[env, 0]))
+    y_now = wp.transform_vector(pose[env, 0], wp.vec3(0.0, 1.0, 0.0))
+    y_want = wp.normalize(wp.cross(shaft, axis))
+    turn = wp.atan2(wp.dot(shaft, wp.cross(y_now, y_want)), wp.dot(y_now, y_want))
+    goal = point_to_ptsd(rcm[env, 0], tip + move, s[2] + turn)
+    for k in range(4):
+        error_out[env, k] = goal[k] - s[k]
+    close = float(0.0)
+    if ph == APPROACH and a < num_nodes - 1:
+        close = -1.0
+    if ph == CLOSE:
+        close = 1.0
+    error_out[env, 4] = close
+
+
+class LigatingLoopExpert(Expert):
+    """Scripted instrument from the privileged state: it opens the loop, brings the centre of its opening (the loop's
+    COM pushed ``depth`` away from the tip) ``hover`` beyond the cylinder's free end on its axis, slides it along the
+    axis by ``speed`` per step (re-centring when it drifts more than 3 ``tolerance`` off the axis while still beyond
+    the end) to the band's centre, and then closes the loop there, holding the tip ``clearance`` outside the
+    cylinder beside the band. The spin keeps the loop's plane as square to the
+    cylinder as the shaft allows. Moves are ``gain`` x the error, at most ``max_step`` per step."""
+
+    def __init__(self, env: LigatingLoopEnv, hover: float = 0.012, depth: float = 0.002, speed: float = 0.002,
+                 tolerance: float = 0.002, gain: float = 0.5, clearance: float = 0.003, max_step: float = 0.002):
+        super().__init__(env)
+        self.hover, self.depth, self.speed, self.tolerance = float(hover), float(depth), float(speed), float(tolerance)
+        self.gain, self.clearance, self.max_step = float(gain), float(clearance), float(max_step)
+        n, dev = env.num_envs, env.wp_device
+        self.phase = wp.zeros(n, dtype=wp.int32, device=dev)
+        self.error = wp.zeros((n, 5), dtype=float, device=dev)
+        cfg = env.cfg
+        scale = np.append(env.rig.action_scale(cfg.time_step * cfg.frame_skip), 1.0)
+        self.step_size = torch.tensor(scale, dtype=torch.float32, device=env.device)
+
+    def __call__(self, obs=None) -> torch.Tensor:
+        env, rig, s = self.env, self.env.rig, self.env.world.state
+        with env._torch_stream_scope():
+            wp.launch(expert_commands, dim=env.num_envs,
+                      inputs=[s.particle_q, rig.ptsd, rig.pose, rig.rcm, env.params, env.task, env.episode_length,
+                              env.cfg.num_loop_points, env.cfg.pitch, self.hover, self.depth, self.speed,
+                              self.tolerance, self.gain, self.clearance, self.max_step, self.phase],
+                      outputs=[self.error], device=env.wp_device)
+        return self.policy_actions(wp.to_torch(self.error) / self.step_size)
+
+
+__all__ = ["LigatingLoopConfig", "LigatingLoopEnv", "LigatingLoopExpert", "closed_ratio", "loop_points"]
