@@ -6,6 +6,9 @@
 Each ``--config`` is one configuration (space-separated KEY=VALUE overrides, JSON values); every configuration runs
 with continuous and discrete actions. Episodes are counted as they finish (success = the env's success term at the
 end of the episode, time-outs count as failures) until ``--episodes`` have finished or ``--max-steps`` steps passed.
+Counting episodes as they finish favours short ones (an env that succeeds quickly finishes a second episode before a
+slow one times out); ``--first-episodes`` counts only each env's first episode instead (``--episodes`` is then
+``--num-envs``), which is unbiased when successes and failures take different times.
 """
 
 from __future__ import annotations
@@ -23,17 +26,21 @@ from lapwarp.experts import make_expert
 
 
 def run(task: str, overrides: dict, action_type: str, num_envs: int, episodes: int, max_steps: int,
-        device: str, seed: int) -> dict:
+        device: str, seed: int, first_episodes: bool = False) -> dict:
     env = lapwarp.make(task, num_envs=num_envs, device=device, action_type=action_type, seed=seed,
                        invalid_actions="zero", **overrides)
     expert = make_expert(env)
     obs = env.get_observations()
     finished = succeeded = 0
+    counted = torch.zeros(num_envs, dtype=torch.bool, device=env.device)
     start = time.perf_counter()
     step = 0
     for step in range(max_steps):  # noqa: B007 (reported below)
         obs, _, done, _ = env.step(expert(obs))
         mask = done.bool()
+        if first_episodes:
+            mask = mask & ~counted
+            counted |= mask
         if mask.any():
             finished += int(mask.sum())
             succeeded += int(wp.to_torch(env.last_episode_success)[mask].sum())
@@ -42,7 +49,7 @@ def run(task: str, overrides: dict, action_type: str, num_envs: int, episodes: i
     env.close()
     return {"task": task, "overrides": overrides, "action_type": action_type, "num_envs": num_envs,
             "episodes": finished, "successes": succeeded, "success_rate": succeeded / max(finished, 1),
-            "steps": step + 1, "seconds": time.perf_counter() - start}
+            "first_episodes": first_episodes, "steps": step + 1, "seconds": time.perf_counter() - start}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -55,15 +62,19 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--max-steps", type=int, default=2000)
     parser.add_argument("--device", default="cuda:0" if torch.cuda.is_available() else "cpu")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--first-episodes", action="store_true",
+                        help="count only each env's first episode (unbiased when episode lengths differ)")
     parser.add_argument("--out", default=None)
     args = parser.parse_args(argv)
+    if args.first_episodes:
+        args.episodes = args.num_envs
     wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)
     configs = [parse_overrides(c) for c in (args.config or [[]])]
     records = []
     for overrides in configs:
         for action_type in args.action_types:
             r = run(args.task, overrides, action_type, args.num_envs, args.episodes, args.max_steps, args.device,
-                    args.seed)
+                    args.seed, args.first_episodes)
             records.append(r)
             print(json.dumps(r), flush=True)
     if args.out:

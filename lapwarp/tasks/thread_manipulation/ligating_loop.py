@@ -841,9 +841,15 @@ class LigatingLoopExpert(Expert):
     cylinder beside the band. The spin keeps the loop's plane as square to the
     cylinder as the shaft allows. Moves are ``gain`` x the error, at most ``max_step`` per step."""
 
-    def __init__(self, env: LigatingLoopEnv, hover: float = 0.012, depth: float = 0.002, speed: float = 0.002,
-                 tolerance: float = 0.002, gain: float = 0.5, clearance: float = 0.003, max_step: float = 0.002):
+    def __init__(self, env: LigatingLoopEnv, hover: float = 0.012, depth: float = 0.002, speed: float | None = None,
+                 tolerance: float = 0.002, gain: float | None = None, clearance: float = 0.003,
+                 max_step: float = 0.002):
         super().__init__(env)
+        # a discrete action moves a whole step or nothing: smaller commands than half a step would stall
+        if speed is None:
+            speed = 0.003 if env.is_discrete else 0.002
+        if gain is None:
+            gain = 1.0 if env.is_discrete else 0.5
         self.hover, self.depth, self.speed, self.tolerance = float(hover), float(depth), float(speed), float(tolerance)
         self.gain, self.clearance, self.max_step = float(gain), float(clearance), float(max_step)
         n, dev = env.num_envs, env.wp_device

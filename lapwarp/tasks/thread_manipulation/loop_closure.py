@@ -7,7 +7,11 @@ frame 0 to the tip, frame ``active_index + i`` to ``tip + i * pitch`` along the 
 
 Here the same frames are held by the World's attachment slots (slot ``k`` holds node ``k``, compliance 0, so the
 rod's own constraints see a pinned node as immovable) and their segments' orientations are projected onto the
-shaft's rotation in every sweep. A change of ``active_index`` does not teleport the pinned nodes: within a step each
+shaft's rotation in every sweep: the segments inside the shaft, segment 0 (node 0's frame) and, while the loop is
+fully open, the last segment (node N - 1's frame, which has no segment beyond it inside the shaft); as in the build
+circle, the first and last segments leave and enter the tip at half a chord angle to the shaft.
+
+A change of ``active_index`` does not teleport the pinned nodes: within a step each
 pinned node moves linearly (in the shaft's frame) from where it was at the step's start to its new place, and a
 newly pinned node or segment starts from its own position and orientation, so one step never asks for an impulse.
 
@@ -46,6 +50,7 @@ class LoopGeometry:
     body: int  # the shaft body the pins follow
     pitch: float
     rel_first: wp.quat  # segment 0's orientation in the tip frame
+    rel_last: wp.quat  # the last segment's, when the loop is fully open
     rel_inside: wp.quat  # a segment inside the shaft, in the tip frame
 
 
@@ -63,6 +68,28 @@ def node_pinned(k: int, a: int) -> int:
     if k == 0 or k >= a:
         return 1
     return 0
+
+
+@wp.func
+def segment_pin(g: LoopGeometry, k: int, a: int) -> int:
+    """Which orientation segment ``k`` is held at: 0 none, 1 the first (node 0's frame), 2 inside the shaft, 3 the
+    last segment of the fully open loop (node N - 1's frame: no segment lies beyond it inside the shaft)."""
+    if k == 0:
+        return 1
+    if node_pinned(k, a) == 1 and node_pinned(k + 1, a) == 1:
+        return 2
+    if a == g.nodes - 1 and k == g.nodes - 2:
+        return 3
+    return 0
+
+
+@wp.func
+def segment_target(g: LoopGeometry, pin: int) -> wp.quat:
+    if pin == 1:
+        return g.rel_first
+    if pin == 3:
+        return g.rel_last
+    return g.rel_inside
 
 
 @wp.kernel
@@ -89,15 +116,13 @@ def pin_loop(g: LoopGeometry, pins: LoopPins, body_q_prev: wp.array2d(dtype=wp.t
     else:
         attach_particle[env, k] = -1
     if k < g.nodes - 1:
-        if (node_pinned(k, a) == 1 and node_pinned(k + 1, a) == 1) or k == 0:
+        pin = segment_pin(g, k, a)
+        if pin != 0:
             rfrm = pins.rel_to[env, k]
             if pins.pinned_segment[env, k] == 0:
                 rfrm = wp.normalize(wp.transform_get_rotation(inv) * segment_q[env, g.segment_first + k])
             pins.rel_from[env, k] = rfrm
-            rto = g.rel_inside
-            if k == 0:
-                rto = g.rel_first
-            pins.rel_to[env, k] = rto
+            pins.rel_to[env, k] = segment_target(g, pin)
             pins.pinned_segment[env, k] = 1
         else:
             pins.pinned_segment[env, k] = 0
@@ -141,10 +166,9 @@ def settle_loop_pins(env_mask: wp.array(dtype=wp.int32), g: LoopGeometry, pins: 
     else:
         attach_particle[env, k] = -1
     if k < g.nodes - 1:
-        if (node_pinned(k, a) == 1 and node_pinned(k + 1, a) == 1) or k == 0:
-            rto = g.rel_inside
-            if k == 0:
-                rto = g.rel_first
+        pin = segment_pin(g, k, a)
+        if pin != 0:
+            rto = segment_target(g, pin)
             pins.rel_from[env, k] = rto
             pins.rel_to[env, k] = rto
             pins.pinned_segment[env, k] = 1
@@ -190,11 +214,13 @@ class LoopClosure:
         seg_q = world.state.segment_q.numpy()[0, rod.segment_start:rod.segment_start + rod.segment_count]
         inv_tip = np.asarray(tip_rotation, np.float64) * np.array([-1.0, -1.0, -1.0, 1.0])
         rel_first = _quat_mul(inv_tip, seg_q[0])
+        rel_last = _quat_mul(inv_tip, seg_q[-1])
         d3 = _rotate(rel_first, np.array([0.0, 0.0, 1.0]))
         rel_inside = _quat_mul(_quat_between(d3, np.array([0.0, 0.0, -1.0])), rel_first)
         self.geometry = g = LoopGeometry()
         g.first, g.segment_first, g.nodes, g.body, g.pitch = rod.particle_start, rod.segment_start, N, int(body), pitch
         g.rel_first = wp.quat(*[float(c) for c in rel_first])
+        g.rel_last = wp.quat(*[float(c) for c in rel_last])
         g.rel_inside = wp.quat(*[float(c) for c in rel_inside / np.linalg.norm(rel_inside)])
         self.pins = p = LoopPins()
         #: ``(num_envs,)`` int32: the loop's active index (sofa_env's), N - 1 = fully open.
