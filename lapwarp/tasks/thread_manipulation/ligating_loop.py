@@ -766,7 +766,7 @@ def _quat_mul_many(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 # ---------------------------------------------------------------------------- expert
-APPROACH, SLIDE, CLOSE = 0, 1, 2
+APPROACH, SLIDE, CLOSE, REOPEN = 0, 1, 2, 3
 
 
 @wp.kernel
@@ -775,7 +775,7 @@ def expert_commands(q: wp.array2d(dtype=wp.vec3), ptsd: wp.array2d(dtype=wp.vec4
                     episode_length: wp.array(dtype=wp.int32), num_nodes: int, pitch: float, hover: float,
                     depth: float,
                     speed: float, tolerance: float, gain: float, clearance: float, max_step: float,
-                    phase: wp.array(dtype=wp.int32),
+                    target_ratio: float, retry_margin: float, phase: wp.array(dtype=wp.int32),
                     error_out: wp.array2d(dtype=float)):
     """The scripted instrument (``LigatingLoopExpert``): PTSD errors and the closing command per env."""
     env = wp.tid()
@@ -804,8 +804,15 @@ def expert_commands(q: wp.array2d(dtype=wp.vec3), ptsd: wp.array2d(dtype=wp.vec4
             target = wp.vec3(top[0], top[1], center[2])
         if center[2] < band + tolerance:
             ph = CLOSE
+    ratio = float(a - num_nodes + 1) / float(6 - num_nodes)
+    if ph == CLOSE and ratio > target_ratio + retry_margin:
+        # closed past the target without success (the loop slipped off the band or its centre left the squeezed
+        # cylinder): open it part of the way and close it again
+        ph = REOPEN
+    if ph == REOPEN and ratio < target_ratio - retry_margin:
+        ph = CLOSE
     tip_target = tip + (target - center) * gain
-    if ph == CLOSE:
+    if ph == CLOSE or ph == REOPEN:
         # hold the tip just outside the cylinder beside the band while the loop tightens (chasing the shrinking
         # loop's centre would push the shaft into the cavity)
         ring = band_center(q, env, p, task.band_start[env])
@@ -830,6 +837,8 @@ def expert_commands(q: wp.array2d(dtype=wp.vec3), ptsd: wp.array2d(dtype=wp.vec4
         close = -1.0
     if ph == CLOSE:
         close = 1.0
+    if ph == REOPEN:
+        close = -1.0
     error_out[env, 4] = close
 
 
@@ -838,12 +847,14 @@ class LigatingLoopExpert(Expert):
     COM pushed ``depth`` away from the tip) ``hover`` beyond the cylinder's free end on its axis, slides it along the
     axis by ``speed`` per step (re-centring when it drifts more than 3 ``tolerance`` off the axis while still beyond
     the end) to the band's centre, and then closes the loop there, holding the tip ``clearance`` outside the
-    cylinder beside the band. The spin keeps the loop's plane as square to the
-    cylinder as the shaft allows. Moves are ``gain`` x the error, at most ``max_step`` per step."""
+    cylinder beside the band. A loop closed ``retry_margin`` past the target ratio without success (it slipped off
+    the band, or its COM left the squeezed cylinder) is opened to ``retry_margin`` below the target and closed again.
+    The spin keeps the loop's plane as square to the cylinder as the shaft allows. Moves are ``gain`` x the error, at
+    most ``max_step`` per step."""
 
     def __init__(self, env: LigatingLoopEnv, hover: float = 0.012, depth: float = 0.002, speed: float | None = None,
                  tolerance: float = 0.002, gain: float | None = None, clearance: float = 0.003,
-                 max_step: float = 0.002):
+                 max_step: float = 0.002, retry_margin: float = 0.15):
         super().__init__(env)
         # a discrete action moves a whole step or nothing: smaller commands than half a step would stall
         if speed is None:
@@ -852,6 +863,7 @@ class LigatingLoopExpert(Expert):
             gain = 1.0 if env.is_discrete else 0.5
         self.hover, self.depth, self.speed, self.tolerance = float(hover), float(depth), float(speed), float(tolerance)
         self.gain, self.clearance, self.max_step = float(gain), float(clearance), float(max_step)
+        self.retry_margin = float(retry_margin)
         n, dev = env.num_envs, env.wp_device
         self.phase = wp.zeros(n, dtype=wp.int32, device=dev)
         self.error = wp.zeros((n, 5), dtype=float, device=dev)
@@ -865,7 +877,8 @@ class LigatingLoopExpert(Expert):
             wp.launch(expert_commands, dim=env.num_envs,
                       inputs=[s.particle_q, rig.ptsd, rig.pose, rig.rcm, env.params, env.task, env.episode_length,
                               env.cfg.num_loop_points, env.cfg.pitch, self.hover, self.depth, self.speed,
-                              self.tolerance, self.gain, self.clearance, self.max_step, self.phase],
+                              self.tolerance, self.gain, self.clearance, self.max_step,
+                              env.cfg.target_loop_closed_ratio, self.retry_margin, self.phase],
                       outputs=[self.error], device=env.wp_device)
         return self.policy_actions(wp.to_torch(self.error) / self.step_size)
 
