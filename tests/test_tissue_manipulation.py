@@ -98,12 +98,36 @@ def test_default_substeps_stay_close_to_the_converged_answer():
     assert error < 2e-3, error
 
 
+
+def polygon_iou(a: np.ndarray, b: np.ndarray, resolution: int = 200) -> float:
+    """Intersection over union of two simple polygons ``(V, 2)``, on a ``resolution`` x ``resolution`` grid over both
+    (even-odd ray casting)."""
+    lo, hi = np.minimum(a.min(0), b.min(0)), np.maximum(a.max(0), b.max(0))
+    grid = np.stack(np.meshgrid(*[np.linspace(lo[i], hi[i], resolution) for i in range(2)]), -1).reshape(-1, 2)
+
+    def inside(poly):
+        x, y = grid[:, 0], grid[:, 1]
+        result = np.zeros(len(grid), bool)
+        for (x0, y0), (x1, y1) in zip(poly, np.roll(poly, -1, axis=0), strict=True):
+            crosses = (y0 > y) != (y1 > y)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                result ^= crosses & (x < (x1 - x0) * (y - y0) / (y1 - y0) + x0)
+        return result
+
+    ia, ib = inside(a), inside(b)
+    return float((ia & ib).sum() / max((ia | ib).sum(), 1))
+
+
 def test_reachable_polygons_are_this_physics_and_match_sofa_env_boxes():
     stored = load_reachable_polygons()
     assert stored.shape == (NUM_LANDMARKS, 48, 2)
-    # stored from the CPU: the same device replays it; another device's float rounding can tip the flap into the other
-    # buckling branch while the grasper presses it down (the H100 traced points up to 3.8 mm away, landmark 6)
-    np.testing.assert_allclose(trace_reachable_polygons(DEVICE), stored, atol=1e-5 if DEVICE == "cpu" else 4e-3)
+    # the stored regions are this physics' output: traced again, every landmark's region overlaps the stored one with
+    # an intersection over union >= 0.95. Not vertex by vertex: float rounding differs between machines (another CPU's
+    # vector code, the H100) and can tip the flap into the other buckling branch while the grasper presses it down
+    # (an AMD EPYC CPU traced points up to 9.7 mm away at landmark 6, IoU 0.978; the other landmarks >= 0.993)
+    traced = trace_reachable_polygons(DEVICE)
+    for k in range(NUM_LANDMARKS):
+        assert polygon_iou(traced[k], stored[k]) >= 0.95, k
     # sofa_env's polygons (traced by its own scene) span these bounding boxes (task-cards §2), m
     low, high = stored.min(axis=1), stored.max(axis=1)
     margin = 3.5e-3  # our tets are not sofa_env's mesh: the largest deviation is 3.1 mm (landmark 8's top)

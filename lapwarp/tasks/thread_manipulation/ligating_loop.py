@@ -772,8 +772,7 @@ APPROACH, SLIDE, CLOSE, REOPEN = 0, 1, 2, 3
 @wp.kernel
 def expert_commands(q: wp.array2d(dtype=wp.vec3), ptsd: wp.array2d(dtype=wp.vec4),
                     pose: wp.array2d(dtype=wp.transform), rcm: wp.array2d(dtype=wp.transform), p: Params, task: Task,
-                    episode_length: wp.array(dtype=wp.int32), num_nodes: int, pitch: float, hover: float,
-                    depth: float,
+                    episode_length: wp.array(dtype=wp.int32), num_nodes: int, hover: float, depth: float,
                     speed: float, tolerance: float, gain: float, clearance: float, max_step: float,
                     target_ratio: float, retry_margin: float, phase: wp.array(dtype=wp.int32),
                     error_out: wp.array2d(dtype=float)):
@@ -876,7 +875,7 @@ class LigatingLoopExpert(Expert):
         with env._torch_stream_scope():
             wp.launch(expert_commands, dim=env.num_envs,
                       inputs=[s.particle_q, rig.ptsd, rig.pose, rig.rcm, env.params, env.task, env.episode_length,
-                              env.cfg.num_loop_points, env.cfg.pitch, self.hover, self.depth, self.speed,
+                              env.cfg.num_loop_points, self.hover, self.depth, self.speed,
                               self.tolerance, self.gain, self.clearance, self.max_step,
                               env.cfg.target_loop_closed_ratio, self.retry_margin, self.phase],
                       outputs=[self.error], device=env.wp_device)
