@@ -174,10 +174,12 @@ class RopeThreadingConfig(EnvConfig):
             UniformVelocityDamping of 1 N s/m on each 50 g node).
         gravity: m/s^2 along -z (sofa_env's -981 mm/s^2).
         settle_steps: physics steps the rope settles at build, once per grasp index.
-        physics_substeps: XPBD substeps per physics step (10 physics steps per env step). The rope's bending
-            converges slowly in XPBD: a held 20 / 30 mm overhang droops 0.76 / 5.8 mm at 40 (closed form 0.79 /
-            3.99 mm; 80: 0.91 / 4.9); at 20 the 30 mm overhang droops 9.5 mm (2.4 x) and the expert solves 64 %
-            instead of 100 % of the paper's randomised starts (H100); 20 runs 2 x faster.
+        rope_inertia_scale: the rope segments' rotational inertia over a cylinder's (``SceneBuilder.add_rod``'s
+            ``inertia_scale``): with 100 the held rope's bending converges at 10 substeps (fitted E I within 6 % of
+            the closed form, ``tests/test_rope_threading.py``); without it 40 substeps were still 1.2 x too soft.
+        physics_substeps: XPBD substeps per physics step (10 physics steps per env step). 10 with the inertia
+            scaling (before it: 40, 4 x the cost; the scripted expert solves about as many first episodes either way,
+            CPU samples 37 / 48 against 24 / 32).
         max_episode_steps: None = 200 + 150 per eye after the first (Table C).
         contact_capacity: contact records kept per env per step (the rope lying on the floor alone makes ~80; the
             grasp reads the jaws' records from them).
@@ -206,9 +208,10 @@ class RopeThreadingConfig(EnvConfig):
     rope_youngs_modulus: Positive = 5.0e7
     rope_mass: Positive = 5.0
     rope_damping: NonNegative = 20.0
+    rope_inertia_scale: Annotated[float, Range(ge=1.0, le=1.0e6)] = 100.0
     gravity: NonNegative = 0.981
     settle_steps: Annotated[int, Range(ge=1, le=10_000)] = 100
-    physics_substeps: Count(10_000) = 40
+    physics_substeps: Count(10_000) = 10
     contact_capacity: Count(4096) = 256
 
     def validate(self, reward_features, supported_observations) -> None:
@@ -713,7 +716,7 @@ class RopeThreadingEnv(BatchedEnv):
         rope = builder.add_rod(points, radius=BEAM_RADIUS,
                                density=cfg.rope_mass / (math.pi * BEAM_RADIUS**2 * spacing * (ROPE_NODES - 1)),
                                youngs_modulus=cfg.rope_youngs_modulus, shear_modulus=cfg.rope_youngs_modulus / 2.0,
-                               damping=cfg.rope_damping, name="rope")
+                               damping=cfg.rope_damping, inertia_scale=cfg.rope_inertia_scale, name="rope")
         eye_bodies = [builder.add_body(f"eye{e}") for e in range(eyes)]
         world = builder.finalize(num_envs=num_envs, device=str(dev), substeps=cfg.physics_substeps, seed=cfg.seed,
                                  attachment_capacity=2)
