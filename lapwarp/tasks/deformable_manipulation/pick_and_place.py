@@ -179,6 +179,11 @@ class PickAndPlaceConfig(EnvConfig):
             stiff ring's bending converges slowly in XPBD's Gauss-Seidel sweeps: held at its edge, its far side
             sags 23.9 / 9.1 / 3.1 / 1.5 / 1.0 mm at 10 / 20 / 40 / 80 / 160 substeps (measured on the CPU); the soft
             ring hangs as a loop 45.3 / 44.3 / 43.2 mm tall at 5 / 10 / 160 substeps.
+        torus_inertia_scale: the torus segments' rotational inertia over a cylinder's (``SceneBuilder.add_rod``'s
+            ``inertia_scale``). 100 lets the stiff ring keep its shape at 10 substeps (Place start, after 30 steps:
+            far side 1.8 mm below the held node, 40 substeps without it 1.0 mm, 10 without it 22.8 mm, 160 -1.1 mm),
+            but the scripted expert then places the stiff ring less often (CPU, 64 first episodes: 53 at 10 or 20
+            substeps against 62 at 40 without it), so the default stays 1 with 40 substeps.
         contact_capacity: contact records kept per env per step.
         max_episode_steps: None = 300 per phase (Table C: 300 for Pick or Place, 600 for both).
     """
@@ -216,6 +221,7 @@ class PickAndPlaceConfig(EnvConfig):
     settle_steps: Annotated[int, Range(ge=1, le=10_000)] = 50
     torus_bank_size: Count(1_000_000) = 16
     physics_substeps: Count(10_000) | None = None
+    torus_inertia_scale: Annotated[float, Range(ge=1.0, le=1.0e6)] = 1.0
     contact_capacity: Count(4096) = 64
 
     def validate(self, reward_features, supported_observations) -> None:
@@ -676,7 +682,7 @@ class PickAndPlaceEnv(BatchedEnv):
         length = NODES * float(np.linalg.norm(ring[1] - ring[0]))
         self.torus = builder.add_rod(ring, radius=beam_radius, density=mass / (math.pi * beam_radius**2 * length),
                                      youngs_modulus=cfg.youngs_modulus, closed=True, damping=cfg.torus_damping,
-                                     name="torus")
+                                     inertia_scale=cfg.torus_inertia_scale, name="torus")
         self.rest_ring = ring
         jaw = dict(jaw_speed_deg=cfg.jaw_speed, jaw_discrete_speed_deg=cfg.jaw_discrete_speed,
                    jaw_start_deg=cfg.jaw_start)
