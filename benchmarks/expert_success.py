@@ -6,9 +6,10 @@
 Each ``--config`` is one configuration (space-separated KEY=VALUE overrides, JSON values); every configuration runs
 with continuous and discrete actions. Episodes are counted as they finish (success = the env's success term at the
 end of the episode, time-outs count as failures) until ``--episodes`` have finished or ``--max-steps`` steps passed.
-Counting episodes as they finish favours short ones (an env that succeeds quickly finishes a second episode before a
-slow one times out); ``--first-episodes`` counts only each env's first episode instead (``--episodes`` is then
-``--num-envs``), which is unbiased when successes and failures take different times.
+By default only each env's first episode counts (``--episodes`` is then ``--num-envs``): counting episodes as they
+finish (``--as-finished``, what this script did before) favours short ones, because an env that succeeds quickly
+finishes a second episode before a slow one times out, so a run that stops at ``--episodes`` can report 100 % before
+any time-out was counted.
 """
 
 from __future__ import annotations
@@ -62,8 +63,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--max-steps", type=int, default=2000)
     parser.add_argument("--device", default="cuda:0" if torch.cuda.is_available() else "cpu")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--first-episodes", action="store_true",
-                        help="count only each env's first episode (unbiased when episode lengths differ)")
+    parser.add_argument("--first-episodes", action="store_true", default=True,
+                        help="count only each env's first episode (the default; unbiased when episode lengths differ)")
+    parser.add_argument("--as-finished", dest="first_episodes", action="store_false",
+                        help="count episodes as they finish until --episodes (biased towards short episodes)")
     parser.add_argument("--out", default=None)
     args = parser.parse_args(argv)
     if args.first_episodes:
