@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import importlib
 
+import numpy as np
 import torch
 
 
@@ -35,6 +36,14 @@ class Expert:
         table = env.discrete_actions
         d = table.shape[1]
         self._discrete_step = table[0:2 * d:2].diagonal().clamp(min=1.0e-12)  # row 2i moves component i by +step
+
+    def rig_step_size(self, *extra: float) -> torch.Tensor:
+        """What a continuous action of 1 changes in one env step, per action column: the instrument rig's
+        ``action_scale`` over the env's control period, then ``extra`` for the task's own columns (float32, on the
+        env's device); ``ideal`` is an error divided by it."""
+        cfg = self.env.cfg
+        scale = np.append(self.env.rig.action_scale(cfg.time_step * cfg.frame_skip), extra)
+        return torch.tensor(scale, dtype=torch.float32, device=self.env.device)
 
     def policy_actions(self, ideal: torch.Tensor) -> torch.Tensor:
         if not self.env.is_discrete:

@@ -1078,9 +1078,7 @@ class GraspLiftAndTouchExpert(Expert):
         self.in_place = 0.0035 if env.is_discrete else 0.0015
         self.error = wp.zeros((env.num_envs, 10), dtype=float, device=env.wp_device)
         self.closing = wp.zeros(env.num_envs, dtype=wp.int32, device=env.wp_device)  # per env: closing the jaws
-        cfg = env.cfg
-        self.step_size = torch.tensor(env.rig.action_scale(cfg.time_step * cfg.frame_skip), dtype=torch.float32,
-                                      device=env.device)
+        self.step_size = self.rig_step_size()
 
     def __call__(self, obs=None) -> torch.Tensor:
         env, rig, s = self.env, self.env.rig, self.env.world.state

@@ -918,9 +918,7 @@ class PickAndPlaceExpert(Expert):
         # discrete actions move one component by a whole step (1-3 mm): a shorter leg would round to the no-op
         self.max_step = float(max_step if max_step is not None else (1.0 if env.is_discrete else 0.0015))
         self.error = wp.zeros((env.num_envs, 5), dtype=float, device=env.wp_device)
-        cfg = env.cfg
-        self.step_size = torch.tensor(env.rig.action_scale(cfg.time_step * cfg.frame_skip), dtype=torch.float32,
-                                      device=env.device)
+        self.step_size = self.rig_step_size()
 
     def __call__(self, obs=None) -> torch.Tensor:
         env, rig, s = self.env, self.env.rig, self.env.world.state

@@ -63,7 +63,7 @@ import trimesh
 import warp as wp
 
 from lapwarp.assets import hollow_cylinder_tets
-from lapwarp.builder import SceneBuilder
+from lapwarp.builder import SceneBuilder, _quat_mul
 from lapwarp.config import PTSD, Count, EnvConfig, Fraction, NonNegative, Positive, Range
 from lapwarp.contact import ContactSystem
 from lapwarp.env import BatchedEnv
@@ -118,8 +118,8 @@ REDRAWS = 8
 BANK_FIELDS = ("loop_stiffness", "num_loop_points", "loop_radius", "start_ptsd", "loop_damping", "loop_inertia_scale",
                "gravity", "bank_settle_steps", "physics_substeps", "time_step")
 _BANKS: dict = {}
-LOOP_COLOR, CAVITY_COLOR, MARKING_COLOR, SHAFT_COLOR = (0.9, 0.9, 0.85), (0.85, 0.45, 0.45), (0.95, 0.85, 0.1), \
-    (0.7, 0.72, 0.75)
+LOOP_COLOR, CAVITY_COLOR, SHAFT_COLOR = (0.9, 0.9, 0.85), (0.85, 0.45, 0.45), (0.7, 0.72, 0.75)
+MARKING_COLOR = (0.95, 0.85, 0.1)
 
 
 @dataclass(kw_only=True)
@@ -210,9 +210,10 @@ def loop_points(tip: wp.transform, radius: float, num: int) -> np.ndarray:
     return np.asarray([wp.transform_point(tip, wp.vec3(*[float(c) for c in x])) for x in local], np.float64)
 
 
-def closed_ratio(index, num_points: int):
-    """sofa_env's closed ratio of an active index: 0 open (N - 1), 1 closed (5)."""
-    return (index - num_points + 1) / (6.0 - num_points)
+@wp.func
+def closed_ratio(a: int, num_nodes: int) -> float:
+    """sofa_env's closed ratio of active index ``a``: 0 open (N - 1), 1 closed (5)."""
+    return float(a - num_nodes + 1) / float(6 - num_nodes)
 
 
 # ---------------------------------------------------------------------------- kernels
@@ -368,7 +369,7 @@ def eval_ligating_loop(q: wp.array2d(dtype=wp.vec3), pose: wp.array2d(dtype=wp.t
     in_cavity = inside_cavity(q, env, p, com)
     tip_outside = 1 - inside_cavity(q, env, p, tip)
     overlap = marking_overlap(q, env, p, start, a)
-    ratio = float(a - num_nodes + 1) / float(6 - num_nodes)
+    ratio = closed_ratio(a, num_nodes)
     collisions = int(0)
     for s in range(contacts.shape_instrument.shape[0]):
         if contacts.shape_instrument[s] == 0:
@@ -462,7 +463,7 @@ def observe_ligating_loop(q: wp.array2d(dtype=wp.vec3), ptsd: wp.array2d(dtype=w
     b = p.bounds
     a = task.active_index[env]
     write_unit_ptsd(obs_out, env, o.ptsd, ptsd[env, 0], b)
-    obs_out[env, o.closed] = float(a - num_nodes + 1) / float(6 - num_nodes)
+    obs_out[env, o.closed] = closed_ratio(a, num_nodes)
     for t in range(p.loop_tracking.shape[0]):
         write_unit_point(obs_out, env, o.loop + 3 * t, q[env, p.loop_first + p.loop_tracking[t]], b)
     for t in range(p.cavity_points.shape[0]):
@@ -621,10 +622,11 @@ class LigatingLoopEnv(BatchedEnv):
         inv = wp.transform_inverse(self._start_tip)
         x = world.state.particle_q.numpy()[:, loop.particle_start:loop.particle_start + N]
         rot = np.asarray(wp.transform_get_rotation(inv))
-        local = np.einsum("ij,ekj->eki", _rotation_matrix(rot), x) + np.asarray(wp.transform_get_translation(inv))
+        matrix = np.asarray(wp.quat_to_matrix(wp.transform_get_rotation(inv)), np.float64).reshape(3, 3)
+        local = np.einsum("ij,ekj->eki", matrix, x) + np.asarray(wp.transform_get_translation(inv))
         S = loop.segment_start
         seg = world.state.segment_q.numpy()[:, S:S + N - 1]
-        rel = _quat_mul_many(rot, seg)
+        rel = np.moveaxis(_quat_mul(rot, np.moveaxis(seg, -1, 0)), 0, -1)
         self._bank_q = wp.array(local.astype(np.float32), dtype=wp.vec3, device=dev)
         self._bank_rel = wp.array(rel.astype(np.float32), dtype=wp.quat, device=dev)
         self._bank_stable = not world.unstable.numpy().any()
@@ -750,21 +752,6 @@ class LigatingLoopEnv(BatchedEnv):
                     band_start=wp.to_torch(self.task.band_start))
 
 
-def _rotation_matrix(q: np.ndarray) -> np.ndarray:
-    x, y, z, w = q
-    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
-
-
-def _quat_mul_many(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """``a * b`` for one xyzw quaternion ``a`` and an array ``b`` (..., 4)."""
-    ax, ay, az, aw = a
-    bx, by, bz, bw = np.moveaxis(b, -1, 0)
-    return np.stack([aw * bx + ax * bw + ay * bz - az * by, aw * by - ax * bz + ay * bw + az * bx,
-                     aw * bz + ax * by - ay * bx + az * bw, aw * bw - ax * bx - ay * by - az * bz], axis=-1)
-
-
 # ---------------------------------------------------------------------------- expert
 APPROACH, SLIDE, CLOSE, REOPEN = 0, 1, 2, 3
 
@@ -803,7 +790,7 @@ def expert_commands(q: wp.array2d(dtype=wp.vec3), ptsd: wp.array2d(dtype=wp.vec4
             target = wp.vec3(top[0], top[1], center[2])
         if center[2] < band + tolerance:
             ph = CLOSE
-    ratio = float(a - num_nodes + 1) / float(6 - num_nodes)
+    ratio = closed_ratio(a, num_nodes)
     if ph == CLOSE and ratio > target_ratio + retry_margin:
         # closed past the target without success (the loop slipped off the band or its centre left the squeezed
         # cylinder): open it part of the way and close it again
@@ -866,9 +853,7 @@ class LigatingLoopExpert(Expert):
         n, dev = env.num_envs, env.wp_device
         self.phase = wp.zeros(n, dtype=wp.int32, device=dev)
         self.error = wp.zeros((n, 5), dtype=float, device=dev)
-        cfg = env.cfg
-        scale = np.append(env.rig.action_scale(cfg.time_step * cfg.frame_skip), 1.0)
-        self.step_size = torch.tensor(scale, dtype=torch.float32, device=env.device)
+        self.step_size = self.rig_step_size(1.0)  # the closing column: its command is the action
 
     def __call__(self, obs=None) -> torch.Tensor:
         env, rig, s = self.env, self.env.rig, self.env.world.state
@@ -882,4 +867,4 @@ class LigatingLoopExpert(Expert):
         return self.policy_actions(wp.to_torch(self.error) / self.step_size)
 
 
-__all__ = ["LigatingLoopConfig", "LigatingLoopEnv", "LigatingLoopExpert", "closed_ratio", "loop_points"]
+__all__ = ["LigatingLoopConfig", "LigatingLoopEnv", "LigatingLoopExpert", "loop_points"]

@@ -24,6 +24,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
+from lapwarp.builder import _quat_mul
 from lapwarp.kernels.geometry import interpolate_transform
 
 wp.set_module_options({"enable_backward": False})
@@ -92,40 +93,51 @@ def segment_target(g: LoopGeometry, pin: int) -> wp.quat:
     return g.rel_inside
 
 
-@wp.kernel
-def pin_loop(g: LoopGeometry, pins: LoopPins, body_q_prev: wp.array2d(dtype=wp.transform),
-             q: wp.array2d(dtype=wp.vec3), segment_q: wp.array2d(dtype=wp.quat), first_blend: float,
-             attach_particle: wp.array2d(dtype=wp.int32), attach_body: wp.array2d(dtype=wp.int32),
-             attach_offset: wp.array2d(dtype=wp.vec3), attach_compliance: wp.array2d(dtype=float)):
-    """Start of a physics step: the pins of the current active index, each moving from where it is now."""
-    env, k = wp.tid()
-    a = pins.active_index[env]
-    start = body_q_prev[env, g.body]
-    inv = wp.transform_inverse(start)
+@wp.func
+def write_pins(env: int, k: int, g: LoopGeometry, pins: LoopPins, a: int, frm: wp.vec3, rfrm: wp.quat, blend: float,
+               attach_particle: wp.array2d(dtype=wp.int32), attach_body: wp.array2d(dtype=wp.int32),
+               attach_offset: wp.array2d(dtype=wp.vec3), attach_compliance: wp.array2d(dtype=float)):
+    """Node ``k``'s pin (and segment ``k``'s) at active index ``a``, moving from ``frm`` / ``rfrm`` (tip frame) to its
+    place; the attachment offset at ``blend`` of the way."""
     if node_pinned(k, a) == 1:
-        frm = pins.off_to[env, k]
-        if attach_particle[env, k] < 0:
-            frm = wp.transform_point(inv, q[env, g.first + k])
-        pins.off_from[env, k] = frm
         to = pin_target(g, k, a)
+        pins.off_from[env, k] = frm
         pins.off_to[env, k] = to
         attach_particle[env, k] = g.first + k
         attach_body[env, k] = g.body
         attach_compliance[env, k] = 0.0
-        attach_offset[env, k] = frm + (to - frm) * first_blend
+        attach_offset[env, k] = frm + (to - frm) * blend
     else:
         attach_particle[env, k] = -1
     if k < g.nodes - 1:
         pin = segment_pin(g, k, a)
         if pin != 0:
-            rfrm = pins.rel_to[env, k]
-            if pins.pinned_segment[env, k] == 0:
-                rfrm = wp.normalize(wp.transform_get_rotation(inv) * segment_q[env, g.segment_first + k])
             pins.rel_from[env, k] = rfrm
             pins.rel_to[env, k] = segment_target(g, pin)
             pins.pinned_segment[env, k] = 1
         else:
             pins.pinned_segment[env, k] = 0
+
+
+@wp.kernel
+def pin_loop(g: LoopGeometry, pins: LoopPins, body_q_prev: wp.array2d(dtype=wp.transform),
+             q: wp.array2d(dtype=wp.vec3), segment_q: wp.array2d(dtype=wp.quat), first_blend: float,
+             attach_particle: wp.array2d(dtype=wp.int32), attach_body: wp.array2d(dtype=wp.int32),
+             attach_offset: wp.array2d(dtype=wp.vec3), attach_compliance: wp.array2d(dtype=float)):
+    """Start of a physics step: the pins of the current active index, each moving from where it is now (a pin that
+    was already held continues from its last target)."""
+    env, k = wp.tid()
+    inv = wp.transform_inverse(body_q_prev[env, g.body])
+    frm = pins.off_to[env, k]
+    if attach_particle[env, k] < 0:
+        frm = wp.transform_point(inv, q[env, g.first + k])
+    rfrm = wp.quat_identity()
+    if k < g.nodes - 1:
+        rfrm = pins.rel_to[env, k]
+        if pins.pinned_segment[env, k] == 0:
+            rfrm = wp.normalize(wp.transform_get_rotation(inv) * segment_q[env, g.segment_first + k])
+    write_pins(env, k, g, pins, pins.active_index[env], frm, rfrm, first_blend, attach_particle, attach_body,
+               attach_offset, attach_compliance)
 
 
 @wp.kernel
@@ -155,25 +167,8 @@ def settle_loop_pins(env_mask: wp.array(dtype=wp.int32), g: LoopGeometry, pins: 
     if env_mask[env] == 0:
         return
     a = pins.active_index[env]
-    if node_pinned(k, a) == 1:
-        to = pin_target(g, k, a)
-        pins.off_from[env, k] = to
-        pins.off_to[env, k] = to
-        attach_particle[env, k] = g.first + k
-        attach_body[env, k] = g.body
-        attach_compliance[env, k] = 0.0
-        attach_offset[env, k] = to
-    else:
-        attach_particle[env, k] = -1
-    if k < g.nodes - 1:
-        pin = segment_pin(g, k, a)
-        if pin != 0:
-            rto = segment_target(g, pin)
-            pins.rel_from[env, k] = rto
-            pins.rel_to[env, k] = rto
-            pins.pinned_segment[env, k] = 1
-        else:
-            pins.pinned_segment[env, k] = 0
+    write_pins(env, k, g, pins, a, pin_target(g, k, a), segment_target(g, segment_pin(g, k, a)), 1.0,
+               attach_particle, attach_body, attach_offset, attach_compliance)
 
 
 def _quat_between(u: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -181,13 +176,6 @@ def _quat_between(u: np.ndarray, v: np.ndarray) -> np.ndarray:
     c = np.cross(u, v)
     q = np.array([c[0], c[1], c[2], 1.0 + float(np.dot(u, v))])
     return q / np.linalg.norm(q)
-
-
-def _quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    ax, ay, az, aw = a
-    bx, by, bz, bw = b
-    return np.array([aw * bx + ax * bw + ay * bz - az * by, aw * by - ax * bz + ay * bw + az * bx,
-                     aw * bz + ax * by - ay * bx + az * bw, aw * bw - ax * bx - ay * by - az * bz])
 
 
 def _rotate(q: np.ndarray, v: np.ndarray) -> np.ndarray:

@@ -690,9 +690,7 @@ class ThreadInHoleExpert(Expert):
         self.gain, self.damping = float(gain), float(damping)
         self.max_step = float(max_step if max_step is not None else (1.0 if env.is_discrete else 0.002))
         self.error = wp.zeros((env.num_envs, 4), dtype=float, device=env.wp_device)
-        cfg = env.cfg
-        self.step_size = torch.tensor(env.rig.action_scale(cfg.time_step * cfg.frame_skip), dtype=torch.float32,
-                                      device=env.device)
+        self.step_size = self.rig_step_size()
 
     def __call__(self, obs=None) -> torch.Tensor:
         env, rig, s = self.env, self.env.rig, self.env.world.state
