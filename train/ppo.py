@@ -4,6 +4,7 @@
     python train/ppo.py --task Reach --device cuda:0 --preset gpu
     python train/ppo.py --task Reach --preset paper       # the paper's PPO table (8 envs, 4 stacked frames)
     python train/ppo.py --play runs/Reach/<run>/model_99.pt
+    torchrun --nproc_per_node=2 train/ppo.py --task Reach --distributed   # one process per GPU, --num-envs per GPU
 
 Presets:
     paper  the LapGym paper's PPO (Table "Hyperparameters of PPO"): 8 envs, 128 steps per env per update,
@@ -18,6 +19,11 @@ Presets:
 Every preset builds the env with ``invalid_actions="zero"``: a non-finite action (a diverged policy) is zeroed on the
 device and counted, with no host sync per step (the env's default, "raise", checks every step on the host). The
 counts are in rsl-rl's logs (``/action/...``) and the progress line names any fault that occurred in an iteration.
+
+With ``--distributed`` (under torchrun) every process builds ``--num-envs`` envs on ``cuda:<LOCAL_RANK>`` with the seed
+``seed + rank * 2**32`` (``train/rank_setup.py``), rsl-rl averages the gradients over NCCL, and only rank 0 prints,
+writes logs and checkpoints and runs the final evaluation; the progress and final lines report success and env-steps/s
+summed over all ranks.
 """
 
 from __future__ import annotations
@@ -33,6 +39,17 @@ import time
 from datetime import datetime
 
 import torch
+import torch.distributed as dist
+from rank_setup import (
+    DistributedRunner,
+    bind_device,
+    cuda_contexts,
+    gather_objects,
+    init_process_group,
+    rank_settings,
+    single_process_settings,
+    sum_over_ranks,
+)
 from rsl_rl.algorithms import PPO
 from rsl_rl.runners import OnPolicyRunner
 
@@ -165,14 +182,15 @@ def fault_summary(logs: list[dict]) -> str:
     return f"  [{', '.join(parts)}]" if parts else ""
 
 
-def compact_progress(runner: OnPolicyRunner, env, verbose: bool) -> None:
-    """Replace rsl-rl's 20-line block per iteration by one line (``--verbose`` keeps the block)."""
+def compact_progress(runner: OnPolicyRunner, env, verbose: bool, main_rank: bool = True) -> None:
+    """Replace rsl-rl's 20-line block per iteration by one line (``--verbose`` keeps the block). Under
+    ``--distributed`` the success rate and env-steps/s are summed over ranks and only rank 0 prints."""
     original = runner.logger.log
 
     def log(**kwargs):
         # read the iteration's fault counts before rsl-rl's log clears them (one host sync per iteration)
         faults = fault_summary(runner.logger.ep_extras)
-        if verbose:
+        if verbose and main_rank:
             original(**kwargs)
         else:
             with contextlib.redirect_stdout(io.StringIO()):
@@ -180,47 +198,80 @@ def compact_progress(runner: OnPolicyRunner, env, verbose: bool) -> None:
         it, total = kwargs["it"], kwargs["total_it"]
         t = env._t
         finished = t["finished_episodes"] > 0
-        success = float((t["last_episode_success"] * finished).sum() / finished.sum().clamp(min=1))
+        steps = runner.cfg["num_steps_per_env"] * env.num_envs
+        seconds = max(kwargs["collect_time"] + kwargs["learn_time"], 1e-9)
+        # one collective per iteration (every rank calls log): successes, finished envs, env-steps/s
+        successes, finished_envs, fps = sum_over_ranks(
+            [float((t["last_episode_success"] * finished).sum()), float(finished.sum()), steps / seconds], env.device)
+        if not main_rank:
+            return
+        success = successes / max(finished_envs, 1.0)
         rewards = runner.logger.rewbuffer
         mean_return = statistics.mean(rewards) if rewards else float("nan")
-        steps = runner.cfg["num_steps_per_env"] * env.num_envs
-        fps = steps / max(kwargs["collect_time"] + kwargs["learn_time"], 1e-9)
         print(f"it {it + 1:5d}/{total}  return {mean_return:9.2f}  success {success:6.1%}  "
               f"lr {kwargs['learning_rate']:.2e}  {fps:,.0f} steps/s{faults}", flush=True)
 
     runner.logger.log = log
 
 
+def parameter_checksum(runner: OnPolicyRunner) -> float:
+    """Sum of every actor and critic parameter (ranks that averaged their gradients agree on it)."""
+    with torch.no_grad():
+        return float(sum(p.double().sum() for m in (runner.alg.actor, runner.alg.critic) for p in m.parameters()))
+
+
 def main(argv: list[str] | None = None) -> int:
+    # ranks other than 0 train silently (rsl-rl prints its models and set-up on every rank); warnings and errors
+    # still reach stderr
+    with contextlib.ExitStack() as quiet:
+        return train(argv, quiet)
+
+
+def train(argv: list[str] | None, quiet: contextlib.ExitStack) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--task", default="Reach", choices=lapwarp.list_tasks())
-    parser.add_argument("--device", default="cuda:0" if torch.cuda.is_available() else "cpu")
+    parser.add_argument("--device", default=None,
+                        help="torch/Warp device (default: cuda:0, or cuda:<LOCAL_RANK> with --distributed; cpu "
+                             "without CUDA)")
     parser.add_argument("--preset", choices=["paper", "gpu", "cpu"], default=None,
                         help="hyper-parameter preset (default: gpu on CUDA, cpu otherwise)")
     parser.add_argument("--obs", choices=["state", "rgb", "rgbd", "depth"], default="state",
                         help="observation type (images use the paper's NatureCNN encoders)")
     parser.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
                         help="task config overrides, values parsed as JSON (e.g. sphere_radius=0.02)")
-    parser.add_argument("--num-envs", type=int, default=None)
+    parser.add_argument("--num-envs", type=int, default=None,
+                        help="training envs (per process, i.e. per GPU, with --distributed)")
     parser.add_argument("--max-iterations", type=int, default=None)
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=int, default=0, help="seed (rank r of --distributed uses seed + r * 2**32)")
     parser.add_argument("--log-dir", default="runs")
     parser.add_argument("--resume", default=None, help="checkpoint to continue training from")
     parser.add_argument("--play", default=None, help="checkpoint to evaluate (no training)")
     parser.add_argument("--eval-envs", type=int, default=256, help="envs used for the final evaluation")
+    parser.add_argument("--distributed", action="store_true",
+                        help="one process per GPU under torchrun (reads WORLD_SIZE, RANK, LOCAL_RANK)")
     parser.add_argument("--verbose", action="store_true", help="print rsl-rl's full block per iteration")
     args = parser.parse_args(argv)
 
     start = time.time()
-    preset = args.preset or ("gpu" if args.device.startswith("cuda") else "cpu")
+    throughput = ""
+    if args.distributed:
+        if args.play:
+            parser.error("--play evaluates in one process; leave out --distributed")
+        try:
+            ranks = rank_settings(os.environ, args.seed, args.device, torch.cuda.is_available())
+        except ValueError as exc:
+            parser.error(str(exc))
+    else:
+        ranks = single_process_settings(args.seed, args.device or ("cuda:0" if torch.cuda.is_available() else "cpu"))
+    device = ranks.device
+    preset = args.preset or ("gpu" if device.startswith("cuda") else "cpu")
     num_envs = PRESET_DEFAULTS[preset][0] if args.num_envs is None else args.num_envs
     iterations = PRESET_DEFAULTS[preset][1] if args.max_iterations is None else args.max_iterations
     if num_envs < 1 or iterations < 1 or args.eval_envs < 1:
         parser.error(f"--num-envs, --max-iterations and --eval-envs must be positive, got {num_envs}, {iterations} "
                      f"and {args.eval_envs}")
-    torch.manual_seed(args.seed)
     train_cfg, env_overrides = preset_config(preset, num_envs, iterations)
-    train_cfg["seed"] = args.seed
+    train_cfg["seed"] = ranks.seed
     if args.obs != "state":
         env_overrides["observation_type"] = args.obs.upper()
         use_images(train_cfg)
@@ -236,28 +287,54 @@ def main(argv: list[str] | None = None) -> int:
     for option, path in (("--play", args.play), ("--resume", args.resume)):
         if path and not os.path.isfile(path):
             parser.error(f"{option} {path!r} is not a file")
+    if not ranks.is_main:
+        quiet.enter_context(contextlib.redirect_stdout(io.StringIO()))
+    if ranks.distributed:
+        bind_device(device)  # before Warp or NCCL touch any GPU
+        init_process_group(ranks)
+    torch.manual_seed(ranks.seed)
     try:  # bad config values end as one usage line, not a traceback
-        env = lapwarp.make(args.task, num_envs=num_envs, device=args.device, seed=args.seed, **env_overrides)
+        env = lapwarp.make(args.task, num_envs=num_envs, device=device, seed=ranks.seed, **env_overrides)
     except ValueError as exc:
         parser.error(str(exc))
-    run_dir = None if args.play else os.path.join(
+    run_dir = None if args.play or not ranks.is_main else os.path.join(
         args.log_dir, args.task, f"{datetime.now():%Y%m%d-%H%M%S}_{preset}_seed{args.seed}")
-    runner = OnPolicyRunner(env, train_cfg, log_dir=run_dir, device=args.device)
-    compact_progress(runner, env, args.verbose)
+    runner = DistributedRunner(env, train_cfg, log_dir=run_dir, device=device)
+    compact_progress(runner, env, args.verbose, ranks.is_main)
     checkpoint = args.play or args.resume
     if checkpoint:
-        runner.load(checkpoint, map_location=args.device)
-        print(f"loaded {checkpoint}")
+        runner.load(checkpoint, map_location=device)
+        if ranks.is_main:
+            print(f"loaded {checkpoint}")
     if not args.play:
-        print(f"training {args.task}: preset {preset}, {num_envs} envs on {args.device}, {iterations} iterations, "
-              f"logs in {run_dir}", flush=True)
+        contexts = gather_objects(cuda_contexts()) if ranks.distributed else None
+        if ranks.is_main:
+            where = (f"{ranks.world_size} processes x {num_envs} envs (per rank; Warp CUDA contexts by rank: "
+                     f"{contexts})" if ranks.distributed else f"{num_envs} envs on {device}")
+            print(f"training {args.task}: preset {preset}, {where}, {iterations} iterations, logs in {run_dir} "
+                  f"(start-up {time.time() - start:.1f} s)", flush=True)
+        train_start = time.time()
         runner.learn(num_learning_iterations=iterations, init_at_random_ep_len=True)
-    policy = runner.get_inference_policy(device=args.device)
-    eval_env = lapwarp.make(args.task, num_envs=args.eval_envs, device=args.device, seed=args.seed + 12345,
+        train_seconds = time.time() - train_start
+        env_steps = iterations * train_cfg["num_steps_per_env"] * num_envs
+        total_steps, = sum_over_ranks([env_steps], device)
+        checksums = gather_objects(parameter_checksum(runner)) if ranks.distributed else None
+        throughput = f", training {total_steps / train_seconds:,.0f} env-steps/s on {ranks.world_size} process(es)"
+        if ranks.is_main:
+            agree = "" if checksums is None else (
+                f", policy parameters identical on all ranks: {'yes' if len(set(checksums)) == 1 else checksums}")
+            print(f"trained {total_steps:,.0f} env-steps on {ranks.world_size} process(es) in {train_seconds:.1f} s: "
+                  f"{total_steps / train_seconds:,.0f} env-steps/s{agree}", flush=True)
+    if ranks.distributed:
+        dist.destroy_process_group()
+        if not ranks.is_main:
+            return 0
+    policy = runner.get_inference_policy(device=device)
+    eval_env = lapwarp.make(args.task, num_envs=args.eval_envs, device=device, seed=args.seed + 12345,
                             **env_overrides)
     success, mean_return = evaluate(eval_env, policy)
     print(f"evaluation on {args.eval_envs} episodes: success rate {success:.1%}, mean return {mean_return:.2f} "
-          f"(wall time {time.time() - start:.1f} s)", flush=True)
+          f"(wall time {time.time() - start:.1f} s{throughput})", flush=True)
     return 0
 
 
