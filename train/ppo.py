@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import csv
 import io
 import json
 import os
@@ -182,14 +183,44 @@ def fault_summary(logs: list[dict]) -> str:
     return f"  [{', '.join(parts)}]" if parts else ""
 
 
-def compact_progress(runner: OnPolicyRunner, env, verbose: bool, main_rank: bool = True) -> None:
+def reward_means(logs: list[dict]) -> dict[str, float]:
+    """Mean over an iteration's step logs of every weighted reward term (``/reward/<feature>``)."""
+    keys = dict.fromkeys(k for entry in logs for k in entry if k.startswith("/reward/"))
+    return {key[len("/reward/"):]: float(torch.stack([torch.as_tensor(e[key], dtype=torch.float32) for e in logs
+                                                      if key in e]).mean()) for key in keys}
+
+
+class ProgressCsv:
+    """One row per training iteration: env-steps (all ranks), wall seconds since training began, training success,
+    mean return and the mean of every weighted reward term (the learning-results runner reads these files)."""
+
+    def __init__(self, path: str):
+        self.path = path
+        self.start = time.time()
+        self.columns: list[str] | None = None
+        os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+
+    def write(self, row: dict) -> None:
+        if self.columns is None:
+            self.columns = list(row)
+            with open(self.path, "w", newline="") as f:
+                csv.writer(f).writerow(self.columns)
+        with open(self.path, "a", newline="") as f:
+            csv.writer(f).writerow([row.get(c, "") for c in self.columns])
+
+
+def compact_progress(runner: OnPolicyRunner, env, verbose: bool, main_rank: bool = True,
+                     progress_csv: ProgressCsv | None = None, world_size: int = 1) -> None:
     """Replace rsl-rl's 20-line block per iteration by one line (``--verbose`` keeps the block). Under
-    ``--distributed`` the success rate and env-steps/s are summed over ranks and only rank 0 prints."""
+    ``--distributed`` the success rate and env-steps/s are summed over ranks and only rank 0 prints (the return and
+    the reward terms are rank 0's)."""
     original = runner.logger.log
 
     def log(**kwargs):
-        # read the iteration's fault counts before rsl-rl's log clears them (one host sync per iteration)
+        # read the iteration's fault counts and reward terms before rsl-rl's log clears them (one host sync per
+        # iteration)
         faults = fault_summary(runner.logger.ep_extras)
+        rewards_by_term = reward_means(runner.logger.ep_extras) if progress_csv is not None else {}
         if verbose and main_rank:
             original(**kwargs)
         else:
@@ -206,10 +237,16 @@ def compact_progress(runner: OnPolicyRunner, env, verbose: bool, main_rank: bool
         if not main_rank:
             return
         success = successes / max(finished_envs, 1.0)
-        rewards = runner.logger.rewbuffer
-        mean_return = statistics.mean(rewards) if rewards else float("nan")
+        returns = runner.logger.rewbuffer
+        mean_return = statistics.mean(returns) if returns else float("nan")
         print(f"it {it + 1:5d}/{total}  return {mean_return:9.2f}  success {success:6.1%}  "
               f"lr {kwargs['learning_rate']:.2e}  {fps:,.0f} steps/s{faults}", flush=True)
+        if progress_csv is not None:
+            row = {"iteration": it + 1, "env_steps": (it + 1) * steps * world_size,
+                   "wall_s": round(time.time() - progress_csv.start, 3), "success": success,
+                   "mean_return": mean_return}
+            row.update({f"reward/{k}": v for k, v in rewards_by_term.items()})
+            progress_csv.write(row)
 
     runner.logger.log = log
 
@@ -218,6 +255,17 @@ def parameter_checksum(runner: OnPolicyRunner) -> float:
     """Sum of every actor and critic parameter (ranks that averaged their gradients agree on it)."""
     with torch.no_grad():
         return float(sum(p.double().sum() for m in (runner.alg.actor, runner.alg.critic) for p in m.parameters()))
+
+
+def device_name(device: str) -> str:
+    """The GPU's name (``NVIDIA H100 80GB HBM3``) or ``cpu``."""
+    return torch.cuda.get_device_name(torch.device(device)) if device.startswith("cuda") else "cpu"
+
+
+def write_result(path: str, **result) -> None:
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+    with open(path, "w") as f:
+        json.dump(result, f, indent=1, default=str)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -249,11 +297,16 @@ def train(argv: list[str] | None, quiet: contextlib.ExitStack) -> int:
     parser.add_argument("--eval-envs", type=int, default=256, help="envs used for the final evaluation")
     parser.add_argument("--distributed", action="store_true",
                         help="one process per GPU under torchrun (reads WORLD_SIZE, RANK, LOCAL_RANK)")
+    parser.add_argument("--progress-csv", default=None, metavar="CSV",
+                        help="write one row per iteration (env-steps, wall seconds, success, return, reward terms)")
+    parser.add_argument("--result-json", default=None, metavar="JSON",
+                        help="write the run's final figures (evaluation success, env-steps, times, device)")
     parser.add_argument("--verbose", action="store_true", help="print rsl-rl's full block per iteration")
     args = parser.parse_args(argv)
 
     start = time.time()
     throughput = ""
+    total_steps, train_seconds = 0, 0.0
     if args.distributed:
         if args.play:
             parser.error("--play evaluates in one process; leave out --distributed")
@@ -300,7 +353,8 @@ def train(argv: list[str] | None, quiet: contextlib.ExitStack) -> int:
     run_dir = None if args.play or not ranks.is_main else os.path.join(
         args.log_dir, args.task, f"{datetime.now():%Y%m%d-%H%M%S}_{preset}_seed{args.seed}")
     runner = DistributedRunner(env, train_cfg, log_dir=run_dir, device=device)
-    compact_progress(runner, env, args.verbose, ranks.is_main)
+    progress_csv = ProgressCsv(args.progress_csv) if args.progress_csv and ranks.is_main and not args.play else None
+    compact_progress(runner, env, args.verbose, ranks.is_main, progress_csv, ranks.world_size)
     checkpoint = args.play or args.resume
     if checkpoint:
         runner.load(checkpoint, map_location=device)
@@ -314,6 +368,8 @@ def train(argv: list[str] | None, quiet: contextlib.ExitStack) -> int:
             print(f"training {args.task}: preset {preset}, {where}, {iterations} iterations, logs in {run_dir} "
                   f"(start-up {time.time() - start:.1f} s)", flush=True)
         train_start = time.time()
+        if progress_csv is not None:
+            progress_csv.start = train_start
         runner.learn(num_learning_iterations=iterations, init_at_random_ep_len=True)
         train_seconds = time.time() - train_start
         env_steps = iterations * train_cfg["num_steps_per_env"] * num_envs
@@ -333,6 +389,12 @@ def train(argv: list[str] | None, quiet: contextlib.ExitStack) -> int:
     eval_env = lapwarp.make(args.task, num_envs=args.eval_envs, device=device, seed=args.seed + 12345,
                             **env_overrides)
     success, mean_return = evaluate(eval_env, policy)
+    if args.result_json:
+        write_result(args.result_json, task=args.task, obs=args.obs, preset=preset, settings=env_overrides,
+                     seed=args.seed, num_envs_per_rank=num_envs, world_size=ranks.world_size, iterations=iterations,
+                     env_steps=int(total_steps), train_s=round(train_seconds, 3), wall_s=round(time.time() - start, 3),
+                     eval_episodes=args.eval_envs, success=success, mean_return=mean_return,
+                     device=device_name(device), checkpoint=args.play)
     print(f"evaluation on {args.eval_envs} episodes: success rate {success:.1%}, mean return {mean_return:.2f} "
           f"(wall time {time.time() - start:.1f} s{throughput})", flush=True)
     return 0

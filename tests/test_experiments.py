@@ -1,0 +1,107 @@
+"""``train/experiments.py`` (issue #19): the runner's files on a tiny CPU run, its summary format and its rows."""
+
+from __future__ import annotations
+
+import csv
+import json
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "train"))
+
+import experiments  # noqa: E402
+
+TINY = {"tiny": experiments.Experiment("tiny", "one Reach row", [
+    experiments.Row("reach", "Reach", {"sphere_radius": 0.008, "randomize_start": True}, "state", 2, 1.0, "solved"),
+])}
+
+
+def test_rows_state_the_paper_configuration_in_set_syntax():
+    row = experiments.Row("x", "DeflectSpheres", {"num_deflect_to_win": 1, "single_instrument": True,
+                                                   "image_shape": [64, 64], "sampling_mode": "WITHOUT_REPLACEMENT"})
+    assert row.config_text() == ("num_deflect_to_win=1 single_instrument=True image_shape=[64,64] "
+                                 "sampling_mode=WITHOUT_REPLACEMENT")
+    names = [r.name for exp in experiments.EXPERIMENTS.values() for r in exp.rows]
+    assert len(names) == len(set(names))
+    spatial = {r.name: r for r in experiments.EXPERIMENTS["spatial-rgb"].rows}
+    # the paper's text: ~30 % for one sphere / one instrument, ~2 % for five spheres / two instruments from pixels
+    assert spatial["deflect-m1-b1-rgb"].paper_success == 0.3 and spatial["deflect-m5-b2-rgb"].paper_success == 0.02
+    assert len(experiments.EXPERIMENTS["spatial-state"].rows) == 9  # Reach, 6 x DeflectSpheres, 2 x SearchForPoint
+
+
+def test_every_row_config_is_valid_for_its_task():
+    """Every row's settings are config keys and values its task accepts (a typo would otherwise fail on the GPU)."""
+    from lapwarp.config import build_config
+    from lapwarp.registry import task_class
+
+    for exp in experiments.EXPERIMENTS.values():
+        for row in exp.rows:
+            env_class = task_class(row.task)
+            config = dict(row.config, observation_type=row.obs.upper())
+            if "image_shape" in config:
+                config["image_shape"] = tuple(config["image_shape"])
+            build_config(env_class.config_class, config).validate(env_class.rewards.names,
+                                                                  env_class.supported_observations)
+
+
+def test_tiny_cpu_run_writes_progress_results_summary_and_plots(tmp_path, capsys):
+    out = tmp_path / "learning"
+    args = ["tiny", "--seeds", "0", "1", "--preset", "cpu", "--num-envs", "4", "--eval-envs", "4", "--out", str(out),
+            "--log-dir", str(tmp_path / "runs"), "--devices", "cpu"]
+    assert experiments.main(args, TINY) == 0
+    row_dir = out / "tiny" / "reach"
+    for seed in (0, 1):
+        with open(row_dir / f"seed{seed}.csv", newline="") as f:
+            progress = list(csv.DictReader(f))
+        assert [int(r["iteration"]) for r in progress] == [1, 2]
+        assert [int(r["env_steps"]) for r in progress] == [128, 256]  # 4 envs x 32 steps per iteration
+        assert all(0.0 <= float(r["success"]) <= 1.0 for r in progress)
+        assert {"wall_s", "mean_return", "reward/distance_to_target"} <= set(progress[0])
+        result = json.loads((row_dir / f"seed{seed}.json").read_text())
+        assert result["seed"] == seed and result["env_steps"] == 256 and result["device"] == "cpu"
+        assert result["row"] == "reach" and result["config"] == "sphere_radius=0.008 randomize_start=True"
+        assert 0.0 <= result["success"] <= 1.0 and result["commit"]
+    with open(out / "tiny" / "summary.csv", newline="") as f:
+        reader = csv.DictReader(f)
+        summary = list(reader)
+    assert reader.fieldnames == experiments.SUMMARY_COLUMNS
+    assert len(summary) == 1
+    line = summary[0]
+    assert (line["task"], line["obs"], line["seeds"], line["env_steps"]) == ("Reach", "state", "0 1", "256")
+    assert line["config"] == "sphere_radius=0.008 randomize_start=True" and line["paper_success"] == "1.0"
+    mean = (json.loads((row_dir / "seed0.json").read_text())["success"]
+            + json.loads((row_dir / "seed1.json").read_text())["success"]) / 2
+    assert float(line["success_mean"]) == pytest.approx(mean, abs=1e-4)
+    assert (out / "tiny" / "reach.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    text = capsys.readouterr().out
+    assert "finished reach seed 1" in text and "summary:" in text
+
+    # --summarize-only re-reads the files; --skip-done starts nothing when every run has a result
+    (out / "tiny" / "summary.csv").unlink()
+    assert experiments.main(args + ["--summarize-only", "--no-plots"], TINY) == 0
+    assert (out / "tiny" / "summary.csv").is_file()
+    assert experiments.main(args + ["--skip-done", "--no-plots"], TINY) == 0
+    assert "started" not in capsys.readouterr().out
+
+
+def test_failed_run_is_reported(tmp_path, capsys):
+    bad = {"bad": experiments.Experiment("bad", "a config the task rejects", [
+        experiments.Row("reach", "Reach", {"sphere_radius": -1.0}, "state", 1)])}
+    args = ["bad", "--seeds", "0", "--preset", "cpu", "--num-envs", "2", "--out", str(tmp_path), "--no-plots",
+            "--log-dir", str(tmp_path / "runs"), "--devices", "cpu"]
+    assert experiments.main(args, bad) == 1
+    assert "FAILED reach seed 0" in capsys.readouterr().out
+    assert "sphere_radius" in (tmp_path / "bad" / "reach" / "seed0.log").read_text()
+
+
+def test_usage_errors(capsys):
+    with pytest.raises(SystemExit):
+        experiments.main(["nope"])
+    with pytest.raises(SystemExit):
+        experiments.main(["spatial-state", "--rows", "reach-nothing"])
+    assert "unknown row" in capsys.readouterr().err
+    assert experiments.main(["--list"]) == 0
+    assert "deflect-m5-b2-rgb" in capsys.readouterr().out

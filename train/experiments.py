@@ -1,0 +1,359 @@
+"""The paper's PPO table as named experiments: run every row over several seeds, record, summarise and plot (#19).
+
+    python train/experiments.py --list
+    python train/experiments.py spatial-state --seeds 0 1 2                # one GPU, runs one after another
+    python train/experiments.py spatial-rgb --seeds 0 1 2 --devices cuda:0 cuda:1   # one run per GPU at a time
+    python train/experiments.py spatial-state --rows reach-state --summarize-only   # re-read the files, re-plot
+
+An experiment is a list of rows; a row is one configuration of the paper's learning results (task, the config values
+that define it, observation type, iterations, the paper's final success). Each (row, seed) is one
+``train/ppo.py`` process, so runs are isolated, can use ``--distributed`` (``--nproc-per-run``) and can run side by
+side on several GPUs (``--devices``). Files, under ``--out`` (``benchmarks/results/learning``):
+
+    <experiment>/<row>/seed<k>.csv    per iteration: env_steps, wall_s, success (training), mean_return, reward/<term>
+    <experiment>/<row>/seed<k>.json   final: evaluation success (deterministic policy), env-steps, times, device
+    <experiment>/<row>/seed<k>.log    the run's console output
+    <experiment>/summary.csv          one line per row (columns ``SUMMARY_COLUMNS``)
+    <experiment>/<row>.png            success against env-steps and against wall time, the paper's value dashed
+
+The paper's values are read from its text (task-cards §13; its figures are not in our copy): "solved" is entered as
+1.0, "fails" as 0.0, and rows whose value the text does not give have none.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import os
+import statistics
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+ROOT = Path(__file__).resolve().parents[1]
+PPO_SCRIPT = ROOT / "train" / "ppo.py"
+DEFAULT_OUT = ROOT / "benchmarks" / "results" / "learning"
+
+SUMMARY_COLUMNS = ["row", "task", "config", "obs", "seeds", "env_steps", "success_mean", "success_std",
+                   "wall_s_per_run", "device", "commit", "paper_success", "paper_note"]
+
+
+@dataclass(frozen=True)
+class Row:
+    """One configuration of the paper's table."""
+
+    name: str
+    task: str
+    config: dict[str, Any]  # every setting that defines the paper's configuration (defaults included)
+    obs: str = "state"
+    iterations: int = 150  # gpu preset: 4,096 envs x 32 steps per iteration, 150 -> 19.7M env-steps
+    paper_success: float | None = None
+    paper_note: str = ""
+
+    def config_text(self) -> str:
+        """The config in ``--set`` syntax: space-separated ``KEY=VALUE`` (JSON values; strings bare)."""
+        return " ".join(f"{k}={_set_value(v)}" for k, v in self.config.items())
+
+
+@dataclass(frozen=True)
+class Experiment:
+    name: str
+    description: str
+    rows: list[Row] = field(default_factory=list)
+    preset: str = "gpu"
+
+
+def _set_value(value: Any) -> str:
+    if isinstance(value, str):
+        return value
+    if isinstance(value, bool):
+        return str(value)
+    return json.dumps(value, separators=(",", ":"))
+
+
+def _spatial_rows(obs: str) -> list[Row]:
+    image = obs != "state"
+    solved = (1.0, "text: state policies solve all spatial configurations")
+    rows = []
+    if image:
+        for radius, paper in ((0.003, (0.0, "text: image policies fail")), (0.008, (0.0, "text: image policies fail")),
+                              (0.02, (1.0, "text: solved with the 20 mm sphere"))):
+            rows.append(Row(f"reach-r{round(radius * 1000)}-{obs}", "Reach",
+                            {"sphere_radius": radius, "image_shape": [64, 64]}, obs, 150, *paper))
+    else:
+        # the state observation does not depend on the sphere's (visual) radius: one configuration
+        rows.append(Row("reach-state", "Reach", {"sphere_radius": 0.008}, obs, 150, *solved))
+    for to_win in (1, 2, 5):
+        for single in (True, False):
+            if image:
+                paper = {(1, True): (0.3, "text: roughly 30 % (simplest case)"),
+                         (5, False): (0.02, "text: roughly 2 % (most complex case)")}.get((to_win, single),
+                                                                                          (None, "not in the text"))
+            else:
+                paper = solved
+            config = {"num_spheres": 5, "num_deflect_to_win": to_win, "single_instrument": single}
+            if image:
+                config["image_shape"] = [64, 64]
+            rows.append(Row(f"deflect-m{to_win}-b{1 if single else 2}-{obs}", "DeflectSpheres", config, obs, 150,
+                            *paper))
+    for active in (False, True):
+        paper = (None, "text: image runs ended at 48 h before 1e7 steps") if image else solved
+        config = {"active_vision": active}
+        if image:
+            config["image_shape"] = [64, 64]
+        rows.append(Row(f"search-{'active' if active else 'camera'}-{obs}", "SearchForPoint", config, obs, 150,
+                        *paper))
+    return rows
+
+
+EXPERIMENTS: dict[str, Experiment] = {
+    "spatial-state": Experiment("spatial-state", "Spatial Reasoning track from state", _spatial_rows("state")),
+    "spatial-rgb": Experiment("spatial-rgb", "Spatial Reasoning track from 64x64 RGB", _spatial_rows("rgb")),
+}
+
+
+# ------------------------------------------------------------------------------------------------ running
+def git_commit() -> str:
+    """Short commit of the source tree, with ``-dirty`` when tracked files differ from it."""
+    try:
+        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True,
+                                check=True).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=ROOT,
+                               capture_output=True, text=True, check=True).stdout.strip()
+        return commit + ("-dirty" if dirty else "")
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+
+
+def run_paths(out: Path, experiment: str, row: str, seed: int) -> dict[str, Path]:
+    base = out / experiment / row
+    return {suffix: base / f"seed{seed}.{suffix}" for suffix in ("csv", "json", "log")}
+
+
+def run_command(row: Row, seed: int, preset: str, paths: dict[str, Path], device: str | None, nproc: int,
+                num_envs: int | None, iterations: int | None, eval_envs: int, log_dir: Path) -> list[str]:
+    """The ``train/ppo.py`` command line of one (row, seed)."""
+    launcher = [sys.executable]
+    if nproc > 1:
+        launcher += ["-m", "torch.distributed.run", "--standalone", f"--nproc_per_node={nproc}"]
+    cmd = launcher + [str(PPO_SCRIPT), "--task", row.task, "--obs", row.obs, "--preset", preset, "--seed", str(seed),
+                      "--max-iterations", str(iterations or row.iterations), "--eval-envs", str(eval_envs),
+                      "--log-dir", str(log_dir), "--progress-csv", str(paths["csv"]),
+                      "--result-json", str(paths["json"])]
+    if nproc > 1:
+        cmd.append("--distributed")
+    elif device:
+        cmd += ["--device", device]
+    if num_envs:
+        cmd += ["--num-envs", str(num_envs)]
+    if row.config:
+        cmd += ["--set", *[f"{k}={_set_value(v)}" for k, v in row.config.items()]]
+    return cmd
+
+
+def run_all(experiment: Experiment, rows: list[Row], seeds: list[int], out: Path, devices: list[str | None],
+            nproc: int, preset: str, num_envs: int | None, iterations: int | None, eval_envs: int,
+            skip_done: bool, log_dir: Path, stream=None) -> list[tuple[Row, int, int]]:
+    """Run every (row, seed), one run per entry of ``devices`` at a time (name a GPU twice to run two runs on it side by
+    side). Returns ``(row, seed, exit status)``."""
+    stream = stream or sys.stdout
+    commit = git_commit()
+    queue = [(row, seed) for row in rows for seed in seeds]
+    if skip_done:
+        queue = [(r, s) for r, s in queue if not run_paths(out, experiment.name, r.name, s)["json"].is_file()]
+    running: dict[int, tuple] = {}  # slot (index into devices; a device may be named more than once) -> run
+    results = []
+    while queue or running:
+        for slot, device in enumerate(devices):
+            if slot not in running and queue:
+                row, seed = queue.pop(0)
+                paths = run_paths(out, experiment.name, row.name, seed)
+                paths["csv"].parent.mkdir(parents=True, exist_ok=True)
+                for path in paths.values():
+                    path.unlink(missing_ok=True)
+                cmd = run_command(row, seed, preset, paths, device, nproc, num_envs, iterations, eval_envs, log_dir)
+                log = open(paths["log"], "w")
+                log.write(" ".join(cmd) + "\n")
+                log.flush()
+                env = dict(os.environ, PYTHONUNBUFFERED="1")
+                proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, cwd=ROOT, env=env)
+                running[slot] = (proc, row, seed, paths, log, time.time())
+                print(f"started {row.name} seed {seed} on {device or 'the default device'}", file=stream, flush=True)
+        time.sleep(0.2)
+        for slot, (proc, row, seed, paths, log, started) in list(running.items()):
+            status = proc.poll()
+            if status is None:
+                continue
+            log.close()
+            del running[slot]
+            if status == 0 and paths["json"].is_file():
+                result = json.loads(paths["json"].read_text())
+                result.update(commit=commit, row=row.name, config=row.config_text())
+                paths["json"].write_text(json.dumps(result, indent=1))
+                print(f"finished {row.name} seed {seed}: evaluation success {result['success']:.1%} in "
+                      f"{time.time() - started:.0f} s", file=stream, flush=True)
+            else:
+                print(f"FAILED {row.name} seed {seed} (exit {status}); see {paths['log']}", file=stream, flush=True)
+            results.append((row, seed, status))
+    return results
+
+
+# ------------------------------------------------------------------------------------------------ summary
+def summarize(experiment: Experiment, rows: list[Row], out: Path) -> list[dict]:
+    """Write ``<experiment>/summary.csv`` from the runs' JSON files (rows without finished runs are left out)."""
+    lines = []
+    for row in rows:
+        results = []
+        for path in sorted((out / experiment.name / row.name).glob("seed*.json")):
+            results.append(json.loads(path.read_text()))
+        if not results:
+            continue
+        successes = [r["success"] for r in results]
+        lines.append({
+            "row": row.name, "task": row.task, "config": row.config_text(), "obs": row.obs,
+            "seeds": " ".join(str(r["seed"]) for r in sorted(results, key=lambda r: r["seed"])),
+            "env_steps": results[0]["env_steps"],
+            "success_mean": round(statistics.fmean(successes), 4),
+            "success_std": round(statistics.pstdev(successes), 4) if len(successes) > 1 else 0.0,
+            "wall_s_per_run": round(statistics.fmean(r["wall_s"] for r in results), 1),
+            "device": " / ".join(sorted({r["device"] for r in results})),
+            "commit": " / ".join(sorted({r.get("commit", "unknown") for r in results})),
+            "paper_success": "" if row.paper_success is None else row.paper_success,
+            "paper_note": row.paper_note,
+        })
+    path = out / experiment.name / "summary.csv"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=SUMMARY_COLUMNS)
+        writer.writeheader()
+        writer.writerows(lines)
+    return lines
+
+
+def read_progress(path: Path) -> dict[str, list[float]]:
+    with open(path, newline="") as f:
+        rows = list(csv.DictReader(f))
+    return {key: [float(r[key]) for r in rows] for key in ("env_steps", "wall_s", "success")}
+
+
+def plot_rows(experiment: Experiment, rows: list[Row], out: Path) -> list[Path]:
+    """One PNG per row: training success against env-steps and against wall seconds, one line per seed, the
+    paper's final value dashed. Needs matplotlib (``pip install "lapwarp[plots]"``)."""
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError as exc:
+        raise ImportError(f"plots need matplotlib: pip install \"lapwarp[plots]\" ({exc})") from None
+    written = []
+    for row in rows:
+        runs = sorted((out / experiment.name / row.name).glob("seed*.csv"))
+        if not runs:
+            continue
+        fig, axes = plt.subplots(1, 2, figsize=(9, 3.4), sharey=True)
+        for run in runs:
+            data = read_progress(run)
+            for ax, x in zip(axes, ("env_steps", "wall_s"), strict=True):
+                ax.plot(data[x], data["success"], label=run.stem, linewidth=1.2)
+        for ax, label in zip(axes, ("env-steps", "wall time (s)"), strict=True):
+            if row.paper_success is not None:
+                ax.axhline(row.paper_success, linestyle="--", color="k", linewidth=1, label="paper (final)")
+            ax.set_xlabel(label)
+            ax.set_ylim(-0.02, 1.02)
+            ax.grid(alpha=0.3)
+        axes[0].set_ylabel("training success")
+        axes[1].legend(fontsize=7, loc="lower right")
+        fig.suptitle(f"{row.name}: {row.task} {row.obs} {row.config_text()}", fontsize=9)
+        fig.tight_layout()
+        path = out / experiment.name / f"{row.name}.png"
+        fig.savefig(path, dpi=110)
+        plt.close(fig)
+        written.append(path)
+    return written
+
+
+# ------------------------------------------------------------------------------------------------ CLI
+def select_rows(experiment: Experiment, names: list[str] | None) -> list[Row]:
+    if not names:
+        return list(experiment.rows)
+    known = {row.name: row for row in experiment.rows}
+    unknown = [n for n in names if n not in known]
+    if unknown:
+        raise ValueError(f"unknown row(s) {unknown} of {experiment.name}; rows: {list(known)}")
+    return [known[n] for n in names]
+
+
+def main(argv: list[str] | None = None, experiments: dict[str, Experiment] | None = None) -> int:
+    experiments = EXPERIMENTS if experiments is None else experiments
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("experiment", nargs="?", help=f"one of {sorted(experiments)}")
+    parser.add_argument("--list", action="store_true", help="list the experiments and their rows")
+    parser.add_argument("--rows", nargs="+", default=None, help="only these rows (default: all)")
+    parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
+    parser.add_argument("--devices", nargs="+", default=[None],
+                        help="run one (row, seed) per entry at a time, e.g. cuda:0 cuda:1, or cuda:0 cuda:0 for two "
+                             "runs side by side on one GPU (default: one run at a time on ppo.py's device)")
+    parser.add_argument("--nproc-per-run", type=int, default=1,
+                        help="GPUs per run through torchrun and ppo.py --distributed (default 1)")
+    parser.add_argument("--preset", default=None, help="ppo.py preset (default: the experiment's, gpu)")
+    parser.add_argument("--num-envs", type=int, default=None, help="override the preset's envs (per rank)")
+    parser.add_argument("--iterations", type=int, default=None, help="override every row's iterations")
+    parser.add_argument("--eval-envs", type=int, default=256, help="episodes of the final evaluation")
+    parser.add_argument("--out", type=Path, default=DEFAULT_OUT)
+    parser.add_argument("--log-dir", type=Path, default=ROOT / "runs" / "experiments",
+                        help="rsl-rl's logs and checkpoints")
+    parser.add_argument("--skip-done", action="store_true", help="keep (row, seed) runs that already have a result")
+    parser.add_argument("--summarize-only", action="store_true", help="only rewrite summary.csv and the plots")
+    parser.add_argument("--no-plots", action="store_true")
+    args = parser.parse_args(argv)
+
+    if args.list:
+        for exp in experiments.values():
+            print(f"{exp.name}: {exp.description}")
+            for row in exp.rows:
+                paper = "-" if row.paper_success is None else f"{row.paper_success:.0%}"
+                print(f"  {row.name:24s} {row.task:16s} {row.obs:5s} paper {paper:>5s}  {row.config_text()}")
+        return 0
+    if args.experiment not in experiments:
+        parser.error(f"choose an experiment: {sorted(experiments)} (or --list)")
+    if args.nproc_per_run < 1 or (args.num_envs is not None and args.num_envs < 1) or args.eval_envs < 1 or (
+            args.iterations is not None and args.iterations < 1):
+        parser.error("--nproc-per-run, --num-envs, --iterations and --eval-envs must be positive")
+    if args.nproc_per_run > 1 and args.devices != [None]:
+        parser.error("--nproc-per-run uses torchrun's devices (cuda:0..N-1); leave out --devices")
+    experiment = experiments[args.experiment]
+    try:
+        rows = select_rows(experiment, args.rows)
+    except ValueError as exc:
+        parser.error(str(exc))
+    failed = []
+    if not args.summarize_only:
+        results = run_all(experiment, rows, args.seeds, args.out, args.devices, args.nproc_per_run,
+                          args.preset or experiment.preset, args.num_envs, args.iterations, args.eval_envs,
+                          args.skip_done, args.log_dir)
+        failed = [(row.name, seed) for row, seed, status in results if status != 0]
+    lines = summarize(experiment, rows, args.out)
+    for line in lines:
+        paper = "" if line["paper_success"] == "" else f" (paper {line['paper_success']:.0%})"
+        print(f"{line['row']:24s} success {line['success_mean']:.1%} +- {line['success_std']:.1%} over seeds "
+              f"{line['seeds']}, {line['wall_s_per_run']:.0f} s per run{paper}")
+    print(f"summary: {args.out / experiment.name / 'summary.csv'}")
+    if not args.no_plots:
+        try:
+            plots = plot_rows(experiment, rows, args.out)
+            print(f"plots: {len(plots)} PNG files in {args.out / experiment.name}")
+        except ImportError as exc:
+            print(f"no plots: {exc}", file=sys.stderr)
+    if failed:
+        print(f"failed runs: {failed}", file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
