@@ -2,10 +2,12 @@
 
     lapwarp list
     lapwarp run Reach --num-envs 16 --steps 300 --policy expert --save-images reach.png --usd reach.usda
+    lapwarp run Reach --num-envs 16 --steps 300 --policy expert --video reach.mp4 --image-size 128
     lapwarp bench Reach --device cuda:0 --num-envs 1024 16384
 
 ``run`` prints a progress bar (on a terminal) and a summary table: episodes finished, success rate, mean
-return and episode length of the finished episodes, env-steps/s. Usage errors and invalid settings (unknown
+return and episode length of the finished episodes, env-steps/s, and what was written (USD, PNG grid, MP4 video
+of the first ``--video-envs`` envs, one frame per step). Usage errors and invalid settings (unknown
 task, unknown config key, unsupported observation type) print one ``lapwarp: error: ...`` line and exit with
 status 2; ``main`` returns the exit status instead of raising, so it can be called in-process.
 """
@@ -27,6 +29,8 @@ USAGE_ERROR = 2  # argparse's exit status for bad arguments; used for invalid se
 RUN_ERROR = 1
 USD_ENVS = 4  # ``--usd`` records envs 0..min(num_envs, USD_ENVS) - 1
 IMAGE_ENVS = 64  # ``--save-images`` tiles at most this many envs (the first ones), so the PNG stays viewable
+VIDEO_ENVS = 16  # default of ``--video-envs``: envs tiled in each ``--video`` frame
+VIDEO_SIZE = 256  # default tile size of ``--video`` without ``--image-size``
 BENCH_SCRIPT = Path(__file__).resolve().parent.parent / "benchmarks" / "bench_env.py"
 
 
@@ -197,7 +201,7 @@ def _make_policy(env, name: str, seed: int):
 
 
 def cmd_run(args: argparse.Namespace, out: TextIO, err: TextIO) -> int:
-    """Build the env, run ``--steps`` steps of the policy, print a summary; optionally save images / USD."""
+    """Build the env, run ``--steps`` steps of the policy, print a summary; optionally save images / USD / a video."""
     import torch
     import warp as wp
 
@@ -210,10 +214,27 @@ def cmd_run(args: argparse.Namespace, out: TextIO, err: TextIO) -> int:
     save_images = Path(args.save_images) if args.save_images else None
     if save_images is not None and save_images.suffix.lower() != ".png":
         raise CliError(f"--save-images writes a PNG; give a path ending in .png, got {args.save_images!r}")
+    if save_images is not None:
+        from lapwarp.imaging import _pil_image
+
+        try:  # Pillow writes the PNG: say so before the run, not after it
+            _pil_image()
+        except ImportError as exc:
+            raise CliError(str(exc), RUN_ERROR) from None
     if args.usd and Path(args.usd).suffix not in (".usda", ".usd", ".usdc"):
         raise CliError(f"--usd path must end in .usda, .usd or .usdc, got {args.usd!r}")
+    video = Path(args.video) if args.video else None
+    if video is not None:
+        if video.suffix.lower() != ".mp4":
+            raise CliError(f"--video writes an MP4; give a path ending in .mp4, got {args.video!r}")
+        try:
+            from lapwarp.video import _video_modules
+
+            _video_modules()
+        except ImportError as exc:
+            raise CliError(str(exc), RUN_ERROR) from None
     try:  # before the env is built: a long run must not end in an unwritable path
-        for option, path in (("--save-images", save_images), ("--usd", args.usd)):
+        for option, path in (("--save-images", save_images), ("--usd", args.usd), ("--video", video)):
             if path:
                 check_output_path(path, option, make_dirs=args.mkdir)
     except ValueError as exc:
@@ -235,6 +256,15 @@ def cmd_run(args: argparse.Namespace, out: TextIO, err: TextIO) -> int:
         except ValueError as exc:
             raise CliError(str(exc)) from None
         recorder.record()
+    video_recorder = None
+    if video is not None:
+        from lapwarp.video import EnvVideoRecorder
+
+        try:
+            video_recorder = EnvVideoRecorder(env, video, tile_size=args.image_size or VIDEO_SIZE,
+                                              max_tiles=args.video_envs)
+        except ValueError as exc:
+            raise CliError(str(exc)) from None
 
     obs = env.get_observations()
     # Episode statistics accumulate on the device (no host sync per step); read at the end.
@@ -262,6 +292,8 @@ def cmd_run(args: argparse.Namespace, out: TextIO, err: TextIO) -> int:
                 overflow_sum += extras["log"]["/contact/overflow_fraction"] * env.num_envs
             if recorder is not None:
                 recorder.record()
+            if video_recorder is not None:
+                video_recorder.add_step(rewards, dones)
             if progress.enabled:
                 # on a GPU this is the launch rate (no sync per step); the summary's figure is synchronised
                 elapsed = time.perf_counter() - start
@@ -270,6 +302,8 @@ def cmd_run(args: argparse.Namespace, out: TextIO, err: TextIO) -> int:
         progress.close()
         if recorder is not None:  # keep what was recorded: the file is written only on close
             err.write(f"lapwarp: saved {recorder.num_frames} time samples to {recorder.close()}\n")
+        if video_recorder is not None and video_recorder.close():  # the frames so far make a playable file
+            err.write(f"lapwarp: saved {video_recorder.num_frames} video frames to {video}\n")
         raise
     if env.device.startswith("cuda"):
         torch.cuda.synchronize(env.device)
@@ -279,6 +313,7 @@ def cmd_run(args: argparse.Namespace, out: TextIO, err: TextIO) -> int:
 
     n_episodes = int(episodes)
     env_steps = args.steps * env.num_envs
+    recording = " and ".join(name for name, on in (("USD", recorder), ("video", video_recorder)) if on is not None)
     rows = [
         ["task", args.task],
         ["envs / device", f"{env.num_envs} / {env.device}"],
@@ -290,7 +325,7 @@ def cmd_run(args: argparse.Namespace, out: TextIO, err: TextIO) -> int:
         ["mean return", f"{float(return_sum) / n_episodes:.3f}" if n_episodes else "n/a"],
         ["mean episode length", f"{int(length_sum) / n_episodes:.1f}" if n_episodes else "n/a"],
         ["mean reward per step", f"{float(reward_sum) / env_steps:.4f}" if env_steps else "n/a"],
-        ["env-steps/s", f"{env_steps / elapsed:,.0f}" + (" (with USD recording)" if recorder else "")
+        ["env-steps/s", f"{env_steps / elapsed:,.0f}" + (f" (with {recording} recording)" if recording else "")
          if env_steps else "n/a"],
     ]
     if "/contact/overflow_fraction" in env.log_keys:
@@ -299,6 +334,11 @@ def cmd_run(args: argparse.Namespace, out: TextIO, err: TextIO) -> int:
     if recorder is not None:
         path = recorder.close()
         rows.append(["usd", f"{path} (envs 0..{len(recorder.env_ids) - 1}, {recorder.num_frames} time samples)"])
+    if video_recorder is not None:
+        frames, writer = video_recorder.close(), video_recorder.writer
+        size = video_recorder.tile_size
+        rows.append(["video", f"{video} ({frames} frames at {writer.fps:g} fps, {video_recorder.num_tiles} envs "
+                              f"tiled, {size}x{size} each)" if frames else f"none written ({args.steps} steps)"])
     if save_images is not None:
         rows.append(["images", _save_images(env, save_images, args.image_size or 128)])
     out.write(format_table(rows) + "\n")
@@ -369,17 +409,23 @@ def build_parser() -> argparse.ArgumentParser:
                                                     "sees a GPU, else cpu)")
     run.add_argument("--seed", type=int, default=0, help="seed of the env RNG and the random policy (default 0)")
     run.add_argument("--image-size", type=_positive_int, default=None,
-                     help="square image side in pixels for image observations (default: the task's) and for "
-                          "--save-images (default 128)")
+                     help="square image side in pixels for image observations (default: the task's), for "
+                          f"--save-images (default 128) and the tiles of --video (default {VIDEO_SIZE})")
     run.add_argument("--save-images", metavar="PNG", default=None,
                      help=f"after the run, render the envs (the first {IMAGE_ENVS} at most) and save the images "
                           "as one PNG grid")
     run.add_argument("--usd", metavar="FILE", default=None,
                      help=f"record envs 0..{USD_ENVS - 1} (at most) to a .usda/.usd/.usdc file, one time sample "
                           "per step")
+    run.add_argument("--video", metavar="MP4", default=None,
+                     help="record an MP4 video, one frame per step: the first --video-envs envs tiled, labelled with "
+                          "their running return and a green border on success (needs pip install "
+                          "\"lapwarp[video]\"; renders every env each step, so keep --num-envs small)")
+    run.add_argument("--video-envs", type=_positive_int, default=VIDEO_ENVS, metavar="N",
+                     help=f"envs tiled in each --video frame (the first ones; default {VIDEO_ENVS})")
     run.add_argument("--mkdir", action="store_true",
-                     help="create missing folders of the --usd and --save-images paths (otherwise an error before "
-                          "the run)")
+                     help="create missing folders of the --usd, --save-images and --video paths (otherwise an error "
+                          "before the run)")
     run.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
                      help="config overrides, values parsed as JSON (e.g. sphere_radius=0.02 action_type=DISCRETE)")
     progress = run.add_mutually_exclusive_group()

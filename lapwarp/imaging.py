@@ -1,12 +1,12 @@
-"""Image files without a PIL dependency: PNG writing/reading (zlib + struct) and image grids.
+"""Image files and image grids: PNG writing/reading (Pillow) and tiling per-env images into one grid.
 
-Used to look at renderer output (a grid of the per-env images) and by the golden-image tests.
+Used to look at renderer output (a grid of the per-env images), by ``lapwarp run --save-images``, by the rollout
+videos of :mod:`lapwarp.video` and by the golden-image tests. ``image_grid`` is NumPy only; ``write_png`` and
+``read_png`` need Pillow (``pip install "lapwarp[video]"``), imported when first called.
 """
 
 from __future__ import annotations
 
-import struct
-import zlib
 from pathlib import Path
 
 import numpy as np
@@ -14,7 +14,18 @@ import numpy as np
 __all__ = ["image_grid", "read_png", "save_image_grid", "write_png"]
 
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
-_COLOR_TYPES = {1: 0, 2: 4, 3: 2, 4: 6}  # channels -> PNG colour type (grey, grey+alpha, RGB, RGBA)
+_MODE_CHANNELS = {"L": 1, "LA": 2, "RGB": 3, "RGBA": 4}  # Pillow modes of 8-bit grey, grey+alpha, RGB, RGBA
+INSTALL_HINT = 'pip install "lapwarp[video]"'
+
+
+def _pil_image():
+    """``PIL.Image``, or an ImportError that says how to install it."""
+    try:
+        from PIL import Image
+    except ImportError as exc:
+        msg = f"reading and writing PNG files needs Pillow: {INSTALL_HINT} (or pip install pillow)"
+        raise ImportError(msg) from exc
+    return Image
 
 
 def _to_numpy(images) -> np.ndarray:
@@ -25,93 +36,61 @@ def _to_numpy(images) -> np.ndarray:
     return np.asarray(images)
 
 
-def _chunk(tag: bytes, data: bytes) -> bytes:
-    return struct.pack(">I", len(data)) + tag + data + struct.pack(">I", zlib.crc32(tag + data) & 0xFFFFFFFF)
-
-
 def write_png(path: str | Path, image) -> None:
-    """Writes an 8-bit PNG.
+    """Writes an 8-bit PNG (whatever the file suffix).
 
     Args:
         path: Output file.
         image: uint8 ``(H, W)``, ``(H, W, C)`` with C in 1..4 (grey, grey+alpha, RGB, RGBA); NumPy or torch.
+
+    Raises:
+        ValueError: not uint8, or not one of those shapes.
+        ImportError: Pillow is not installed.
     """
     img = _to_numpy(image)
     if img.dtype != np.uint8:
         raise ValueError(f"write_png expects uint8 pixels, got {img.dtype}")
     if img.ndim == 2:
         img = img[:, :, None]
-    if img.ndim != 3 or img.shape[2] not in _COLOR_TYPES or img.shape[0] < 1 or img.shape[1] < 1:
+    if img.ndim != 3 or img.shape[2] not in _MODE_CHANNELS.values() or img.shape[0] < 1 or img.shape[1] < 1:
         raise ValueError(f"write_png expects (H, W) or (H, W, C<=4), got {img.shape}")
-    h, w, c = img.shape
-    # Filter type 0 (none) on every row.
-    raw = np.concatenate([np.zeros((h, 1), np.uint8), np.ascontiguousarray(img).reshape(h, w * c)], axis=1)
-    header = struct.pack(">IIBBBBB", w, h, 8, _COLOR_TYPES[c], 0, 0, 0)
-    data = _PNG_SIGNATURE + _chunk(b"IHDR", header) + _chunk(b"IDAT", zlib.compress(raw.tobytes(), 6))
-    Path(path).write_bytes(data + _chunk(b"IEND", b""))
-
-
-def _paeth(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
-    p = a + b - c
-    pa, pb, pc = np.abs(p - a), np.abs(p - b), np.abs(p - c)
-    return np.where((pa <= pb) & (pa <= pc), a, np.where(pb <= pc, b, c))
+    image_cls = _pil_image()
+    img = np.ascontiguousarray(img[:, :, 0] if img.shape[2] == 1 else img)
+    image_cls.fromarray(img).save(Path(path), format="PNG")
 
 
 def read_png(path: str | Path) -> np.ndarray:
-    """Reads an 8-bit, non-interlaced grey / grey+alpha / RGB / RGBA PNG (any filter types).
+    """Reads an 8-bit grey / grey+alpha / RGB / RGBA PNG; palette PNGs come back as RGB (RGBA with transparency),
+    1-bit ones as grey.
 
     Returns:
-        uint8 ``(H, W, C)``.
+        uint8 ``(H, W, C)``, C = 1 (grey), 2 (grey+alpha), 3 (RGB) or 4 (RGBA).
+
+    Raises:
+        ValueError: not a PNG file, or a PNG with 16-bit or other non-8-bit samples.
+        ImportError: Pillow is not installed.
     """
-    data = Path(path).read_bytes()
-    if data[:8] != _PNG_SIGNATURE:
-        raise ValueError(f"{path} is not a PNG file")
-    pos, idat, header = 8, [], None
-    while pos < len(data):
-        (length,) = struct.unpack(">I", data[pos : pos + 4])
-        tag = data[pos + 4 : pos + 8]
-        body = data[pos + 8 : pos + 8 + length]
-        pos += 12 + length
-        if tag == b"IHDR":
-            header = struct.unpack(">IIBBBBB", body)
-        elif tag == b"IDAT":
-            idat.append(body)
-        elif tag == b"IEND":
-            break
-    if header is None:
-        raise ValueError(f"{path}: no IHDR chunk")
-    w, h, depth, color_type, _, _, interlace = header
-    channels = {v: k for k, v in _COLOR_TYPES.items()}.get(color_type)
-    if depth != 8 or channels is None or interlace != 0:
-        raise ValueError(f"{path}: only 8-bit non-interlaced grey/RGB(A) PNGs are supported")
-    stride = w * channels
-    raw = np.frombuffer(zlib.decompress(b"".join(idat)), np.uint8).reshape(h, stride + 1)
-    out = np.zeros((h, stride), np.int32)
-    prev = np.zeros(stride, np.int32)
-    for y in range(h):
-        kind, row = raw[y, 0], raw[y, 1:].astype(np.int32)
-        if kind == 0:
-            cur = row
-        elif kind == 2:
-            cur = (row + prev) & 0xFF
-        elif kind in (1, 3, 4):
-            # These depend on the already decoded left neighbour: decode pixel by pixel.
-            cur = np.zeros(stride, np.int32)
-            for x in range(stride):
-                left = cur[x - channels] if x >= channels else 0
-                up_left = prev[x - channels] if x >= channels else 0
-                if kind == 1:
-                    pred = left
-                elif kind == 3:
-                    pred = (left + prev[x]) // 2
-                else:
-                    pred = int(_paeth(np.array(left), np.array(prev[x]), np.array(up_left)))
-                cur[x] = (row[x] + pred) & 0xFF
-        else:
-            raise ValueError(f"{path}: unknown PNG filter type {kind}")
-        out[y] = cur
-        prev = cur
-    return out.astype(np.uint8).reshape(h, w, channels)
+    path = Path(path)
+    with path.open("rb") as f:
+        if f.read(8) != _PNG_SIGNATURE:
+            raise ValueError(f"{path} is not a PNG file")
+    image_cls = _pil_image()
+    try:
+        with image_cls.open(path, formats=["PNG"]) as im:
+            im.load()
+            mode = im.mode
+            if mode in ("P", "PA"):
+                im = im.convert("RGBA" if mode == "PA" or "transparency" in im.info else "RGB")
+            elif mode == "1":
+                im = im.convert("L")
+            elif mode not in _MODE_CHANNELS:
+                raise ValueError(f"{path}: only 8-bit grey/RGB(A) PNGs are supported, got Pillow mode {mode!r}")
+            data = np.asarray(im, dtype=np.uint8)
+    except (OSError, SyntaxError) as exc:  # Pillow's errors for damaged files (UnidentifiedImageError is an OSError)
+        raise ValueError(f"{path}: cannot decode the PNG ({exc})") from exc
+    if data.ndim == 2:
+        data = data[:, :, None]
+    return np.ascontiguousarray(data)
 
 
 def image_grid(images, ncols: int | None = None, pad: int = 1, pad_value: int = 0) -> np.ndarray:

@@ -41,6 +41,7 @@ from datetime import datetime
 
 import torch
 import torch.distributed as dist
+from fast_pixels import Uint8Images, use_fast_pixels
 from rank_setup import (
     DistributedRunner,
     bind_device,
@@ -192,7 +193,8 @@ def reward_means(logs: list[dict]) -> dict[str, float]:
 
 class ProgressCsv:
     """One row per training iteration: env-steps (all ranks), wall seconds since training began, training success,
-    mean return and the mean of every weighted reward term (the learning-results runner reads these files)."""
+    mean return, the iteration's rollout (env + policy inference) and learning seconds, and the mean of every
+    weighted reward term (the learning-results runner reads these files)."""
 
     def __init__(self, path: str):
         self.path = path
@@ -244,7 +246,8 @@ def compact_progress(runner: OnPolicyRunner, env, verbose: bool, main_rank: bool
         if progress_csv is not None:
             row = {"iteration": it + 1, "env_steps": (it + 1) * steps * world_size,
                    "wall_s": round(time.time() - progress_csv.start, 3), "success": success,
-                   "mean_return": mean_return}
+                   "mean_return": mean_return, "collect_s": round(kwargs["collect_time"], 4),
+                   "learn_s": round(kwargs["learn_time"], 4)}
             row.update({f"reward/{k}": v for k, v in rewards_by_term.items()})
             progress_csv.write(row)
 
@@ -297,6 +300,17 @@ def train(argv: list[str] | None, quiet: contextlib.ExitStack) -> int:
     parser.add_argument("--eval-envs", type=int, default=256, help="envs used for the final evaluation")
     parser.add_argument("--distributed", action="store_true",
                         help="one process per GPU under torchrun (reads WORLD_SIZE, RANK, LOCAL_RANK)")
+    parser.add_argument("--critic", choices=["same", "state"], default="same",
+                        help="image runs: the critic reads the images (same, the paper's) or the privileged state "
+                             "(state: asymmetric actor-critic)")
+    parser.add_argument("--fast-pixels", action="store_true",
+                        help="image runs: uint8 rollout storage, channels-last bf16 encoders (train/fast_pixels.py)")
+    parser.add_argument("--compile", default=None, metavar="MODE",
+                        help="torch.compile mode of the actor and critic (e.g. default, max-autotune-no-cudagraphs)")
+    parser.add_argument("--video", default=None, metavar="MP4",
+                        help="after training or --play: an MP4 of one episode of the deterministic policy, a grid of "
+                             "--video-envs envs at 256x256 with each step's success and return")
+    parser.add_argument("--video-envs", type=int, default=16, help="envs in the --video grid (default 16)")
     parser.add_argument("--progress-csv", default=None, metavar="CSV",
                         help="write one row per iteration (env-steps, wall seconds, success, return, reward terms)")
     parser.add_argument("--result-json", default=None, metavar="JSON",
@@ -327,7 +341,19 @@ def train(argv: list[str] | None, quiet: contextlib.ExitStack) -> int:
     train_cfg["seed"] = ranks.seed
     if args.obs != "state":
         env_overrides["observation_type"] = args.obs.upper()
-        use_images(train_cfg)
+        if args.critic == "state":
+            env_overrides["privileged_critic"] = True
+        use_images(train_cfg, privileged_critic=args.critic == "state")
+        if args.fast_pixels:
+            use_fast_pixels(train_cfg)
+    elif args.critic != "same" or args.fast_pixels:
+        parser.error("--critic state and --fast-pixels apply to image observations (--obs rgb ...)")
+    if args.fast_pixels and args.obs != "rgb":
+        parser.error("--fast-pixels stores uint8 images, exact only for --obs rgb")
+    if args.compile:
+        train_cfg["torch_compile_mode"] = args.compile
+    if args.video is not None and (not args.video.endswith(".mp4") or args.video_envs < 1):
+        parser.error(f"--video writes an .mp4 file of --video-envs >= 1 envs, got {args.video!r}, {args.video_envs}")
     for item in args.set:
         key, sep, value = item.partition("=")
         if not sep:
@@ -350,6 +376,8 @@ def train(argv: list[str] | None, quiet: contextlib.ExitStack) -> int:
         env = lapwarp.make(args.task, num_envs=num_envs, device=device, seed=ranks.seed, **env_overrides)
     except ValueError as exc:
         parser.error(str(exc))
+    if args.fast_pixels:
+        env = Uint8Images(env)
     run_dir = None if args.play or not ranks.is_main else os.path.join(
         args.log_dir, args.task, f"{datetime.now():%Y%m%d-%H%M%S}_{preset}_seed{args.seed}")
     runner = DistributedRunner(env, train_cfg, log_dir=run_dir, device=device)
@@ -397,6 +425,14 @@ def train(argv: list[str] | None, quiet: contextlib.ExitStack) -> int:
                      device=device_name(device), checkpoint=args.play)
     print(f"evaluation on {args.eval_envs} episodes: success rate {success:.1%}, mean return {mean_return:.2f} "
           f"(wall time {time.time() - start:.1f} s{throughput})", flush=True)
+    if args.video:
+        from lapwarp.video import record_video
+
+        video_env = lapwarp.make(args.task, num_envs=args.video_envs, device=device, seed=args.seed + 54321,
+                                 **env_overrides)
+        frames = record_video(video_env, policy, args.video, steps=video_env.max_episode_length,
+                              max_tiles=args.video_envs)
+        print(f"video: {args.video} ({frames} frames, {args.video_envs} envs)", flush=True)
     return 0
 
 
