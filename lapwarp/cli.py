@@ -228,9 +228,9 @@ def cmd_run(args: argparse.Namespace, out: TextIO, err: TextIO) -> int:
         if video.suffix.lower() != ".mp4":
             raise CliError(f"--video writes an MP4; give a path ending in .mp4, got {args.video!r}")
         try:
-            from lapwarp.video import _video_modules
+            from lapwarp.video import check_video_support
 
-            _video_modules()
+            check_video_support()
         except ImportError as exc:
             raise CliError(str(exc), RUN_ERROR) from None
     try:  # before the env is built: a long run must not end in an unwritable path

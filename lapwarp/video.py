@@ -47,6 +47,11 @@ def _video_modules() -> tuple[Any, Any, Any, Any]:
     return iio, Image, ImageDraw, ImageFont
 
 
+def check_video_support() -> None:
+    """Raise ImportError (with the install hint) unless videos can be written; for callers that check up front."""
+    _video_modules()
+
+
 def video_fps(dt: float) -> int:
     """Frames per second of a video with one frame per env step of ``dt`` simulated seconds: real time, clamped
     to 1..30."""

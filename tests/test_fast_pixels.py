@@ -68,6 +68,7 @@ def test_fast_model_matches_rsl_rl_cnn_model(rgb_env):
 
 def test_ppo_trains_fast_pixels_with_state_critic_and_writes_a_video(device, tmp_path, capsys):
     imageio = pytest.importorskip("imageio.v3")
+    pytest.importorskip("imageio_ffmpeg")
     video = tmp_path / "play.mp4"
     args = ["--device", device, "--preset", "cpu", "--task", "Reach", "--obs", "rgb", "--fast-pixels",
             "--critic", "state", "--set", "image_shape=[48,48]", "max_episode_steps=6", "--num-envs", "4",

@@ -352,8 +352,16 @@ def train(argv: list[str] | None, quiet: contextlib.ExitStack) -> int:
         parser.error("--fast-pixels stores uint8 images, exact only for --obs rgb")
     if args.compile:
         train_cfg["torch_compile_mode"] = args.compile
-    if args.video is not None and (not args.video.endswith(".mp4") or args.video_envs < 1):
-        parser.error(f"--video writes an .mp4 file of --video-envs >= 1 envs, got {args.video!r}, {args.video_envs}")
+    if args.video is not None:
+        if not args.video.endswith(".mp4") or args.video_envs < 1:
+            parser.error(f"--video writes an .mp4 file of --video-envs >= 1 envs, got {args.video!r}, "
+                         f"{args.video_envs}")
+        from lapwarp.video import check_video_support
+
+        try:  # before training, not after it
+            check_video_support()
+        except ImportError as exc:
+            parser.error(str(exc))
     for item in args.set:
         key, sep, value = item.partition("=")
         if not sep:
