@@ -33,18 +33,26 @@ def test_rows_state_the_paper_configuration_in_set_syntax():
 
 
 def test_every_row_config_is_valid_for_its_task():
-    """Every row's settings are config keys and values its task accepts (a typo would otherwise fail on the GPU)."""
+    """Every row's settings, parsed from its ``--set`` text as ``ppo.py`` parses them, are config keys and values its
+    task accepts (a typo would otherwise fail on the GPU)."""
+    import ppo
+
     from lapwarp.config import build_config
     from lapwarp.registry import task_class
 
     for exp in experiments.EXPERIMENTS.values():
         for row in exp.rows:
             env_class = task_class(row.task)
-            config = dict(row.config, observation_type=row.obs.upper())
-            if "image_shape" in config:
-                config["image_shape"] = tuple(config["image_shape"])
-            build_config(env_class.config_class, config).validate(env_class.rewards.names,
-                                                                  env_class.supported_observations)
+            config = ppo.parse_set(row.config_text().split(" ")) if row.config else {}
+            config["observation_type"] = row.obs.upper()
+            cfg = build_config(env_class.config_class, config)
+            cfg.validate(env_class.rewards.names, env_class.supported_observations)
+
+            def plain(value):
+                return [plain(v) for v in value] if isinstance(value, (list, tuple)) else value
+
+            # the values the env gets (after the config's coercion of e.g. "True") are the row's
+            assert {k: plain(getattr(cfg, k)) for k in row.config} == {k: plain(v) for k, v in row.config.items()}
 
 
 def test_tiny_cpu_run_writes_progress_results_summary_and_plots(tmp_path, capsys):

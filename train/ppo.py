@@ -260,6 +260,21 @@ def parameter_checksum(runner: OnPolicyRunner) -> float:
         return float(sum(p.double().sum() for m in (runner.alg.actor, runner.alg.critic) for p in m.parameters()))
 
 
+def parse_set(items: list[str]) -> dict:
+    """``--set KEY=VALUE ...`` as config overrides: values parsed as JSON, anything else kept as a string (the config
+    coerces and checks it)."""
+    overrides = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep:
+            raise ValueError(f"--set expects KEY=VALUE, got {item!r}")
+        try:
+            overrides[key] = json.loads(value)
+        except json.JSONDecodeError:
+            overrides[key] = value
+    return overrides
+
+
 def device_name(device: str) -> str:
     """The GPU's name (``NVIDIA H100 80GB HBM3``) or ``cpu``."""
     return torch.cuda.get_device_name(torch.device(device)) if device.startswith("cuda") else "cpu"
@@ -362,14 +377,10 @@ def train(argv: list[str] | None, quiet: contextlib.ExitStack) -> int:
             check_video_support()
         except ImportError as exc:
             parser.error(str(exc))
-    for item in args.set:
-        key, sep, value = item.partition("=")
-        if not sep:
-            parser.error(f"--set expects KEY=VALUE, got {item!r}")
-        try:
-            env_overrides[key] = json.loads(value)
-        except json.JSONDecodeError:
-            env_overrides[key] = value
+    try:
+        env_overrides.update(parse_set(args.set))
+    except ValueError as exc:
+        parser.error(str(exc))
 
     for option, path in (("--play", args.play), ("--resume", args.resume)):
         if path and not os.path.isfile(path):
