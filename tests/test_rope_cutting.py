@@ -3,6 +3,9 @@ observation of cut points, the rendering of cut and active ropes, and the script
 
 from __future__ import annotations
 
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 import torch
@@ -89,6 +92,50 @@ def test_reset_layout(device):
             for o in range(r):
                 assert segment_distance(a[e, r], b[e, r], a[e, o], b[e, o]) >= 0.01 - 1e-6
     assert (s["rope_state"].cpu() == 0).all() and ((s["active"] >= 0) & (s["active"] < 5)).all().item()
+
+
+LANES_SCRIPT = """
+import sys
+import numpy as np
+import warp as wp
+wp.config.quiet = True
+wp.config.enable_cpu_blocks = True  # Warp's CPU blocks then have block_dim threads, as on the GPU
+import lapwarp
+from lapwarp.tasks.dissection import rope_cutting
+rope_cutting.LAYOUT_LANES = 16
+env = lapwarp.make("RopeCutting", num_envs=96, device="cpu", seed=11, num_ropes=int(sys.argv[2]))
+s = env.privileged_state()
+np.save(sys.argv[1], np.concatenate([s["start"].numpy(), s["end"].numpy(), s["positions"].numpy()[:, :1]], 1))
+"""
+
+
+@pytest.mark.parametrize("ropes", [5, 10])
+def test_block_parallel_layout_draws_the_sequential_rule(tmp_path, ropes):
+    """The reset tests a block of draws at once (16 lanes here, 64 on the GPU) and keeps the first acceptable one in
+    draw order: same rule, same distribution as one draw at a time (one lane, the CPU default). Run with Warp's
+    cooperative CPU blocks in a subprocess (a process-wide Warp setting); compared by two-sample KS tests on every end
+    coordinate (96 envs x R ropes each), and every pair of the block path's ropes is >= 10 mm apart."""
+    from scipy.stats import ks_2samp
+
+    script, out = tmp_path / "lanes.py", tmp_path / "lanes.npy"
+    script.write_text(LANES_SCRIPT)
+    done = subprocess.run([sys.executable, str(script), str(out), str(ropes)], capture_output=True, text=True,
+                          timeout=600)
+    assert done.returncode == 0, done.stderr[-2000:]
+    blocks = np.load(out)
+    env = lapwarp.make("RopeCutting", num_envs=96, device="cpu", seed=11, num_ropes=ropes)
+    s = env.privileged_state()
+    single = np.concatenate([s["start"].numpy(), s["end"].numpy()], 1)
+    a, b = blocks[:, :ropes], blocks[:, ropes:2 * ropes]
+    assert not np.allclose(blocks[:, :2 * ropes], single)  # different draws ...
+    for k, (axis, name) in enumerate([(1, "a.y"), (2, "a.z"), (1, "b.y"), (2, "b.z")]):
+        half = slice(0, ropes) if k < 2 else slice(ropes, 2 * ropes)
+        p = ks_2samp(blocks[:, half, axis].ravel(), single[:, half, axis].ravel()).pvalue
+        assert p > 1e-3, (name, p)  # ... from the same law
+    for e in range(0, 96, 8):
+        for r in range(ropes):
+            for o in range(r):
+                assert segment_distance(a[e, r], b[e, r], a[e, o], b[e, o]) >= 0.01 - 1e-6
 
 
 def segment_distance(p1, q1, p2, q2, samples=401):

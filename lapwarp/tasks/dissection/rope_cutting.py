@@ -55,7 +55,6 @@ from lapwarp.experts import Expert
 from lapwarp.instruments import TPSDConfig, tpsd_from_config
 from lapwarp.kernels.geometry import closest_segment_segment
 from lapwarp.kernels.kinematics import point_to_ptsd
-from lapwarp.kernels.random import rand_uniform
 from lapwarp.tasks.rig import (
     CAUTER_CUTTING_CENTER,
     STATE_LIMITS_VIOLATED,
@@ -97,6 +96,7 @@ TRACKED = (0, 9, 19)  # tracking nodes of every rope
 INTACT, CUT = 0, 1
 LAYOUT_TRIES = wp.constant(1000)
 LAYOUT_RESTARTS = wp.constant(100)
+LAYOUT_LANES = 64  # draws tested at once per env (one thread block per env; one lane on the CPU)
 _TRACKED = wp.constant(wp.vec3i(*TRACKED))
 _NODES = wp.constant(NODES)
 _MIDDLE = wp.constant(wp.vec2i(SEGMENTS // 4, SEGMENTS - SEGMENTS // 4))  # the expert's segments: the middle half
@@ -242,56 +242,97 @@ def rope_gap(ropes: Ropes, env: int, count: int, a: wp.vec3, b: wp.vec3) -> floa
     return d
 
 
+@wp.func
+def draw_rope_line(seed: int, draw: int, depth: float) -> wp.spatial_vector:
+    """Candidate ``draw`` of a reset: ends uniform on the two wall faces (x = -+50 mm, y in [0, depth],
+    z in +-50 mm), as ``(a, b)``. Each draw has its own stream, so any lane can re-draw another lane's candidate."""
+    s = wp.rand_init(seed, draw)
+    ay = wp.randf(s) * depth
+    az = -0.05 + 0.1 * wp.randf(s)
+    by = wp.randf(s) * depth
+    bz = -0.05 + 0.1 * wp.randf(s)
+    return wp.spatial_vector(-0.05, ay, az, 0.05, by, bz)
+
+
 @wp.kernel
 def reset_ropes(env_mask: wp.array(dtype=wp.int32), depth: float, min_distance: float,
                 rng: wp.array(dtype=wp.uint32), ropes: Ropes, q: wp.array2d(dtype=wp.vec3),
                 qd: wp.array2d(dtype=wp.vec3), seg_q: wp.array2d(dtype=wp.quat), seg_qd: wp.array2d(dtype=wp.vec3)):
-    """New rope lines, nodes at rest on them, and a uniformly drawn active rope. sofa_env's layout rule: ends uniform
-    on the two wall faces, each rope redrawn until it is ``min_distance`` from every rope before it, everything
-    redrawn after ``LAYOUT_TRIES`` failed draws of one rope (at most ``LAYOUT_RESTARTS`` times; then the ropes keep
-    their best draws)."""
-    env = wp.tid()
+    """New rope lines, nodes at rest on them, and a uniformly drawn active rope; one thread block per env.
+
+    sofa_env's layout rule: ends uniform on the two wall faces, each rope redrawn until it is ``min_distance`` from
+    every rope before it, everything redrawn after ``LAYOUT_TRIES`` failed draws of one rope (at most
+    ``LAYOUT_RESTARTS`` times; then the ropes keep their best draws). The block's lanes test ``block_dim`` draws at
+    once and take the first acceptable one in draw order, which is the sequential rule's distribution: a thread per
+    env needed up to ~10^5 sequential draws for 10 ropes and held every reset of a step that long (one lane on the
+    CPU, where Warp's blocks have one thread)."""
+    env, lane = wp.tid()
     if env_mask[env] == 0:
         return
+    lanes = wp.block_dim()
     R = ropes.start.shape[1]
+    seed = int(rng[env])  # every lane reads it before lane 0 advances it below (after the first block reduction)
+    batches = (LAYOUT_TRIES + lanes - 1) // lanes
+    draws = int(0)  # draws used so far in this reset (the same count in every lane)
     for attempt in range(LAYOUT_RESTARTS):
         complete = int(1)
         for r in range(R):
-            best_a = wp.vec3(0.0)
-            best_b = wp.vec3(0.0)
             best_d = float(-1.0)
-            for _ in range(LAYOUT_TRIES):
-                a = wp.vec3(-0.05, rand_uniform(rng, env, 0.0, depth), rand_uniform(rng, env, -0.05, 0.05))
-                b = wp.vec3(0.05, rand_uniform(rng, env, 0.0, depth), rand_uniform(rng, env, -0.05, 0.05))
-                d = rope_gap(ropes, env, r, a, b)
-                if d > best_d:
-                    best_a = a
-                    best_b = b
-                    best_d = d
-                if best_d >= min_distance:
+            best_draw = int(-1)
+            chosen = int(-1)
+            for batch in range(batches):
+                draw = draws + lane
+                d = float(-1.0)
+                if batch * lanes + lane < LAYOUT_TRIES:
+                    line = draw_rope_line(seed, draw, depth)
+                    d = rope_gap(ropes, env, r, wp.spatial_top(line), wp.spatial_bottom(line))
+                    if d > best_d:
+                        best_d = d
+                        best_draw = draw
+                key = lanes
+                if d >= min_distance:
+                    key = lane
+                first = wp.tile_min(wp.tile(key))[0]
+                draws += lanes
+                if first < lanes:
+                    chosen = draws - lanes + first
                     break
-            ropes.start[env, r] = best_a
-            ropes.end[env, r] = best_b
-            if best_d < min_distance and attempt < LAYOUT_RESTARTS - 1:
-                complete = 0
-                break
+            if chosen < 0:
+                if attempt < LAYOUT_RESTARTS - 1:
+                    complete = 0
+                    break
+                # the last attempt keeps the rope's best draw: the largest gap, ties to the earliest draw
+                top = wp.tile_max(wp.tile(best_d))[0]
+                candidate = draws
+                if best_d == top:
+                    candidate = best_draw
+                chosen = wp.tile_min(wp.tile(candidate))[0]
+            # every lane re-draws the chosen line and writes it (the same values): each lane reads only what it
+            # wrote itself, so no barrier is needed before the next rope's gap tests
+            line = draw_rope_line(seed, chosen, depth)
+            ropes.start[env, r] = wp.spatial_top(line)
+            ropes.end[env, r] = wp.spatial_bottom(line)
         if complete != 0:
             break
-    for r in range(R):
+    for k in range(lane, R * _NODES, lanes):
+        r = k // _NODES
+        i = k - r * _NODES
         a = ropes.start[env, r]
         axis = ropes.end[env, r] - a
-        ropes.state[env, r] = INTACT
-        rot = wp.quat_between_vectors(wp.vec3(0.0, 0.0, 1.0), wp.normalize(axis))  # d3 along the rope
-        for i in range(_NODES):
-            n = ropes.first_node[r] + i
-            q[env, n] = a + axis * (float(i) / float(_NODES - 1))
-            qd[env, n] = wp.vec3(0.0)
-        for i in range(_NODES - 1):
-            seg_q[env, ropes.first_segment[r] + i] = rot
+        n = ropes.first_node[r] + i
+        q[env, n] = a + axis * (float(i) / float(_NODES - 1))
+        qd[env, n] = wp.vec3(0.0)
+        if i < _NODES - 1:
+            seg_q[env, ropes.first_segment[r] + i] = wp.quat_between_vectors(wp.vec3(0.0, 0.0, 1.0),
+                                                                             wp.normalize(axis))  # d3 along it
             seg_qd[env, ropes.first_segment[r] + i] = wp.vec3(0.0)
-    ropes.active[env] = draw_index(rng, env, R)
-    ropes.cut_active[env] = 0
-    ropes.cut_inactive[env] = 0
+        if i == 0:
+            ropes.state[env, r] = INTACT
+    if lane == 0:
+        rng[env] = wp.uint32(wp.rand_init(seed, -1 - draws))  # the env's stream moves on past this reset
+        ropes.active[env] = draw_index(rng, env, R)
+        ropes.cut_active[env] = 0
+        ropes.cut_inactive[env] = 0
 
 
 @wp.kernel
@@ -534,8 +575,10 @@ class RopeCuttingEnv(BatchedEnv):
 
     def _reset_task(self, env_mask: wp.array) -> None:
         cfg, w, s = self.cfg, self.world, self.world.state
-        wp.launch(reset_ropes, dim=self.num_envs, inputs=[env_mask, cfg.depth, cfg.min_rope_distance, w.rng],
-                  outputs=[self.task, s.particle_q, s.particle_qd, s.segment_q, s.segment_qd], device=self.wp_device)
+        wp.launch_tiled(reset_ropes, dim=[self.num_envs], block_dim=LAYOUT_LANES,
+                        inputs=[env_mask, cfg.depth, cfg.min_rope_distance, w.rng],
+                        outputs=[self.task, s.particle_q, s.particle_qd, s.segment_q, s.segment_qd],
+                        device=self.wp_device)
         self.rig.reset(env_mask, w.rng)
         self.cutting.refresh()  # the reset restored the masks; recount the pieces of the reset envs
 
