@@ -28,7 +28,8 @@ failure.
 Deviations from sofa_env (deliberate): rope layouts come from each env's seeded RNG stream (sofa_env uses the
 global unseeded ``np.random``, so episodes were not reproducible); sofa_env's layout rule (1,000 draws per rope, then
 everything anew) is bounded at ``LAYOUT_RESTARTS`` restarts, after which the last attempt keeps each rope's best draw
-(in a Monte Carlo run with 10 ropes at 20 mm depth the most restarts needed were 24); the spring
+(in a Monte Carlo run with 10 ropes at 20 mm depth the most restarts needed were 24), and one thread block per env
+tests 64 draws at once (the first acceptable one in draw order: the same rule and distribution); the spring
 rest length is 0.2 x the segment length of a 100 mm rope for every rope (sofa_env: of each rope's own length; the
 tension of a 140 mm diagonal rope is then 8 % higher than there); ropes do not collide with each other (sofa_env
 lets them; they are 10 mm apart and taut); the discrete action space works (sofa_env's is broken) and moves like
