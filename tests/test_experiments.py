@@ -32,6 +32,21 @@ def test_rows_state_the_paper_configuration_in_set_syntax():
     assert len(experiments.EXPERIMENTS["spatial-state"].rows) == 9  # Reach, 6 x DeflectSpheres, 2 x SearchForPoint
 
 
+def test_run_commands_carry_the_learner_options(tmp_path):
+    asym = {r.name: r for r in experiments.EXPERIMENTS["spatial-rgb-asym"].rows}["reach-r20-rgb-asym"]
+    paths = experiments.run_paths(tmp_path, "x", asym.name, 0)
+    cmd = experiments.run_command(asym, 0, "gpu", paths, "cuda:1", 1, None, None, 256, tmp_path, fast_pixels=True)
+    assert cmd[cmd.index("--critic") + 1] == "state" and "--fast-pixels" in cmd
+    assert cmd[cmd.index("--device") + 1] == "cuda:1" and cmd[cmd.index("--obs") + 1] == "rgb"
+    assert cmd[cmd.index("--set") + 1:] == ["sphere_radius=0.02", "image_shape=[64,64]"]
+    assert asym.learner(True) == "PPO, CNN actor, state critic (asymmetric), fast pixels"
+    state = experiments.EXPERIMENTS["spatial-state"].rows[0]
+    cmd = experiments.run_command(state, 3, "gpu", paths, None, 2, 8, 5, 16, tmp_path, fast_pixels=True)
+    assert "--fast-pixels" not in cmd and "--critic" not in cmd and "--distributed" in cmd
+    assert cmd[1:4] == ["-m", "torch.distributed.run", "--standalone"] and "--device" not in cmd
+    assert cmd[cmd.index("--num-envs") + 1] == "8" and cmd[cmd.index("--max-iterations") + 1] == "5"
+
+
 def test_every_row_config_is_valid_for_its_task():
     """Every row's settings, parsed from its ``--set`` text as ``ppo.py`` parses them, are config keys and values its
     task accepts (a typo would otherwise fail on the GPU)."""
@@ -79,6 +94,7 @@ def test_tiny_cpu_run_writes_progress_results_summary_and_plots(tmp_path, capsys
     assert len(summary) == 1
     line = summary[0]
     assert (line["task"], line["obs"], line["seeds"], line["env_steps"]) == ("Reach", "state", "0 1", "256")
+    assert line["learner"] == "PPO, MLP actor and critic"
     assert line["config"] == "sphere_radius=0.008 randomize_start=True" and line["paper_success"] == "1.0"
     mean = (json.loads((row_dir / "seed0.json").read_text())["success"]
             + json.loads((row_dir / "seed1.json").read_text())["success"]) / 2

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import dataclasses
 import json
 import os
 import statistics
@@ -38,7 +39,7 @@ ROOT = Path(__file__).resolve().parents[1]
 PPO_SCRIPT = ROOT / "train" / "ppo.py"
 DEFAULT_OUT = ROOT / "benchmarks" / "results" / "learning"
 
-SUMMARY_COLUMNS = ["row", "task", "config", "obs", "seeds", "env_steps", "success_mean", "success_std",
+SUMMARY_COLUMNS = ["row", "task", "config", "obs", "learner", "seeds", "env_steps", "success_mean", "success_std",
                    "wall_s_per_run", "device", "commit", "paper_success", "paper_note"]
 
 
@@ -55,6 +56,14 @@ class Row:
     iterations: int = 150
     paper_success: float | None = None
     paper_note: str = ""
+    critic: str = "same"  # image rows: "state" = asymmetric actor-critic (privileged state critic)
+
+    def learner(self, fast_pixels: bool = False) -> str:
+        """The learner in words (the summary's ``learner`` column)."""
+        if self.obs == "state":
+            return "PPO, MLP actor and critic"
+        text = "PPO, CNN actor, " + ("state critic (asymmetric)" if self.critic == "state" else "CNN critic")
+        return text + (", fast pixels" if fast_pixels else "")
 
     def config_text(self) -> str:
         """The config in ``--set`` syntax: space-separated ``KEY=VALUE`` (JSON values; strings bare)."""
@@ -180,6 +189,9 @@ def _thread_rows() -> list[Row]:
 EXPERIMENTS: dict[str, Experiment] = {
     "spatial-state": Experiment("spatial-state", "Spatial Reasoning track from state", _spatial_rows("state")),
     "spatial-rgb": Experiment("spatial-rgb", "Spatial Reasoning track from 64x64 RGB", _spatial_rows("rgb")),
+    "spatial-rgb-asym": Experiment(
+        "spatial-rgb-asym", "Spatial Reasoning track from 64x64 RGB, image actor with a privileged state critic",
+        [dataclasses.replace(row, name=row.name + "-asym", critic="state") for row in _spatial_rows("rgb")]),
     "deformable-state": Experiment("deformable-state", "Deformable Manipulation track from state", _deformable_rows()),
     "dissection-state": Experiment("dissection-state", "Dissection track from state", _dissection_rows()),
     "thread-state": Experiment("thread-state", "Thread Manipulation track from state", _thread_rows()),
@@ -205,7 +217,8 @@ def run_paths(out: Path, experiment: str, row: str, seed: int) -> dict[str, Path
 
 
 def run_command(row: Row, seed: int, preset: str, paths: dict[str, Path], device: str | None, nproc: int,
-                num_envs: int | None, iterations: int | None, eval_envs: int, log_dir: Path) -> list[str]:
+                num_envs: int | None, iterations: int | None, eval_envs: int, log_dir: Path,
+                fast_pixels: bool = False) -> list[str]:
     """The ``train/ppo.py`` command line of one (row, seed)."""
     launcher = [sys.executable]
     if nproc > 1:
@@ -214,6 +227,10 @@ def run_command(row: Row, seed: int, preset: str, paths: dict[str, Path], device
                       "--max-iterations", str(iterations or row.iterations), "--eval-envs", str(eval_envs),
                       "--log-dir", str(log_dir), "--progress-csv", str(paths["csv"]),
                       "--result-json", str(paths["json"])]
+    if row.critic != "same":
+        cmd += ["--critic", row.critic]
+    if fast_pixels and row.obs == "rgb":
+        cmd.append("--fast-pixels")
     if nproc > 1:
         cmd.append("--distributed")
     elif device:
@@ -227,7 +244,7 @@ def run_command(row: Row, seed: int, preset: str, paths: dict[str, Path], device
 
 def run_all(experiment: Experiment, rows: list[Row], seeds: list[int], out: Path, devices: list[str | None],
             nproc: int, preset: str, num_envs: int | None, iterations: int | None, eval_envs: int,
-            skip_done: bool, log_dir: Path, stream=None) -> list[tuple[Row, int, int]]:
+            skip_done: bool, log_dir: Path, stream=None, fast_pixels: bool = False) -> list[tuple[Row, int, int]]:
     """Run every (row, seed), one run per entry of ``devices`` at a time (name a GPU twice to run two runs on it side by
     side). Returns ``(row, seed, exit status)``."""
     stream = stream or sys.stdout
@@ -245,7 +262,8 @@ def run_all(experiment: Experiment, rows: list[Row], seeds: list[int], out: Path
                 paths["csv"].parent.mkdir(parents=True, exist_ok=True)
                 for path in paths.values():
                     path.unlink(missing_ok=True)
-                cmd = run_command(row, seed, preset, paths, device, nproc, num_envs, iterations, eval_envs, log_dir)
+                cmd = run_command(row, seed, preset, paths, device, nproc, num_envs, iterations, eval_envs, log_dir,
+                                  fast_pixels)
                 log = open(paths["log"], "w")
                 log.write(" ".join(cmd) + "\n")
                 log.flush()
@@ -262,7 +280,8 @@ def run_all(experiment: Experiment, rows: list[Row], seeds: list[int], out: Path
             del running[slot]
             if status == 0 and paths["json"].is_file():
                 result = json.loads(paths["json"].read_text())
-                result.update(commit=commit, row=row.name, config=row.config_text())
+                result.update(commit=commit, row=row.name, config=row.config_text(),
+                              learner=row.learner(fast_pixels and row.obs == "rgb"))
                 paths["json"].write_text(json.dumps(result, indent=1))
                 print(f"finished {row.name} seed {seed}: evaluation success {result['success']:.1%} in "
                       f"{time.time() - started:.0f} s", file=stream, flush=True)
@@ -285,6 +304,7 @@ def summarize(experiment: Experiment, rows: list[Row], out: Path) -> list[dict]:
         successes = [r["success"] for r in results]
         lines.append({
             "row": row.name, "task": row.task, "config": row.config_text(), "obs": row.obs,
+            "learner": " / ".join(sorted({r.get("learner", row.learner()) for r in results})),
             "seeds": " ".join(str(r["seed"]) for r in sorted(results, key=lambda r: r["seed"])),
             "env_steps": results[0]["env_steps"],
             "success_mean": round(statistics.fmean(successes), 4),
@@ -374,6 +394,7 @@ def main(argv: list[str] | None = None, experiments: dict[str, Experiment] | Non
     parser.add_argument("--num-envs", type=int, default=None, help="override the preset's envs (per rank)")
     parser.add_argument("--iterations", type=int, default=None, help="override every row's iterations")
     parser.add_argument("--eval-envs", type=int, default=256, help="episodes of the final evaluation")
+    parser.add_argument("--fast-pixels", action="store_true", help="RGB rows: ppo.py --fast-pixels")
     parser.add_argument("--out", type=Path, default=DEFAULT_OUT)
     parser.add_argument("--log-dir", type=Path, default=ROOT / "runs" / "experiments",
                         help="rsl-rl's logs and checkpoints")
@@ -387,7 +408,8 @@ def main(argv: list[str] | None = None, experiments: dict[str, Experiment] | Non
             print(f"{exp.name}: {exp.description}")
             for row in exp.rows:
                 paper = "-" if row.paper_success is None else f"{row.paper_success:.0%}"
-                print(f"  {row.name:24s} {row.task:16s} {row.obs:5s} paper {paper:>5s}  {row.config_text()}")
+                critic = "  [state critic]" if row.critic == "state" else ""
+                print(f"  {row.name:24s} {row.task:16s} {row.obs:5s} paper {paper:>5s}  {row.config_text()}{critic}")
         return 0
     if args.experiment not in experiments:
         parser.error(f"choose an experiment: {sorted(experiments)} (or --list)")
@@ -405,7 +427,7 @@ def main(argv: list[str] | None = None, experiments: dict[str, Experiment] | Non
     if not args.summarize_only:
         results = run_all(experiment, rows, args.seeds, args.out, args.devices, args.nproc_per_run,
                           args.preset or experiment.preset, args.num_envs, args.iterations, args.eval_envs,
-                          args.skip_done, args.log_dir)
+                          args.skip_done, args.log_dir, fast_pixels=args.fast_pixels)
         failed = [(row.name, seed) for row, seed, status in results if status != 0]
     lines = summarize(experiment, rows, args.out)
     for line in lines:
