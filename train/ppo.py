@@ -293,7 +293,7 @@ def main(argv: list[str] | None = None) -> int:
         return train(argv, quiet)
 
 
-def train(argv: list[str] | None, quiet: contextlib.ExitStack) -> int:
+def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--task", default="Reach", choices=lapwarp.list_tasks())
     parser.add_argument("--device", default=None,
@@ -331,21 +331,12 @@ def train(argv: list[str] | None, quiet: contextlib.ExitStack) -> int:
     parser.add_argument("--result-json", default=None, metavar="JSON",
                         help="write the run's final figures (evaluation success, env-steps, times, device)")
     parser.add_argument("--verbose", action="store_true", help="print rsl-rl's full block per iteration")
-    args = parser.parse_args(argv)
+    return parser
 
-    start = time.time()
-    throughput = ""
-    total_steps, train_seconds = 0, 0.0
-    if args.distributed:
-        if args.play:
-            parser.error("--play evaluates in one process; leave out --distributed")
-        try:
-            ranks = rank_settings(os.environ, args.seed, args.device, torch.cuda.is_available())
-        except ValueError as exc:
-            parser.error(str(exc))
-    else:
-        ranks = single_process_settings(args.seed, args.device or ("cuda:0" if torch.cuda.is_available() else "cpu"))
-    device = ranks.device
+
+def training_config(args: argparse.Namespace, parser: argparse.ArgumentParser, device: str):
+    """(preset, envs per rank, iterations, rsl-rl train config, env overrides) from the command line; usage
+    errors end in ``parser.error``."""
     preset = args.preset or ("gpu" if device.startswith("cuda") else "cpu")
     num_envs = PRESET_DEFAULTS[preset][0] if args.num_envs is None else args.num_envs
     iterations = PRESET_DEFAULTS[preset][1] if args.max_iterations is None else args.max_iterations
@@ -353,7 +344,6 @@ def train(argv: list[str] | None, quiet: contextlib.ExitStack) -> int:
         parser.error(f"--num-envs, --max-iterations and --eval-envs must be positive, got {num_envs}, {iterations} "
                      f"and {args.eval_envs}")
     train_cfg, env_overrides = preset_config(preset, num_envs, iterations)
-    train_cfg["seed"] = ranks.seed
     if args.obs != "state":
         env_overrides["observation_type"] = args.obs.upper()
         if args.critic == "state":
@@ -381,6 +371,29 @@ def train(argv: list[str] | None, quiet: contextlib.ExitStack) -> int:
         env_overrides.update(parse_set(args.set))
     except ValueError as exc:
         parser.error(str(exc))
+    return preset, num_envs, iterations, train_cfg, env_overrides
+
+
+def train(argv: list[str] | None, quiet: contextlib.ExitStack) -> int:
+    """Parse, set up this rank (device, seed, process group), train, then on rank 0 evaluate, report and record."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+
+    start = time.time()
+    throughput = ""
+    total_steps, train_seconds = 0, 0.0
+    if args.distributed:
+        if args.play:
+            parser.error("--play evaluates in one process; leave out --distributed")
+        try:
+            ranks = rank_settings(os.environ, args.seed, args.device, torch.cuda.is_available())
+        except ValueError as exc:
+            parser.error(str(exc))
+    else:
+        ranks = single_process_settings(args.seed, args.device or ("cuda:0" if torch.cuda.is_available() else "cpu"))
+    device = ranks.device
+    preset, num_envs, iterations, train_cfg, env_overrides = training_config(args, parser, device)
+    train_cfg["seed"] = ranks.seed
 
     for option, path in (("--play", args.play), ("--resume", args.resume)):
         if path and not os.path.isfile(path):
