@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 import torch
 import trimesh
+from reference_geometry import winding_numbers
 
 import lapwarp
 from lapwarp.assets import box_tets, ellipsoid_tets, tet_surface
@@ -70,18 +71,6 @@ def column(env: GraspLiftAndTouchEnv, name: str) -> np.ndarray:
 def signed_volumes(vertices: np.ndarray, tets: np.ndarray) -> np.ndarray:
     """6 x the signed volume of every tet (positive: vertex 3 on the left of 0 -> 1 -> 2)."""
     return np.linalg.det(np.stack([vertices[tets[:, i]] - vertices[tets[:, 0]] for i in (1, 2, 3)], axis=2))
-
-
-def winding_numbers(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """Generalised winding number of a closed triangle surface at ``points`` (Van Oosterom-Strackee solid angles):
-    1 inside, 0 outside."""
-    r = vertices[faces][None] - points[:, None, None, :]  # (P, F, 3, 3)
-    a, b, c = r[..., 0, :], r[..., 1, :], r[..., 2, :]
-    la, lb, lc = (np.linalg.norm(x, axis=-1) for x in (a, b, c))
-    num = np.einsum("pfi,pfi->pf", a, np.cross(b, c))
-    den = (la * lb * lc + np.einsum("pfi,pfi->pf", a, b) * lc + np.einsum("pfi,pfi->pf", b, c) * la
-           + np.einsum("pfi,pfi->pf", c, a) * lb)
-    return np.arctan2(num, den).sum(axis=1) / (2.0 * np.pi)
 
 
 def surface_distances(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray) -> np.ndarray:

@@ -22,6 +22,7 @@ import pytest
 import torch
 import trimesh
 import warp as wp
+from reference_geometry import winding_numbers_of_triangles
 
 import lapwarp
 from lapwarp.experts import make_expert
@@ -116,15 +117,8 @@ def capped_wall(cavity: np.ndarray) -> np.ndarray:
 
 
 def winding(cavity: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """Generalised winding number of the capped outer wall at ``points`` (Van Oosterom-Strackee), 1 inside."""
-    tris = capped_wall(cavity)
-    r = tris[None] - np.asarray(points, np.float64)[:, None, None, :]
-    a, b, c = r[..., 0, :], r[..., 1, :], r[..., 2, :]
-    la, lb, lc = (np.linalg.norm(x, axis=-1) for x in (a, b, c))
-    num = np.einsum("pfi,pfi->pf", a, np.cross(b, c))
-    den = (la * lb * lc + np.einsum("pfi,pfi->pf", a, b) * lc + np.einsum("pfi,pfi->pf", b, c) * la
-           + np.einsum("pfi,pfi->pf", c, a) * lb)
-    return np.arctan2(num, den).sum(axis=1) / (2.0 * np.pi)
+    """Generalised winding number of the capped outer wall at ``points``, 1 inside."""
+    return winding_numbers_of_triangles(capped_wall(cavity), np.asarray(points, np.float64))
 
 
 def band_triangles(env: LigatingLoopEnv, start: float, width: float) -> np.ndarray:

@@ -17,6 +17,7 @@ import pytest
 import torch
 import trimesh
 import warp as wp
+from reference_geometry import winding_numbers
 
 import lapwarp
 from lapwarp.assets import hollow_cylinder_tets
@@ -100,18 +101,6 @@ def wall_depth(points: np.ndarray, r_in: float, r_out: float, height: float) -> 
     r = np.hypot(points[..., 0], points[..., 1])
     z = points[..., 2]
     return np.minimum.reduce([r - r_in, r_out - r, height - z, z])
-
-
-def winding_numbers(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """Generalised winding number of a closed triangle surface at ``points`` (Van Oosterom-Strackee solid angles):
-    +-1 inside (the sign is the faces' orientation), 0 outside."""
-    r = vertices[faces][None] - points[:, None, None, :]  # (P, F, 3, 3)
-    a, b, c = r[..., 0, :], r[..., 1, :], r[..., 2, :]
-    la, lb, lc = (np.linalg.norm(x, axis=-1) for x in (a, b, c))
-    num = np.einsum("pfi,pfi->pf", a, np.cross(b, c))
-    den = (la * lb * lc + np.einsum("pfi,pfi->pf", a, b) * lc + np.einsum("pfi,pfi->pf", b, c) * la
-           + np.einsum("pfi,pfi->pf", c, a) * lb)
-    return np.arctan2(num, den).sum(axis=1) / (2.0 * np.pi)
 
 
 def surface_distances(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray) -> np.ndarray:

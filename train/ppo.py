@@ -171,24 +171,24 @@ FAULT_KEYS = {"/action/nonfinite_fraction": "non-finite actions", "/action/inval
               "/env/unstable_fraction": "unstable envs", "/contact/overflow_fraction": "contact overflows"}
 
 
+def log_mean(logs: list[dict], key: str) -> float | None:
+    """Mean of ``key`` over an iteration's step logs (``extras["log"]`` dicts); None when no step logged it."""
+    values = [torch.as_tensor(entry[key], dtype=torch.float32) for entry in logs if key in entry]
+    return float(torch.stack(values).mean()) if values else None
+
+
 def fault_summary(logs: list[dict]) -> str:
     """``"  [non-finite actions 0.1%, ...]"`` for the fault keys with a non-zero mean over an iteration's step logs
     (empty when there is none)."""
-    parts = []
-    for key, label in FAULT_KEYS.items():
-        values = [entry[key] for entry in logs if key in entry]
-        if values:
-            mean = float(torch.stack([torch.as_tensor(v, dtype=torch.float32) for v in values]).mean())
-            if mean > 0.0:
-                parts.append(f"{label} {mean:.3%}")
+    means = {label: log_mean(logs, key) for key, label in FAULT_KEYS.items()}
+    parts = [f"{label} {mean:.3%}" for label, mean in means.items() if mean]
     return f"  [{', '.join(parts)}]" if parts else ""
 
 
 def reward_means(logs: list[dict]) -> dict[str, float]:
     """Mean over an iteration's step logs of every weighted reward term (``/reward/<feature>``)."""
     keys = dict.fromkeys(k for entry in logs for k in entry if k.startswith("/reward/"))
-    return {key[len("/reward/"):]: float(torch.stack([torch.as_tensor(e[key], dtype=torch.float32) for e in logs
-                                                      if key in e]).mean()) for key in keys}
+    return {key[len("/reward/"):]: log_mean(logs, key) for key in keys}
 
 
 class ProgressCsv:
