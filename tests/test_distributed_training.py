@@ -99,3 +99,33 @@ def test_two_process_gloo_training(tmp_path):
     assert out.count("evaluation on 4 episodes") == 1
     runs = list((log_dir / "Reach").iterdir())
     assert len(runs) == 1 and sorted(p.name for p in runs[0].glob("model_*.pt")) == ["model_0.pt", "model_1.pt"]
+
+
+@pytest.mark.parametrize("preset, per_rank", [("gpu", 8), ("paper", 2 * 4 * 128 // 256)])
+def test_same_global_minibatch_splits_each_rank_rollout_world_size_times(preset, per_rank):
+    """Two ranks with --same-global-minibatch: each rank's rollout is split into twice the preset's mini-batches, so
+    the mini-batch summed over ranks (and the optimiser steps per env-step) equal one process's."""
+    import ppo
+
+    parser = ppo.build_parser()
+    args = parser.parse_args(["--distributed", "--same-global-minibatch", "--preset", preset, "--num-envs", "4"])
+    _, num_envs, iterations, cfg, _ = ppo.training_config(args, parser, "cpu", world_size=2)
+    single, _ = ppo.preset_config(preset, num_envs, iterations)
+    assert cfg["algorithm"]["num_mini_batches"] == 2 * single["algorithm"]["num_mini_batches"] == per_rank
+    rollout = num_envs * cfg["num_steps_per_env"]
+    assert 2 * rollout // cfg["algorithm"]["num_mini_batches"] == rollout // single["algorithm"]["num_mini_batches"]
+    plain = parser.parse_args(["--distributed", "--preset", preset, "--num-envs", "4"])
+    assert ppo.training_config(plain, parser, "cpu", world_size=2)[3]["algorithm"] == single["algorithm"]
+
+
+def test_same_global_minibatch_usage_errors(capsys):
+    import ppo
+
+    parser = ppo.build_parser()
+    with pytest.raises(SystemExit):
+        ppo.training_config(parser.parse_args(["--same-global-minibatch"]), parser, "cpu")
+    assert "applies to --distributed runs" in capsys.readouterr().err
+    args = parser.parse_args(["--distributed", "--same-global-minibatch", "--preset", "paper", "--num-envs", "1"])
+    with pytest.raises(SystemExit):  # 1 env x 128 steps: 1 mini-batch of 128 per rank x 200 ranks > 128 samples
+        ppo.training_config(args, parser, "cpu", world_size=200)
+    assert "exceed the rollout's 128 samples" in capsys.readouterr().err

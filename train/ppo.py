@@ -315,6 +315,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--eval-envs", type=int, default=256, help="envs used for the final evaluation")
     parser.add_argument("--distributed", action="store_true",
                         help="one process per GPU under torchrun (reads WORLD_SIZE, RANK, LOCAL_RANK)")
+    parser.add_argument("--same-global-minibatch", action="store_true",
+                        help="with --distributed on N ranks, split each rank's rollout into N x the preset's "
+                             "mini-batches, so the mini-batch summed over ranks and the updates per env-step equal "
+                             "one process's (without it N ranks take the preset's updates on N x larger batches)")
     parser.add_argument("--critic", choices=["same", "state"], default="same",
                         help="image runs: the critic reads the images (same, the paper's) or the privileged state "
                              "(state: asymmetric actor-critic)")
@@ -334,9 +338,9 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def training_config(args: argparse.Namespace, parser: argparse.ArgumentParser, device: str):
-    """(preset, envs per rank, iterations, rsl-rl train config, env overrides) from the command line; usage
-    errors end in ``parser.error``."""
+def training_config(args: argparse.Namespace, parser: argparse.ArgumentParser, device: str, world_size: int = 1):
+    """(preset, envs per rank, iterations, rsl-rl train config, env overrides) from the command line for one of
+    ``world_size`` ranks; usage errors end in ``parser.error``."""
     preset = args.preset or ("gpu" if device.startswith("cuda") else "cpu")
     num_envs = PRESET_DEFAULTS[preset][0] if args.num_envs is None else args.num_envs
     iterations = PRESET_DEFAULTS[preset][1] if args.max_iterations is None else args.max_iterations
@@ -344,6 +348,17 @@ def training_config(args: argparse.Namespace, parser: argparse.ArgumentParser, d
         parser.error(f"--num-envs, --max-iterations and --eval-envs must be positive, got {num_envs}, {iterations} "
                      f"and {args.eval_envs}")
     train_cfg, env_overrides = preset_config(preset, num_envs, iterations)
+    if args.same_global_minibatch:
+        if not args.distributed:
+            parser.error("--same-global-minibatch applies to --distributed runs")
+        # rsl-rl averages each mini-batch's gradient over the ranks, so N ranks with the preset's mini-batch count
+        # take the same number of optimiser steps per iteration on N x the data: fewer steps per env-step. N x the
+        # mini-batches per rank restores one process's global mini-batch size and steps per env-step.
+        train_cfg["algorithm"]["num_mini_batches"] *= world_size
+        rollout = num_envs * train_cfg["num_steps_per_env"]
+        if train_cfg["algorithm"]["num_mini_batches"] > rollout:
+            parser.error(f"--same-global-minibatch: {train_cfg['algorithm']['num_mini_batches']} mini-batches per "
+                         f"rank exceed the rollout's {rollout} samples; use more --num-envs")
     if args.obs != "state":
         env_overrides["observation_type"] = args.obs.upper()
         if args.critic == "state":
@@ -392,7 +407,7 @@ def train(argv: list[str] | None, quiet: contextlib.ExitStack) -> int:
     else:
         ranks = single_process_settings(args.seed, args.device or ("cuda:0" if torch.cuda.is_available() else "cpu"))
     device = ranks.device
-    preset, num_envs, iterations, train_cfg, env_overrides = training_config(args, parser, device)
+    preset, num_envs, iterations, train_cfg, env_overrides = training_config(args, parser, device, ranks.world_size)
     train_cfg["seed"] = ranks.seed
 
     for option, path in (("--play", args.play), ("--resume", args.resume)):
