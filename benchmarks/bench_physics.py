@@ -33,6 +33,7 @@ Scenes (SI units; cloths are 40 x 40 vertices over 75 mm, PrecisionCutting's gri
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import time
 
@@ -145,11 +146,12 @@ def quality(scene: str, world, obj, rest: np.ndarray) -> dict:
 
 
 def run(scene: str, num_envs: int, device: str, substeps: int, iterations: int, edge_solver: str, steps: int,
-        settle: int, newton_steps: int | None = None) -> dict:
+        settle: int, newton_steps: int | None = None, block_links: int = 0) -> dict:
     wp.synchronize_device(device)
     world, obj, rest, drag = SCENES[scene](num_envs, device, substeps or None, iterations, edge_solver)
     if newton_steps:
         world.chain_newton_steps = newton_steps
+    world.chain_block_links = block_links
     dev = wp.get_device(device)
     # settle (and drag) before timing; this also compiles the kernels and records a step's launches
     for k in range(max(1, settle)):
@@ -178,6 +180,7 @@ def run(scene: str, num_envs: int, device: str, substeps: int, iterations: int, 
         "sim_seconds_per_env_step": DT, "substeps": world.substeps_for(DT), "iterations": world.iterations,
         "edge_solver": "chains" if m.edge_chains is not None else ("colored" if m.edge_count else None),
         "chain_newton_steps": world.chain_newton_steps if m.edge_chains is not None else None,
+        "chain_block_links": world.chain_block_links,
         "chain_families": m.edge_chains.num_families if m.edge_chains is not None else None,
         "tethers": m.tether_count > 0, "cuda_graph": graph is not None, "steps_timed": steps, "seconds": elapsed,
         "env_steps_per_s": num_envs * steps / elapsed, "unstable_envs": int(world.unstable.numpy().sum()),
@@ -198,6 +201,8 @@ def main() -> None:
     p.add_argument("--iterations", type=int, nargs="+", default=[1], help="one run per value")
     p.add_argument("--edge-solver", nargs="+", default=["chains"], choices=["chains", "colored"])
     p.add_argument("--newton-steps", type=int, default=None, help="Newton steps per cloth chain solve")
+    p.add_argument("--chain-block-links", type=int, nargs="+", default=[0],
+                   help="one run per value: 0 = one thread per chain, B >= 2 = blocks of B links")
     p.add_argument("--steps", type=int, default=30, help="timed env steps")
     p.add_argument("--settle-steps", type=int, default=30, help="untimed env steps before timing")
     p.add_argument("--out", default=None, help="append one JSON line per run to this file")
@@ -211,13 +216,13 @@ def main() -> None:
         for solver in solvers:
             for sub in args.substeps:
                 for it in args.iterations:
-                    for n in args.num_envs:
+                    for n, block in itertools.product(args.num_envs, args.chain_block_links):
                         rec = run(scene, n, args.device, sub, it, solver, args.steps, args.settle_steps,
-                                  args.newton_steps)
+                                  args.newton_steps, block)
                         quality_text = (f"sag={rec['sag_m']:.3e} m" if "sag_m" in rec else
                                         f"stretch mean={rec['stretch_mean']:.4f} max={rec['stretch_max']:.3f}")
                         print(f"{scene:12s} {str(rec['edge_solver']):8s} envs={n:6d} substeps={rec['substeps']:4d} "
-                              f"iters={it} {rec['env_steps_per_s']:12.1f} env-steps/s  {quality_text}  "
+                              f"iters={it} block={block} {rec['env_steps_per_s']:12.1f} env-steps/s  {quality_text}  "
                               f"unstable={rec['unstable_envs']}", flush=True)
                         if args.out:
                             with open(args.out, "a") as f:

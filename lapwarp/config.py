@@ -223,6 +223,11 @@ class EnvConfig:
         privileged_critic: also return a ``critic`` observation group with privileged state.
         image_shape: (height, width) of image observations in pixels, each at most ``MAX_IMAGE_SIDE``.
         seed: seed of the per-env device RNG streams.
+        chain_block_links: how the direct chain solve (rods' stretch, cloth edge chains) runs: 0 = one thread walks
+            each chain (``kernels/chains.py``); ``B >= 2`` = chains split into blocks of ``B`` links solved side by
+            side (``kernels/chains_partitioned.py``; same results up to round-off, more parallel work for few long
+            chains per env on a GPU); -1 (default) = the task's measured best on CUDA devices
+            (``BatchedEnv.gpu_chain_block_links``) and 0 on the CPU (one thread runs every kernel there anyway).
     """
 
     observation_type: str = "STATE"
@@ -238,6 +243,7 @@ class EnvConfig:
     image_shape: tuple[Annotated[int, Range(ge=1, le=MAX_IMAGE_SIDE)], Annotated[int, Range(ge=1, le=MAX_IMAGE_SIDE)]] \
         = (64, 64)
     seed: int = 0
+    chain_block_links: Annotated[int, Range(ge=-1, le=4096)] = -1
 
     def validate(self, reward_features: tuple[str, ...], supported_observations: tuple[str, ...]) -> None:
         """Check (and coerce) every field; raise ``ValueError`` naming the offending field. Task configs extend it

@@ -105,6 +105,9 @@ class BatchedEnv(VecEnv):
     supported_observations: ClassVar[tuple[str, ...]] = ("STATE",)
     #: ``"module:Class"`` of the task's scripted expert (``lapwarp.experts.make_expert``), imported when asked for.
     expert: ClassVar[str | None] = None
+    #: ``chain_block_links`` that ``-1`` (automatic) means on CUDA devices: blocks of this many links when the task's
+    #: few long rods per env leave the one-thread-per-chain solve latency-bound (benchmarks/RESULTS.md), else 0.
+    gpu_chain_block_links: ClassVar[int] = 0
 
     @classmethod
     def from_overrides(cls, num_envs: int = 1, device: str = "cpu", use_cuda_graph: bool = True,
@@ -137,6 +140,7 @@ class BatchedEnv(VecEnv):
 
         with wp.ScopedDevice(self.wp_device):
             self.world: World = self._build()
+            self.world.chain_block_links = self.chain_block_links
             self.obs_layout: ObservationLayout = self._observation_layout()
             # built even without the critic group: kernels take its columns as an argument of their declared type
             self.critic_layout: ObservationLayout = self._critic_layout()
@@ -456,6 +460,13 @@ class BatchedEnv(VecEnv):
             bad = (~torch.isfinite(actions)).any(dim=1).nonzero().flatten().tolist()[:10]
             raise ValueError(f"non-finite (NaN/inf) actions in envs {bad}; pass invalid_actions='zero' to zero them")
         self._t["actions_in"].copy_(actions)
+
+    @property
+    def chain_block_links(self) -> int:
+        """The chain solve's block length in use: ``cfg.chain_block_links``, with -1 resolved per device."""
+        if self.cfg.chain_block_links >= 0:
+            return self.cfg.chain_block_links
+        return self.gpu_chain_block_links if self.wp_device.is_cuda else 0
 
     def _step_launches(self) -> None:
         """Every launch of one env step, in order; captured as one CUDA graph on CUDA devices."""

@@ -118,6 +118,10 @@ class World:
         self.rod_newton_steps = 2
         # Newton steps of each cloth edge-chain solve per sweep (the families' solves follow each other)
         self.chain_newton_steps = 1
+        # links per block of the direct chain solves (rods and cloth edge chains): 0 (or 1) = one thread walks each
+        # chain (kernels/chains.py); B > 1 = the partitioned solve (kernels/chains_partitioned.py), blocks of B links
+        # side by side plus a serial pass over the m / B separators, for few long chains (a rope per env on the GPU)
+        self.chain_block_links = 0
         # tets' rotation: warm-started extraction iterations per projection (0 = SVD polar decomposition)
         self.tet_rotation_iterations = 2
         self.rng = wp.empty(self.num_envs, dtype=wp.uint32, device=self.device)
@@ -146,6 +150,8 @@ class World:
         self._start_tet_rotation = wp.clone(self._tet_rotation) if m.tet_count else None
         self._no_rotation = wp.zeros((1, 0), dtype=wp.quat, device=dev)
         self._edge_scratch = self._chain_scratch(m.edge_chains)
+        # the partitioned chain solve's extra scratch per chain set, allocated on first use (_chain_partition)
+        self._partitions = {}
         if self.state.body_q is not None:
             self._body_q_prev = wp.clone(self.state.body_q)
         self._dummy_f = wp.zeros((1, 1), dtype=float, device=dev)
@@ -174,6 +180,31 @@ class World:
         return (*(wp.zeros((n, links), dtype=float, device=dev) for _ in range(4)),
                 wp.zeros((n, nodes), dtype=float, device=dev), wp.zeros((n, nodes), dtype=wp.vec3, device=dev),
                 wp.zeros((n, nodes), dtype=wp.vec3, device=dev))
+
+    def _chain_partition(self, chains, scratch: tuple) -> tuple[list, object]:
+        """Block layout and scratch of the partitioned solve of a chain set at ``chain_block_links`` (allocated on
+        first use and again for another block length). It shares the serial solve's scratch (``_chain_scratch``):
+        per link the Newton multipliers, super-diagonals and dl, per node the filter's arrays."""
+        from lapwarp.kernels import chains_partitioned as cp
+
+        B = self.chain_block_links
+        cached = self._partitions.get(id(chains))
+        if cached is not None and cached[0] == B:
+            return cached[1], cached[2]
+        layout, blocks = cp.block_layout(chains.families, chains.lengths, B)
+        links, nodes = chains.link_slots, chains.node_slots
+        sc = cp.Scratch()
+        sc.newton_dl, sc.link_c, sc.dl, _, sc.node_c, sc.node_d, sc.node_par = scratch
+        own = {"link_d": (links, wp.vec2), "link_zl": (links, float), "node_zl": (nodes, float),
+               "link_first_y": (blocks, wp.vec2), "link_first_z": (blocks, wp.vec2), "link_last_y": (blocks, wp.vec2),
+               "link_last_z": (blocks, wp.vec2), "link_sep_abc": (blocks, wp.vec3), "link_sep_rhs": (blocks, wp.vec2),
+               "node_first_y": (blocks, wp.vec3), "node_first_z": (blocks, wp.vec2), "node_last_y": (blocks, wp.vec3),
+               "node_last_z": (blocks, wp.vec2), "node_sep_abc": (blocks, wp.vec3), "node_sep_rhs": (blocks, wp.vec3),
+               "loop": (chains.count, wp.vec2)}
+        for name, (slots, dtype) in own.items():
+            setattr(sc, name, wp.zeros((self.num_envs, max(slots, 1)), dtype=dtype, device=self.device))
+        self._partitions[id(chains)] = (B, layout, sc, [getattr(sc, name) for name in own])
+        return layout, sc
 
     def _alloc_lambdas(self) -> None:
         """Multiplier arrays exist only when iterations > 1 (with one sweep lambda starts at 0)."""
@@ -263,7 +294,7 @@ class World:
         if self.model.particle_count == 0:
             return
         key = (float(dt), self.substeps_for(float(dt)), self.iterations, self.rod_newton_steps, self.chain_newton_steps,
-               self.tet_rotation_iterations)
+               self.tet_rotation_iterations, self.chain_block_links)
         if self._cmd_key != key:
             self._cmds = self._record_step(float(dt))
             self._cmd_key = key
@@ -326,7 +357,7 @@ class World:
         return cmds
 
     def _record_sweep(self, launch, xpbd, inv_dt2: float, use_lam: int, blend: float) -> None:
-        from lapwarp.kernels import chains
+        from lapwarp.kernels import chains, chains_partitioned
 
         m, n, s = self.model, self.num_envs, self.state
         lam = self._lam
@@ -341,6 +372,15 @@ class World:
         seg_mask = s.segment_active if s.segment_active is not None else self._no_mask
 
         def solve_chains(cs, rest, compliance, lam_arr, scratch, mask, newton_steps):
+            if self.chain_block_links > 1:
+                # partitioned, family after family: per Newton step five launches, blocks of chain_block_links links
+                # side by side
+                layout, sc = self._chain_partition(cs, scratch)
+                for f, (block_base, blocks) in enumerate(layout):
+                    fam = chains_partitioned.family(cs, f, block_base, self.chain_block_links, rest, compliance, w_eff,
+                                                    mask, lam_arr, use_lam, newton_steps, inv_dt2)
+                    chains_partitioned.record_family(launch, n, fam, blocks, sc, s.particle_q)
+                return
             # one launch per family of chains that share no node (Gauss-Seidel across families)
             for first, count, link_base, node_base in cs.families:
                 launch(chains.solve_chains, (n, count),
@@ -594,8 +634,9 @@ class World:
         """Bytes of dynamic per-env data: state arrays plus solver scratch (excludes shared topology)."""
         total = sum(a.capacity for a in self.state.arrays().values())
         total += sum(a.capacity for a in self._start_state.arrays().values())
+        partitions = [a for *_, arrays in self._partitions.values() for a in arrays]
         for a in (self._q_pred, self._sq_prev, self._body_q_prev, *self._rod_scratch, *self._edge_scratch,
-                  *self._lam.values()):
+                  *self._lam.values(), *partitions):
             if a is not None:
                 total += a.capacity
         return total // max(1, self.num_envs)

@@ -67,6 +67,25 @@ def segment_dir(a: wp.vec3, b: wp.vec3):
     return n, length
 
 
+@wp.func
+def node_row(n_prev: wp.vec3, dl_prev: float, k_prev: float, n_j: wp.vec3, dl_j: float, k_j: float, w_j: float,
+             j: int):
+    """Filter row of a node: sub-diagonal, diagonal, super-diagonal, right-hand side (the transverse part of
+    ``dx_j = w_j (n_{j-1} dl_{j-1} - n_j dl_j)``) and the part along the tangent."""
+    dx = (n_prev * dl_prev - n_j * dl_j) * w_j
+    t = n_prev + n_j
+    tl = wp.length(t)
+    par = wp.vec3(0.0)
+    if tl > 1.0e-12:
+        t = t / tl
+        par = t * wp.dot(dx, t)
+    lo = -w_j * k_prev
+    up = -w_j * k_j
+    if j == 0:
+        lo = 0.0  # open-chain filter (also for loops, see solve_chains)
+    return lo, 1.0 - lo - up, up, dx - par, par
+
+
 @wp.kernel
 def solve_chains(
     family_start: int,
@@ -261,21 +280,10 @@ def solve_chains(
                 if j + 1 < nodes and len_j > 1.0e-12:
                     k_j = wp.max(-dl_j, 0.0) / len_j
             w_j = inv_mass[pe, chain_node[nb + j * stride]]
-            dx = (n_prev * dl_prev - n_j * dl_j) * w_j
-            t = n_prev + n_j
-            tl = wp.length(t)
-            par = wp.vec3(0.0)
-            if tl > 1.0e-12:
-                t = t / tl
-                par = t * wp.dot(dx, t)
-            lo = -w_j * k_prev
-            up = -w_j * k_j
-            if j == 0:
-                lo = 0.0  # open-chain filter (also for loops, see above)
-            denom = 1.0 - lo - up - lo * cn_prev
-            inv = 1.0 / denom
+            lo, diag, up, rhs_j, par = node_row(n_prev, dl_prev, k_prev, n_j, dl_j, k_j, w_j, j)
+            inv = 1.0 / (diag - lo * cn_prev)
             cn_prev = up * inv
-            dn_prev = (dx - par - dn_prev * lo) * inv
+            dn_prev = (rhs_j - dn_prev * lo) * inv
             node_c[env, nb + j * stride] = cn_prev
             node_d[env, nb + j * stride] = dn_prev
             node_par[env, nb + j * stride] = par + x_cur

@@ -38,6 +38,9 @@ wp.set_module_options({"enable_backward": False})
 #: threads land in, so two identical GPU runs would drift apart; integer sums do not.
 SURFACE_DELTA_SCALE = wp.constant(1.0e9)
 
+# Largest multiple of a contact point's correction that one node of a segment or triangle takes (see node_share)
+MAX_NODE_SHARE = wp.constant(2.0)
+
 SHAPE_SPHERE = wp.constant(0)
 SHAPE_CAPSULE = wp.constant(1)
 SHAPE_BOX = wp.constant(2)
@@ -291,6 +294,20 @@ def record_contact(env: int, particle: int, shape: int, normal: wp.vec3, depth: 
 
 
 @wp.func
+def node_share(weight: float, inv_mass: float, inv_mass_sum: float):
+    """Multiple of a contact point's correction that a node with barycentric ``weight`` moves by: the XPBD lever
+    ``weight w / sum(weight^2 w)``, capped at ``MAX_NODE_SHARE``.
+
+    With every node free the lever is at most ~1.2 (equal masses), but near a pinned node it grows like
+    ``1 / weight``: a tool touching a triangle next to its pinned corner (weights ~(0.98, 0.01, 0.01)) threw the two
+    free nodes ~50 x the penetration, tens of mm in one substep (PrecisionCutting's scissors at the cloth's fixed
+    corners tripped the stability check at > 50 m/s). Such a contact cannot be resolved by moving the sheet (the
+    point is held by the pin), so the free nodes take at most twice the correction and the rest of the penetration
+    stays."""
+    return wp.min(weight * inv_mass / inv_mass_sum, MAX_NODE_SHARE)
+
+
+@wp.func
 def friction_correction(rel: wp.vec3, n: wp.vec3, pen: float, mu: wp.vec2):
     """Positional Coulomb friction: the correction that cancels (static) or shortens (kinetic) the tangential
     part of the relative displacement ``rel`` of this substep."""
@@ -443,8 +460,8 @@ def collide_segments(
         c_0 = wp.transform_point(tf0, wp.transform_point(wp.transform_inverse(tf), c))
         rel = (p + n * pen - (pa0 * (1.0 - u) + pb0 * u)) - (c - c_0)
         dp = n * pen + friction_correction(rel, n, pen, shapes.mu[s])
-        xa = xa + dp * ((1.0 - u) * wa / wsum)
-        xb = xb + dp * (u * wb / wsum)
+        xa = xa + dp * node_share(1.0 - u, wa, wsum)
+        xb = xb + dp * node_share(u, wb, wsum)
         wp.atomic_add(reports.report_force, env, pair, pen / wsum * solve.force_scale)
     q[env, a] = xa
     q[env, b] = xb
@@ -576,9 +593,9 @@ def collide_triangles(
         c_0 = wp.transform_point(tf0, wp.transform_point(wp.transform_inverse(tf), c))
         rel = (p + n * pen - p0) - (c - c_0)
         dp = n * pen + friction_correction(rel, n, pen, shapes.mu[s])
-        x0 = x0 + dp * (bw[0] * w0 / wsum)
-        x1 = x1 + dp * (bw[1] * w1 / wsum)
-        x2 = x2 + dp * (bw[2] * w2 / wsum)
+        x0 = x0 + dp * node_share(bw[0], w0, wsum)
+        x1 = x1 + dp * node_share(bw[1], w1, wsum)
+        x2 = x2 + dp * node_share(bw[2], w2, wsum)
         wp.atomic_add(reports.report_force, env, pair, pen / wsum * solve.force_scale)
     q[env, tri[0]] = x0
     q[env, tri[1]] = x1
@@ -703,7 +720,7 @@ def collide_surface(
     for j in range(3):
         wj = solve.inv_mass[pe, t[j]]
         if wj > 0.0:
-            share = -dp * (best_bw[j] * wj / (w + wt))
+            share = -dp * node_share(best_bw[j], wj, w + wt)
             for axis in range(3):  # fixed point: integer sums do not depend on the order of the atomics
                 wp.atomic_add(surf_delta, env, t[j], axis, wp.int64(wp.round(share[axis] * SURFACE_DELTA_SCALE)))
             wp.atomic_add(surf_count, env, t[j], 1)

@@ -672,6 +672,7 @@ class PickAndPlaceEnv(BatchedEnv):
     rewards = REWARDS
     supported_observations = ("STATE", "RGB", "RGBD", "DEPTH")
     expert = "lapwarp.tasks.deformable_manipulation.pick_and_place:PickAndPlaceExpert"
+    gpu_chain_block_links = 16  # PickAndPlace 716k -> 851k env-steps/s (H100, 4,096 envs)
     cfg: PickAndPlaceConfig
 
     def _build(self) -> World:

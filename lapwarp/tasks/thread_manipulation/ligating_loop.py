@@ -522,6 +522,7 @@ class LigatingLoopEnv(BatchedEnv):
     rewards = REWARDS
     supported_observations = ("STATE", "RGB", "RGBD", "DEPTH")
     expert = "lapwarp.tasks.thread_manipulation.ligating_loop:LigatingLoopExpert"
+    gpu_chain_block_links = 8  # LigatingLoop 29.0k -> 32.7k env-steps/s (H100, 4,096 envs; 16: 32.0k)
     cfg: LigatingLoopConfig
 
     def _scene(self, num_envs: int, cavity: bool):

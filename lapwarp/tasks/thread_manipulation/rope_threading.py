@@ -690,6 +690,7 @@ class RopeThreadingEnv(BatchedEnv):
     rewards = REWARDS
     supported_observations = ("STATE", "RGB", "RGBD", "DEPTH")
     expert = "lapwarp.tasks.thread_manipulation.rope_threading:RopeThreadingExpert"
+    gpu_chain_block_links = 8  # RopeThreading 29.0k -> 65.2k env-steps/s (H100, 4,096 envs; 16: 63.5k)
     cfg: RopeThreadingConfig
 
     def _graspers(self, builder: SceneBuilder, bimanual: bool) -> InstrumentRig:
