@@ -436,7 +436,7 @@ def jitter_cameras(env_mask: wp.array(dtype=wp.int32), rng: wp.array(dtype=wp.ui
 def expert_commands(q: wp.array2d(dtype=wp.vec3), qd: wp.array2d(dtype=wp.vec3), ptsd: wp.array2d(dtype=wp.vec4),
                     pose: wp.array2d(dtype=wp.transform), rcm: wp.array2d(dtype=wp.transform), p: Params,
                     hover: float, descent: float, aligned: float, gain: float, damping: float, max_step: float,
-                    error_out: wp.array2d(dtype=float)):
+                    settle_speed: float, error_out: wp.array2d(dtype=float)):
     """The scripted grasper (``ThreadInHoleExpert``): PTSD errors per env."""
     env = wp.tid()
     tip_pos = wp.transform_get_translation(pose[env, 0])
@@ -467,6 +467,11 @@ def expert_commands(q: wp.array2d(dtype=wp.vec3), qd: wp.array2d(dtype=wp.vec3),
         if end[2] < p.bottom_center[2] + 0.001:
             dz = 0.0
         off = off * gain - swing
+    if settle_speed > 0.0 and lateral < 4.0 * aligned and wp.length(wp.vec3(v[0], v[1], 0.0)) > settle_speed:
+        # discrete steps cannot be scaled down: every one kicks the hanging end, and moving again while it swings
+        # pumps the pendulum (a steady 2-9 mm swing, measured); near the opening hold still until it has settled
+        off = wp.vec3(0.0)
+        dz = 0.0
     move = off + wp.vec3(0.0, 0.0, dz)
     if wp.length(move) > max_step:
         move = move * (max_step / wp.length(move))
@@ -680,14 +685,21 @@ class ThreadInHoleExpert(Expert):
     is 1 mm above the bottom. Moves follow straight lines in legs of ``max_step``."""
 
     def __init__(self, env: ThreadInHoleEnv, hover: float = 0.005, descent: float = 0.0015,
-                 aligned: float | None = None, gain: float = 0.2, damping: float = 0.0, max_step: float | None = None):
+                 aligned: float | None = None, gain: float | None = None, damping: float = 0.0,
+                 max_step: float | None = None, settle_speed: float | None = None):
         super().__init__(env)
         # the flexible thread's end keeps wandering by a couple of millimetres: a tighter tolerance makes it wait
         # past the episode's end, and its thin tip enters the 6 mm bore from 2.5 mm off the axis
         if aligned is None:
             aligned = 0.0025 if env.cfg.configuration == "flexible" else 0.0015
         self.hover, self.descent, self.aligned = float(hover), float(descent), float(aligned)
-        self.gain, self.damping = float(gain), float(damping)
+        # discrete actions: a step is all or nothing (the no-op below half a step), so the full offset is the request
+        # and the end must be still (settle_speed, m/s) before the next step; continuous: a fraction, any time
+        if gain is None:
+            gain = 1.0 if env.is_discrete else 0.2
+        if settle_speed is None:
+            settle_speed = 0.005 if env.is_discrete else 0.0
+        self.gain, self.damping, self.settle_speed = float(gain), float(damping), float(settle_speed)
         self.max_step = float(max_step if max_step is not None else (1.0 if env.is_discrete else 0.002))
         self.error = wp.zeros((env.num_envs, 4), dtype=float, device=env.wp_device)
         self.step_size = self.rig_step_size()
@@ -697,6 +709,6 @@ class ThreadInHoleExpert(Expert):
         with env._torch_stream_scope():
             wp.launch(expert_commands, dim=env.num_envs,
                       inputs=[s.particle_q, s.particle_qd, rig.ptsd, rig.pose, rig.rcm, env.params, self.hover,
-                              self.descent, self.aligned, self.gain, self.damping, self.max_step],
+                              self.descent, self.aligned, self.gain, self.damping, self.max_step, self.settle_speed],
                       outputs=[self.error], device=env.wp_device)
         return self.policy_actions(wp.to_torch(self.error) / self.step_size)
