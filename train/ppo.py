@@ -23,7 +23,10 @@ counts are in rsl-rl's logs (``/action/...``) and the progress line names any fa
 With ``--distributed`` (under torchrun) every process builds ``--num-envs`` envs on ``cuda:<LOCAL_RANK>`` with the seed
 ``seed + rank * 2**32`` (``train/rank_setup.py``), rsl-rl averages the gradients over NCCL, and only rank 0 prints,
 writes logs and checkpoints and runs the final evaluation; the progress and final lines report success and env-steps/s
-summed over all ranks.
+summed over all ranks. N ranks take the preset's optimiser steps on an N x larger global mini-batch (1/N of the steps
+per env-step); ``--same-global-minibatch`` splits each rank's rollout into N x the mini-batches instead, keeping one
+process's global mini-batch and steps per env-step (pixel policies learn per env-step as on one GPU; measured in
+benchmarks/RESULTS.md).
 """
 
 from __future__ import annotations
