@@ -126,6 +126,8 @@ def solve_chains(
         nodes = m
         if m >= 3:
             closed3 = 1
+    # node 0 of a loop also ends the closing link m - 1, also once the loop is cut at link 0 (an open chain then)
+    wraps = closed3
     pe = env % inv_mass.shape[0]
     ce = env % compliance.shape[0]
     masked = active.shape[1] > 0
@@ -247,8 +249,12 @@ def solve_chains(
         n_prev = wp.vec3(0.0)
         dl_prev = float(0.0)
         k_prev = float(0.0)  # w-free tension weight Lambda / l of segment j - 1
-        if cyclic != 0:
-            n_prev = n_last
+        if wraps != 0:
+            # the closing link's correction (node 0 pinned: w_0 = 0 below)
+            n_prev, len_prev = segment_dir(q[env, chain_node[nb + (m - 1) * stride]], x_first)
+            if masked:
+                if active[env, chain_constraint[s0 + (m - 1) * stride]] == 0:
+                    n_prev = wp.vec3(0.0)  # removed: node 0 is a free end
             dl_prev = scratch_d[env, s0 + (m - 1) * stride]
         cn_prev = float(0.0)
         dn_prev = wp.vec3(0.0)

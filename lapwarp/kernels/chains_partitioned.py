@@ -450,8 +450,9 @@ def solve_link_separators(fam: Family, sc: Scratch, q: wp.array2d(dtype=wp.vec3)
         x_sep = x[0] - f * x[1]
         sc.dl[env, slot] = x_sep
     dl_last = float(0.0)
-    if cyclic != 0:
-        # node 0 needs dl of link m - 1, which phase 3 writes concurrently: the same arithmetic here
+    if fam.closed[fam.first + i] != 0 and m >= 3:
+        # node 0 of a loop (also of one cut at link 0) needs dl of link m - 1, which phase 3 writes concurrently:
+        # the same arithmetic here (f = 0 unless solved cyclically)
         dl_last = link_solution(sc, env, link_slot(fam, i, m - 1), f, x_sep, 0.0)
     sc.loop[env, fam.first + i] = wp.vec2(f, dl_last)
 
@@ -459,7 +460,7 @@ def solve_link_separators(fam: Family, sc: Scratch, q: wp.array2d(dtype=wp.vec3)
 # ---------------------------------------------------------------------------------------------------- phase 3
 @wp.func
 def factor_node_block(fam: Family, sc: Scratch, q: wp.array2d(dtype=wp.vec3), env: int, i: int, b: int, m: int,
-                      nodes: int, loop: int, lo: int, hi: int, last: int):
+                      nodes: int, lo: int, hi: int, last: int):
     """Filter rows of a block's nodes: eliminate the interior (right-hand side and left coupling), keep the end
     values and the right separator node's row. Each node's base point goes to ``node_par``."""
     n_p = wp.vec3(0.0)
@@ -467,13 +468,13 @@ def factor_node_block(fam: Family, sc: Scratch, q: wp.array2d(dtype=wp.vec3), en
     k_p = float(0.0)
     if lo > 0:
         n_p, dl_p, k_p = filter_link(fam, sc, q, env, i, lo - 1, m, nodes)
-    else:
-        cyclic, g, s, n_last = loop_corner(fam, q, env, i, m, nodes, loop)
-        if cyclic != 0:
-            # node 0 of a loop also moves with the closing link (tension weight 0: open filter); as in the serial
-            # kernel only when solved cyclically (not for a loop cut at its corner link 0 or with node 0 pinned)
-            n_p = n_last
-            dl_p = sc.loop[env, fam.first + i][1]
+    elif fam.closed[fam.first + i] != 0 and m >= 3:
+        # node 0 of a loop also moves with the closing link (tension weight 0: open filter), also once the loop is
+        # cut at link 0; a removed closing link leaves node 0 a free end
+        n_p, len_p = link_dir(fam, q, env, i, m - 1, nodes)
+        if link_active(fam, env, i, m - 1) == 0:
+            n_p = wp.vec3(0.0)
+        dl_p = sc.loop[env, fam.first + i][1]
     end = block_nodes_end(hi, last, nodes)
     zl_rhs = float(0.0)
     c_prev = float(0.0)
@@ -535,7 +536,7 @@ def solve_link_blocks(fam: Family, sc: Scratch, step: int, q: wp.array2d(dtype=w
         sc.dl[env, slot] = x
     for k in range(lo, own + 1):
         record_multiplier(fam, sc, env, i, k, step)
-    factor_node_block(fam, sc, q, env, i, b, m, nodes, loop, lo, hi, last)
+    factor_node_block(fam, sc, q, env, i, b, m, nodes, lo, hi, last)
 
 
 # ---------------------------------------------------------------------------------------------------- phases 4, 5
