@@ -308,6 +308,15 @@ def filter_link(fam: Family, sc: Scratch, q: wp.array2d(dtype=wp.vec3), env: int
 
 # ---------------------------------------------------------------------------------------------------- shared solves
 @wp.func
+def eliminate_row(sub: float, diag: float, sup: float, rhs: Any, zl_rhs: float, c_prev: float, d_prev: Any,
+                  zl_prev: float):
+    """One forward-elimination (Thomas) step of a block row with its right-hand side and the ZL column: the
+    modified super-diagonal, right-hand side and ZL entry of this row."""
+    inv = 1.0 / (diag - sub * c_prev)
+    return sup * inv, (rhs - sub * d_prev) * inv, (zl_rhs - sub * zl_prev) * inv
+
+
+@wp.func
 def block_ends(c: wp.array2d(dtype=float), d: wp.array2d(dtype=Any), zl: wp.array2d(dtype=float), env: int,
                first: int, last: int, stride: int, first_y: wp.array2d(dtype=Any), first_z: wp.array2d(dtype=wp.vec2),
                last_y: wp.array2d(dtype=Any), last_z: wp.array2d(dtype=wp.vec2), bs: int):
@@ -392,10 +401,7 @@ def factor_link_blocks(fam: Family, sc: Scratch, step: int, q: wp.array2d(dtype=
             n_next, len_next = link_dir(fam, q, env, i, k + 1, nodes)
         c_k = link_coupling(fam, env, i, k, m, n_k, n_next, w_k1)
         b_k, rhs = link_row(fam, sc, env, i, k, m, len_k, w_k, w_k1, cyclic, g, s, step)
-        inv = 1.0 / (b_k - a * c_prev)
-        c_prev = c_k * inv
-        d_prev = (rhs - a * d_prev) * inv
-        zl_prev = (zl_rhs - a * zl_prev) * inv
+        c_prev, d_prev, zl_prev = eliminate_row(a, b_k, c_k, rhs, zl_rhs, c_prev, d_prev, zl_prev)
         slot = link_slot(fam, i, k)
         sc.link_c[env, slot] = c_prev
         sc.link_d[env, slot] = d_prev
@@ -487,10 +493,7 @@ def factor_node_block(fam: Family, sc: Scratch, q: wp.array2d(dtype=wp.vec3), en
         if j == lo:
             a = 0.0  # the block's first row couples to the left separator through the ZL column
             zl_rhs = lo_j
-        inv = 1.0 / (diag - a * c_prev)
-        c_prev = up * inv
-        d_prev = (rhs - a * d_prev) * inv
-        zl_prev = (zl_rhs - a * zl_prev) * inv
+        c_prev, d_prev, zl_prev = eliminate_row(a, diag, up, rhs, zl_rhs, c_prev, d_prev, zl_prev)
         slot = node_slot(fam, i, j)
         sc.node_c[env, slot] = c_prev
         sc.node_d[env, slot] = d_prev
