@@ -27,8 +27,28 @@ import numpy as np
 import warp as wp
 
 from lapwarp.config import check_seed, rng_seed32
-from lapwarp.kernels import world_kernels
+from lapwarp.kernels import chains, chains_partitioned, world_kernels
 from lapwarp.model import Control, Model, State
+
+# Kernels with ~150 registers per thread (the chain solves): in blocks of 256 only one block fits an SM's register
+# file, in blocks of 64 six do (measured on the H100: the cloth's three chain families take 2.77 ms per substep at 64
+# threads per block, 3.08 ms at 256)
+_REGISTER_HEAVY = frozenset({chains.solve_chains, chains.solve_cloth_chains, chains_partitioned.factor_link_blocks,
+                             chains_partitioned.solve_link_separators, chains_partitioned.solve_link_blocks,
+                             chains_partitioned.solve_node_separators, chains_partitioned.solve_node_blocks})
+
+
+def block_dim_for(dim, sm_count: int, cap: int = 256) -> int:
+    """Threads per block for a launch of ``dim`` threads: the largest power of two from ``cap`` down to 32 that still
+    gives each of the ``sm_count`` SMs about four blocks. Warp's default of 256 leaves most of the GPU idle on small
+    grids: a per-env or per-rope kernel at 4,096 envs is 16 blocks, i.e. 16 of an H100's 132 SMs, and the chain
+    solves that walk a rope serially are latency-bound, so their time is set by how many SMs take part. On the CPU
+    (``sm_count`` 0) the value is ignored."""
+    threads = int(np.prod(dim)) if isinstance(dim, tuple | list) else int(dim)
+    block = cap
+    while block > 32 and threads < 4 * sm_count * block:
+        block //= 2
+    return block
 
 
 def _clone_state(state: State) -> State:
@@ -307,12 +327,16 @@ class World:
         m, n, dev, s = self.model, self.num_envs, self.device, self.state
         cmds: list = []
 
+        sm_count = dev.sm_count if dev.is_cuda else 0
+
         def launch(kernel, dim=None, inputs=(), outputs=()):
             # A plain callable (e.g. ``mesh.refit``) is recorded as is: it must only launch device work.
             if dim is None and not isinstance(kernel, wp.Kernel):
                 cmds.append(kernel)
                 return
-            rec = wp.launch(kernel, dim=dim, inputs=inputs, outputs=list(outputs), device=dev, record_cmd=True)
+            block = block_dim_for(dim, sm_count, 64 if kernel in _REGISTER_HEAVY else 256)
+            rec = wp.launch(kernel, dim=dim, inputs=inputs, outputs=list(outputs), device=dev, record_cmd=True,
+                            block_dim=block)
             cmds.append(rec.launch)
 
         substeps = self.substeps_for(dt)
@@ -357,8 +381,6 @@ class World:
         return cmds
 
     def _record_sweep(self, launch, xpbd, inv_dt2: float, use_lam: int, blend: float) -> None:
-        from lapwarp.kernels import chains, chains_partitioned
-
         m, n, s = self.model, self.num_envs, self.state
         lam = self._lam
         # inverse masses for the deformables' own constraints: attached particles count as heavier (see
@@ -371,7 +393,7 @@ class World:
         tet_map = m.tet_element if s.tet_active is not None else self._no_map_i
         seg_mask = s.segment_active if s.segment_active is not None else self._no_mask
 
-        def solve_chains(cs, rest, compliance, lam_arr, scratch, mask, newton_steps):
+        def solve_chains(cs, rest, compliance, lam_arr, scratch, mask, newton_steps, kernel):
             if self.chain_block_links > 1:
                 # partitioned, family after family: per Newton step five launches, blocks of chain_block_links links
                 # side by side
@@ -383,7 +405,7 @@ class World:
                 return
             # one launch per family of chains that share no node (Gauss-Seidel across families)
             for first, count, link_base, node_base in cs.families:
-                launch(chains.solve_chains, (n, count),
+                launch(kernel, (n, count),
                        [first, count, link_base, node_base, cs.edge_count, cs.closed, cs.node, cs.constraint, rest,
                         compliance, w_eff, inv_dt2, use_lam, newton_steps, lam_arr, *scratch, mask],
                        [s.particle_q])
@@ -411,7 +433,7 @@ class World:
         if m.edge_chains is not None:
             # after the bending hinges, so every sweep ends with the cloth at its length
             solve_chains(m.edge_chains, m.edge_rest, m.edge_compliance, lam.get("edge", self._dummy_f),
-                         self._edge_scratch, edge_mask, self.chain_newton_steps)
+                         self._edge_scratch, edge_mask, self.chain_newton_steps, chains.solve_cloth_chains)
         off = m.segment_color_offsets
         for c in range(len(off) - 1):
             launch(xpbd.solve_stretch_shear, (n, off[c + 1] - off[c]),
@@ -426,7 +448,7 @@ class World:
         if m.rod_count:
             # after shear and bend-twist so every sweep ends with the rods at their length
             solve_chains(m.rod_chains, m.rod_stretch_rest, m.rod_stretch_compliance, lam.get("rod", self._dummy_f),
-                         self._rod_scratch, seg_mask, self.rod_newton_steps)
+                         self._rod_scratch, seg_mask, self.rod_newton_steps, chains.solve_chains)
         if m.attachment_capacity:
             bq = s.body_q if s.body_q is not None else self._dummy_tf()
             bqp = self._body_q_prev if self._body_q_prev is not None else bq

@@ -172,3 +172,23 @@ def test_no_nan_under_abuse(device, case):
         world.step(0.01)
     assert np.all(np.isfinite(world.positions()))
     assert world.unstable.numpy().sum() == 0
+
+
+def test_block_dim_spreads_small_grids_over_the_gpu():
+    """Launch block sizes (World.block_dim_for): Warp's 256 on grids with >= 4 blocks per SM, smaller blocks below
+    (down to 32) so a per-env kernel at 4,096 envs reaches ~128 of an H100's 132 SMs instead of 16; the cap of
+    register-heavy kernels applies to any grid; the CPU (no SMs) gets the cap."""
+    from lapwarp.world import block_dim_for
+
+    assert block_dim_for(4096, 132) == 32  # 128 blocks
+    assert block_dim_for((4096, 5), 132) == 32  # 640 blocks
+    assert block_dim_for((4096, 20), 132) == 128  # 640 blocks (320 of 256 would leave SMs with 2)
+    assert block_dim_for((4096, 40), 132) == 256  # 640 blocks
+    assert block_dim_for((4096, 1600), 132) == 256
+    assert block_dim_for((4096, 1600), 132, cap=64) == 64
+    assert block_dim_for(10**7, 132, cap=64) == 64
+    assert block_dim_for(4096, 0) == 256
+    for threads in (1, 100, 5000, 70000, 10**6):
+        block = block_dim_for(threads, 132)
+        assert block in (32, 64, 128, 256)
+        assert block == 32 or threads >= 4 * 132 * block

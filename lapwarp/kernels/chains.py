@@ -303,3 +303,10 @@ def solve_chains(
             y = node_d[env, nb + j * stride] - y * node_c[env, nb + j * stride]
             if inv_mass[pe, chain_node[nb + j * stride]] > 0.0:
                 q[env, chain_node[nb + j * stride]] = node_par[env, nb + j * stride] + y
+
+
+# The same solve capped at 96 registers per thread (from 148; a few values spill to local memory). A cloth launches
+# hundreds of chains per env, enough warps to hide the spills, and more of them fit an SM: on the H100 at 4,096 envs
+# the 40 x 40 cloth's chain families take 2.26 ms per substep instead of 2.77 (cloth_free, 10 substeps: 101.7k ->
+# 116.1k env-steps/s). A rod's few long chains are latency-bound and lose 5 % with the cap, so they keep solve_chains.
+solve_cloth_chains = wp.kernel(solve_chains.func, cuda_max_registers=96, module="unique", enable_backward=False)
