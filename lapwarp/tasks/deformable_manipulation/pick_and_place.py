@@ -139,6 +139,7 @@ SUCCESS_RADIUS, SUCCESS_HEIGHT = 0.007, 0.01
 DROP_HEIGHT = 0.04
 SETTLED_SPEED = 0.025  # sofa_env resets again while the mean node speed exceeds it
 RED, BLUE = (0.85, 0.1, 0.1), (0.1, 0.25, 0.85)
+HOOK_CARRY, HOOK_LOWER, HOOK_CROSS, HOOK_PULL = 0, 1, 2, 3  # the expert's stages placing a hanging (soft) loop
 _NODES = wp.constant(NODES)
 _PEG_COUNT = wp.constant(len(PEGS))
 _HIDDEN = wp.constant(wp.vec3(0.0, -5.0, 0.0))  # far beyond the camera's far plane
@@ -567,15 +568,127 @@ def place_scene_visuals(q: wp.array2d(dtype=wp.vec3), p: Params, task: Task, rin
         blue_pegs[env, k] = wp.where(red != 0, hidden, place)
 
 
+@wp.func
+def place_level_ring(q: wp.array2d(dtype=wp.vec3), env: int, p: Params, tip: wp.transform, rcm: wp.transform,
+                     com: wp.vec3, peg: wp.vec3, lowest: float, highest: float, clearance: float, descent: float,
+                     far_peg: float) -> tuple[wp.vec3, float]:
+    """PLACE for a ring that stays level when held (the stiff torus): the tip goal and spin error that carry its COM
+    over the peg with the ring above the pegs' tops, then lower it around the peg (and keep lowering while it is
+    around the peg)."""
+    tip_pos = wp.transform_get_translation(tip)
+    dx = peg[0] - com[0]
+    dz = peg[2] - com[2]
+    e = wp.sqrt(dx * dx + dz * dz)
+    dy = PEG_TOP + TUBE_RADIUS + clearance - lowest
+    if e < 0.002 or (lowest < PEG_TOP and e < 0.006):
+        dy = -wp.min(highest - SUCCESS_HEIGHT * 0.5, descent)
+    # spin the torus about the held point until its COM lies beyond the grasp as seen from the RCM: the far
+    # pegs are then within the shaft's reach
+    center = grasp_center(tip)
+    pivot = wp.transform_get_translation(rcm)
+    heading = wp.atan2(com[2] - center[2], com[0] - center[0])
+    wanted = wp.atan2(peg[2] - pivot[2], peg[0] - pivot[0])
+    turn = wanted - heading
+    reach = wp.sqrt((peg[0] - pivot[0]) * (peg[0] - pivot[0]) + (peg[2] - pivot[2]) * (peg[2] - pivot[2]))
+    spin = float(0.0)
+    if reach > far_peg:  # only the far pegs need it (a discrete expert turns slowly)
+        spin = wp.atan2(wp.sin(turn), wp.cos(turn))
+    return tip_pos + wp.vec3(dx, dy, dz), spin
+
+
+@wp.func
+def hook_hanging_loop(q: wp.array2d(dtype=wp.vec3), env: int, p: Params, tip: wp.transform, rcm: wp.transform,
+                      attached: int, com: wp.vec3, peg: wp.vec3, lowest: float, hook_far: float, hook_near: float,
+                      clearance: float, cross_height: float, hold_height: float, swing_rate: float, max_swing: float,
+                      stage: wp.array(dtype=wp.int32), heading: wp.array(dtype=wp.vec3),
+                      swing: wp.array(dtype=float)) -> wp.vec3:
+    """PLACE for a loop that hangs from the grasp (the soft torus: two strands side by side, too narrow for the
+    peg's top to enter between them when lowered onto it). The tip goal of four stages: CARRY the loop's COM to
+    ``hook_far`` beyond the peg (along the loop's normal, away from the RCM) above the pegs' tops; LOWER it until its
+    fold lies on the board there; CROSS with the held node at ``cross_height`` over the peg's top to ``hook_near``
+    before it, the strands draped over the top one on each side of the peg's axis; PULL the held node down to
+    ``hold_height``: the taut strands slide off the top, one around each side of the peg, and the loop lies around
+    it. A strand left on the top is pulled off by swinging the held node about the peg towards that strand's side."""
+    tip_pos = wp.transform_get_translation(tip)
+    # the held node moves with the tip; it need not lie at the grasp centre (a grasp keeps the node's offset in the
+    # jaw: after PICK it lies ~7 mm farther along the jaws)
+    held = q[env, attached]
+    # the loop's horizontal normal: its strands lie side by side along the principal axis of its nodes' horizontal
+    # spread
+    cxx = float(0.0)
+    cxz = float(0.0)
+    czz = float(0.0)
+    for i in range(_NODES):
+        x = q[env, p.torus_first + i] - com
+        cxx += x[0] * x[0]
+        cxz += x[0] * x[2]
+        czz += x[2] * x[2]
+    angle = 0.5 * wp.atan2(2.0 * cxz, cxx - czz)
+    normal = wp.vec3(-wp.sin(angle), 0.0, wp.cos(angle))
+    goal = tip_pos
+    if stage[env] == HOOK_CARRY:
+        # cross towards the RCM: the grasp centre then ends nearer to it, within the shaft's reach at the far pegs
+        pivot = wp.transform_get_translation(rcm)
+        if (pivot[0] - peg[0]) * normal[0] + (pivot[2] - peg[2]) * normal[2] > 0.0:
+            normal = -normal
+        heading[env] = normal
+        far = peg + normal * hook_far
+        dy = PEG_TOP + TUBE_RADIUS + clearance - lowest
+        goal = tip_pos + wp.vec3(far[0] - com[0], dy, far[2] - com[2])
+        if horizontal_distance(far, com) < 0.002 and wp.abs(dy) < 0.003:
+            stage[env] = HOOK_LOWER
+    elif stage[env] == HOOK_LOWER:
+        far = peg + heading[env] * hook_far
+        goal = tip_pos + wp.vec3(0.5 * (far[0] - com[0]), -0.003, 0.5 * (far[2] - com[2]))
+        if lowest < 2.0 * TUBE_RADIUS:
+            stage[env] = HOOK_CROSS
+    elif stage[env] == HOOK_CROSS:
+        near = peg - heading[env] * hook_near
+        goal = tip_pos + wp.vec3(near[0] - held[0], cross_height - held[1], near[2] - held[2])
+        if horizontal_distance(near, held) < 0.0015:
+            stage[env] = HOOK_PULL
+    else:
+        u = heading[env]
+        side = wp.vec3(-u[2], 0.0, u[0])
+        # nodes on the peg's top (above it, within the tube's reach of its axis) once the pull has lowered the
+        # held node below the top: swing towards their side of the crossing line
+        on_top = wp.vec3(0.0)
+        count = int(0)
+        for i in range(_NODES):
+            x = q[env, p.torus_first + i] - peg
+            if x[1] + PEG_TARGET_Y > PEG_TOP and wp.sqrt(x[0] * x[0] + x[2] * x[2]) < PEG_RADIUS + TUBE_RADIUS:
+                on_top += x
+                count += 1
+        if count > 0 and held[1] < PEG_TOP - 0.005:
+            step = wp.where(wp.dot(on_top, side) >= 0.0, swing_rate, -swing_rate)
+            swing[env] = wp.clamp(swing[env] + step, -max_swing, max_swing)
+        a = swing[env]
+        near = peg + (side * wp.sin(a) - u * wp.cos(a)) * hook_near
+        goal = tip_pos + wp.vec3(near[0] - held[0], hold_height - held[1], near[2] - held[2])
+    return goal
+
+
+@wp.func
+def horizontal_distance(a: wp.vec3, b: wp.vec3) -> float:
+    return wp.sqrt((a[0] - b[0]) * (a[0] - b[0]) + (a[2] - b[2]) * (a[2] - b[2]))
+
+
 @wp.kernel
 def expert_commands(q: wp.array2d(dtype=wp.vec3), ptsd: wp.array2d(dtype=wp.vec4),
                     pose: wp.array2d(dtype=wp.transform), rcm: wp.array2d(dtype=wp.transform),
-                    jaw_angle: wp.array2d(dtype=float), grasped: wp.array(dtype=wp.int32), p: Params, task: Task,
-                    open_angle: float, hold_depth: float, clearance: float, descent: float, far_peg: float,
-                    max_step: float,
+                    jaw_angle: wp.array2d(dtype=float), grasped: wp.array(dtype=wp.int32),
+                    attach_particle: wp.array2d(dtype=wp.int32), p: Params, task: Task,
+                    episode_length: wp.array(dtype=wp.int32), open_angle: float, hold_depth: float,
+                    clearance: float, descent: float, far_peg: float, hook_far: float, hook_near: float,
+                    cross_height: float, hold_height: float, swing_rate: float, max_swing: float, max_step: float,
+                    stage: wp.array(dtype=wp.int32), heading: wp.array(dtype=wp.vec3), swing: wp.array(dtype=float),
                     error_out: wp.array2d(dtype=float)):
-    """The scripted grasper (``PickAndPlaceExpert``): PTSD and jaw errors per env."""
+    """The scripted grasper (``PickAndPlaceExpert``): PTSD and jaw errors per env, and its per-env hooking state
+    (``stage``, the crossing direction ``heading``, the ``swing`` about the peg)."""
     env = wp.tid()
+    if episode_length[env] == 0 or grasped[env] == 0 or task.phase[env] == PICK:
+        stage[env] = HOOK_CARRY
+        swing[env] = 0.0
     tip = pose[env, 0]
     tip_pos = wp.transform_get_translation(tip)
     axis = wp.transform_vector(tip, wp.vec3(0.0, 0.0, 1.0))  # along the jaws
@@ -623,26 +736,14 @@ def expert_commands(q: wp.array2d(dtype=wp.vec3), ptsd: wp.array2d(dtype=wp.vec4
         for i in range(_NODES):
             lowest = wp.min(lowest, q[env, p.torus_first + i][1])
             highest = wp.max(highest, q[env, p.torus_first + i][1])
-        # carry the COM over the peg with the torus above the pegs' tops, then lower it around the peg (and keep
-        # lowering while it is around the peg); a stiff ring stays level, a soft one hangs as a loop whose bottom
-        # lands on the peg's top and slides down around it
-        dx = peg[0] - com[0]
-        dz = peg[2] - com[2]
-        e = wp.sqrt(dx * dx + dz * dz)
-        dy = PEG_TOP + TUBE_RADIUS + clearance - lowest
-        if e < 0.002 or (lowest < PEG_TOP and e < 0.006):
-            dy = -wp.min(highest - SUCCESS_HEIGHT * 0.5, descent)
-        goal = tip_pos + wp.vec3(dx, dy, dz)
-        # spin the torus about the held point until its COM lies beyond the grasp as seen from the RCM: the far
-        # pegs are then within the shaft's reach
-        center = grasp_center(tip)
-        pivot = wp.transform_get_translation(rcm[env, 0])
-        heading = wp.atan2(com[2] - center[2], com[0] - center[0])
-        wanted = wp.atan2(peg[2] - pivot[2], peg[0] - pivot[0])
-        turn = wanted - heading
-        reach = wp.sqrt((peg[0] - pivot[0]) * (peg[0] - pivot[0]) + (peg[2] - pivot[2]) * (peg[2] - pivot[2]))
-        if reach > far_peg:  # only the far pegs need it (a discrete expert turns slowly)
-            spin = wp.atan2(wp.sin(turn), wp.cos(turn))
+        # a held stiff ring sags a few mm, a soft one hangs as a loop ~45 mm tall: tell them apart by the height
+        if stage[env] == HOOK_CARRY and highest - lowest < 2.0 * TORUS_RADIUS:
+            goal, spin = place_level_ring(q, env, p, tip, rcm[env, 0], com, peg, lowest, highest, clearance, descent,
+                                          far_peg)
+        else:
+            goal = hook_hanging_loop(q, env, p, tip, rcm[env, 0], attach_particle[env, 0], com, peg, lowest, hook_far,
+                                     hook_near, clearance,
+                                     cross_height, hold_height, swing_rate, max_swing, stage, heading, swing)
     # at most max_step per step along the straight line to the goal (saturated PTSD errors would move the tip on
     # arcs about the RCM and drag the torus into the board)
     move = goal - tip_pos
@@ -904,30 +1005,44 @@ class PickAndPlaceExpert(Expert):
     (the COM plus the ring radius along the opening, on the tip's side), with the jaws at ``open_angle`` (sofa_env's
     11 degree start already fits the 7 mm tube ``hold_depth`` = 22 mm along the jaws), it descends until that point
     lies ``hold_depth`` along the jaws and closes them (the grasp happens on contact below the grasp threshold), then
-    lifts the COM to the lift height. PLACE: it carries the COM over the nearest active peg with the torus
-    ``clearance`` above the pegs' tops, turning the torus about the held point (spin) for pegs farther than
-    ``far_peg`` from the RCM so that its COM lies beyond the grasp (the shaft's depth limit reaches them only so), and
-    lowers it around the peg by at most ``descent`` per step. Continuous actions follow the straight line to each goal
-    in legs of ``max_step`` (saturated PTSD errors would sweep the tip on arcs about the RCM)."""
+    lifts the COM to the lift height. PLACE, a ring that stays level when held (the stiff torus): it carries the COM
+    over the nearest active peg with the torus ``clearance`` above the pegs' tops, turning the torus about the held
+    point (spin) for pegs farther than ``far_peg`` from the RCM so that its COM lies beyond the grasp (the shaft's
+    depth limit reaches them only so), and lowers it around the peg by at most ``descent`` per step. PLACE, a loop
+    that hangs from the grasp (the soft torus; lowered onto the peg it lands on the top and slides down around the
+    peg only about every other time): it lays the loop's fold on the board ``hook_far`` beyond the peg, crosses over
+    the peg's top to ``hook_near`` before it (the held node at ``cross_height``) and pulls the held node down to
+    ``hold_height``, so the strands slide off the top around both sides of the peg, swinging about the peg by
+    ``swing_rate`` per step (at most ``max_swing``) while a strand stays on the top (see ``hook_hanging_loop``).
+    Continuous actions follow the straight line to each goal in legs of ``max_step`` (saturated PTSD errors would
+    sweep the tip on arcs about the RCM)."""
 
     def __init__(self, env: PickAndPlaceEnv, open_angle: float = 11.0, hold_depth: float = 0.022,
-                 clearance: float = 0.006, descent: float = 0.004, far_peg: float = 0.11,
-                 max_step: float | None = None):
+                 clearance: float = 0.006, descent: float = 0.004, far_peg: float = 0.11, hook_far: float = 0.011,
+                 hook_near: float = 0.012, cross_height: float = 0.03, hold_height: float = 0.005,
+                 swing_rate: float = 0.05, max_swing: float = 1.2, max_step: float | None = None):
         super().__init__(env)
         self.open_angle, self.hold_depth, self.clearance = float(open_angle), float(hold_depth), float(clearance)
         self.descent, self.far_peg = float(descent), float(far_peg)
+        self.hook = tuple(float(x) for x in (hook_far, hook_near, cross_height, hold_height, swing_rate, max_swing))
         # discrete actions move one component by a whole step (1-3 mm): a shorter leg would round to the no-op
         self.max_step = float(max_step if max_step is not None else (1.0 if env.is_discrete else 0.0015))
-        self.error = wp.zeros((env.num_envs, 5), dtype=float, device=env.wp_device)
+        n, dev = env.num_envs, env.wp_device
+        self.error = wp.zeros((n, 5), dtype=float, device=dev)
+        # per env: the hooking stage, its crossing direction and the swing about the peg (reset by the kernel at an
+        # episode's first step and whenever the torus is not held in PLACE)
+        self.stage = wp.zeros(n, dtype=wp.int32, device=dev)
+        self.heading = wp.zeros(n, dtype=wp.vec3, device=dev)
+        self.swing = wp.zeros(n, dtype=float, device=dev)
         self.step_size = self.rig_step_size()
 
     def __call__(self, obs=None) -> torch.Tensor:
         env, rig, s = self.env, self.env.rig, self.env.world.state
         with env._torch_stream_scope():
             wp.launch(expert_commands, dim=env.num_envs,
-                      inputs=[s.particle_q, rig.ptsd, rig.pose, rig.rcm, rig.jaw_angle, env.grasp.grasped, env.params,
-                              env.task, self.open_angle, self.hold_depth, self.clearance, self.descent, self.far_peg,
-                              self.max_step],
-                      outputs=[self.error],
+                      inputs=[s.particle_q, rig.ptsd, rig.pose, rig.rcm, rig.jaw_angle, env.grasp.grasped,
+                              s.attach_particle, env.params, env.task, env.episode_length, self.open_angle,
+                              self.hold_depth, self.clearance, self.descent, self.far_peg, *self.hook, self.max_step],
+                      outputs=[self.stage, self.heading, self.swing, self.error],
                       device=env.wp_device)
         return self.policy_actions(wp.to_torch(self.error) / self.step_size)
