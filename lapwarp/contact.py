@@ -25,6 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
+from lapwarp import launching
 from lapwarp.kernels import contact as ck
 from lapwarp.kernels.geometry import BodyMotion
 
@@ -594,11 +595,12 @@ class ContactSystem:
 
     def reset(self, env_mask: wp.array) -> None:
         """Clear the masked envs' reports (``World.reset`` calls it): a new episode starts with no contact."""
-        wp.launch(ck.clear_reports_masked, dim=self.num_envs, inputs=[env_mask, self.reports], device=self.device)
+        launching.launch(ck.clear_reports_masked, dim=self.num_envs, inputs=[env_mask, self.reports],
+                         device=self.device)
 
     def clear_reports(self) -> None:
         """Zero the reports now (``world.step`` already does this at its start; for use outside a step)."""
-        wp.launch(ck.clear_reports, dim=self.num_envs, inputs=[self.reports], device=self.device)
+        launching.launch(ck.clear_reports, dim=self.num_envs, inputs=[self.reports], device=self.device)
 
     # ------------------------------------------------------------------------------------------------
     # host helpers (sync; for tests and scripts)

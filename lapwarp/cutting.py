@@ -35,6 +35,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
+from lapwarp import launching
 from lapwarp.kernels import cutting as ck
 
 __all__ = ["CuttingSystem", "cut_surface"]
@@ -198,13 +199,13 @@ class CuttingSystem:
     # ------------------------------------------------------------------------------------------------
     def hook_activation(self, activation: wp.array, deadzone: float = 0.1) -> None:
         """``tool_active = activation > deadzone`` per env (electrocautery hook; ``activation`` ``(N,)`` float)."""
-        wp.launch(ck.hook_activation, dim=self.world.num_envs, inputs=[activation, float(deadzone)],
-                  outputs=[self.tool_active], device=self.world.device)
+        launching.launch(ck.hook_activation, dim=self.world.num_envs, inputs=[activation, float(deadzone)],
+                         outputs=[self.tool_active], device=self.world.device)
 
     def scissors_closing(self, jaw_angle: wp.array, min_closing: float = 0.0) -> None:
         """``tool_active`` = the jaw angle ``(N,)`` dropped by more than ``min_closing`` since the last call."""
-        wp.launch(ck.scissors_closing, dim=self.world.num_envs, inputs=[jaw_angle, float(min_closing)],
-                  outputs=[self._angle_prev, self.tool_active], device=self.world.device)
+        launching.launch(ck.scissors_closing, dim=self.world.num_envs, inputs=[jaw_angle, float(min_closing)],
+                         outputs=[self._angle_prev, self.tool_active], device=self.world.device)
 
     def set_tools(self, a, b, active=None) -> None:
         """Host convenience: write tool capsule axes ``(N, K, 3)`` (or ``(K, 3)`` for all envs) and optionally the
@@ -221,40 +222,40 @@ class CuttingSystem:
         w, dev = self.world, self.world.device
         self.removed.zero_()
         self.cut_happened.zero_()
-        wp.launch(ck.cut_elements, dim=(w.num_envs, self.num_elements),
-                  inputs=[self._nodes, self._kind, self._col, self._label, w.state.particle_q, self.tool_a,
-                          self.tool_b, self.tool_radius, self.tool_active, self.carving_distance],
-                  outputs=[*self._masks, self.removed, self.cut_happened, w.state.cut_dirty], device=dev)
+        launching.launch(ck.cut_elements, dim=(w.num_envs, self.num_elements),
+                         inputs=[self._nodes, self._kind, self._col, self._label, w.state.particle_q, self.tool_a,
+                                 self.tool_b, self.tool_radius, self.tool_active, self.carving_distance],
+                         outputs=[*self._masks, self.removed, self.cut_happened, w.state.cut_dirty], device=dev)
         self._update()
 
     def _update(self) -> None:
         w, m, s, dev = self.world, self.world.model, self.world.state, self.world.device
         if s.tet_face_active is not None:
-            wp.launch(ck.tet_surface, dim=(w.num_envs, 4 * m.tet_count),
-                      inputs=[s.cut_dirty, s.tet_active, m.tet_face_neighbor], outputs=[s.tet_face_active],
-                      device=dev)
+            launching.launch(ck.tet_surface, dim=(w.num_envs, 4 * m.tet_count),
+                             inputs=[s.cut_dirty, s.tet_active, m.tet_face_neighbor], outputs=[s.tet_face_active],
+                             device=dev)
         if s.edge_active is not None:
-            wp.launch(ck.cloth_constraint_masks, dim=(w.num_envs, max(m.edge_count, m.hinge_count)),
-                      inputs=[s.cut_dirty, m.edge_tris, self._hinge_map[0], s.tri_active],
-                      outputs=[s.edge_active, self._hinge_map[1]], device=dev)
+            launching.launch(ck.cloth_constraint_masks, dim=(w.num_envs, max(m.edge_count, m.hinge_count)),
+                             inputs=[s.cut_dirty, m.edge_tris, self._hinge_map[0], s.tri_active],
+                             outputs=[s.edge_active, self._hinge_map[1]], device=dev)
         N, M, P = w.num_envs, self.num_elements, self._pairs.shape[0]
         masks = self._masks
         for live_only in (0, 1):  # clear, then mark the particles of live elements
-            wp.launch(ck.particles_set_activity, dim=(N, M),
-                      inputs=[self._nodes, self._kind, self._col, *masks, s.cut_dirty, live_only, live_only],
-                      outputs=[s.particle_active], device=dev)
-        wp.launch(ck.conn_init, dim=(N, M), inputs=[self._kind, self._col, *masks, s.cut_dirty],
-                  outputs=[self.component, self._root_bits, self.num_components, self.active_count,
-                           self.label_links], device=dev)
+            launching.launch(ck.particles_set_activity, dim=(N, M),
+                             inputs=[self._nodes, self._kind, self._col, *masks, s.cut_dirty, live_only, live_only],
+                             outputs=[s.particle_active], device=dev)
+        launching.launch(ck.conn_init, dim=(N, M), inputs=[self._kind, self._col, *masks, s.cut_dirty],
+                         outputs=[self.component, self._root_bits, self.num_components, self.active_count,
+                                  self.label_links], device=dev)
         if P:
-            wp.launch(ck.conn_hook, dim=(N, P), inputs=[self._pairs, s.cut_dirty], outputs=[self.component],
-                      device=dev)
-        wp.launch(ck.conn_count, dim=(N, M), inputs=[self._label, self._obj, s.cut_dirty],
-                  outputs=[self.component, self._root_bits, self.num_components, self.active_count], device=dev)
-        wp.launch(ck.conn_links, dim=(N, M), inputs=[s.cut_dirty, self._root_bits], outputs=[self.label_links],
-                  device=dev)
-        wp.launch(ck.conn_finish, dim=N, inputs=[self._label_total, self.active_count, s.cut_dirty],
-                  outputs=[self.cut_ratio], device=dev)
+            launching.launch(ck.conn_hook, dim=(N, P), inputs=[self._pairs, s.cut_dirty], outputs=[self.component],
+                             device=dev)
+        launching.launch(ck.conn_count, dim=(N, M), inputs=[self._label, self._obj, s.cut_dirty],
+                         outputs=[self.component, self._root_bits, self.num_components, self.active_count], device=dev)
+        launching.launch(ck.conn_links, dim=(N, M), inputs=[s.cut_dirty, self._root_bits], outputs=[self.label_links],
+                         device=dev)
+        launching.launch(ck.conn_finish, dim=N, inputs=[self._label_total, self.active_count, s.cut_dirty],
+                         outputs=[self.cut_ratio], device=dev)
 
     def refresh(self) -> None:
         """Recompute surfaces / connectivity / counters of envs restored by ``world.reset`` (cut_dirty = 1)

@@ -36,6 +36,7 @@ import warp as wp
 from rsl_rl.env import VecEnv
 from tensordict import TensorDict
 
+from lapwarp import launching
 from lapwarp.config import EnvConfig, build_config, check_num_envs, check_seed, resolve_device
 from lapwarp.kernels import env_kernels
 from lapwarp.tasks.spec import ActionLayout, ObservationLayout, RewardSpec
@@ -360,14 +361,14 @@ class BatchedEnv(VecEnv):
         self._draw_overlays(self._camera_rgb, self.camera.scene.camera.fov_deg)
         kind = self.cfg.observation_type
         height, width = self.cfg.image_shape
-        wp.launch(env_kernels.write_image_frame, dim=(self.num_envs, height, width),
-                  inputs=[self._camera_rgb, self._camera_depth, int(kind != "DEPTH"), int(kind != "RGB"),
-                          1.0 / self.camera.scene.camera.far], outputs=[self.image_frame], device=self.wp_device)
+        launching.launch(env_kernels.write_image_frame, dim=(self.num_envs, height, width),
+                         inputs=[self._camera_rgb, self._camera_depth, int(kind != "DEPTH"), int(kind != "RGB"),
+                                 1.0 / self.camera.scene.camera.far], outputs=[self.image_frame], device=self.wp_device)
         if self.cfg.frame_stack > 1:
             flat = self.image_frame.reshape((self.num_envs, -1))
-            wp.launch(env_kernels.push_observation_frame, dim=flat.shape,
-                      inputs=[flat, self.reset_mask, self.cfg.frame_stack, int(push_mode)],
-                      outputs=[self.image_stack.reshape((self.num_envs, -1))], device=self.wp_device)
+            launching.launch(env_kernels.push_observation_frame, dim=flat.shape,
+                             inputs=[flat, self.reset_mask, self.cfg.frame_stack, int(push_mode)],
+                             outputs=[self.image_stack.reshape((self.num_envs, -1))], device=self.wp_device)
 
     # ------------------------------------------------------------------ VecEnv API
     @property
@@ -401,11 +402,11 @@ class BatchedEnv(VecEnv):
         if seed is not None:
             self.world.seed_rng(check_seed(seed))
         with self._torch_stream_scope():
-            wp.launch(env_kernels.fill_int_array, dim=self.num_envs, inputs=[1], outputs=[self.reset_mask],
-                      device=self.wp_device)
+            launching.launch(env_kernels.fill_int_array, dim=self.num_envs, inputs=[1], outputs=[self.reset_mask],
+                             device=self.wp_device)
             self._reset_and_observe()
-            wp.launch(env_kernels.fill_int_array, dim=self.num_envs, inputs=[0], outputs=[self.reset_mask],
-                      device=self.wp_device)
+            launching.launch(env_kernels.fill_int_array, dim=self.num_envs, inputs=[0], outputs=[self.reset_mask],
+                             device=self.wp_device)
         return self.get_observations(), {}
 
     def step(self, actions: torch.Tensor) -> tuple[TensorDict, torch.Tensor, torch.Tensor, dict]:
@@ -472,13 +473,13 @@ class BatchedEnv(VecEnv):
         """Every launch of one env step, in order; captured as one CUDA graph on CUDA devices."""
         dev = self.wp_device
         if self.is_discrete:
-            wp.launch(env_kernels.lookup_discrete_actions, dim=(self.num_envs, self.action_dim),
-                      inputs=[self.discrete_in, self.action_table], outputs=[self.actions, self.nonfinite_actions],
-                      device=dev)
+            launching.launch(env_kernels.lookup_discrete_actions, dim=(self.num_envs, self.action_dim),
+                             inputs=[self.discrete_in, self.action_table],
+                             outputs=[self.actions, self.nonfinite_actions], device=dev)
         else:
-            wp.launch(env_kernels.sanitize_continuous_actions, dim=self.num_envs,
-                      inputs=[self.actions_in, int(self.cfg.clip_actions)],
-                      outputs=[self.actions, self.nonfinite_actions, self.clipped_actions], device=dev)
+            launching.launch(env_kernels.sanitize_continuous_actions, dim=self.num_envs,
+                             inputs=[self.actions_in, int(self.cfg.clip_actions)],
+                             outputs=[self.actions, self.nonfinite_actions, self.clipped_actions], device=dev)
         self._apply_actions(self.actions)
         if self._overflow_sources:
             self.contact_overflow.zero_()
@@ -486,19 +487,23 @@ class BatchedEnv(VecEnv):
             self._before_physics_step()
             self.world.step(self.cfg.time_step)
             for flags in self._overflow_sources:  # cleared by every world step: collect them per physics step
-                wp.launch(env_kernels.or_flags, dim=self.num_envs, inputs=[flags], outputs=[self.contact_overflow],
-                          device=dev)
+                launching.launch(env_kernels.or_flags, dim=self.num_envs, inputs=[flags],
+                                 outputs=[self.contact_overflow],
+                                 device=dev)
         for rows in self._state_rows:
-            wp.launch(env_kernels.flag_nonfinite_rows, dim=self.num_envs, inputs=[rows], outputs=[self.world.unstable],
-                      device=dev)
+            launching.launch(env_kernels.flag_nonfinite_rows, dim=self.num_envs, inputs=[rows],
+                             outputs=[self.world.unstable],
+                             device=dev)
         self._compute_features(self._all_envs, self.features)
         spec = self.rewards
-        wp.launch(env_kernels.finish_env_step, dim=self.num_envs,
-                  inputs=[self._delta_columns, self._delta_bases, spec.success, spec.failure, self.weights,
-                          self.world.unstable, self.cfg.max_episode_steps, self.episode_length, self.episode_return],
-                  outputs=[self.features, self.baselines, self.success, self.failure, self.reward, self.terminated,
-                           self.truncated, self.done, self.reset_mask, self.last_episode_success,
-                           self.finished_episodes, self.last_episode_return, self.last_episode_length], device=dev)
+        launching.launch(env_kernels.finish_env_step, dim=self.num_envs,
+                         inputs=[self._delta_columns, self._delta_bases, spec.success, spec.failure, self.weights,
+                                 self.world.unstable, self.cfg.max_episode_steps, self.episode_length,
+                                 self.episode_return],
+                         outputs=[self.features, self.baselines, self.success, self.failure, self.reward,
+                                  self.terminated, self.truncated, self.done, self.reset_mask,
+                                  self.last_episode_success, self.finished_episodes, self.last_episode_return,
+                                  self.last_episode_length], device=dev)
         self._update_task()
         self._reduce_log()
         if self.keep_final_observations:
@@ -515,15 +520,14 @@ class BatchedEnv(VecEnv):
         dev = self.wp_device
         self._log_sums.zero_()
         chunks = (self.num_envs + env_kernels.LOG_CHUNK - 1) // env_kernels.LOG_CHUNK
-        wp.launch(env_kernels.sum_log_terms, dim=(chunks, self._log_sums.shape[0]),
-                  inputs=[self.features, self.weights, self.finished_episodes, self.last_episode_success,
-                          self.last_episode_return, self.last_episode_length, self.world.unstable,
-                          self.nonfinite_actions, self.clipped_actions, int(self.is_discrete), self.contact_overflow,
-                          self._overflow_term], outputs=[self._log_sums], device=dev)
-        wp.launch(env_kernels.finish_log_terms, dim=1,
-                  inputs=[self._log_sums, self.rewards.size, self.num_envs, self.action_dim, int(self.is_discrete),
-                          self._overflow_term],
-                  outputs=[self.log_values], device=dev)
+        launching.launch(env_kernels.sum_log_terms, dim=(chunks, self._log_sums.shape[0]),
+                         inputs=[self.features, self.weights, self.finished_episodes, self.last_episode_success,
+                                 self.last_episode_return, self.last_episode_length, self.world.unstable,
+                                 self.nonfinite_actions, self.clipped_actions, int(self.is_discrete),
+                                 self.contact_overflow, self._overflow_term], outputs=[self._log_sums], device=dev)
+        launching.launch(env_kernels.finish_log_terms, dim=1,
+                         inputs=[self._log_sums, self.rewards.size, self.num_envs, self.action_dim,
+                                 int(self.is_discrete), self._overflow_term], outputs=[self.log_values], device=dev)
 
     def _reset_and_observe(self, push_mode: int = env_kernels.PUSH_ALL) -> None:
         """Reset the envs flagged in ``reset_mask`` in place, start their delta baselines from the features of the
@@ -535,16 +539,16 @@ class BatchedEnv(VecEnv):
             # the task's feature kernel writes the reset envs' features straight into the baselines (a delta's base
             # column is the column of its baseline; the other columns of ``baselines`` are never read)
             self._compute_features(self.reset_mask, self.baselines)
-        wp.launch(env_kernels.clear_episode_buffers, dim=self.num_envs, inputs=[self.reset_mask],
-                  outputs=[self.episode_length, self.episode_return], device=self.wp_device)
+        launching.launch(env_kernels.clear_episode_buffers, dim=self.num_envs, inputs=[self.reset_mask],
+                         outputs=[self.episode_length, self.episode_return], device=self.wp_device)
         self._observe(push_mode)
 
     def _observe(self, push_mode: int) -> None:
         """Write the newest frames and push them onto the frame stacks."""
         self._compute_observations()
         if self.cfg.privileged_critic and self._critic_has_policy_prefix:
-            wp.launch(env_kernels.copy_leading_columns, dim=self.obs_frame.shape, inputs=[self.obs_frame],
-                      outputs=[self.critic_frame], device=self.wp_device)
+            launching.launch(env_kernels.copy_leading_columns, dim=self.obs_frame.shape, inputs=[self.obs_frame],
+                             outputs=[self.critic_frame], device=self.wp_device)
         if self.uses_images:
             self._observe_images(push_mode)
         if self.cfg.frame_stack == 1:
@@ -553,9 +557,9 @@ class BatchedEnv(VecEnv):
         if self.cfg.privileged_critic:
             pairs.append((self.critic_frame, self.critic_stack))
         for frame, stack in pairs:
-            wp.launch(env_kernels.push_observation_frame, dim=frame.shape,
-                      inputs=[frame, self.reset_mask, self.cfg.frame_stack, int(push_mode)], outputs=[stack],
-                      device=self.wp_device)
+            launching.launch(env_kernels.push_observation_frame, dim=frame.shape,
+                             inputs=[frame, self.reset_mask, self.cfg.frame_stack, int(push_mode)], outputs=[stack],
+                             device=self.wp_device)
 
     def _step_outputs(self) -> tuple[TensorDict, torch.Tensor, torch.Tensor, dict]:
         t = self._t

@@ -22,6 +22,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
+from lapwarp import launching
 from lapwarp.contact import make_struct
 from lapwarp.kernels import grasping as gk
 from lapwarp.kernels.contact import IgnoreMask
@@ -140,11 +141,11 @@ class GraspSystem:
         if each.shape != (0,) and each.shape != (w.num_envs,):
             raise ValueError(f"per-env grasp particles must have shape ({w.num_envs},), got {each.shape}")
         single = -1 if isinstance(particle, wp.array) else int(particle)
-        wp.launch(gk.start_grasp, dim=w.num_envs, inputs=[mask, single, each, self._grasper, self._scene],
-                  outputs=[self._state], device=w.device)
+        launching.launch(gk.start_grasp, dim=w.num_envs, inputs=[mask, single, each, self._grasper, self._scene],
+                         outputs=[self._state], device=w.device)
         if self.jaws_pass_while_grasped:
-            wp.launch(gk.sync_jaw_contact, dim=(w.num_envs, self.graspable.shape[0]),
-                      inputs=[self._grasper], outputs=[self._state], device=w.device)
+            launching.launch(gk.sync_jaw_contact, dim=(w.num_envs, self.graspable.shape[0]),
+                             inputs=[self._grasper], outputs=[self._state], device=w.device)
 
     def reset(self, env_mask: wp.array) -> None:
         """Forget the grasps of the masked envs (``world.reset`` restores the attachment slots themselves)."""
@@ -167,5 +168,5 @@ class GraspSystem:
     def restore(self, env_mask: wp.array, snapshot) -> None:
         """Put the masked envs' grasps back to a :meth:`snapshot` (after ``world.reset``, whose reset of this system
         released them); one launch, graph-capturable."""
-        wp.launch(gk.restore_grasp, dim=self.world.num_envs, inputs=[env_mask, self._grasper, snapshot],
-                  outputs=[self._state], device=self.world.device)
+        launching.launch(gk.restore_grasp, dim=self.world.num_envs, inputs=[env_mask, self._grasper, snapshot],
+                         outputs=[self._state], device=self.world.device)

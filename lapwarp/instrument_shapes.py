@@ -20,6 +20,7 @@ import numpy as np
 import trimesh
 import warp as wp
 
+from lapwarp import launching
 from lapwarp.kernels.bodies import pose_instrument_bodies, step_jaw_angle
 
 KINDS = ("grasper", "cauter", "scissors", "loop", "endoscope")
@@ -146,8 +147,8 @@ class InstrumentShape:
             self._body_index = wp.array(self.bodies, dtype=wp.int32, device=dev)
             self._closed_jaws = wp.zeros(n, dtype=float, device=dev)
         ang = jaw_angle_deg if jaw_angle_deg is not None else self._closed_jaws
-        wp.launch(pose_instrument_bodies, dim=n, inputs=[tip_pose, int(column), ang], outputs=[self._poses],
-                  device=dev)
+        launching.launch(pose_instrument_bodies, dim=n, inputs=[tip_pose, int(column), ang], outputs=[self._poses],
+                         device=dev)
         world.set_body_poses(self._poses, self._body_index, teleport_mask)
 
     def step_jaw(self, actions: wp.array, column: int, max_speed_deg: float, dt: float, angle_deg: wp.array,
@@ -155,10 +156,10 @@ class InstrumentShape:
         """Jaw angle follows the action: ``angle += clip(a) * max_speed * dt`` within ``angle_limits``; closing
         is ignored in envs whose ``grasped`` flag is set (as sofa_env's gripper)."""
         g = grasped if grasped is not None else wp.zeros(1, dtype=wp.int32, device=angle_deg.device)
-        wp.launch(step_jaw_angle, dim=angle_deg.shape[0],
-                  inputs=[actions, int(column), float(max_speed_deg), float(dt), float(self.angle_limits[0]),
-                          float(self.angle_limits[1]), g, int(grasped is not None)], outputs=[angle_deg],
-                  device=angle_deg.device)
+        launching.launch(step_jaw_angle, dim=angle_deg.shape[0],
+                         inputs=[actions, int(column), float(max_speed_deg), float(dt), float(self.angle_limits[0]),
+                                 float(self.angle_limits[1]), g, int(grasped is not None)], outputs=[angle_deg],
+                         device=angle_deg.device)
 
 
 def tip_poses_numpy(positions, quats=None) -> np.ndarray:

@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import warp as wp
 
+from lapwarp import launching
 from lapwarp.kernels import kinematics
 
 #: Bit of :attr:`TPSDInstruments.flags`: a component of the last update was outside the state limits.
@@ -246,13 +247,13 @@ class TPSDInstruments:
         self._check_rows(actions, "actions")
         if actions.ndim != 2 or actions.shape[1] < self.action_dim:
             raise ValueError(f"actions must have shape ({self.num_envs}, >= {self.action_dim}), got {actions.shape}")
-        wp.launch(
-            kinematics.compute_continuous_deltas,
-            dim=(self.num_envs, self.num_instruments),
-            inputs=[actions, self.action_columns, self.max_velocity, float(self._check_dt(dt))],
-            outputs=[self.delta],
-            device=self.device,
-        )
+        launching.launch(
+                   kinematics.compute_continuous_deltas,
+                   dim=(self.num_envs, self.num_instruments),
+                   inputs=[actions, self.action_columns, self.max_velocity, float(self._check_dt(dt))],
+                   outputs=[self.delta],
+                   device=self.device,
+               )
 
     def set_discrete_actions(self, indices: wp.array, dt: float) -> None:
         """Fill :attr:`delta` from discrete actions: ``delta = discrete_action_table(magnitude)[index] * dt``.
@@ -269,13 +270,13 @@ class TPSDInstruments:
             indices = indices.reshape((self.num_envs, 1))
         if indices.shape != (self.num_envs, self.num_instruments):
             raise ValueError(f"indices must have shape ({self.num_envs}, {self.num_instruments}), got {indices.shape}")
-        wp.launch(
-            kinematics.compute_discrete_deltas,
-            dim=(self.num_envs, self.num_instruments),
-            inputs=[indices, self.discrete_table, float(self._check_dt(dt))],
-            outputs=[self.delta],
-            device=self.device,
-        )
+        launching.launch(
+                   kinematics.compute_discrete_deltas,
+                   dim=(self.num_envs, self.num_instruments),
+                   inputs=[indices, self.discrete_table, float(self._check_dt(dt))],
+                   outputs=[self.delta],
+                   device=self.device,
+               )
 
     def step(self) -> None:
         """Advance every instrument by :attr:`delta` (one sub-step) with sofa_env's limit semantics.
@@ -284,13 +285,14 @@ class TPSDInstruments:
         whole update. :attr:`flags` is overwritten. Call it once per sub-step: like sofa_env, a frame-skip
         of ``n`` applies the same delta ``n`` times.
         """
-        wp.launch(
-            kinematics.step_tpsd_instruments,
-            dim=(self.num_envs, self.num_instruments),
-            inputs=[self.rcm, self.state_low, self.state_high, self.workspace_low, self.workspace_high, self.delta],
-            outputs=[self.ptsd, self.pose, self.flags],
-            device=self.device,
-        )
+        launching.launch(
+                   kinematics.step_tpsd_instruments,
+                   dim=(self.num_envs, self.num_instruments),
+                   inputs=[self.rcm, self.state_low, self.state_high, self.workspace_low, self.workspace_high,
+                           self.delta],
+                   outputs=[self.ptsd, self.pose, self.flags],
+                   device=self.device,
+               )
 
     def apply_actions(self, actions: wp.array, dt: float) -> None:
         """:meth:`set_actions` then :meth:`step`: one sub-step of continuous actions in [-1, 1]."""
@@ -320,28 +322,28 @@ class TPSDInstruments:
         self._check_rows(mask, "env_mask")
         if rng is not None:
             self._check_rows(rng, "rng")
-        wp.launch(
-            kinematics.reset_tpsd_instruments,
-            dim=self.num_envs,
-            inputs=[
-                mask,
-                self.rcm_position,
-                self.rcm_euler,
-                self.rcm_position_noise,
-                self.rcm_euler_noise,
-                self.start_ptsd,
-                self.ptsd_noise,
-                self.state_low,
-                self.state_high,
-                self.workspace_low,
-                self.workspace_high,
-                0 if rng is None else 1,
-                self.max_reset_tries,
-                self._no_rng if rng is None else rng,
-            ],
-            outputs=[self.rcm, self.ptsd, self.pose, self.flags],
-            device=self.device,
-        )
+        launching.launch(
+                   kinematics.reset_tpsd_instruments,
+                   dim=self.num_envs,
+                   inputs=[
+                       mask,
+                       self.rcm_position,
+                       self.rcm_euler,
+                       self.rcm_position_noise,
+                       self.rcm_euler_noise,
+                       self.start_ptsd,
+                       self.ptsd_noise,
+                       self.state_low,
+                       self.state_high,
+                       self.workspace_low,
+                       self.workspace_high,
+                       0 if rng is None else 1,
+                       self.max_reset_tries,
+                       self._no_rng if rng is None else rng,
+                   ],
+                   outputs=[self.rcm, self.ptsd, self.pose, self.flags],
+                   device=self.device,
+               )
 
     # -- host utilities (synchronise; not for the captured step) ----------------------------------
 
@@ -364,13 +366,13 @@ class TPSDInstruments:
         except ValueError as err:
             raise ValueError(f"cannot write ptsd of shape {values.shape} to {len(ids)} envs: {err}") from err
         self.ptsd.assign(current.astype(np.float32))
-        wp.launch(
-            kinematics.compute_tip_poses,
-            dim=(self.num_envs, self.num_instruments),
-            inputs=[self.rcm, self.ptsd],
-            outputs=[self.pose, self.flags],
-            device=self.device,
-        )
+        launching.launch(
+                   kinematics.compute_tip_poses,
+                   dim=(self.num_envs, self.num_instruments),
+                   inputs=[self.rcm, self.ptsd],
+                   outputs=[self.pose, self.flags],
+                   device=self.device,
+               )
 
     def ptsd_numpy(self) -> np.ndarray:
         """States as ``(num_envs, num_instruments, 4)`` float64: (pan, tilt, spin) in deg, depth in m."""

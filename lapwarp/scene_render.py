@@ -11,6 +11,7 @@ from collections.abc import Sequence
 
 import warp as wp
 
+from lapwarp import launching
 from lapwarp.kernels import env_kernels
 from lapwarp.render import Renderer
 from lapwarp.visuals import VisualScene
@@ -84,11 +85,11 @@ class SceneRenderer:
     def render(self) -> None:
         """Render every env from its current visual state (the env must have called ``update_visuals``)."""
         for transforms, column in self._rigid:
-            wp.launch(env_kernels.gather_transform_columns, dim=transforms.shape, inputs=[transforms, column],
-                      outputs=[self._instances], device=self.device)
+            launching.launch(env_kernels.gather_transform_columns, dim=transforms.shape, inputs=[transforms, column],
+                             outputs=[self._instances], device=self.device)
         for segments, sides, faces in self._tube_masks:
-            wp.launch(tube_face_mask, dim=(segments.shape[0], segments.shape[1], sides), inputs=[segments, sides],
-                      outputs=[faces], device=self.device)
+            launching.launch(tube_face_mask, dim=(segments.shape[0], segments.shape[1], sides),
+                             inputs=[segments, sides], outputs=[faces], device=self.device)
         self.renderer.render(
             camera_poses=self.scene.camera.poses,
             instance_transforms=self._instances if self._num_instances else None,

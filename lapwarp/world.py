@@ -26,6 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
+from lapwarp import launching
 from lapwarp.config import check_seed, rng_seed32
 from lapwarp.kernels import chains, chains_partitioned, world_kernels
 from lapwarp.model import Control, Model, State
@@ -36,19 +37,6 @@ from lapwarp.model import Control, Model, State
 _REGISTER_HEAVY = frozenset({chains.solve_chains, chains.solve_cloth_chains, chains_partitioned.factor_link_blocks,
                              chains_partitioned.solve_link_separators, chains_partitioned.solve_link_blocks,
                              chains_partitioned.solve_node_separators, chains_partitioned.solve_node_blocks})
-
-
-def block_dim_for(dim, sm_count: int, cap: int = 256) -> int:
-    """Threads per block for a launch of ``dim`` threads: the largest power of two from ``cap`` down to 32 that still
-    gives each of the ``sm_count`` SMs about four blocks. Warp's default of 256 leaves most of the GPU idle on small
-    grids: a per-env or per-rope kernel at 4,096 envs is 16 blocks, i.e. 16 of an H100's 132 SMs, and the chain
-    solves that walk a rope serially are latency-bound, so their time is set by how many SMs take part. On the CPU
-    (``sm_count`` 0) the value is ignored."""
-    threads = int(np.prod(dim)) if isinstance(dim, tuple | list) else int(dim)
-    block = cap
-    while block > 32 and threads < 4 * sm_count * block:
-        block //= 2
-    return block
 
 
 def _clone_state(state: State) -> State:
@@ -301,8 +289,8 @@ class World:
         """Re-seed every env's RNG stream (host-side call, not part of the captured step). Any Python integer is a
         distinct seed (``lapwarp.config.rng_seed32``); a non-integer raises ``ValueError``."""
         self.seed = check_seed(seed)
-        wp.launch(world_kernels.init_env_rng, dim=self.num_envs, inputs=[rng_seed32(self.seed)], outputs=[self.rng],
-                  device=self.device)
+        launching.launch(world_kernels.init_env_rng, dim=self.num_envs, inputs=[rng_seed32(self.seed)],
+                         outputs=[self.rng], device=self.device)
 
     # ------------------------------------------------------------------------------------------------
     def step(self, dt: float) -> None:
@@ -334,7 +322,7 @@ class World:
             if dim is None and not isinstance(kernel, wp.Kernel):
                 cmds.append(kernel)
                 return
-            block = block_dim_for(dim, sm_count, 64 if kernel in _REGISTER_HEAVY else 256)
+            block = launching.block_dim_for(dim, sm_count, 64 if kernel in _REGISTER_HEAVY else 256)
             rec = wp.launch(kernel, dim=dim, inputs=inputs, outputs=list(outputs), device=dev, record_cmd=True,
                             block_dim=block)
             cmds.append(rec.launch)
@@ -469,11 +457,11 @@ class World:
         from lapwarp.kernels import xpbd
 
         self._unstable_now.zero_()
-        wp.launch(xpbd.check_particles, dim=(self.num_envs, m.particle_count),
-                  inputs=[self.state.particle_q, self.state.particle_qd, float(m.max_speed)],
-                  outputs=[self._unstable_now], device=self.device)
-        wp.launch(xpbd.merge_flags, dim=self.num_envs, inputs=[self._unstable_now], outputs=[self.unstable],
-                  device=self.device)
+        launching.launch(xpbd.check_particles, dim=(self.num_envs, m.particle_count),
+                         inputs=[self.state.particle_q, self.state.particle_qd, float(m.max_speed)],
+                         outputs=[self._unstable_now], device=self.device)
+        launching.launch(xpbd.merge_flags, dim=self.num_envs, inputs=[self._unstable_now], outputs=[self.unstable],
+                         device=self.device)
         if self.auto_reset_unstable:
             self._restore(self._unstable_now)
 
@@ -500,17 +488,17 @@ class World:
         if width == 0:
             return
         body_prev = self._body_q_prev if self._body_q_prev is not None else self._dummy_tf()
-        wp.launch(world_kernels.copy_state_rows, dim=(self.num_envs, width),
-                  inputs=[env_mask, start if restore else live, live if restore else start, body_prev,
-                          int(restore and self._body_q_prev is not None)], device=self.device)
+        launching.launch(world_kernels.copy_state_rows, dim=(self.num_envs, width),
+                         inputs=[env_mask, start if restore else live, live if restore else start, body_prev,
+                                 int(restore and self._body_q_prev is not None)], device=self.device)
 
     def _copy_tet_rotations(self, env_mask: wp.array, restore: bool) -> None:
         if self._start_tet_rotation is None:
             return
         src, dst = ((self._start_tet_rotation, self._tet_rotation) if restore
                     else (self._tet_rotation, self._start_tet_rotation))
-        wp.launch(world_kernels.copy_masked_quat_rows, dim=src.shape, inputs=[env_mask, src], outputs=[dst],
-                  device=self.device)
+        launching.launch(world_kernels.copy_masked_quat_rows, dim=src.shape, inputs=[env_mask, src], outputs=[dst],
+                         device=self.device)
 
     def _restore(self, env_mask: wp.array) -> None:
         self._copy_rows(env_mask, self._start_state, self.state, restore=True)
@@ -518,15 +506,15 @@ class World:
         if self.state.cut_dirty is not None:
             # the restored masks differ from what the cutting system last counted: its surfaces, pieces and counters
             # of these envs are recomputed by its next update (the saved start state may hold a clean flag)
-            wp.launch(world_kernels.mark_masked_rows, dim=self.num_envs, inputs=[env_mask],
-                      outputs=[self.state.cut_dirty], device=self.device)
+            launching.launch(world_kernels.mark_masked_rows, dim=self.num_envs, inputs=[env_mask],
+                             outputs=[self.state.cut_dirty], device=self.device)
 
     def reset(self, env_mask: wp.array) -> None:
         """Restore the start state of the envs whose ``env_mask`` entry is non-zero, in place; then let every
         added system forget those envs (``solver.reset``)."""
         self._restore(env_mask)
-        wp.launch(world_kernels.clear_masked_int, dim=self.num_envs, inputs=[env_mask], outputs=[self.unstable],
-                  device=self.device)
+        launching.launch(world_kernels.clear_masked_int, dim=self.num_envs, inputs=[env_mask], outputs=[self.unstable],
+                         device=self.device)
         for solver in self.solvers:
             if hasattr(solver, "reset"):
                 solver.reset(env_mask)
@@ -557,9 +545,9 @@ class World:
         if poses.ndim != 2 or poses.shape[0] != self.num_envs or poses.shape[1] != bodies.shape[0]:
             raise ValueError(f"poses must be ({self.num_envs}, {bodies.shape[0]}) transforms, got {poses.shape}")
         teleport = teleport_mask is not None
-        wp.launch(world_kernels.write_body_poses, dim=poses.shape,
-                  inputs=[poses, bodies, teleport_mask if teleport else self.unstable, int(teleport)],
-                  outputs=[s.body_q, self._body_q_prev, self._start_state.body_q], device=self.device)
+        launching.launch(world_kernels.write_body_poses, dim=poses.shape,
+                         inputs=[poses, bodies, teleport_mask if teleport else self.unstable, int(teleport)],
+                         outputs=[s.body_q, self._body_q_prev, self._start_state.body_q], device=self.device)
 
     def set_materials(self, obj, env_mask: wp.array, stiffness_scale: wp.array | None = None,
                       damping: wp.array | None = None, density_scale: wp.array | None = None) -> None:
@@ -582,23 +570,24 @@ class World:
         for name, columns in cols.items():
             base, out = m.material_base[name], getattr(m, name)
             if name == "tet_params" and stiffness_scale is not None:
-                wp.launch(world_kernels.scale_tet_compliance, dim=(n, columns.shape[0]),
-                          inputs=[env_mask, columns, base, stiffness_scale], outputs=[out], device=dev)
+                launching.launch(world_kernels.scale_tet_compliance, dim=(n, columns.shape[0]),
+                                 inputs=[env_mask, columns, base, stiffness_scale], outputs=[out], device=dev)
             elif name.endswith("compliance") and inv_stiffness is not None:
-                wp.launch(world_kernels.scale_material_columns, dim=(n, columns.shape[0]),
-                          inputs=[env_mask, columns, base, inv_stiffness], outputs=[out], device=dev)
+                launching.launch(world_kernels.scale_material_columns, dim=(n, columns.shape[0]),
+                                 inputs=[env_mask, columns, base, inv_stiffness], outputs=[out], device=dev)
             elif name in ("particle_inv_mass", "segment_inv_inertia") and inv_density is not None:
-                wp.launch(world_kernels.scale_material_columns, dim=(n, columns.shape[0]),
-                          inputs=[env_mask, columns, base, inv_density], outputs=[out], device=dev)
+                launching.launch(world_kernels.scale_material_columns, dim=(n, columns.shape[0]),
+                                 inputs=[env_mask, columns, base, inv_density], outputs=[out], device=dev)
             elif name.endswith("damping") and damping is not None:
-                wp.launch(world_kernels.set_material_columns, dim=(n, columns.shape[0]),
-                          inputs=[env_mask, columns, damping], outputs=[out], device=dev)
+                launching.launch(world_kernels.set_material_columns, dim=(n, columns.shape[0]),
+                                 inputs=[env_mask, columns, damping], outputs=[out], device=dev)
 
     def _scratch_reciprocal(self, key: str, values: wp.array) -> wp.array:
         if not hasattr(self, "_reciprocals"):
             self._reciprocals = {}
         out = self._reciprocals.setdefault(key, wp.zeros(self.num_envs, dtype=float, device=self.device))
-        wp.launch(world_kernels.reciprocal, dim=self.num_envs, inputs=[values], outputs=[out], device=self.device)
+        launching.launch(world_kernels.reciprocal, dim=self.num_envs, inputs=[values], outputs=[out],
+                         device=self.device)
         return out
 
     def _material_columns(self, obj) -> dict:

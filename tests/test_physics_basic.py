@@ -175,10 +175,10 @@ def test_no_nan_under_abuse(device, case):
 
 
 def test_block_dim_spreads_small_grids_over_the_gpu():
-    """Launch block sizes (World.block_dim_for): Warp's 256 on grids with >= 4 blocks per SM, smaller blocks below
+    """Launch block sizes (launching.block_dim_for): Warp's 256 on grids with >= 4 blocks per SM, smaller blocks below
     (down to 32) so a per-env kernel at 4,096 envs reaches ~128 of an H100's 132 SMs instead of 16; the cap of
     register-heavy kernels applies to any grid; the CPU (no SMs) gets the cap."""
-    from lapwarp.world import block_dim_for
+    from lapwarp.launching import block_dim_for
 
     assert block_dim_for(4096, 132) == 32  # 128 blocks
     assert block_dim_for((4096, 5), 132) == 32  # 640 blocks

@@ -16,6 +16,7 @@ import numpy as np
 import torch
 import warp as wp
 
+from lapwarp import launching
 from lapwarp.kernels.raster import world_to_pixel
 from lapwarp.visuals import CameraSpec, look_at_transform
 
@@ -103,8 +104,8 @@ class EndoscopeCamera:
     def update(self) -> None:
         """Bring ``poses`` up to the rig's current tip poses (one launch)."""
         w = self.rig.world
-        wp.launch(update_endoscope_poses, dim=w.num_envs, inputs=[self.rig.pose, self.column, self.optic_offset],
-                  outputs=[self.poses], device=w.device)
+        launching.launch(update_endoscope_poses, dim=w.num_envs, inputs=[self.rig.pose, self.column, self.optic_offset],
+                         outputs=[self.poses], device=w.device)
 
 
 # ---------------------------------------------------------------------------------------------- kinematics (torch)
@@ -231,7 +232,7 @@ def sight_lines_clear(mesh: wp.Mesh, start: torch.Tensor, end: torch.Tensor, sla
     out = torch.zeros(start.shape[0], dtype=torch.int32, device=start.device)
     stream = wp.stream_from_torch(torch.cuda.current_stream(start.device)) if start.is_cuda else None
     with wp.ScopedStream(stream) if stream is not None else wp.ScopedDevice(mesh.device):
-        wp.launch(check_sight_lines, dim=start.shape[0], inputs=[mesh.id, wp.from_torch(start, dtype=wp.vec3),
-                                                                 wp.from_torch(end, dtype=wp.vec3), float(slack)],
-                  outputs=[wp.from_torch(out)], device=mesh.device)
+        launching.launch(check_sight_lines, dim=start.shape[0],
+                         inputs=[mesh.id, wp.from_torch(start, dtype=wp.vec3), wp.from_torch(end, dtype=wp.vec3),
+                                 float(slack)], outputs=[wp.from_torch(out)], device=mesh.device)
     return out.bool()

@@ -13,6 +13,8 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
+from lapwarp import launching
+
 wp.set_module_options({"enable_backward": False})
 
 
@@ -118,7 +120,7 @@ class DeformableObject:
             rest_offset: offset of the particle from its anchor at rest (m).
         """
         w, s = self.world, self.world.state
-        wp.launch(place_anchored_particles, dim=(w.num_envs, self.num_anchors),
-                  inputs=[env_mask, self._anchor_particles_arr, self._anchor_slots_arr, anchors, stiffness,
-                          wp.vec3(*[float(c) for c in rest_offset])],
-                  outputs=[s.particle_q, s.particle_qd, s.attach_offset, s.attach_compliance], device=w.device)
+        launching.launch(place_anchored_particles, dim=(w.num_envs, self.num_anchors),
+                         inputs=[env_mask, self._anchor_particles_arr, self._anchor_slots_arr, anchors, stiffness,
+                                 wp.vec3(*[float(c) for c in rest_offset])],
+                         outputs=[s.particle_q, s.particle_qd, s.attach_offset, s.attach_compliance], device=w.device)

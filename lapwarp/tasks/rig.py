@@ -25,6 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
+from lapwarp import launching
 from lapwarp.instrument_shapes import CAUTER_CUTTING_CENTER, InstrumentShape
 from lapwarp.instruments import STATE_LIMITS_VIOLATED, WORKSPACE_VIOLATED, TPSDConfig, TPSDInstruments
 from lapwarp.kernels.bodies import hinged_jaw_pose
@@ -407,9 +408,9 @@ class InstrumentRig:
         self._actions, self._time_step = actions, float(time_step)
         for name, col in self._activation_column.items():
             k = self.names.index(name)
-            wp.launch(apply_activation, dim=self.world.num_envs,
-                      inputs=[actions, col, self.specs[k].activation_deadzone, k], outputs=[self.active],
-                      device=self.world.device)
+            launching.launch(apply_activation, dim=self.world.num_envs,
+                             inputs=[actions, col, self.specs[k].activation_deadzone, k], outputs=[self.active],
+                             device=self.world.device)
 
     def step(self) -> None:
         """One physics step: move the instruments (sofa_env's limit rules), the jaws, and pose the bodies."""
@@ -426,10 +427,10 @@ class InstrumentRig:
         start angle, switch activations off and teleport the bodies there (start state of the World)."""
         w = self.world
         self.instruments.reset(env_mask, rng)
-        wp.launch(reset_rig_state, dim=w.num_envs,
-                  inputs=[env_mask, self._jaw_start, self._jaw_noise, self._jaw_limits,
-                          rng if rng is not None else self._no_rng, int(rng is not None)],
-                  outputs=[self.jaw_angle, self.active], device=w.device)
+        launching.launch(reset_rig_state, dim=w.num_envs,
+                         inputs=[env_mask, self._jaw_start, self._jaw_noise, self._jaw_limits,
+                                 rng if rng is not None else self._no_rng, int(rng is not None)],
+                         outputs=[self.jaw_angle, self.active], device=w.device)
         self._pose_bodies(env_mask)
 
     def snapshot(self) -> tuple[wp.array, wp.array, wp.array]:
@@ -440,17 +441,17 @@ class InstrumentRig:
         """Put the masked envs' instruments back to a :meth:`snapshot` (activations off, flags cleared) and teleport
         their bodies there (a task that starts its episodes from a scripted state); graph-capturable."""
         w, ins = self.world, self.instruments
-        wp.launch(restore_rig_state, dim=(w.num_envs, self.num_instruments), inputs=[env_mask, *snapshot],
-                  outputs=[ins.ptsd, ins.rcm, ins.pose, ins.flags, self.jaw_angle, self.active], device=w.device)
+        launching.launch(restore_rig_state, dim=(w.num_envs, self.num_instruments), inputs=[env_mask, *snapshot],
+                         outputs=[ins.ptsd, ins.rcm, ins.pose, ins.flags, self.jaw_angle, self.active], device=w.device)
         self._pose_bodies(env_mask)
 
     def _pose_bodies(self, teleport_mask: wp.array | None) -> None:
         if not self.num_bodies:
             return
         w = self.world
-        wp.launch(pose_rig_bodies, dim=(w.num_envs, self.num_bodies),
-                  inputs=[self.instruments.pose, self.jaw_angle, self._body_instrument_arr, self._body_role_arr],
-                  outputs=[self.body_poses], device=w.device)
+        launching.launch(pose_rig_bodies, dim=(w.num_envs, self.num_bodies),
+                         inputs=[self.instruments.pose, self.jaw_angle, self._body_instrument_arr, self._body_role_arr],
+                         outputs=[self.body_poses], device=w.device)
         w.set_body_poses(self.body_poses, self.body_ids, teleport_mask)
 
     def set_ptsd(self, ptsd, env_ids=None) -> None:

@@ -80,6 +80,7 @@ import numpy as np
 import torch
 import warp as wp
 
+from lapwarp import launching
 from lapwarp.assets import box_tets, ellipsoid_tets, tet_surface
 from lapwarp.builder import SceneBuilder
 from lapwarp.config import PTSD, Count, EnvConfig, NonNegative, Positive, PositiveInt, Range
@@ -927,12 +928,11 @@ class GraspLiftAndTouchEnv(BatchedEnv):
         for _ in range(3):
             t.phase.assign(np.full(n, GRASP, np.int32))
             for _ in range(cfg.grasped_start_steps):
-                wp.launch(expert_commands, dim=n,
-                          inputs=[world.state.particle_q, self.rig.ptsd, self.rig.pose, self.rig.rcm,
-                                  self.rig.jaw_angle, self.rig.active, self.grasp.grasped, self.organs,
-                                  self._neck_tip, self._across,
-                                  self.params, t, 0.012, 0.015, 0.0025, 0.0025, 0.0015, 0], outputs=[closing, error],
-                          device=dev)
+                launching.launch(expert_commands, dim=n,
+                                 inputs=[world.state.particle_q, self.rig.ptsd, self.rig.pose, self.rig.rcm,
+                                         self.rig.jaw_angle, self.rig.active, self.grasp.grasped, self.organs,
+                                         self._neck_tip, self._across, self.params, t, 0.012, 0.015, 0.0025, 0.0025,
+                                         0.0015, 0], outputs=[closing, error], device=dev)
                 a = np.clip(error.numpy() / scale, -1.0, 1.0)
                 a[done] = 0.0
                 a[:, 9] = 0.0  # the hook stays off
@@ -950,8 +950,8 @@ class GraspLiftAndTouchEnv(BatchedEnv):
                     seen = np.ones(n, dtype=bool)
                     for target in TARGETS:
                         t.target.fill_(wp.vec3(*target))
-                        wp.launch(cast_target_rays, dim=(n, NUM_RAYS),
-                                  inputs=[world.state.particle_q, self.organs, self.params, t], device=dev)
+                        launching.launch(cast_target_rays, dim=(n, NUM_RAYS),
+                                         inputs=[world.state.particle_q, self.organs, self.params, t], device=dev)
                         seen &= t.ray_clear.numpy().any(axis=1)
                     done |= grasped & seen
                 t.phase.assign(phase)
@@ -984,16 +984,16 @@ class GraspLiftAndTouchEnv(BatchedEnv):
 
     def _features(self, env_mask: wp.array, mode: int, features_out: wp.array2d) -> None:
         s, rig, n, dev = self.world.state, self.rig, self.num_envs, self.wp_device
-        wp.launch(cast_target_rays, dim=(n, NUM_RAYS), inputs=[s.particle_q, self.organs, self.params, self.task],
-                  device=dev)
+        launching.launch(cast_target_rays, dim=(n, NUM_RAYS),
+                         inputs=[s.particle_q, self.organs, self.params, self.task], device=dev)
         self.task.overlap_count.zero_()
-        wp.launch(count_overlap, dim=(n, self.params.gb_count),
-                  inputs=[s.particle_q, self.organs, self.params, self.task], device=dev)
-        wp.launch(eval_grasp_lift_touch, dim=n,
-                  inputs=[env_mask, mode, s.particle_q, s.particle_qd, rig.pose, rig.rcm, rig.active, rig.flags,
-                          self.grasp.grasped, s.attach_particle, s.attach_body, self._rig_contacts, self.gb_group,
-                          self.liver_group, self.organs, self.params, self.task],
-                  outputs=[features_out], device=dev)
+        launching.launch(count_overlap, dim=(n, self.params.gb_count),
+                         inputs=[s.particle_q, self.organs, self.params, self.task], device=dev)
+        launching.launch(eval_grasp_lift_touch, dim=n,
+                         inputs=[env_mask, mode, s.particle_q, s.particle_qd, rig.pose, rig.rcm, rig.active, rig.flags,
+                                 self.grasp.grasped, s.attach_particle, s.attach_body, self._rig_contacts,
+                                 self.gb_group, self.liver_group, self.organs, self.params, self.task],
+                         outputs=[features_out], device=dev)
 
     def _compute_features(self, env_mask: wp.array, features_out: wp.array2d) -> None:
         # phase-gated deltas are computed in-task; the base evaluates this once per step
@@ -1007,17 +1007,17 @@ class GraspLiftAndTouchEnv(BatchedEnv):
         else:  # the env's grasped start (world.reset restored its organs)
             self.rig.restore(env_mask, self._start_rig)
             self.grasp.restore(env_mask, self._start_grasp)
-        wp.launch(reset_grasp_lift_touch, dim=self.num_envs, inputs=[env_mask, w.rng, self._targets, self.params,
-                                                                     self.task], device=self.wp_device)
+        launching.launch(reset_grasp_lift_touch, dim=self.num_envs,
+                         inputs=[env_mask, w.rng, self._targets, self.params, self.task], device=self.wp_device)
         self._features(env_mask, 2, self.features)
 
     def _compute_observations(self) -> None:
         s, rig = self.world.state, self.rig
-        wp.launch(observe_grasp_lift_touch, dim=self.num_envs,
-                  inputs=[s.particle_q, rig.ptsd, rig.pose, rig.jaw_angle, rig.active, self.grasp.grasped,
-                          self.organs, self.params, self.task, self.obs_layout.columns, self.critic_layout.columns,
-                          int(self.cfg.privileged_critic)],
-                  outputs=[self.obs_frame, self.critic_frame], device=self.wp_device)
+        launching.launch(observe_grasp_lift_touch, dim=self.num_envs,
+                         inputs=[s.particle_q, rig.ptsd, rig.pose, rig.jaw_angle, rig.active, self.grasp.grasped,
+                                 self.organs, self.params, self.task, self.obs_layout.columns,
+                                 self.critic_layout.columns, int(self.cfg.privileged_critic)],
+                         outputs=[self.obs_frame, self.critic_frame], device=self.wp_device)
 
     # ------------------------------------------------------------------ visuals
     def _build_visual_scene(self) -> VisualScene:
@@ -1043,8 +1043,8 @@ class GraspLiftAndTouchEnv(BatchedEnv):
     def update_visuals(self) -> None:
         if self._visual_scene is None:
             return
-        wp.launch(place_target_visual, dim=self.num_envs, inputs=[self.task], outputs=[self._target_pose],
-                  device=self.wp_device)
+        launching.launch(place_target_visual, dim=self.num_envs, inputs=[self.task], outputs=[self._target_pose],
+                         device=self.wp_device)
 
     # ------------------------------------------------------------------ privileged access (experts, tests)
     def privileged_state(self) -> dict[str, torch.Tensor]:
@@ -1083,10 +1083,9 @@ class GraspLiftAndTouchExpert(Expert):
     def __call__(self, obs=None) -> torch.Tensor:
         env, rig, s = self.env, self.env.rig, self.env.world.state
         with env._torch_stream_scope():
-            wp.launch(expert_commands, dim=env.num_envs,
-                      inputs=[s.particle_q, rig.ptsd, rig.pose, rig.rcm, rig.jaw_angle, rig.active,
-                              env.grasp.grasped, env.organs, env._neck_tip, env._across, env.params, env.task,
-                              self.hold_depth, self.standoff, self.retract, self.max_step, self.in_place,
-                              int(env.is_discrete)],
-                      outputs=[self.closing, self.error], device=env.wp_device)
+            launching.launch(expert_commands, dim=env.num_envs,
+                             inputs=[s.particle_q, rig.ptsd, rig.pose, rig.rcm, rig.jaw_angle, rig.active,
+                                     env.grasp.grasped, env.organs, env._neck_tip, env._across, env.params, env.task,
+                                     self.hold_depth, self.standoff, self.retract, self.max_step, self.in_place,
+                                     int(env.is_discrete)], outputs=[self.closing, self.error], device=env.wp_device)
         return self.policy_actions(wp.to_torch(self.error) / self.step_size)

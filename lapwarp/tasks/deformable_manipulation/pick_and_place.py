@@ -71,6 +71,7 @@ import torch
 import trimesh
 import warp as wp
 
+from lapwarp import launching
 from lapwarp.assets import rod_circle
 from lapwarp.builder import SceneBuilder
 from lapwarp.config import PTSD, Count, EnvConfig, NonNegative, Positive, PositiveInt, Range
@@ -915,10 +916,10 @@ class PickAndPlaceEnv(BatchedEnv):
 
     def _features(self, env_mask: wp.array, mode: int, features_out: wp.array2d) -> None:
         s, rig = self.world.state, self.rig
-        wp.launch(eval_pick_and_place, dim=self.num_envs,
-                  inputs=[env_mask, mode, s.particle_q, s.particle_qd, rig.pose, rig.jaw_angle, rig.flags,
-                          self.grasp.grasped, self._tracking, self.params, self.task],
-                  outputs=[features_out], device=self.wp_device)
+        launching.launch(eval_pick_and_place, dim=self.num_envs,
+                         inputs=[env_mask, mode, s.particle_q, s.particle_qd, rig.pose, rig.jaw_angle, rig.flags,
+                                 self.grasp.grasped, self._tracking, self.params, self.task], outputs=[features_out],
+                         device=self.wp_device)
 
     def _compute_features(self, env_mask: wp.array, features_out: wp.array2d) -> None:
         # no declared delta features (sofa_env's deltas are gated by phase and one is a min of per-node changes):
@@ -928,21 +929,21 @@ class PickAndPlaceEnv(BatchedEnv):
     def _reset_task(self, env_mask: wp.array) -> None:
         w, s = self.world, self.world.state
         self.rig.reset(env_mask, w.rng)
-        wp.launch(reset_pick_and_place, dim=self.num_envs,
-                  inputs=[env_mask, w.rng, self.params, self.bank_q, self.bank_segment_q, self._bank_tip,
-                          self.rig.pose, self.task],
-                  outputs=[s.particle_q, s.particle_qd, s.segment_q, s.segment_qd], device=self.wp_device)
+        launching.launch(reset_pick_and_place, dim=self.num_envs,
+                         inputs=[env_mask, w.rng, self.params, self.bank_q, self.bank_segment_q, self._bank_tip,
+                                 self.rig.pose, self.task],
+                         outputs=[s.particle_q, s.particle_qd, s.segment_q, s.segment_qd], device=self.wp_device)
         self.grasp.start_grasped(self.torus.particle_start + START_GRASP_NODE if self.cfg.start_grasped else -1,
                                  env_mask)
         self._features(env_mask, 2, self.features)
 
     def _compute_observations(self) -> None:
         s, rig = self.world.state, self.rig
-        wp.launch(observe_pick_and_place, dim=self.num_envs,
-                  inputs=[s.particle_q, rig.ptsd, rig.pose, rig.jaw_angle, self.grasp.grasped, self._tracking,
-                          self.params, self.task, self.obs_layout.columns, self.critic_layout.columns,
-                          int(self.cfg.privileged_critic)],
-                  outputs=[self.obs_frame, self.critic_frame], device=self.wp_device)
+        launching.launch(observe_pick_and_place, dim=self.num_envs,
+                         inputs=[s.particle_q, rig.ptsd, rig.pose, rig.jaw_angle, self.grasp.grasped, self._tracking,
+                                 self.params, self.task, self.obs_layout.columns, self.critic_layout.columns,
+                                 int(self.cfg.privileged_critic)], outputs=[self.obs_frame, self.critic_frame],
+                         device=self.wp_device)
 
     # ------------------------------------------------------------------ visuals
     def _build_visual_scene(self) -> VisualScene:
@@ -977,9 +978,10 @@ class PickAndPlaceEnv(BatchedEnv):
     def update_visuals(self) -> None:
         if self._visual_scene is None:
             return
-        wp.launch(place_scene_visuals, dim=self.num_envs, inputs=[self.world.state.particle_q, self.params, self.task],
-                  outputs=[self._ring, self._red_segments, self._blue_segments, self._red_pegs, self._blue_pegs],
-                  device=self.wp_device)
+        launching.launch(place_scene_visuals, dim=self.num_envs,
+                         inputs=[self.world.state.particle_q, self.params, self.task],
+                         outputs=[self._ring, self._red_segments, self._blue_segments, self._red_pegs, self._blue_pegs],
+                         device=self.wp_device)
 
     # ------------------------------------------------------------------ privileged access (experts, tests)
     def torus_positions(self) -> torch.Tensor:
@@ -1039,10 +1041,10 @@ class PickAndPlaceExpert(Expert):
     def __call__(self, obs=None) -> torch.Tensor:
         env, rig, s = self.env, self.env.rig, self.env.world.state
         with env._torch_stream_scope():
-            wp.launch(expert_commands, dim=env.num_envs,
-                      inputs=[s.particle_q, rig.ptsd, rig.pose, rig.rcm, rig.jaw_angle, env.grasp.grasped,
-                              s.attach_particle, env.params, env.task, env.episode_length, self.open_angle,
-                              self.hold_depth, self.clearance, self.descent, self.far_peg, *self.hook, self.max_step],
-                      outputs=[self.stage, self.heading, self.swing, self.error],
-                      device=env.wp_device)
+            launching.launch(expert_commands, dim=env.num_envs,
+                             inputs=[s.particle_q, rig.ptsd, rig.pose, rig.rcm, rig.jaw_angle, env.grasp.grasped,
+                                     s.attach_particle, env.params, env.task, env.episode_length, self.open_angle,
+                                     self.hold_depth, self.clearance, self.descent, self.far_peg, *self.hook,
+                                     self.max_step], outputs=[self.stage, self.heading, self.swing, self.error],
+                             device=env.wp_device)
         return self.policy_actions(wp.to_torch(self.error) / self.step_size)

@@ -55,6 +55,7 @@ import torch
 import trimesh
 import warp as wp
 
+from lapwarp import launching
 from lapwarp.assets.meshes import ruled_sheet_tets
 from lapwarp.builder import SceneBuilder
 from lapwarp.config import Count, EnvConfig, NonNegative, Positive, Range
@@ -519,32 +520,32 @@ class TissueManipulationEnv(BatchedEnv):
 
     def _before_physics_step(self) -> None:
         wp.copy(self.task.q_start, self.world.state.particle_q)  # for the stability feature of this physics step
-        wp.launch(move_grasper, dim=self.num_envs, inputs=[self.actions, self.params, self.task],
-                  outputs=[self._poses], device=self.wp_device)
+        launching.launch(move_grasper, dim=self.num_envs, inputs=[self.actions, self.params, self.task],
+                         outputs=[self._poses], device=self.wp_device)
         self.world.set_body_poses(self._poses, self._bodies)
 
     def _compute_features(self, env_mask: wp.array, features_out: wp.array2d) -> None:
         # this task has no delta features, so the base evaluates them once per step (never at reset): the stuck
         # window advances here, once per step
-        wp.launch(eval_manipulation_features, dim=self.num_envs,
-                  inputs=[env_mask, int(features_out is self.features), self.world.state.particle_q, self._tets,
-                          self._embed_tet, self._embed_w, self.params, self.task], outputs=[features_out],
-                  device=self.wp_device)
+        launching.launch(eval_manipulation_features, dim=self.num_envs,
+                         inputs=[env_mask, int(features_out is self.features), self.world.state.particle_q, self._tets,
+                                 self._embed_tet, self._embed_w, self.params, self.task], outputs=[features_out],
+                         device=self.wp_device)
 
     def _reset_task(self, env_mask: wp.array) -> None:
         w = self.world
-        wp.launch(reset_manipulation, dim=self.num_envs,
-                  inputs=[env_mask, w.rng, w.state.particle_q, self._tets, self._embed_tet, self._embed_w,
-                          self._polygons, self._poly_low, self._poly_high, self.params, self.task],
-                  outputs=[self._poses], device=self.wp_device)
+        launching.launch(reset_manipulation, dim=self.num_envs,
+                         inputs=[env_mask, w.rng, w.state.particle_q, self._tets, self._embed_tet, self._embed_w,
+                                 self._polygons, self._poly_low, self._poly_high, self.params, self.task],
+                         outputs=[self._poses], device=self.wp_device)
         w.set_body_poses(self._poses, self._bodies, teleport_mask=env_mask)
 
     def _compute_observations(self) -> None:
-        wp.launch(observe_manipulation, dim=self.num_envs,
-                  inputs=[self.world.state.particle_q, self._tets, self._embed_tet, self._embed_w, self.params,
-                          self.task, self.obs_layout.columns, self.critic_layout.columns,
-                          int(self.cfg.privileged_critic)],
-                  outputs=[self.obs_frame, self.critic_frame], device=self.wp_device)
+        launching.launch(observe_manipulation, dim=self.num_envs,
+                         inputs=[self.world.state.particle_q, self._tets, self._embed_tet, self._embed_w, self.params,
+                                 self.task, self.obs_layout.columns, self.critic_layout.columns,
+                                 int(self.cfg.privileged_critic)], outputs=[self.obs_frame, self.critic_frame],
+                         device=self.wp_device)
 
     # ------------------------------------------------------------------ visuals
     def _build_visual_scene(self) -> VisualScene:
@@ -584,18 +585,18 @@ class TissueManipulationEnv(BatchedEnv):
     def update_visuals(self) -> None:
         if self._visual_scene is None:
             return
-        wp.launch(place_visuals, dim=self.num_envs,
-                  inputs=[self.world.state.particle_q, self._tets, self._embed_tet, self._embed_w, self.task],
-                  outputs=[self._grasper_pose, self._landmark_pose], device=self.wp_device)
+        launching.launch(place_visuals, dim=self.num_envs,
+                         inputs=[self.world.state.particle_q, self._tets, self._embed_tet, self._embed_w, self.task],
+                         outputs=[self._grasper_pose, self._landmark_pose], device=self.wp_device)
 
     def _draw_overlays(self, rgb: wp.array, fov_deg: float) -> None:
         if not self.cfg.show_target:
             return
         height = rgb.shape[2]
         focal = 0.5 * height / np.tan(np.radians(0.5 * fov_deg))
-        wp.launch(draw_target_dot, dim=(self.num_envs, height, rgb.shape[3]),
-                  inputs=[self.visual_scene().camera.poses, self.task, float(focal), float(round(height / 64))],
-                  outputs=[rgb], device=self.wp_device)
+        launching.launch(draw_target_dot, dim=(self.num_envs, height, rgb.shape[3]),
+                         inputs=[self.visual_scene().camera.poses, self.task, float(focal), float(round(height / 64))],
+                         outputs=[rgb], device=self.wp_device)
 
     # ------------------------------------------------------------------ privileged access (experts, tests)
     def landmark_positions(self) -> torch.Tensor:

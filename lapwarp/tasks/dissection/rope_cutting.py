@@ -47,6 +47,7 @@ import torch
 import trimesh
 import warp as wp
 
+from lapwarp import launching
 from lapwarp.builder import SceneBuilder
 from lapwarp.config import PTSD, Count, EnvConfig, NonNegative, Positive, PositiveInt, Range
 from lapwarp.contact import ContactSystem
@@ -558,21 +559,22 @@ class RopeCuttingEnv(BatchedEnv):
     def _before_physics_step(self) -> None:
         super()._before_physics_step()  # move the hook
         cut = self.cutting
-        wp.launch(place_hook_tools, dim=self.num_envs, inputs=[self.rig.pose, self.rig.active],
-                  outputs=[cut.tool_a, cut.tool_b, cut.tool_active], device=self.wp_device)
+        launching.launch(place_hook_tools, dim=self.num_envs, inputs=[self.rig.pose, self.rig.active],
+                         outputs=[cut.tool_a, cut.tool_b, cut.tool_active], device=self.wp_device)
         cut.cut()
 
     def _compute_features(self, env_mask: wp.array, features_out: wp.array2d) -> None:
         s = self.world.state
-        wp.launch(eval_rope_features, dim=self.num_envs,
-                  inputs=[env_mask, s.particle_q, s.particle_active, s.segment_active, self.rig.pose, self.rig.flags,
-                          self.task, self.params], outputs=[features_out], device=self.wp_device)
+        launching.launch(eval_rope_features, dim=self.num_envs,
+                         inputs=[env_mask, s.particle_q, s.particle_active, s.segment_active, self.rig.pose,
+                                 self.rig.flags, self.task, self.params], outputs=[features_out], device=self.wp_device)
 
     def _update_task(self) -> None:
         s = self.world.state
-        wp.launch(update_ropes, dim=self.num_envs,
-                  inputs=[s.particle_q, s.particle_active, s.segment_active, self.rig.pose, self.features, self.params,
-                          self.world.rng], outputs=[self.task, self.baselines], device=self.wp_device)
+        launching.launch(update_ropes, dim=self.num_envs,
+                         inputs=[s.particle_q, s.particle_active, s.segment_active, self.rig.pose, self.features,
+                                 self.params, self.world.rng], outputs=[self.task, self.baselines],
+                         device=self.wp_device)
 
     def _reset_task(self, env_mask: wp.array) -> None:
         cfg, w, s = self.cfg, self.world, self.world.state
@@ -585,11 +587,11 @@ class RopeCuttingEnv(BatchedEnv):
 
     def _compute_observations(self) -> None:
         s = self.world.state
-        wp.launch(observe_ropes, dim=self.num_envs,
-                  inputs=[s.particle_q, s.particle_active, self.rig.ptsd, self.rig.pose, self.rig.active, self.task,
-                          self.params, self.obs_layout.columns, self.critic_layout.columns,
-                          int(self.cfg.privileged_critic)],
-                  outputs=[self.obs_frame, self.critic_frame], device=self.wp_device)
+        launching.launch(observe_ropes, dim=self.num_envs,
+                         inputs=[s.particle_q, s.particle_active, self.rig.ptsd, self.rig.pose, self.rig.active,
+                                 self.task, self.params, self.obs_layout.columns, self.critic_layout.columns,
+                                 int(self.cfg.privileged_critic)], outputs=[self.obs_frame, self.critic_frame],
+                         device=self.wp_device)
 
     # ------------------------------------------------------------------ visuals
     def _build_visual_scene(self) -> VisualScene:
@@ -626,9 +628,9 @@ class RopeCuttingEnv(BatchedEnv):
     def update_visuals(self) -> None:
         if self._visual_scene is None:
             return
-        wp.launch(rope_colors, dim=(self.num_envs, self.cfg.num_ropes, SEGMENTS),
-                  inputs=[self.world.state.segment_active, self.task],
-                  outputs=[self.active_segments, self.idle_segments], device=self.wp_device)
+        launching.launch(rope_colors, dim=(self.num_envs, self.cfg.num_ropes, SEGMENTS),
+                         inputs=[self.world.state.segment_active, self.task],
+                         outputs=[self.active_segments, self.idle_segments], device=self.wp_device)
 
     # ------------------------------------------------------------------ privileged access (experts, tests)
     def privileged_state(self) -> dict[str, torch.Tensor]:
@@ -658,7 +660,7 @@ class RopeCuttingExpert(Expert):
     def __call__(self, obs=None) -> torch.Tensor:
         env, rig, s = self.env, self.env.rig, self.env.world.state
         with env._torch_stream_scope():
-            wp.launch(expert_errors, dim=env.num_envs,
-                      inputs=[s.particle_q, s.segment_active, rig.ptsd, rig.pose, rig.rcm, rig.active, env.task,
-                              self.switch_on], outputs=[self.error], device=env.wp_device)
+            launching.launch(expert_errors, dim=env.num_envs,
+                             inputs=[s.particle_q, s.segment_active, rig.ptsd, rig.pose, rig.rcm, rig.active, env.task,
+                                     self.switch_on], outputs=[self.error], device=env.wp_device)
         return self.policy_actions(wp.to_torch(self.error) / self.step_size)

@@ -61,6 +61,7 @@ import torch
 import trimesh
 import warp as wp
 
+from lapwarp import launching
 from lapwarp.assets.meshes import grid_tets
 from lapwarp.builder import SceneBuilder
 from lapwarp.config import PTSD, Count, EnvConfig, NonNegative, Positive, PositiveInt, Range
@@ -608,7 +609,7 @@ class TissueDissectionEnv(BatchedEnv):
         # the scene settles under the retraction force (sofa_zoo's settle steps) before the hook and the contacts
         # exist; every episode starts from this state
         everyone = wp.ones(n, dtype=wp.int32, device=dev)
-        wp.launch(reset_tissue, dim=n, inputs=[everyone, p, t], outputs=[self._force], device=dev)
+        launching.launch(reset_tissue, dim=n, inputs=[everyone, p, t], outputs=[self._force], device=dev)
         for _ in range(cfg.settle_steps):
             world.step(cfg.time_step)
         world.save_start_state()
@@ -654,42 +655,44 @@ class TissueDissectionEnv(BatchedEnv):
     def _before_physics_step(self) -> None:
         super()._before_physics_step()  # move the hook
         cut, dev, n = self.cutting, self.wp_device, self.num_envs
-        wp.launch(apply_retraction, dim=n, inputs=[self.actions, self.params, self.tissue], outputs=[self._force],
-                  device=dev)
-        wp.launch(place_hook_tools, dim=n, inputs=[self.rig.pose, self.rig.active],
-                  outputs=[cut.tool_a, cut.tool_b, cut.tool_active], device=dev)
+        launching.launch(apply_retraction, dim=n, inputs=[self.actions, self.params, self.tissue],
+                         outputs=[self._force],
+                         device=dev)
+        launching.launch(place_hook_tools, dim=n, inputs=[self.rig.pose, self.rig.active],
+                         outputs=[cut.tool_a, cut.tool_b, cut.tool_active], device=dev)
         cut.cut()
 
     def _compute_features(self, env_mask: wp.array, features_out: wp.array2d) -> None:
         s = self.world.state
-        wp.launch(eval_dissection_features, dim=self.num_envs,
-                  inputs=[env_mask, s.particle_q, s.particle_qd, s.particle_active, self.cutting.active_count,
-                          self.rig.pose, self.rig.flags, self.tissue, self.params], outputs=[features_out],
-                  device=self.wp_device)
+        launching.launch(eval_dissection_features, dim=self.num_envs,
+                         inputs=[env_mask, s.particle_q, s.particle_qd, s.particle_active, self.cutting.active_count,
+                                 self.rig.pose, self.rig.flags, self.tissue, self.params], outputs=[features_out],
+                         device=self.wp_device)
 
     def _update_task(self) -> None:
         s = self.world.state
-        wp.launch(update_tissue, dim=self.num_envs,
-                  inputs=[self._all_envs, 0, s.particle_q, s.particle_active, self.cutting.active_count,
-                          self.world.rng, self.params],
-                  outputs=[self.tissue, self._fps_scratch], device=self.wp_device)
+        launching.launch(update_tissue, dim=self.num_envs,
+                         inputs=[self._all_envs, 0, s.particle_q, s.particle_active, self.cutting.active_count,
+                                 self.world.rng, self.params], outputs=[self.tissue, self._fps_scratch],
+                         device=self.wp_device)
 
     def _reset_task(self, env_mask: wp.array) -> None:
         w, dev, n = self.world, self.wp_device, self.num_envs
-        wp.launch(reset_tissue, dim=n, inputs=[env_mask, self.params, self.tissue], outputs=[self._force], device=dev)
+        launching.launch(reset_tissue, dim=n, inputs=[env_mask, self.params, self.tissue], outputs=[self._force],
+                         device=dev)
         self.rig.reset(env_mask, w.rng)
         self.cutting.refresh()  # the reset restored the masks; recount surfaces and pieces of the reset envs
-        wp.launch(update_tissue, dim=n,
-                  inputs=[env_mask, 1, w.state.particle_q, w.state.particle_active, self.cutting.active_count, w.rng,
-                          self.params], outputs=[self.tissue, self._fps_scratch], device=dev)
+        launching.launch(update_tissue, dim=n,
+                         inputs=[env_mask, 1, w.state.particle_q, w.state.particle_active, self.cutting.active_count,
+                                 w.rng, self.params], outputs=[self.tissue, self._fps_scratch], device=dev)
 
     def _compute_observations(self) -> None:
         s = self.world.state
-        wp.launch(observe_dissection, dim=self.num_envs,
-                  inputs=[s.particle_q, s.particle_active, self.cutting.active_count, self.rig.ptsd, self.rig.pose,
-                          self.rig.active, self.tissue, self.params, self.obs_layout.columns,
-                          self.critic_layout.columns, int(self.cfg.privileged_critic)],
-                  outputs=[self.obs_frame, self.critic_frame], device=self.wp_device)
+        launching.launch(observe_dissection, dim=self.num_envs,
+                         inputs=[s.particle_q, s.particle_active, self.cutting.active_count, self.rig.ptsd,
+                                 self.rig.pose, self.rig.active, self.tissue, self.params, self.obs_layout.columns,
+                                 self.critic_layout.columns, int(self.cfg.privileged_critic)],
+                         outputs=[self.obs_frame, self.critic_frame], device=self.wp_device)
 
     # ------------------------------------------------------------------ visuals
     def _build_visual_scene(self) -> VisualScene:
@@ -721,8 +724,8 @@ class TissueDissectionEnv(BatchedEnv):
     def update_visuals(self) -> None:
         if self._visual_scene is None:
             return
-        wp.launch(place_marker, dim=self.num_envs, inputs=[self.tissue], outputs=[self._marker_pose],
-                  device=self.wp_device)
+        launching.launch(place_marker, dim=self.num_envs, inputs=[self.tissue], outputs=[self._marker_pose],
+                         device=self.wp_device)
 
     # ------------------------------------------------------------------ privileged access (experts, tests)
     def privileged_state(self) -> dict[str, torch.Tensor]:
@@ -760,10 +763,10 @@ class TissueDissectionExpert(Expert):
     def __call__(self, obs=None) -> torch.Tensor:
         env, rig, s = self.env, self.env.rig, self.env.world.state
         with env._torch_stream_scope():
-            wp.launch(expert_errors, dim=env.num_envs,
-                      inputs=[s.particle_q, s.tet_active, self.ct_tets, self.rest_y, self.ct_tet0, rig.ptsd,
-                              rig.pose, rig.rcm, rig.active, self.band, self.switch_on, self.keep_on, self.lift],
-                      outputs=[self.error], device=env.wp_device)
+            launching.launch(expert_errors, dim=env.num_envs,
+                             inputs=[s.particle_q, s.tet_active, self.ct_tets, self.rest_y, self.ct_tet0, rig.ptsd,
+                                     rig.pose, rig.rcm, rig.active, self.band, self.switch_on, self.keep_on, self.lift],
+                             outputs=[self.error], device=env.wp_device)
         ideal = wp.to_torch(self.error) / self.step_size
         if env.action_dim > 5:  # leave the retraction force alone
             ideal = torch.cat([ideal, torch.zeros(env.num_envs, env.action_dim - 5, device=env.device)], dim=1)

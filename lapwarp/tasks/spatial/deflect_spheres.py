@@ -40,6 +40,7 @@ import torch
 import trimesh
 import warp as wp
 
+from lapwarp import launching
 from lapwarp.builder import SceneBuilder
 from lapwarp.config import PTSD, Count, EnvConfig, NonNegative, Positive, PositiveInt, Range, Vec3, check_low_high
 from lapwarp.contact import ContactSystem
@@ -481,32 +482,32 @@ class DeflectSpheresEnv(BatchedEnv):
                                       offset_to_active=(3, -1.0, 1.0), tip_contact=(1, 0.0, 1.0))
 
     def _compute_features(self, env_mask: wp.array, features_out: wp.array2d) -> None:
-        wp.launch(eval_deflect_features, dim=self.num_envs,
-                  inputs=[env_mask, self.world.state.particle_q, self.rig.state, self.rig_contacts, self.task,
-                          self.params], outputs=[features_out], device=self.wp_device)
+        launching.launch(eval_deflect_features, dim=self.num_envs,
+                         inputs=[env_mask, self.world.state.particle_q, self.rig.state, self.rig_contacts, self.task,
+                                 self.params], outputs=[features_out], device=self.wp_device)
 
     def _update_task(self) -> None:
-        wp.launch(update_active_sphere, dim=self.num_envs,
-                  inputs=[self.world.state.particle_q, self.rig.state, self.features, self.params, self.world.rng],
-                  outputs=[self.task, self.baselines], device=self.wp_device)
+        launching.launch(update_active_sphere, dim=self.num_envs,
+                         inputs=[self.world.state.particle_q, self.rig.state, self.features, self.params,
+                                 self.world.rng], outputs=[self.task, self.baselines], device=self.wp_device)
 
     def _reset_task(self, env_mask: wp.array) -> None:
         cfg, w = self.cfg, self.world
         half = 0.5 * np.asarray(cfg.board_size) - cfg.sphere_margin
         lo_h, hi_h = cfg.sphere_height_limits
-        wp.launch(reset_spheres, dim=self.num_envs,
-                  inputs=[env_mask, wp.vec3(-half[0], -half[1], lo_h), wp.vec3(half[0], half[1], hi_h),
-                          cfg.min_sphere_distance, wp.vec2(*cfg.stalk_stiffness_limits), self.num_hooks, w.rng],
-                  outputs=[self.task], device=self.wp_device)
+        launching.launch(reset_spheres, dim=self.num_envs,
+                         inputs=[env_mask, wp.vec3(-half[0], -half[1], lo_h), wp.vec3(half[0], half[1], hi_h),
+                                 cfg.min_sphere_distance, wp.vec2(*cfg.stalk_stiffness_limits), self.num_hooks, w.rng],
+                         outputs=[self.task], device=self.wp_device)
         # spheres start at rest at their gravity equilibrium: no settle steps after a reset
         self.spheres.place_anchors(env_mask, self.task.anchors, self.task.stiffness, rest_offset=self._sag)
         self.rig.reset(env_mask, w.rng)
 
     def _compute_observations(self) -> None:
-        wp.launch(observe_deflect, dim=self.num_envs,
-                  inputs=[self.world.state.particle_q, self.rig.state, self.task, self.params, self.obs_layout.columns,
-                          self.critic_layout.columns, int(self.cfg.privileged_critic)],
-                  outputs=[self.obs_frame, self.critic_frame], device=self.wp_device)
+        launching.launch(observe_deflect, dim=self.num_envs,
+                         inputs=[self.world.state.particle_q, self.rig.state, self.task, self.params,
+                                 self.obs_layout.columns, self.critic_layout.columns, int(self.cfg.privileged_critic)],
+                         outputs=[self.obs_frame, self.critic_frame], device=self.wp_device)
 
     # ------------------------------------------------------------------ visuals
     def _build_visual_scene(self) -> VisualScene:
@@ -541,8 +542,8 @@ class DeflectSpheresEnv(BatchedEnv):
     def update_visuals(self) -> None:
         if self._visual_scene is None:
             return
-        wp.launch(update_deflect_visuals, dim=self.num_envs, inputs=[self.world.state.particle_q, self.task],
-                  outputs=[self.sphere_transforms, self.stalk_points], device=self.wp_device)
+        launching.launch(update_deflect_visuals, dim=self.num_envs, inputs=[self.world.state.particle_q, self.task],
+                         outputs=[self.sphere_transforms, self.stalk_points], device=self.wp_device)
 
     # ------------------------------------------------------------------ privileged access (experts, tests)
     @property
@@ -583,9 +584,10 @@ class DeflectSpheresExpert(Expert):
     def __call__(self, obs=None) -> torch.Tensor:
         env = self.env
         with env._torch_stream_scope():
-            wp.launch(expert_ptsd_errors, dim=(env.num_envs, env.num_hooks),
-                      inputs=[env.world.state.particle_q, env.rig.state, env.task, env.cfg.sphere_radius + 0.8e-3,
-                              self.push], outputs=[self.error], device=env.wp_device)
+            launching.launch(expert_ptsd_errors, dim=(env.num_envs, env.num_hooks),
+                             inputs=[env.world.state.particle_q, env.rig.state, env.task,
+                                     env.cfg.sphere_radius + 0.8e-3, self.push], outputs=[self.error],
+                             device=env.wp_device)
         error = wp.to_torch(self.error)  # (N, H, 4), hook 0 = right
         if env.num_hooks == 2:
             error = error[:, [1, 0]]  # action layout: left hook's PTSD, then the right hook's

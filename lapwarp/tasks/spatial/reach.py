@@ -16,6 +16,7 @@ import numpy as np
 import torch
 import warp as wp
 
+from lapwarp import launching
 from lapwarp.config import EnvConfig, NonNegative, Positive, Range, Vec3, check_low_high
 from lapwarp.env import BatchedEnv
 from lapwarp.experts import Expert
@@ -250,28 +251,29 @@ class ReachEnv(BatchedEnv):
         self.workspace_violation.zero_()
 
     def _before_physics_step(self) -> None:
-        wp.launch(move_reach_end_effector, dim=self.num_envs,
-                  inputs=[self.actions, self.cfg.time_step * self.cfg.maximum_robot_velocity, self._ws_low,
-                          self._ws_high], outputs=[self.positions, self.workspace_violation], device=self.wp_device)
+        launching.launch(move_reach_end_effector, dim=self.num_envs,
+                         inputs=[self.actions, self.cfg.time_step * self.cfg.maximum_robot_velocity, self._ws_low,
+                                 self._ws_high], outputs=[self.positions, self.workspace_violation],
+                         device=self.wp_device)
 
     def _compute_features(self, env_mask: wp.array, features_out: wp.array2d) -> None:
-        wp.launch(eval_reach_features, dim=self.num_envs,
-                  inputs=[env_mask, self.positions, self.workspace_violation, 1.0 / self.workspace_diagonal,
-                          self.cfg.distance_to_target_threshold], outputs=[features_out], device=self.wp_device)
+        launching.launch(eval_reach_features, dim=self.num_envs,
+                         inputs=[env_mask, self.positions, self.workspace_violation, 1.0 / self.workspace_diagonal,
+                                 self.cfg.distance_to_target_threshold], outputs=[features_out], device=self.wp_device)
 
     def _reset_task(self, env_mask: wp.array) -> None:
         cfg = self.cfg
-        wp.launch(reset_reach, dim=self.num_envs,
-                  inputs=[env_mask, int(cfg.randomize_start), wp.vec3(*cfg.start_position), wp.vec3(*cfg.start_low),
-                          wp.vec3(*cfg.start_high), wp.vec3(*cfg.target_low), wp.vec3(*cfg.target_high),
-                          cfg.minimum_distance_to_target_at_start, self.world.rng],
-                  outputs=[self.positions, self.workspace_violation], device=self.wp_device)
+        launching.launch(reset_reach, dim=self.num_envs,
+                         inputs=[env_mask, int(cfg.randomize_start), wp.vec3(*cfg.start_position),
+                                 wp.vec3(*cfg.start_low), wp.vec3(*cfg.start_high), wp.vec3(*cfg.target_low),
+                                 wp.vec3(*cfg.target_high), cfg.minimum_distance_to_target_at_start, self.world.rng],
+                         outputs=[self.positions, self.workspace_violation], device=self.wp_device)
 
     def _compute_observations(self) -> None:
-        wp.launch(observe_reach, dim=self.num_envs,
-                  inputs=[self.positions, self._ws_low, self._ws_high, 1.0 / self.workspace_diagonal,
-                          self.obs_layout.columns, self.critic_layout.columns, int(self.cfg.privileged_critic)],
-                  outputs=[self.obs_frame, self.critic_frame], device=self.wp_device)
+        launching.launch(observe_reach, dim=self.num_envs,
+                         inputs=[self.positions, self._ws_low, self._ws_high, 1.0 / self.workspace_diagonal,
+                                 self.obs_layout.columns, self.critic_layout.columns, int(self.cfg.privileged_critic)],
+                         outputs=[self.obs_frame, self.critic_frame], device=self.wp_device)
 
     # ------------------------------------------------------------------ visuals
     def _build_visual_scene(self) -> VisualScene:
@@ -299,8 +301,9 @@ class ReachEnv(BatchedEnv):
     def update_visuals(self) -> None:
         if self._visual_scene is None:
             return
-        wp.launch(update_reach_visuals, dim=self.num_envs, inputs=[self.positions, wp.vec3(*self.cfg.rcm_position)],
-                  outputs=[self.visual_transforms], device=self.wp_device)
+        launching.launch(update_reach_visuals, dim=self.num_envs,
+                         inputs=[self.positions, wp.vec3(*self.cfg.rcm_position)], outputs=[self.visual_transforms],
+                         device=self.wp_device)
 
     # ------------------------------------------------------------------ privileged access (experts, tests)
     @property

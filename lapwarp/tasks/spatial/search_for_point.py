@@ -36,6 +36,7 @@ import torch
 import trimesh
 import warp as wp
 
+from lapwarp import launching
 from lapwarp.assets.abdomen import abdomen_parts, inside_dome, organ_mesh
 from lapwarp.builder import SceneBuilder
 from lapwarp.config import PTSD, Count, EnvConfig, NonNegative, Positive, Range, Vec3
@@ -429,24 +430,25 @@ class SearchForPointEnv(BatchedEnv):
     def _compute_features(self, env_mask: wp.array, features_out: wp.array2d) -> None:
         cfg, rig = self.cfg, self.rig
         height, width = cfg.image_shape
-        wp.launch(eval_search_features, dim=self.num_envs,
-                  inputs=[env_mask, rig.pose, rig.rcm, rig.flags, self.poi, rig.active, self.endoscope.optic_offset,
-                          self._focal, float(width), float(height), cfg.camera_near, cfg.target_distance_camera_poi,
-                          cfg.tolerance_target_distance, cfg.tolerance_image_center, cfg.instrument_touch_tolerance,
-                          int(cfg.active_vision), int(cfg.cauter_activation), self.organ_mesh.id],
-                  outputs=[features_out], device=self.wp_device)
+        launching.launch(eval_search_features, dim=self.num_envs,
+                         inputs=[env_mask, rig.pose, rig.rcm, rig.flags, self.poi, rig.active,
+                                 self.endoscope.optic_offset, self._focal, float(width), float(height),
+                                 cfg.camera_near, cfg.target_distance_camera_poi, cfg.tolerance_target_distance,
+                                 cfg.tolerance_image_center, cfg.instrument_touch_tolerance, int(cfg.active_vision),
+                                 int(cfg.cauter_activation), self.organ_mesh.id], outputs=[features_out],
+                         device=self.wp_device)
 
     def _reset_task(self, env_mask: wp.array) -> None:
         self.rig.reset(env_mask, self.world.rng)
-        wp.launch(sample_pois, dim=self.num_envs, inputs=[env_mask, self.candidates, self.world.rng],
-                  outputs=[self.poi], device=self.wp_device)
+        launching.launch(sample_pois, dim=self.num_envs, inputs=[env_mask, self.candidates, self.world.rng],
+                         outputs=[self.poi], device=self.wp_device)
 
     def _compute_observations(self) -> None:
         rig = self.rig
-        wp.launch(observe_search, dim=self.num_envs,
-                  inputs=[self.poi, rig.pose, rig.ptsd, rig.active, self.endoscope.optic_offset,
-                          int(self.cfg.active_vision), self.obs_layout.columns],
-                  outputs=[self.obs_frame], device=self.wp_device)
+        launching.launch(observe_search, dim=self.num_envs,
+                         inputs=[self.poi, rig.pose, rig.ptsd, rig.active, self.endoscope.optic_offset,
+                                 int(self.cfg.active_vision), self.obs_layout.columns], outputs=[self.obs_frame],
+                         device=self.wp_device)
         if self.cfg.privileged_critic:
             wp.copy(self.critic_frame, self.obs_frame)  # the STATE is already privileged (the POI position)
 
@@ -469,8 +471,8 @@ class SearchForPointEnv(BatchedEnv):
         self.endoscope.update()
         if self._visual_scene is None:
             return
-        wp.launch(update_poi_marker, dim=self.num_envs, inputs=[self.poi], outputs=[self.marker_transforms],
-                  device=self.wp_device)
+        launching.launch(update_poi_marker, dim=self.num_envs, inputs=[self.poi], outputs=[self.marker_transforms],
+                         device=self.wp_device)
 
     # ------------------------------------------------------------------ privileged access (experts, tests)
     def privileged_state(self) -> dict[str, torch.Tensor]:

@@ -62,6 +62,7 @@ import torch
 import trimesh
 import warp as wp
 
+from lapwarp import launching
 from lapwarp.assets import hollow_cylinder_tets
 from lapwarp.builder import SceneBuilder, _quat_mul
 from lapwarp.config import PTSD, Count, EnvConfig, Fraction, NonNegative, Positive, Range
@@ -639,9 +640,9 @@ class LigatingLoopEnv(BatchedEnv):
 
     def _apply_actions(self, actions: wp.array2d) -> None:
         self.rig.apply_actions(actions, self.cfg.time_step)
-        wp.launch(apply_closing, dim=self.num_envs,
-                  inputs=[actions, self.action_layout.columns["loop/close"], self.cfg.index_steps_per_action,
-                          self.cfg.num_loop_points], outputs=[self.closure.active_index], device=self.wp_device)
+        launching.launch(apply_closing, dim=self.num_envs,
+                         inputs=[actions, self.action_layout.columns["loop/close"], self.cfg.index_steps_per_action,
+                                 self.cfg.num_loop_points], outputs=[self.closure.active_index], device=self.wp_device)
 
     def _before_physics_step(self) -> None:
         self.rig.step()
@@ -656,23 +657,25 @@ class LigatingLoopEnv(BatchedEnv):
 
     def _compute_features(self, env_mask: wp.array, features_out: wp.array2d) -> None:
         s, rig = self.world.state, self.rig
-        wp.launch(eval_ligating_loop, dim=self.num_envs,
-                  inputs=[s.particle_q, rig.pose, self._rig_contacts, self.cavity_group, self.params, self.task,
-                          self.cfg.num_loop_points], outputs=[features_out], device=self.wp_device)
+        launching.launch(eval_ligating_loop, dim=self.num_envs,
+                         inputs=[s.particle_q, rig.pose, self._rig_contacts, self.cavity_group, self.params, self.task,
+                                 self.cfg.num_loop_points], outputs=[features_out], device=self.wp_device)
 
     def _reset_task(self, env_mask: wp.array) -> None:
         cfg, w = self.cfg, self.world
         low, high = cfg.marking_start_range
-        wp.launch(draw_loop_state, dim=self.num_envs,
-                  inputs=[env_mask, w.rng, int(cfg.randomize_loop_state), int(cfg.randomize_marking_position), low,
-                          high, cfg.marking_start, cfg.num_loop_points], outputs=[self.task], device=self.wp_device)
+        launching.launch(draw_loop_state, dim=self.num_envs,
+                         inputs=[env_mask, w.rng, int(cfg.randomize_loop_state), int(cfg.randomize_marking_position),
+                                 low, high, cfg.marking_start, cfg.num_loop_points], outputs=[self.task],
+                         device=self.wp_device)
         self._place(env_mask, w.rng)
         # a start whose loop touches the cavity is drawn again (a fixed number of times, so the reset stays one
         # recorded sequence), then falls back to the noise-free pose
         for rng in [w.rng] * REDRAWS + [None]:
-            wp.launch(flag_touching_starts, dim=self.num_envs,
-                      inputs=[env_mask, w.state.particle_q, self.params, 2.0 * LOOP_SPHERE], outputs=[self._redraw],
-                      device=self.wp_device)
+            launching.launch(flag_touching_starts, dim=self.num_envs,
+                             inputs=[env_mask, w.state.particle_q, self.params, 2.0 * LOOP_SPHERE],
+                             outputs=[self._redraw],
+                             device=self.wp_device)
             self._place(self._redraw, rng)
         self.closure.settle(env_mask)
         if self._visual_scene is not None:
@@ -681,17 +684,17 @@ class LigatingLoopEnv(BatchedEnv):
     def _place(self, env_mask: wp.array, rng: wp.array | None) -> None:
         s = self.world.state
         self.rig.reset(env_mask, rng)
-        wp.launch(carry_loop, dim=(self.num_envs, self.cfg.num_loop_points),
-                  inputs=[env_mask, self.params, self.task, self._bank_q, self._bank_rel, self.rig.pose,
-                          self.loop.segment_start],
-                  outputs=[s.particle_q, s.particle_qd, s.segment_q, s.segment_qd], device=self.wp_device)
+        launching.launch(carry_loop, dim=(self.num_envs, self.cfg.num_loop_points),
+                         inputs=[env_mask, self.params, self.task, self._bank_q, self._bank_rel, self.rig.pose,
+                                 self.loop.segment_start],
+                         outputs=[s.particle_q, s.particle_qd, s.segment_q, s.segment_qd], device=self.wp_device)
 
     def _compute_observations(self) -> None:
         s = self.world.state
-        wp.launch(observe_ligating_loop, dim=self.num_envs,
-                  inputs=[s.particle_q, self.rig.ptsd, self.params, self.task, self.cfg.num_loop_points,
-                          self.obs_layout.columns, self.critic_layout.columns, int(self.cfg.privileged_critic)],
-                  outputs=[self.obs_frame, self.critic_frame], device=self.wp_device)
+        launching.launch(observe_ligating_loop, dim=self.num_envs,
+                         inputs=[s.particle_q, self.rig.ptsd, self.params, self.task, self.cfg.num_loop_points,
+                                 self.obs_layout.columns, self.critic_layout.columns, int(self.cfg.privileged_critic)],
+                         outputs=[self.obs_frame, self.critic_frame], device=self.wp_device)
 
     # ------------------------------------------------------------------ visuals
     def _build_visual_scene(self) -> VisualScene:
@@ -731,15 +734,16 @@ class LigatingLoopEnv(BatchedEnv):
     def _mark_band(self) -> None:
         if not hasattr(self, "_cavity_faces"):
             return
-        wp.launch(mark_band_faces, dim=self._cavity_faces.shape, inputs=[self.params, self.task, self._outer_face_arr],
-                  outputs=[self._cavity_faces, self._marking_faces], device=self.wp_device)
+        launching.launch(mark_band_faces, dim=self._cavity_faces.shape,
+                         inputs=[self.params, self.task, self._outer_face_arr],
+                         outputs=[self._cavity_faces, self._marking_faces], device=self.wp_device)
 
     def update_visuals(self) -> None:
         if self._visual_scene is None:
             return
-        wp.launch(place_loop_visual, dim=(self.num_envs, self.cfg.num_loop_points),
-                  inputs=[self.world.state.particle_q, self.params, self.task],
-                  outputs=[self._loop_points, self._loop_segments], device=self.wp_device)
+        launching.launch(place_loop_visual, dim=(self.num_envs, self.cfg.num_loop_points),
+                         inputs=[self.world.state.particle_q, self.params, self.task],
+                         outputs=[self._loop_points, self._loop_segments], device=self.wp_device)
 
     # ------------------------------------------------------------------ privileged access (experts, tests)
     def privileged_state(self) -> dict[str, torch.Tensor]:
@@ -859,12 +863,12 @@ class LigatingLoopExpert(Expert):
     def __call__(self, obs=None) -> torch.Tensor:
         env, rig, s = self.env, self.env.rig, self.env.world.state
         with env._torch_stream_scope():
-            wp.launch(expert_commands, dim=env.num_envs,
-                      inputs=[s.particle_q, rig.ptsd, rig.pose, rig.rcm, env.params, env.task, env.episode_length,
-                              env.cfg.num_loop_points, self.hover, self.depth, self.speed,
-                              self.tolerance, self.gain, self.clearance, self.max_step,
-                              env.cfg.target_loop_closed_ratio, self.retry_margin, self.phase],
-                      outputs=[self.error], device=env.wp_device)
+            launching.launch(expert_commands, dim=env.num_envs,
+                             inputs=[s.particle_q, rig.ptsd, rig.pose, rig.rcm, env.params, env.task,
+                                     env.episode_length, env.cfg.num_loop_points, self.hover, self.depth, self.speed,
+                                     self.tolerance, self.gain, self.clearance, self.max_step,
+                                     env.cfg.target_loop_closed_ratio, self.retry_margin, self.phase],
+                             outputs=[self.error], device=env.wp_device)
         return self.policy_actions(wp.to_torch(self.error) / self.step_size)
 
 

@@ -24,6 +24,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
+from lapwarp import launching
 from lapwarp.builder import _quat_mul
 from lapwarp.kernels.geometry import interpolate_transform
 
@@ -223,16 +224,19 @@ class LoopClosure:
     def settle(self, env_mask: wp.array) -> None:
         """Pins of the masked envs at rest at their ``active_index`` (the loop was just placed there)."""
         w, s = self.world, self.world.state
-        wp.launch(settle_loop_pins, dim=(w.num_envs, self.nodes), inputs=[env_mask, self.geometry, self.pins],
-                  outputs=[s.attach_particle, s.attach_body, s.attach_offset, s.attach_compliance], device=w.device)
+        launching.launch(settle_loop_pins, dim=(w.num_envs, self.nodes), inputs=[env_mask, self.geometry, self.pins],
+                         outputs=[s.attach_particle, s.attach_body, s.attach_offset, s.attach_compliance],
+                         device=w.device)
 
     def pre_step(self, dt: float) -> None:
         """Once per physics step, after the instrument's body pose is written and before ``World.step(dt)``."""
         w, s = self.world, self.world.state
         substeps = w.substeps_for(dt)
-        wp.launch(pin_loop, dim=(w.num_envs, self.nodes),
-                  inputs=[self.geometry, self.pins, w.body_q_previous, s.particle_q, s.segment_q, 1.0 / substeps],
-                  outputs=[s.attach_particle, s.attach_body, s.attach_offset, s.attach_compliance], device=w.device)
+        launching.launch(pin_loop, dim=(w.num_envs, self.nodes),
+                         inputs=[self.geometry, self.pins, w.body_q_previous, s.particle_q, s.segment_q,
+                                 1.0 / substeps],
+                         outputs=[s.attach_particle, s.attach_body, s.attach_offset, s.attach_compliance],
+                         device=w.device)
 
     def record_sweep(self, world, launch, sweep) -> None:
         s = world.state

@@ -65,6 +65,7 @@ import torch
 import trimesh
 import warp as wp
 
+from lapwarp import launching
 from lapwarp.assets import hollow_cylinder_tets
 from lapwarp.builder import SceneBuilder
 from lapwarp.config import PTSD, Count, EnvConfig, NonNegative, Positive, Range
@@ -588,10 +589,10 @@ class ThreadInHoleEnv(BatchedEnv):
 
     def _features(self, env_mask: wp.array, mode: int, features_out: wp.array2d) -> None:
         s, rig = self.world.state, self.rig
-        wp.launch(eval_thread_in_hole, dim=self.num_envs,
-                  inputs=[env_mask, mode, s.particle_q, s.particle_qd, rig.pose, rig.flags, self._rig_contacts,
-                          self.hole_group, self.params, self.task],
-                  outputs=[features_out], device=self.wp_device)
+        launching.launch(eval_thread_in_hole, dim=self.num_envs,
+                         inputs=[env_mask, mode, s.particle_q, s.particle_qd, rig.pose, rig.flags, self._rig_contacts,
+                                 self.hole_group, self.params, self.task], outputs=[features_out],
+                         device=self.wp_device)
 
     def _compute_features(self, env_mask: wp.array, features_out: wp.array2d) -> None:
         # the points delta is the smallest per-node change (sofa_env's): computed in-task, once per step
@@ -603,38 +604,39 @@ class ThreadInHoleEnv(BatchedEnv):
         # sofa_env's rule: a start with a thread node inside the hole is drawn again (a fixed number of times, so the
         # reset stays one recorded sequence), then falls back to the noise-free start
         for _ in range(REDRAWS):
-            wp.launch(flag_inside_starts, dim=self.num_envs,
-                      inputs=[env_mask, w.state.particle_q, self.params, self.thread_radius], outputs=[self._redraw],
-                      device=self.wp_device)
+            launching.launch(flag_inside_starts, dim=self.num_envs,
+                             inputs=[env_mask, w.state.particle_q, self.params, self.thread_radius],
+                             outputs=[self._redraw],
+                             device=self.wp_device)
             self._place(self._redraw, w.rng)
-        wp.launch(flag_inside_starts, dim=self.num_envs,
-                  inputs=[env_mask, w.state.particle_q, self.params, self.thread_radius], outputs=[self._redraw],
-                  device=self.wp_device)
+        launching.launch(flag_inside_starts, dim=self.num_envs,
+                         inputs=[env_mask, w.state.particle_q, self.params, self.thread_radius], outputs=[self._redraw],
+                         device=self.wp_device)
         self._place(self._redraw, None)
         self.grasp.start_grasped(self.thread.particle_start, env_mask)
         if self.cfg.camera_reset_noise > 0.0 and self._visual_scene is not None:
             cfg = self.cfg
-            wp.launch(jitter_cameras, dim=self.num_envs,
-                      inputs=[env_mask, w.rng, wp.vec3(*cfg.camera_position), wp.vec3(*cfg.camera_look_at),
-                              float(cfg.camera_reset_noise)],
-                      outputs=[self._visual_scene.camera.poses], device=self.wp_device)
+            launching.launch(jitter_cameras, dim=self.num_envs,
+                             inputs=[env_mask, w.rng, wp.vec3(*cfg.camera_position), wp.vec3(*cfg.camera_look_at),
+                                     float(cfg.camera_reset_noise)], outputs=[self._visual_scene.camera.poses],
+                             device=self.wp_device)
         self._features(env_mask, 2, self.features)
 
     def _place(self, env_mask: wp.array, rng: wp.array | None) -> None:
         """Draw the masked envs' grasper (``rng``: with noise) and carry the settled thread there."""
         s = self.world.state
         self.rig.reset(env_mask, rng)
-        wp.launch(carry_thread, dim=(self.num_envs, self.params.nodes),
-                  inputs=[env_mask, self.params, self._start_q, self._start_segment_q, self._start_tip, self.rig.pose,
-                          self.thread.segment_start],
-                  outputs=[s.particle_q, s.particle_qd, s.segment_q, s.segment_qd], device=self.wp_device)
+        launching.launch(carry_thread, dim=(self.num_envs, self.params.nodes),
+                         inputs=[env_mask, self.params, self._start_q, self._start_segment_q, self._start_tip,
+                                 self.rig.pose, self.thread.segment_start],
+                         outputs=[s.particle_q, s.particle_qd, s.segment_q, s.segment_qd], device=self.wp_device)
 
     def _compute_observations(self) -> None:
         s, rig = self.world.state, self.rig
-        wp.launch(observe_thread_in_hole, dim=self.num_envs,
-                  inputs=[s.particle_q, rig.ptsd, rig.pose, self.params, self.obs_layout.columns,
-                          self.critic_layout.columns, int(self.cfg.privileged_critic)],
-                  outputs=[self.obs_frame, self.critic_frame], device=self.wp_device)
+        launching.launch(observe_thread_in_hole, dim=self.num_envs,
+                         inputs=[s.particle_q, rig.ptsd, rig.pose, self.params, self.obs_layout.columns,
+                                 self.critic_layout.columns, int(self.cfg.privileged_critic)],
+                         outputs=[self.obs_frame, self.critic_frame], device=self.wp_device)
 
     # ------------------------------------------------------------------ visuals
     def _build_visual_scene(self) -> VisualScene:
@@ -662,9 +664,9 @@ class ThreadInHoleEnv(BatchedEnv):
     def update_visuals(self) -> None:
         if self._visual_scene is None:
             return
-        wp.launch(place_thread_visual, dim=(self.num_envs, self.params.nodes),
-                  inputs=[self.world.state.particle_q, self.params], outputs=[self._thread_points],
-                  device=self.wp_device)
+        launching.launch(place_thread_visual, dim=(self.num_envs, self.params.nodes),
+                         inputs=[self.world.state.particle_q, self.params], outputs=[self._thread_points],
+                         device=self.wp_device)
 
     # ------------------------------------------------------------------ privileged access (experts, tests)
     def privileged_state(self) -> dict[str, torch.Tensor]:
@@ -707,8 +709,8 @@ class ThreadInHoleExpert(Expert):
     def __call__(self, obs=None) -> torch.Tensor:
         env, rig, s = self.env, self.env.rig, self.env.world.state
         with env._torch_stream_scope():
-            wp.launch(expert_commands, dim=env.num_envs,
-                      inputs=[s.particle_q, s.particle_qd, rig.ptsd, rig.pose, rig.rcm, env.params, self.hover,
-                              self.descent, self.aligned, self.gain, self.damping, self.max_step, self.settle_speed],
-                      outputs=[self.error], device=env.wp_device)
+            launching.launch(expert_commands, dim=env.num_envs,
+                             inputs=[s.particle_q, s.particle_qd, rig.ptsd, rig.pose, rig.rcm, env.params, self.hover,
+                                     self.descent, self.aligned, self.gain, self.damping, self.max_step,
+                                     self.settle_speed], outputs=[self.error], device=env.wp_device)
         return self.policy_actions(wp.to_torch(self.error) / self.step_size)

@@ -1,0 +1,36 @@
+"""Kernel launches sized to the GPU: every lapwarp launch goes through :func:`launch` (or, inside the World's recorded
+step, :func:`block_dim_for`), which picks the threads per block from the grid's size.
+
+Warp launches 256 threads per block unless told otherwise. Most of lapwarp's kernels run one thread per env, per
+rope or per instrument, i.e. 4,096 to 20,000 threads at a typical batch size: 16 to 80 blocks of 256 on an H100 with
+132 SMs, so most SMs sit idle while a latency-bound kernel (a serial chain solve, a per-env reward) runs. Smaller
+blocks spread such grids over every SM (measured on the H100, 4,096 envs: a 100-segment rod solved by one thread per
+rod ran 2.07x faster, PickAndPlace's whole env step 1.26x; benchmarks/RESULTS.md, "Launch block sizes"). Large grids
+keep 256. On the CPU the block size is ignored.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+
+def block_dim_for(dim, sm_count: int, cap: int = 256) -> int:
+    """Threads per block for a launch of ``dim`` threads (an int or a shape): the largest power of two from ``cap``
+    down to 32 that still gives each of the ``sm_count`` SMs about four blocks. ``cap`` below 256 is for
+    register-heavy kernels (more small blocks fit an SM's register file than large ones). With ``sm_count`` 0 (the
+    CPU) the result is ``cap``."""
+    threads = int(np.prod(dim)) if isinstance(dim, tuple | list) else int(dim)
+    block = cap
+    while block > 32 and threads < 4 * sm_count * block:
+        block //= 2
+    return block
+
+
+def launch(kernel, dim, inputs=(), outputs=(), device=None, block_dim: int | None = None, **kwargs):
+    """``wp.launch`` with the block size from :func:`block_dim_for` on CUDA devices (an explicit ``block_dim`` wins);
+    other keyword arguments are passed through."""
+    dev = wp.get_device(device)
+    if block_dim is None and dev.is_cuda:
+        block_dim = block_dim_for(dim, dev.sm_count)
+    return wp.launch(kernel, dim=dim, inputs=inputs, outputs=outputs, device=dev, block_dim=block_dim, **kwargs)
