@@ -618,11 +618,15 @@ def place_rope_visuals(q: wp.array2d(dtype=wp.vec3), p: Params, task: Task, poin
 @wp.kernel
 def expert_commands(q: wp.array2d(dtype=wp.vec3), ptsd: wp.array2d(dtype=wp.vec4),
                     pose: wp.array2d(dtype=wp.transform), rcm: wp.array2d(dtype=wp.transform), p: Params, task: Task,
-                    approach: float, tolerance: float, gain: float, spin_gain: float, advance: float, max_step: float,
-                    error_out: wp.array2d(dtype=float)):
-    """The scripted right grasper (``RopeThreadingExpert``): PTSD errors per env."""
+                    episode_length: wp.array(dtype=wp.int32), approach: float, tolerance: float, gain: float,
+                    spin_gain: float, advance: float, max_step: float, steep_cos: float, lower: float,
+                    levering: wp.array(dtype=wp.int32), error_out: wp.array2d(dtype=float)):
+    """The scripted right grasper (``RopeThreadingExpert``): PTSD errors per env. ``levering`` is its memory (1 while
+    it levers a steep free end through, cleared at each episode's start)."""
     env = wp.tid()
     r = p.right
+    if episode_length[env] == 0:
+        levering[env] = 0
     for j in range(error_out.shape[1]):
         error_out[env, j] = 0.0
     k = wp.min(task.active[env], p.num_eyes - 1)
@@ -654,19 +658,33 @@ def expert_commands(q: wp.array2d(dtype=wp.vec3), ptsd: wp.array2d(dtype=wp.vec4
     lateral = off - n * wp.dot(off, n)
     outside = wp.length(lateral) > CLEAR_RADIUS
     move = lateral * gain
+    if outside:
+        levering[env] = 0
     if s0 > 0.0 and outside:
         # the free end went past the ring plane beside the ring (a reset can start it there): pull it back
         move = -n * max_step
+    elif levering[env] != 0:
+        # lever the steep end through: lowering the grasper flattens the free part (the jaws, and with them the
+        # rope's held end, tilt up as the tip drops under the RCM, and the ring carries the free end while the rope
+        # behind it comes down); centred sideways only (its height is what the lever changes), pushed on gently
+        move = (lateral - wp.vec3(0.0, 0.0, lateral[2])) * gain + n * (0.3 * advance) - wp.vec3(0.0, 0.0, lower)
     elif s0 < -approach or (s0 <= 0.0 and outside):
         # to ``approach`` before the ring: quickly along the normal, gently across it (the hanging end swings)
         move = lateral * gain - n * ((s0 + approach) * 0.5)
     elif wp.length(lateral) < tolerance and wp.abs(yaw_error) < 0.1:
         move = move + n * advance
+        # a free end steeper than the opening lets through jams in the ring's mouth: lever it instead
+        if wp.dot(wp.normalize(end - q[env, p.rope_first + 3]), n) < steep_cos:
+            levering[env] = 1
     if wp.length(move) > max_step:
         move = move * (max_step / wp.length(move))
     s = ptsd[env, r]
-    tip_pos = wp.transform_get_translation(tip)
-    target = point_to_ptsd(rcm[env, r], tip_pos + move, s[2])
+    # inside the workspace (with 0.5 mm to spare): a physics step that would leave it is rejected whole, and a
+    # grasper pressed against the border would stop moving
+    margin = wp.vec3(0.0005)
+    goal = wp.min(wp.max(wp.transform_get_translation(tip) + move, p.bounds.ws_low + margin),
+                  p.bounds.ws_high - margin)
+    target = point_to_ptsd(rcm[env, r], goal, s[2])
     col = 5 * r
     error_out[env, col + 0] = target[0] - s[0]
     error_out[env, col + 1] = target[1] - s[1]
@@ -902,16 +920,28 @@ class RopeThreadingExpert(Expert):
     """Scripted right grasper from the privileged state: it turns the rope (spin) until the part from the grasped
     node to the free end runs along the active eye's normal, brings the free end to ``approach`` before the ring
     centre, then advances along the normal by ``advance`` per step while keeping the point where the rope crosses
-    the ring plane centred (``gain`` x its offset; it advances only while that offset is below ``tolerance``). Moves
-    follow straight lines in legs of ``max_step``. The bimanual regrasp is not scripted (the left grasper idles)."""
+    the ring plane centred (``gain`` x its offset; it advances only while that offset is below ``tolerance``).
+
+    A long overhang (grasp node >= ~24, 48 mm of free rope and more) hangs with its free end 55-65 deg steep, more
+    than the opening lets through (2.7 mm clear radius, 4 mm deep: ~50 deg), and pushing it on only buckles the free
+    part until the end jams in the ring's mouth (the old expert's failures). When the end's last 6 mm make more than
+    ``acos(steep_cos)`` with the normal as it starts to advance, the expert levers instead: it lowers the grasper by
+    ``lower`` per step (pushing on at 0.3 ``advance``, centred sideways) until the eye is passed or the end leaves
+    the opening (then it approaches again). Lowering flattens the free part: the jaws, and with them the rope's held
+    end, tilt up as the tip drops under the RCM (by 10-35 deg in most levers), and the ring carries the free end while
+    the rope behind it comes down. Moves follow straight lines in legs of ``max_step`` inside the workspace. The
+    bimanual regrasp is not scripted (the left grasper idles)."""
 
     def __init__(self, env: RopeThreadingEnv, approach: float = 0.006, tolerance: float = 0.0015, gain: float = 0.15,
-                 spin_gain: float = 0.5, advance: float = 0.001, max_step: float | None = None):
+                 spin_gain: float = 0.5, advance: float = 0.001, max_step: float | None = None,
+                 steep_cos: float = 0.64, lower: float = 0.001):
         super().__init__(env)
         self.approach, self.tolerance, self.gain = float(approach), float(tolerance), float(gain)
         self.spin_gain = float(spin_gain)
         self.advance = float(advance)
         self.max_step = float(max_step if max_step is not None else (1.0 if env.is_discrete else 0.001))
+        self.steep_cos, self.lower = float(steep_cos), float(lower)
+        self.levering = wp.zeros(env.num_envs, dtype=wp.int32, device=env.wp_device)
         self.error = wp.zeros((env.num_envs, env.action_dim), dtype=float, device=env.wp_device)
         self.step_size = self.rig_step_size()
 
@@ -919,7 +949,8 @@ class RopeThreadingExpert(Expert):
         env, rig, s = self.env, self.env.rig, self.env.world.state
         with env._torch_stream_scope():
             wp.launch(expert_commands, dim=env.num_envs,
-                      inputs=[s.particle_q, rig.ptsd, rig.pose, rig.rcm, env.params, env.task, self.approach,
-                              self.tolerance, self.gain, self.spin_gain, self.advance, self.max_step],
+                      inputs=[s.particle_q, rig.ptsd, rig.pose, rig.rcm, env.params, env.task, env.episode_length,
+                              self.approach, self.tolerance, self.gain, self.spin_gain, self.advance, self.max_step,
+                              self.steep_cos, self.lower, self.levering],
                       outputs=[self.error], device=env.wp_device)
         return self.policy_actions(wp.to_torch(self.error) / self.step_size)
