@@ -73,6 +73,7 @@ import torch
 import trimesh
 import warp as wp
 
+from lapwarp import launching
 from lapwarp.builder import SceneBuilder
 from lapwarp.config import PTSD, Count, EnvConfig, NonNegative, Positive, Range
 from lapwarp.contact import ContactSystem
@@ -831,10 +832,10 @@ class RopeThreadingEnv(BatchedEnv):
     def _features(self, env_mask: wp.array, mode: int, features_out: wp.array2d) -> None:
         s, rig = self.world.state, self.rig
         left = self.left_grasp.grasped if self.left_grasp is not None else self.right_grasp.grasped
-        wp.launch(eval_rope_threading, dim=self.num_envs,
-                  inputs=[env_mask, mode, s.particle_q, rig.pose, rig.jaw_angle, rig.flags, self.right_grasp.grasped,
-                          left, self.params, self.task],
-                  outputs=[features_out], device=self.wp_device)
+        launching.launch(eval_rope_threading, dim=self.num_envs,
+                         inputs=[env_mask, mode, s.particle_q, rig.pose, rig.jaw_angle, rig.flags,
+                                 self.right_grasp.grasped, left, self.params, self.task],
+                         outputs=[features_out], device=self.wp_device)
 
     def _compute_features(self, env_mask: wp.array, features_out: wp.array2d) -> None:
         # the eyes' states advance in the step's own evaluation, once per step
@@ -845,15 +846,15 @@ class RopeThreadingEnv(BatchedEnv):
         s = w.state
         self.rig.reset(env_mask, w.rng)
         low, high = cfg.grasp_index_noise
-        wp.launch(draw_grasp_index, dim=self.num_envs,
-                  inputs=[env_mask, w.rng, cfg.grasp_index, low, high, self.rope.particle_start], outputs=[self.task],
-                  device=dev)
-        wp.launch(carry_rope, dim=(self.num_envs, ROPE_NODES),
-                  inputs=[env_mask, self.params, self._bank_q, self._bank_segment_q, self._bank_first,
-                          self._start_tip, self.rig.pose, self.task, self.rope.segment_start],
-                  outputs=[s.particle_q, s.particle_qd, s.segment_q, s.segment_qd], device=dev)
-        wp.launch(draw_eyes, dim=self.num_envs, inputs=[env_mask, w.rng, s.particle_q, self.params, self.task],
-                  outputs=[self._eye_bodies], device=dev)
+        launching.launch(draw_grasp_index, dim=self.num_envs,
+                         inputs=[env_mask, w.rng, cfg.grasp_index, low, high, self.rope.particle_start],
+                         outputs=[self.task], device=dev)
+        launching.launch(carry_rope, dim=(self.num_envs, ROPE_NODES),
+                         inputs=[env_mask, self.params, self._bank_q, self._bank_segment_q, self._bank_first,
+                                 self._start_tip, self.rig.pose, self.task, self.rope.segment_start],
+                         outputs=[s.particle_q, s.particle_qd, s.segment_q, s.segment_qd], device=dev)
+        launching.launch(draw_eyes, dim=self.num_envs, inputs=[env_mask, w.rng, s.particle_q, self.params, self.task],
+                         outputs=[self._eye_bodies], device=dev)
         w.set_body_poses(self._eye_bodies, self._eye_body_ids, env_mask)
         self.right_grasp.start_grasped(self.task.grasp_particle, env_mask)
         if self.left_grasp is not None:
@@ -863,11 +864,11 @@ class RopeThreadingEnv(BatchedEnv):
     def _compute_observations(self) -> None:
         s, rig = self.world.state, self.rig
         left = self.left_grasp.grasped if self.left_grasp is not None else self.right_grasp.grasped
-        wp.launch(observe_rope_threading, dim=self.num_envs,
-                  inputs=[s.particle_q, rig.ptsd, rig.pose, rig.jaw_angle, self.right_grasp.grasped, left,
-                          self.params, self.task, self.obs_layout.columns, self.critic_layout.columns,
-                          int(self.cfg.privileged_critic)],
-                  outputs=[self.obs_frame, self.critic_frame], device=self.wp_device)
+        launching.launch(observe_rope_threading, dim=self.num_envs,
+                         inputs=[s.particle_q, rig.ptsd, rig.pose, rig.jaw_angle, self.right_grasp.grasped, left,
+                                 self.params, self.task, self.obs_layout.columns, self.critic_layout.columns,
+                                 int(self.cfg.privileged_critic)],
+                         outputs=[self.obs_frame, self.critic_frame], device=self.wp_device)
 
     # ------------------------------------------------------------------ visuals
     def _build_visual_scene(self) -> VisualScene:
@@ -896,9 +897,9 @@ class RopeThreadingEnv(BatchedEnv):
     def update_visuals(self) -> None:
         if self._visual_scene is None:
             return
-        wp.launch(place_rope_visuals, dim=(self.num_envs, ROPE_NODES),
-                  inputs=[self.world.state.particle_q, self.params, self.task],
-                  outputs=[self._rope_points, self._eye_visuals], device=self.wp_device)
+        launching.launch(place_rope_visuals, dim=(self.num_envs, ROPE_NODES),
+                         inputs=[self.world.state.particle_q, self.params, self.task],
+                         outputs=[self._rope_points, self._eye_visuals], device=self.wp_device)
 
     # ------------------------------------------------------------------ privileged access (experts, tests)
     def privileged_state(self) -> dict[str, torch.Tensor]:
@@ -948,9 +949,9 @@ class RopeThreadingExpert(Expert):
     def __call__(self, obs=None) -> torch.Tensor:
         env, rig, s = self.env, self.env.rig, self.env.world.state
         with env._torch_stream_scope():
-            wp.launch(expert_commands, dim=env.num_envs,
-                      inputs=[s.particle_q, rig.ptsd, rig.pose, rig.rcm, env.params, env.task, env.episode_length,
-                              self.approach, self.tolerance, self.gain, self.spin_gain, self.advance, self.max_step,
-                              self.steep_cos, self.lower, self.levering],
-                      outputs=[self.error], device=env.wp_device)
+            launching.launch(expert_commands, dim=env.num_envs,
+                             inputs=[s.particle_q, rig.ptsd, rig.pose, rig.rcm, env.params, env.task,
+                                     env.episode_length, self.approach, self.tolerance, self.gain, self.spin_gain,
+                                     self.advance, self.max_step, self.steep_cos, self.lower, self.levering],
+                             outputs=[self.error], device=env.wp_device)
         return self.policy_actions(wp.to_torch(self.error) / self.step_size)
