@@ -161,8 +161,9 @@ def test_blades_cut_only_while_closing_when_asked(device):
     assert cuts[False] > 0 and cuts[True] == 0
 
 
-def test_expert_solves_the_fixed_line(device):
-    env = lapwarp.make("PrecisionCutting", num_envs=4, device=device, seed=3)
+@pytest.mark.parametrize("function", ["line", "sine"])
+def test_expert_solves_the_fixed_path(device, function):
+    env = lapwarp.make("PrecisionCutting", num_envs=4, device=device, seed=3, path_function=function)
     expert = make_expert(env)
     obs = env.get_observations()
     episodes = successes = 0

@@ -656,7 +656,7 @@ def cloth_face_masks(tri_active: wp.array2d(dtype=wp.int32), cloth: Cloth, path:
 @wp.kernel
 def expert_errors(q: wp.array2d(dtype=wp.vec3), tri_active: wp.array2d(dtype=wp.int32),
                   ptsd: wp.array2d(dtype=wp.vec4), rcm: wp.array2d(dtype=wp.transform),
-                  jaw_angle: wp.array2d(dtype=float), cloth: Cloth, path: Path, p: Params, lead: float,
+                  jaw_angle: wp.array2d(dtype=float), cloth: Cloth, path: Path, p: Params, lead: float, reach: float,
                   closing: int, jaw_open: float, low: wp.vec4, high: wp.vec4, error_out: wp.array2d(dtype=float)):
     """PTSD and jaw errors of the scissors' expert (see ``PrecisionCuttingExpert``)."""
     env = wp.tid()
@@ -690,7 +690,14 @@ def expert_errors(q: wp.array2d(dtype=wp.vec3), tri_active: wp.array2d(dtype=wp.
                     rest_position(after)[1] - rest_position(target)[1], 0.0)
         if wp.length(d) > 0.0:
             direction = wp.normalize(d)
-    aim = x + direction * lead
+    # the blades cut only near the hinge, about ``reach`` ahead of it along the shaft (further out the jaw capsules
+    # push the cloth away from the cutting edges): the hinge stands that far short of the cut point along the shaft's
+    # horizontal direction. Where the path turns across the shaft (the sine's bends), putting the hinge itself on
+    # the path would cut beside it, and a hinge beside its target leaves the target outside the blades for good.
+    cut_at = x + direction * lead
+    rcm_at = wp.transform_get_translation(rcm[env, 0])
+    radial = wp.vec3(cut_at[0] - rcm_at[0], cut_at[1] - rcm_at[1], 0.0)
+    aim = cut_at - wp.normalize(radial) * reach
     goal = point_to_ptsd(rcm[env, 0], aim, s[2])
     # spin that keeps the jaw hinge axis (local x) horizontal, so the blades open above and below the cloth
     frame = ptsd_to_transform(rcm[env, 0], wp.vec4(goal[0], goal[1], 0.0, goal[3]))
@@ -709,12 +716,14 @@ def expert_errors(q: wp.array2d(dtype=wp.vec3), tri_active: wp.array2d(dtype=wp.
         margin = 0.01 * (high[i] - low[i])
         clamped[i] = wp.clamp(goal[i], low[i] + margin, high[i] - margin)
     if clamped[1] != goal[1]:
-        # the target lies below the flattest shaft (the sagging near part of the cloth): run the hinge along that
-        # shaft to the point nearest the target, and on by ``lead``; the lower blade, angled down, then crosses the
-        # cloth at the target
+        # the target lies below the steepest shaft (the sagging near part of the cloth): stand the hinge back along
+        # that shaft until the lower blade, ``jaw_open`` below it, crosses the cut point (the hinge at the point
+        # nearest the target left the target behind the blades, where nothing cuts it)
         origin = wp.transform_get_translation(ptsd_to_transform(rcm[env, 0], wp.vec4(clamped[0], clamped[1], 0.0, 0.0)))
         ahead = wp.transform_get_translation(ptsd_to_transform(rcm[env, 0], wp.vec4(clamped[0], clamped[1], 0.0, 1.0)))
-        clamped[3] = wp.dot(aim - origin, ahead - origin) + lead
+        along = wp.dot(cut_at - origin, ahead - origin)
+        below = wp.length(cut_at - origin - (ahead - origin) * along)
+        clamped[3] = along - below / wp.tan(jaw_open * (wp.pi / 180.0))
     for i in range(4):
         error_out[env, i] = clamped[i] - s[i]
     jaw = jaw_angle[env, 0]
@@ -926,14 +935,16 @@ class PrecisionCuttingEnv(BatchedEnv):
 
 # ---------------------------------------------------------------------------- expert
 class PrecisionCuttingExpert(Expert):
-    """Walks the jaw hinge along the path: it aims ``lead`` beyond the first uncut centre-line vertex after the last cut
-    one, with the hinge
+    """Walks the blades' cutting zone along the path: it cuts ``lead`` beyond the first uncut centre-line vertex after
+    the last cut one (along the path), with the jaw hinge ``reach`` short of that point along the shaft, the hinge
     axis horizontal (blades above and below the cloth) and the jaws open, so the cloth meets the blade edges in the
-    jaws' V. With ``cut_requires_closing`` it closes the jaws at each target and opens them again."""
+    jaws' V. Where the cloth sags below the steepest shaft, the lower blade crosses the cut point instead. With
+    ``cut_requires_closing`` it closes the jaws at each target and opens them again."""
 
-    def __init__(self, env: PrecisionCuttingEnv, lead: float = 1.0e-3):
+    def __init__(self, env: PrecisionCuttingEnv, lead: float = 1.0e-3, reach: float = 1.0e-3):
         super().__init__(env)
         self.lead = float(lead)
+        self.reach = float(reach)
         self.error = wp.zeros((env.num_envs, 5), dtype=float, device=env.wp_device)
         cfg = env.cfg
         dt = cfg.time_step * cfg.frame_skip
@@ -947,7 +958,7 @@ class PrecisionCuttingExpert(Expert):
         with env._torch_stream_scope():
             wp.launch(expert_errors, dim=env.num_envs,
                       inputs=[s.particle_q, s.tri_active, rig.ptsd, rig.rcm, rig.state.jaw_angle, env.cloth, env.path,
-                              env.params, self.lead, int(env.cfg.cut_requires_closing), self.jaw_open,
+                              env.params, self.lead, self.reach, int(env.cfg.cut_requires_closing), self.jaw_open,
                               *rig.state_limits()],
                       outputs=[self.error], device=env.wp_device)
         return self.policy_actions(wp.to_torch(self.error) / self.step_size)
