@@ -59,6 +59,7 @@ import numpy as np
 import torch
 import warp as wp
 
+from lapwarp import launching
 from lapwarp.assets.meshes import cloth_grid
 from lapwarp.builder import SceneBuilder
 from lapwarp.config import PTSD, Count, EnvConfig, NonNegative, Positive, PositiveInt, Range
@@ -837,20 +838,20 @@ class PrecisionCuttingEnv(BatchedEnv):
     def _before_physics_step(self) -> None:
         super()._before_physics_step()  # move the scissors and their jaws
         cut, dev, n = self.cutting, self.wp_device, self.num_envs
-        wp.launch(place_blade_edges, dim=n, inputs=[self.rig.pose, self.rig.state.jaw_angle, self.blade_length],
-                  outputs=[cut.tool_a, cut.tool_b], device=dev)
+        launching.launch(place_blade_edges, dim=n, inputs=[self.rig.pose, self.rig.state.jaw_angle, self.blade_length],
+                         outputs=[cut.tool_a, cut.tool_b], device=dev)
         if self.cfg.cut_requires_closing:
             cut.scissors_closing(self._jaw_view)
         else:
-            wp.launch(all_tools_active, dim=n, outputs=[cut.tool_active], device=dev)
+            launching.launch(all_tools_active, dim=n, outputs=[cut.tool_active], device=dev)
         cut.cut()
-        wp.launch(or_into, dim=n, inputs=[cut.cut_happened], outputs=[self.path.recount], device=dev)
+        launching.launch(or_into, dim=n, inputs=[cut.cut_happened], outputs=[self.path.recount], device=dev)
 
     def _after_physics_step(self) -> None:
         s = self.world.state
-        wp.launch(flag_fast_particles, dim=(self.num_envs, VERTS),
-                  inputs=[s.particle_qd, self.cloth.first_particle, self.params.fast_speed], outputs=[self.path],
-                  device=self.wp_device)
+        launching.launch(flag_fast_particles, dim=(self.num_envs, VERTS),
+                         inputs=[s.particle_qd, self.cloth.first_particle, self.params.fast_speed], outputs=[self.path],
+                         device=self.wp_device)
 
     @property
     def _jaw_view(self) -> wp.array:
@@ -859,36 +860,38 @@ class PrecisionCuttingEnv(BatchedEnv):
     def _compute_features(self, env_mask: wp.array, features_out: wp.array2d) -> None:
         s = self.world.state
         self._after_physics_step()
-        wp.launch(eval_cutting_features, dim=self.num_envs,
-                  inputs=[env_mask, s.particle_q, s.tri_active, self.rig.pose, self.rig.flags, self.cloth, self.path,
-                          self.params], outputs=[features_out], device=self.wp_device)
+        launching.launch(eval_cutting_features, dim=self.num_envs,
+                         inputs=[env_mask, s.particle_q, s.tri_active, self.rig.pose, self.rig.flags, self.cloth,
+                                 self.path, self.params], outputs=[features_out], device=self.wp_device)
 
     def _update_task(self) -> None:
         s, dev = self.world.state, self.wp_device
-        wp.launch(store_counts, dim=self.num_envs, inputs=[self.features], outputs=[self.path], device=dev)
-        wp.launch(track_off_path, dim=self.num_envs, inputs=[self._all_envs, 0, s.particle_active, self.world.rng],
-                  outputs=[self.cloth, self.path, self._fps_scratch], device=dev)
+        launching.launch(store_counts, dim=self.num_envs, inputs=[self.features], outputs=[self.path], device=dev)
+        launching.launch(track_off_path, dim=self.num_envs,
+                         inputs=[self._all_envs, 0, s.particle_active, self.world.rng],
+                         outputs=[self.cloth, self.path, self._fps_scratch], device=dev)
 
     def _reset_task(self, env_mask: wp.array) -> None:
         w, dev, n = self.world, self.wp_device, self.num_envs
-        wp.launch(reset_path, dim=n, inputs=[env_mask, w.rng, self.params, self.cloth], outputs=[self.path],
-                  device=dev)
-        wp.launch(label_vertices, dim=(n, VERTS), inputs=[env_mask, self.params], outputs=[self.path], device=dev)
-        wp.launch(label_triangles, dim=(n, self.num_tris), inputs=[env_mask, self.cloth], outputs=[self.path],
-                  device=dev)
-        wp.launch(count_reset_triangles, dim=n, inputs=[env_mask, self.cloth], outputs=[self.path], device=dev)
+        launching.launch(reset_path, dim=n, inputs=[env_mask, w.rng, self.params, self.cloth], outputs=[self.path],
+                         device=dev)
+        launching.launch(label_vertices, dim=(n, VERTS), inputs=[env_mask, self.params], outputs=[self.path],
+                         device=dev)
+        launching.launch(label_triangles, dim=(n, self.num_tris), inputs=[env_mask, self.cloth], outputs=[self.path],
+                         device=dev)
+        launching.launch(count_reset_triangles, dim=n, inputs=[env_mask, self.cloth], outputs=[self.path], device=dev)
         self.rig.reset(env_mask, w.rng)
         self.cutting.refresh()  # the reset restored the masks; recount surfaces and pieces of the reset envs
-        wp.launch(track_off_path, dim=n, inputs=[env_mask, 1, w.state.particle_active, w.rng],
-                  outputs=[self.cloth, self.path, self._fps_scratch], device=dev)
+        launching.launch(track_off_path, dim=n, inputs=[env_mask, 1, w.state.particle_active, w.rng],
+                         outputs=[self.cloth, self.path, self._fps_scratch], device=dev)
 
     def _compute_observations(self) -> None:
         s = self.world.state
-        wp.launch(observe_cutting, dim=self.num_envs,
-                  inputs=[s.particle_q, s.particle_active, s.tri_active, self.rig.ptsd, self.rig.pose,
-                          self.rig.state.jaw_angle, 60.0, self.cloth, self.path, self.params,
-                          self.obs_layout.columns, self.critic_layout.columns, int(self.cfg.privileged_critic)],
-                  outputs=[self.obs_frame, self.critic_frame], device=self.wp_device)
+        launching.launch(observe_cutting, dim=self.num_envs,
+                         inputs=[s.particle_q, s.particle_active, s.tri_active, self.rig.ptsd, self.rig.pose,
+                                 self.rig.state.jaw_angle, 60.0, self.cloth, self.path, self.params,
+                                 self.obs_layout.columns, self.critic_layout.columns, int(self.cfg.privileged_critic)],
+                         outputs=[self.obs_frame, self.critic_frame], device=self.wp_device)
 
     # ------------------------------------------------------------------ visuals
     def _build_visual_scene(self) -> VisualScene:
@@ -914,9 +917,9 @@ class PrecisionCuttingEnv(BatchedEnv):
     def update_visuals(self) -> None:
         if self._visual_scene is None:
             return
-        wp.launch(cloth_face_masks, dim=(self.num_envs, self.num_tris),
-                  inputs=[self.world.state.tri_active, self.cloth, self.path],
-                  outputs=[self.canvas_faces, self.path_faces], device=self.wp_device)
+        launching.launch(cloth_face_masks, dim=(self.num_envs, self.num_tris),
+                         inputs=[self.world.state.tri_active, self.cloth, self.path],
+                         outputs=[self.canvas_faces, self.path_faces], device=self.wp_device)
 
     # ------------------------------------------------------------------ privileged access (experts, tests)
     def privileged_state(self) -> dict[str, torch.Tensor]:
@@ -956,9 +959,9 @@ class PrecisionCuttingExpert(Expert):
     def __call__(self, obs=None) -> torch.Tensor:
         env, rig, s = self.env, self.env.rig, self.env.world.state
         with env._torch_stream_scope():
-            wp.launch(expert_errors, dim=env.num_envs,
-                      inputs=[s.particle_q, s.tri_active, rig.ptsd, rig.rcm, rig.state.jaw_angle, env.cloth, env.path,
-                              env.params, self.lead, self.reach, int(env.cfg.cut_requires_closing), self.jaw_open,
-                              *rig.state_limits()],
-                      outputs=[self.error], device=env.wp_device)
+            launching.launch(expert_errors, dim=env.num_envs,
+                             inputs=[s.particle_q, s.tri_active, rig.ptsd, rig.rcm, rig.state.jaw_angle, env.cloth,
+                                     env.path, env.params, self.lead, self.reach, int(env.cfg.cut_requires_closing),
+                                     self.jaw_open, *rig.state_limits()],
+                             outputs=[self.error], device=env.wp_device)
         return self.policy_actions(wp.to_torch(self.error) / self.step_size)
