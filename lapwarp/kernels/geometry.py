@@ -17,6 +17,12 @@ def safe_normalize(v: wp.vec3, fallback: wp.vec3):
 
 
 @wp.func
+def horizontal_distance(a: wp.vec3, b: wp.vec3) -> float:
+    """Distance between two points in the horizontal (x, z) plane; y is up in every scene."""
+    return wp.sqrt((a[0] - b[0]) * (a[0] - b[0]) + (a[2] - b[2]) * (a[2] - b[2]))
+
+
+@wp.func
 def interpolate_transform(a: wp.transform, b: wp.transform, s: float):
     p = wp.transform_get_translation(a) * (1.0 - s) + wp.transform_get_translation(b) * s
     r = wp.quat_slerp(wp.transform_get_rotation(a), wp.transform_get_rotation(b), s)

@@ -80,7 +80,7 @@ from lapwarp.env import BatchedEnv
 from lapwarp.experts import Expert
 from lapwarp.instruments import TPSDConfig, tpsd_from_config
 from lapwarp.kernels.bodies import hinged_jaw_pose
-from lapwarp.kernels.geometry import closest_segment_segment
+from lapwarp.kernels.geometry import closest_segment_segment, horizontal_distance
 from lapwarp.kernels.kinematics import point_to_ptsd
 from lapwarp.tasks.rig import (
     STATE_LIMITS_VIOLATED,
@@ -667,11 +667,6 @@ def hook_hanging_loop(q: wp.array2d(dtype=wp.vec3), env: int, p: Params, tip: wp
         near = peg + (side * wp.sin(a) - u * wp.cos(a)) * hook_near
         goal = tip_pos + wp.vec3(near[0] - held[0], hold_height - held[1], near[2] - held[2])
     return goal
-
-
-@wp.func
-def horizontal_distance(a: wp.vec3, b: wp.vec3) -> float:
-    return wp.sqrt((a[0] - b[0]) * (a[0] - b[0]) + (a[2] - b[2]) * (a[2] - b[2]))
 
 
 @wp.kernel

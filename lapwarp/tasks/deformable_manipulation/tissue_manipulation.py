@@ -61,6 +61,7 @@ from lapwarp.builder import SceneBuilder
 from lapwarp.config import Count, EnvConfig, NonNegative, Positive, Range
 from lapwarp.env import BatchedEnv
 from lapwarp.experts import Expert
+from lapwarp.kernels.geometry import horizontal_distance
 from lapwarp.kernels.random import rand_uniform
 from lapwarp.kernels.raster import world_to_pixel
 from lapwarp.tasks.spec import ActionBlock, ActionLayout, Feature, ObservationLayout, ObservationSpec, RewardSpec
@@ -255,11 +256,6 @@ def landmark_position(q: wp.array2d(dtype=wp.vec3), env: int, k: int, tets: wp.a
     return q[env, n[0]] * w[0] + q[env, n[1]] * w[1] + q[env, n[2]] * w[2] + q[env, n[3]] * w[3]
 
 
-@wp.func
-def xz_distance(a: wp.vec3, b: wp.vec3) -> float:
-    return wp.sqrt((a[0] - b[0]) * (a[0] - b[0]) + (a[2] - b[2]) * (a[2] - b[2]))
-
-
 @wp.kernel
 def move_grasper(actions: wp.array2d(dtype=wp.float32), p: Params, task: Task,
                  poses_out: wp.array2d(dtype=wp.transform)):
@@ -287,7 +283,7 @@ def eval_manipulation_features(env_mask: wp.array(dtype=wp.int32), advance: int,
     env = wp.tid()
     if env_mask[env] == 0:
         return
-    d = xz_distance(landmark_position(q, env, task.landmark[env], tets, embed_tet, embed_w), task.target[env])
+    d = horizontal_distance(landmark_position(q, env, task.landmark[env], tets, embed_tet, embed_w), task.target[env])
     stuck = float(0.0)
     if advance != 0:
         count = task.history_count[env]
@@ -363,7 +359,7 @@ def reset_manipulation(env_mask: wp.array(dtype=wp.int32), rng: wp.array(dtype=w
         z = rand_uniform(rng, env, lo[1], hi[1])
         if inside_polygon(polygons, k, x, z) != 0:
             target = wp.vec3(x, mark[1], z)
-            if xz_distance(target, mark) > p.min_target_distance:
+            if horizontal_distance(target, mark) > p.min_target_distance:
                 break
     task.target[env] = target
 
