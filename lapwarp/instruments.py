@@ -248,12 +248,12 @@ class TPSDInstruments:
         if actions.ndim != 2 or actions.shape[1] < self.action_dim:
             raise ValueError(f"actions must have shape ({self.num_envs}, >= {self.action_dim}), got {actions.shape}")
         launching.launch(
-                   kinematics.compute_continuous_deltas,
-                   dim=(self.num_envs, self.num_instruments),
-                   inputs=[actions, self.action_columns, self.max_velocity, float(self._check_dt(dt))],
-                   outputs=[self.delta],
-                   device=self.device,
-               )
+            kinematics.compute_continuous_deltas,
+            dim=(self.num_envs, self.num_instruments),
+            inputs=[actions, self.action_columns, self.max_velocity, float(self._check_dt(dt))],
+            outputs=[self.delta],
+            device=self.device,
+        )
 
     def set_discrete_actions(self, indices: wp.array, dt: float) -> None:
         """Fill :attr:`delta` from discrete actions: ``delta = discrete_action_table(magnitude)[index] * dt``.
@@ -271,12 +271,12 @@ class TPSDInstruments:
         if indices.shape != (self.num_envs, self.num_instruments):
             raise ValueError(f"indices must have shape ({self.num_envs}, {self.num_instruments}), got {indices.shape}")
         launching.launch(
-                   kinematics.compute_discrete_deltas,
-                   dim=(self.num_envs, self.num_instruments),
-                   inputs=[indices, self.discrete_table, float(self._check_dt(dt))],
-                   outputs=[self.delta],
-                   device=self.device,
-               )
+            kinematics.compute_discrete_deltas,
+            dim=(self.num_envs, self.num_instruments),
+            inputs=[indices, self.discrete_table, float(self._check_dt(dt))],
+            outputs=[self.delta],
+            device=self.device,
+        )
 
     def step(self) -> None:
         """Advance every instrument by :attr:`delta` (one sub-step) with sofa_env's limit semantics.
@@ -286,13 +286,13 @@ class TPSDInstruments:
         of ``n`` applies the same delta ``n`` times.
         """
         launching.launch(
-                   kinematics.step_tpsd_instruments,
-                   dim=(self.num_envs, self.num_instruments),
-                   inputs=[self.rcm, self.state_low, self.state_high, self.workspace_low, self.workspace_high,
-                           self.delta],
-                   outputs=[self.ptsd, self.pose, self.flags],
-                   device=self.device,
-               )
+            kinematics.step_tpsd_instruments,
+            dim=(self.num_envs, self.num_instruments),
+            inputs=[self.rcm, self.state_low, self.state_high, self.workspace_low, self.workspace_high,
+                    self.delta],
+            outputs=[self.ptsd, self.pose, self.flags],
+            device=self.device,
+        )
 
     def apply_actions(self, actions: wp.array, dt: float) -> None:
         """:meth:`set_actions` then :meth:`step`: one sub-step of continuous actions in [-1, 1]."""
@@ -323,27 +323,27 @@ class TPSDInstruments:
         if rng is not None:
             self._check_rows(rng, "rng")
         launching.launch(
-                   kinematics.reset_tpsd_instruments,
-                   dim=self.num_envs,
-                   inputs=[
-                       mask,
-                       self.rcm_position,
-                       self.rcm_euler,
-                       self.rcm_position_noise,
-                       self.rcm_euler_noise,
-                       self.start_ptsd,
-                       self.ptsd_noise,
-                       self.state_low,
-                       self.state_high,
-                       self.workspace_low,
-                       self.workspace_high,
-                       0 if rng is None else 1,
-                       self.max_reset_tries,
-                       self._no_rng if rng is None else rng,
-                   ],
-                   outputs=[self.rcm, self.ptsd, self.pose, self.flags],
-                   device=self.device,
-               )
+            kinematics.reset_tpsd_instruments,
+            dim=self.num_envs,
+            inputs=[
+                mask,
+                self.rcm_position,
+                self.rcm_euler,
+                self.rcm_position_noise,
+                self.rcm_euler_noise,
+                self.start_ptsd,
+                self.ptsd_noise,
+                self.state_low,
+                self.state_high,
+                self.workspace_low,
+                self.workspace_high,
+                0 if rng is None else 1,
+                self.max_reset_tries,
+                self._no_rng if rng is None else rng,
+            ],
+            outputs=[self.rcm, self.ptsd, self.pose, self.flags],
+            device=self.device,
+        )
 
     # -- host utilities (synchronise; not for the captured step) ----------------------------------
 
@@ -367,12 +367,12 @@ class TPSDInstruments:
             raise ValueError(f"cannot write ptsd of shape {values.shape} to {len(ids)} envs: {err}") from err
         self.ptsd.assign(current.astype(np.float32))
         launching.launch(
-                   kinematics.compute_tip_poses,
-                   dim=(self.num_envs, self.num_instruments),
-                   inputs=[self.rcm, self.ptsd],
-                   outputs=[self.pose, self.flags],
-                   device=self.device,
-               )
+            kinematics.compute_tip_poses,
+            dim=(self.num_envs, self.num_instruments),
+            inputs=[self.rcm, self.ptsd],
+            outputs=[self.pose, self.flags],
+            device=self.device,
+        )
 
     def ptsd_numpy(self) -> np.ndarray:
         """States as ``(num_envs, num_instruments, 4)`` float64: (pan, tilt, spin) in deg, depth in m."""

@@ -950,9 +950,9 @@ class Renderer:
                 raise ValueError("tube vertices are generated from tube_nodes, not deformable_points")
             src = self._as_array(p, wp.vec3, (n, d.num_vertices), "deformable_points")
             launching.launch(
-                       raster.copy_points, dim=src.shape, inputs=[src, d.vert_begin], outputs=[self._def_points],
-                       device=dev
-                   )
+                raster.copy_points, dim=src.shape, inputs=[src, d.vert_begin], outputs=[self._def_points],
+                device=dev
+            )
         for handle, p in (tube_nodes or {}).items():
             d = self._deformable(handle)
             if d.tube is None:
@@ -960,72 +960,72 @@ class Renderer:
             t = d.tube
             nodes = self._as_array(p, wp.vec3, (n, t.num_nodes), "tube_nodes")
             launching.launch(
-                       raster.generate_tube,
-                       dim=nodes.shape,
-                       inputs=[nodes, t.radius, t.sides, int(t.caps), d.vert_begin],
-                       outputs=[self._def_points, self._def_normals],
-                       device=dev,
-                   )
+                raster.generate_tube,
+                dim=nodes.shape,
+                inputs=[nodes, t.radius, t.sides, int(t.caps), d.vert_begin],
+                outputs=[self._def_points, self._def_normals],
+                device=dev,
+            )
         for k, d in enumerate(self._deformables):
             if d.smooth and d.tube is None:
                 mask = masks[k] if masks[k] is not None else self._all_active[k]
                 start, faces = self._adjacency[k]
                 kernel = raster.compute_vertex_normals_u8 if mask.dtype == wp.uint8 else raster.compute_vertex_normals
                 launching.launch(
-                           kernel,
-                           dim=(n, d.num_vertices),
-                           inputs=[self._tri_vidx, d.tri_begin, d.vert_begin, start, faces, self._def_points, mask],
-                           outputs=[self._def_normals],
-                           device=dev,
-                       )
+                    kernel,
+                    dim=(n, d.num_vertices),
+                    inputs=[self._tri_vidx, d.tri_begin, d.vert_begin, start, faces, self._def_points, mask],
+                    outputs=[self._def_normals],
+                    device=dev,
+                )
 
         tan_x, tan_y = 0.5 * self.width / self.focal, 0.5 * self.height / self.focal
         launching.launch(
-                   raster.prepare_views,
-                   dim=(n, num_inst + 1),
-                   inputs=[cam, inst, self._inst_obj, self._inst_bounds, self._obj_visible, tan_x, tan_y, self.near,
-                           self.far],
-                   outputs=[self._views, self._inst_draw],
-                   device=dev,
-               )
+            raster.prepare_views,
+            dim=(n, num_inst + 1),
+            inputs=[cam, inst, self._inst_obj, self._inst_bounds, self._obj_visible, tan_x, tan_y, self.near,
+                    self.far],
+            outputs=[self._views, self._inst_draw],
+            device=dev,
+        )
         if self.method == "raster":
             self._raster(masks)
         else:
             self._raycast(masks)
 
         launching.launch(
-                   raster.shade_visibility,
-                   dim=(n, self.height, self.width),
-                   inputs=[
-                       self._tri_obj,
-                       self._tri_vidx,
-                       self._obj_kind,
-                       self._obj_inst,
-                       self._obj_flags,
-                       self._obj_seg,
-                       self._obj_color,
-                       self._rigid_verts,
-                       self._rigid_normals,
-                       self._rigid_colors,
-                       self._def_points,
-                       self._def_normals,
-                       self._def_colors,
-                       self._views,
-                       self.focal,
-                       self.cx,
-                       self.cy,
-                       self.far,
-                       wp.vec3(*self.background_color),
-                       self.ambient,
-                       self.diffuse,
-                       int("rgb" in self.outputs),
-                       int("depth" in self.outputs),
-                       int("segmentation" in self.outputs),
-                       self._vbuf,
-                   ],
-                   outputs=[self._out["rgb"], self._out["depth"], self._out["segmentation"]],
-                   device=dev,
-               )
+            raster.shade_visibility,
+            dim=(n, self.height, self.width),
+            inputs=[
+                self._tri_obj,
+                self._tri_vidx,
+                self._obj_kind,
+                self._obj_inst,
+                self._obj_flags,
+                self._obj_seg,
+                self._obj_color,
+                self._rigid_verts,
+                self._rigid_normals,
+                self._rigid_colors,
+                self._def_points,
+                self._def_normals,
+                self._def_colors,
+                self._views,
+                self.focal,
+                self.cx,
+                self.cy,
+                self.far,
+                wp.vec3(*self.background_color),
+                self.ambient,
+                self.diffuse,
+                int("rgb" in self.outputs),
+                int("depth" in self.outputs),
+                int("segmentation" in self.outputs),
+                self._vbuf,
+            ],
+            outputs=[self._out["rgb"], self._out["depth"], self._out["segmentation"]],
+            device=dev,
+        )
 
     def _raster(self, masks):
         n, dev = self.num_envs, self.device
@@ -1042,69 +1042,69 @@ class Renderer:
         if self._num_slots:
             tan_x, tan_y = 0.5 * self.width / self.focal, 0.5 * self.height / self.focal
             launching.launch(
-                       raster.cull_clusters,
-                       dim=(n, self.num_clusters),
-                       inputs=[
-                           self._cluster_inst,
-                           self._cluster_bounds,
-                           self._cluster_cones,
-                           self._views,
-                           self._inst_draw,
-                           tan_x,
-                           tan_y,
-                           self.focal,
-                           self.cx,
-                           self.cy,
-                           self.near,
-                           self.far,
-                           self.width,
-                           self.height,
-                       ],
-                       outputs=[self._cluster_draw],
-                       device=dev,
-                   )
+                raster.cull_clusters,
+                dim=(n, self.num_clusters),
+                inputs=[
+                    self._cluster_inst,
+                    self._cluster_bounds,
+                    self._cluster_cones,
+                    self._views,
+                    self._inst_draw,
+                    tan_x,
+                    tan_y,
+                    self.focal,
+                    self.cx,
+                    self.cy,
+                    self.near,
+                    self.far,
+                    self.width,
+                    self.height,
+                ],
+                outputs=[self._cluster_draw],
+                device=dev,
+            )
             launching.launch(
-                       raster.rasterize_rigid,
-                       dim=(n, self._num_slots),
-                       inputs=[
-                           self._slot_tri,
-                           self._slot_split,
-                           self._tri_obj,
-                           self._tri_vidx,
-                           self._tri_cluster,
-                           self._obj_inst,
-                           self._obj_flags,
-                           self._rigid_verts,
-                           self._views,
-                           self._cluster_draw,
-                           *common,
-                       ],
-                       outputs=[self._vbuf_flat],
-                       device=dev,
-                   )
+                raster.rasterize_rigid,
+                dim=(n, self._num_slots),
+                inputs=[
+                    self._slot_tri,
+                    self._slot_split,
+                    self._tri_obj,
+                    self._tri_vidx,
+                    self._tri_cluster,
+                    self._obj_inst,
+                    self._obj_flags,
+                    self._rigid_verts,
+                    self._views,
+                    self._cluster_draw,
+                    *common,
+                ],
+                outputs=[self._vbuf_flat],
+                device=dev,
+            )
         for k, d in enumerate(self._deformables):
             mask = masks[k] if masks[k] is not None else self._all_active[k]
             kernel = raster.rasterize_deformable_u8 if mask.dtype == wp.uint8 else raster.rasterize_deformable
             obj = self._deformable_objects[k]
             cull = int((self._objects[obj].flags & raster.FLAG_DOUBLE_SIDED) == 0)
             launching.launch(
-                       kernel,
-                       dim=(n, len(d.faces) * d.raster_split),
-                       inputs=[
-                           self._tri_vidx,
-                           d.tri_begin,
-                           d.raster_split,
-                           obj,
-                           cull,
-                           self._def_points,
-                           mask,
-                           self._obj_visible,
-                           self._views,
-                           *common,
-                       ],
-                       outputs=[self._vbuf_flat],
-                       device=dev,
-                   )
+                kernel,
+                dim=(n, len(d.faces) * d.raster_split),
+                inputs=[
+                    self._tri_vidx,
+                    d.tri_begin,
+                    d.raster_split,
+                    obj,
+                    cull,
+                    self._def_points,
+                    mask,
+                    self._obj_visible,
+                    self._views,
+                    *common,
+                ],
+                outputs=[self._vbuf_flat],
+                device=dev,
+            )
 
     def _raycast(self, masks):
         n, dev = self.num_envs, self.device
@@ -1114,42 +1114,42 @@ class Renderer:
                 mask = masks[k] if masks[k] is not None else self._all_active[k]
                 kernel = raycast.copy_active_mask_u8 if mask.dtype == wp.uint8 else raycast.copy_active_mask
                 launching.launch(
-                           kernel,
-                           dim=(n, len(d.faces)),
-                           inputs=[mask, d.tri_begin - self.num_rigid_triangles],
-                           outputs=[self._rc_def_active],
-                           device=dev,
-                       )
+                    kernel,
+                    dim=(n, len(d.faces)),
+                    inputs=[mask, d.tri_begin - self.num_rigid_triangles],
+                    outputs=[self._rc_def_active],
+                    device=dev,
+                )
             if self._rc_def_mesh is None:
                 self._build_raycast_deformables()
             else:
                 self._rc_def_mesh.refit()
             def_mesh = self._rc_def_mesh.id
         launching.launch(
-                   raycast.raycast_visibility,
-                   dim=(n, self.height, self.width),
-                   inputs=[
-                       self._rc_inst_mesh,
-                       self._rc_inst_obj,
-                       self._rc_inst_tri,
-                       self._inst_draw,
-                       wp.uint64(def_mesh),
-                       self._rc_def_tris,
-                       self.num_rigid_triangles,
-                       self._rc_def_active,
-                       self._tri_obj,
-                       self._obj_flags,
-                       self._obj_visible,
-                       self._views,
-                       self.focal,
-                       self.cx,
-                       self.cy,
-                       self.near,
-                       self.far,
-                   ],
-                   outputs=[self._vbuf],
-                   device=dev,
-               )
+            raycast.raycast_visibility,
+            dim=(n, self.height, self.width),
+            inputs=[
+                self._rc_inst_mesh,
+                self._rc_inst_obj,
+                self._rc_inst_tri,
+                self._inst_draw,
+                wp.uint64(def_mesh),
+                self._rc_def_tris,
+                self.num_rigid_triangles,
+                self._rc_def_active,
+                self._tri_obj,
+                self._obj_flags,
+                self._obj_visible,
+                self._views,
+                self.focal,
+                self.cx,
+                self.cy,
+                self.near,
+                self.far,
+            ],
+            outputs=[self._vbuf],
+            device=dev,
+        )
 
     # ------------------------------------------------------------------ derived outputs
 
@@ -1172,12 +1172,12 @@ class Renderer:
         if self._points is None:
             self._points = wp.zeros((n, self.height * self.width), dtype=wp.vec3, device=self.device)
         launching.launch(
-                   raster.depth_to_points,
-                   dim=(n, self.height, self.width),
-                   inputs=[self._out["depth"], cam, self.focal, self.cx, self.cy, int(world)],
-                   outputs=[self._points],
-                   device=self.device,
-               )
+            raster.depth_to_points,
+            dim=(n, self.height, self.width),
+            inputs=[self._out["depth"], cam, self.focal, self.cx, self.cy, int(world)],
+            outputs=[self._points],
+            device=self.device,
+        )
         return wp.to_torch(self._points)
 
     def project_points(self, points, camera_poses=None, out=None):
@@ -1203,10 +1203,10 @@ class Renderer:
         if out is None:
             out = wp.empty(pts.shape, dtype=wp.vec3, device=self.device)
         launching.launch(
-                   raster.project_world_points,
-                   dim=pts.shape,
-                   inputs=[pts, cam, self.focal, self.cx, self.cy],
-                   outputs=[out],
-                   device=self.device,
-               )
+            raster.project_world_points,
+            dim=pts.shape,
+            inputs=[pts, cam, self.focal, self.cx, self.cy],
+            outputs=[out],
+            device=self.device,
+        )
         return wp.to_torch(out)
