@@ -10,15 +10,16 @@ stretch under its own weight is ~1e-4) or a tet block's sag.
 Scenes (SI units; cloths are 40 x 40 vertices over 75 mm, PrecisionCutting's grid: 1,600 vertices, 3,042 triangles,
 0.2 kg/m^2, stretch stiffness 1e3 N/m, bending 1e-6 N m):
 
-* ``cloth``: hanging from its pinned top edge with long-range tethers (the benchmark before the edge chains).
-* ``cloth_free``: the same without tethers (``--no-tethers`` of the issue); ``cloth_cut``: cuttable (no tethers by
-  design, cutting masks in every substep, nothing cut).
+* ``cloth``: hanging from its pinned top edge with geodesic tethers (``add_cloth(tethers=True)``).
+* ``cloth_free``: the same without tethers (``--no-tethers`` of the issue); ``cloth_cut``: cuttable (no tethers,
+  cutting masks in every substep, nothing cut); ``cloth_cut_tethers``: cuttable with geodesic tethers.
 * ``cloth_drape``: Newton's peer scene (``tools/peer_newton_cloth.py``): flat in the xy plane, pinned along its x = 0
   edge, released to swing down and drape; ``grid_stretch_*`` and ``mid_row_stretch`` are reported the same way as
   the peer script does it (structural row/column edges; the middle row's length / 75 mm).
 * ``cloth_pulled``: flat, pinned along its back edge (y = 75 mm); its two front corners are grasped by kinematic
   attachments (compliance 1e-6 m/N) and dragged 15 mm down in 1 s along the arc about the pinned edge, then held:
-  PrecisionCutting's support pattern (back edge and near corners) with the corners moving.
+  PrecisionCutting's support pattern (back edge and near corners) with the corners moving. ``cloth_pulled_tethers``:
+  with geodesic tethers (the held corners are anchors too); ``cloth_pulled_cut_tethers``: the same, cuttable.
 * ``tet``: 40 x 40 x 20 mm tissue block, 7 x 6 x 4 cells -> 1,008 tets, E = 3 kPa, nu = 0.45, clamped base.
   ``tet_stiff``: the same at E = 30 kPa; ``sag`` is the top face's mean sag.
 * ``rod``: 100 segments, 200 mm, r = 1 mm, E = 1e6 Pa, pinned at the top, swinging into its hang.
@@ -71,10 +72,10 @@ def build_drape(num_envs, device, substeps, iterations, edge_solver):
     return world, obj, v, None
 
 
-def build_pulled(num_envs, device, substeps, iterations, edge_solver):
+def build_pulled(num_envs, device, substeps, iterations, edge_solver, tethers=False, cuttable=False):
     b = SceneBuilder()
     v, t = cloth_grid(40, 40, 0.075, 0.075, plane="xy")
-    obj = _cloth(b, v, t, np.nonzero(v[:, 1] > 0.075 - 1e-9)[0])
+    obj = _cloth(b, v, t, np.nonzero(v[:, 1] > 0.075 - 1e-9)[0], tethers=tethers, cuttable=cuttable)
     corners = [0, 39]
     bodies = [b.add_body(f"grasper{k}", pose=(*v[c], 0.0, 0.0, 0.0, 1.0)) for k, c in enumerate(corners)]
     for c, body in zip(corners, bodies, strict=True):
@@ -115,8 +116,11 @@ SCENES = {
     "cloth": lambda *a: build_hanging(*a, tethers=True),
     "cloth_free": build_hanging,
     "cloth_cut": lambda *a: build_hanging(*a, cuttable=True),
+    "cloth_cut_tethers": lambda *a: build_hanging(*a, tethers=True, cuttable=True),
     "cloth_drape": build_drape,
     "cloth_pulled": build_pulled,
+    "cloth_pulled_tethers": lambda *a: build_pulled(*a, tethers=True),
+    "cloth_pulled_cut_tethers": lambda *a: build_pulled(*a, tethers=True, cuttable=True),
     "tet": build_tet,
     "tet_stiff": lambda *a: build_tet(*a, youngs=3e4),
     "rod": build_rod,
@@ -140,7 +144,7 @@ def quality(scene: str, world, obj, rest: np.ndarray) -> dict:
         cols = np.linalg.norm(np.diff(grid, axis=1), axis=3) / (0.075 / 39)
         structural = np.concatenate([rows.reshape(len(q), -1), cols.reshape(len(q), -1)], axis=1)
         out.update(grid_stretch_mean=float(np.nanmean(structural)), grid_stretch_max=float(np.nanmax(structural)))
-        if scene == "cloth_drape":  # the peer script's metric: the middle row (y = 0) from pinned to free edge
+        if scene.startswith("cloth_drape"):  # the peer script's metric: the middle row (y = 0) from pinned to free edge
             out["mid_row_stretch"] = float(np.nanmax(rows[:, 20].sum(axis=1) / 39))
     return out
 
@@ -182,7 +186,8 @@ def run(scene: str, num_envs: int, device: str, substeps: int, iterations: int, 
         "chain_newton_steps": world.chain_newton_steps if m.edge_chains is not None else None,
         "chain_block_links": world.chain_block_links,
         "chain_families": m.edge_chains.num_families if m.edge_chains is not None else None,
-        "tethers": m.tether_count > 0, "cuda_graph": graph is not None, "steps_timed": steps, "seconds": elapsed,
+        "tethers": m.geo_particles is not None, "cuda_graph": graph is not None, "steps_timed": steps,
+        "seconds": elapsed,
         "env_steps_per_s": num_envs * steps / elapsed, "unstable_envs": int(world.unstable.numpy().sum()),
         "state_bytes_per_env": world.state_bytes_per_env(),
         "sim_time_s": DT * (max(1, settle) + 2 + steps) if dev.is_cuda else DT * (max(1, settle) + steps),

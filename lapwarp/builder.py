@@ -109,6 +109,31 @@ def _quat_conj(a: np.ndarray) -> np.ndarray:
     return np.array([-a[0], -a[1], -a[2], a[3]])
 
 
+def _build_geodesic_tethers(model: Model, state: State, cloths: list, x: np.ndarray, N: int, dev) -> None:
+    """Shared tables and per-env state of the geodesic tethers (``lapwarp.kernels.geodesic``) of the cloths built
+    with ``tethers=True``: their triangles, the four sweep orders, rest positions; distances start unknown and every
+    env's first step computes them (``geo_status`` 2)."""
+    tris = np.concatenate([t for t, _ in cloths])
+    elem = np.concatenate([start + np.arange(len(t)) if start >= 0 else np.full(len(t), -1) for t, start in cloths])
+    particles = np.unique(tris)
+    # fast-sweeping orders: the triangles sorted along the four diagonals of the sheets' two main directions
+    cen = x[tris].mean(axis=1)
+    _, _, axes = np.linalg.svd(cen - cen.mean(axis=0), full_matrices=False)
+    u, v = (cen - cen.mean(axis=0)) @ axes[0], (cen - cen.mean(axis=0)) @ axes[min(1, len(axes) - 1)]
+    order = np.stack([np.argsort(su * u + sv * v, kind="stable") for su, sv in ((1, 1), (1, -1), (-1, 1), (-1, -1))])
+    model.geo_particles = wp.array(particles.astype(np.int32), dtype=wp.int32, device=dev)
+    model.geo_tris = wp.array(tris.astype(np.int32), dtype=wp.vec3i, device=dev)
+    model.geo_tri_element = wp.array(elem.astype(np.int32), dtype=wp.int32, device=dev)
+    model.geo_order = wp.array(order.astype(np.int32), dtype=wp.int32, device=dev)
+    model.geo_rest = wp.array(x.astype(np.float32), dtype=wp.vec3, device=dev)
+    n = len(x)
+    state.geo_dist = wp.full((N, n), 1.0e30, dtype=float, device=dev)
+    state.geo_source = wp.full((N, n), -1, dtype=wp.int32, device=dev)
+    state.geo_anchor = wp.full((N, n), -1, dtype=wp.int32, device=dev)  # unknown: the first step finds them
+    state.geo_tri_seen = wp.ones((N, len(tris)), dtype=wp.int32, device=dev)
+    state.geo_status = wp.full((N, 1), 2, dtype=wp.int32, device=dev)
+
+
 def _dihedral_angle(x1, x2, x3, x4) -> float:
     """Signed dihedral angle with the same convention as ``xpbd.solve_hinges``."""
     n1 = np.cross(x3 - x1, x4 - x1)
@@ -166,7 +191,8 @@ class SceneBuilder:
         self._edges = _Group()
         self._hinges = _Group()
         self._tets = _Group()
-        self._tethers: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        # cloths with geodesic tethers: (their triangles in global particle indices, first cloth-triangle index or -1)
+        self._geodesic: list[tuple[np.ndarray, int]] = []
         # cutting: cloth triangles / tets in insertion order and the triangles beside each edge / hinge
         self._tris: list[np.ndarray] = []
         self._ntri = 0
@@ -274,11 +300,15 @@ class SceneBuilder:
                 of curvature k then stores the continuum energy ``D k^2 / 2`` per area (checked in tests).
             damping: linear velocity damping rate, 1/s.
             fixed: bool mask or local indices of pinned vertices.
-            tethers: add long-range attachments (Kim et al. 2012) from every free vertex to its nearest
-                pinned vertex, limiting the distance to the rest distance. Off by default: the edge chains of
-                ``finalize(edge_solver="chains")`` keep a cloth at its length without them (and tethers cannot help
-                a grasped sheet); they remain useful with ``edge_solver="colored"``. Ignored (no tethers) for
-                cuttable cloth: a tether would keep holding a piece that was cut off its pinned part.
+            tethers: geodesic long-range attachments (Kim et al. 2012; ``lapwarp.kernels.geodesic``): every particle
+                stays within its rest geodesic distance of its nearest *anchor*, a pinned particle or one held by a
+                stiff attachment (a grasp, a held corner), per env. The distances are recomputed on the device when
+                an env's anchors change or a cut removes triangles (the path then goes around the cut; a piece cut
+                off every anchor has no tether and falls). They carry a held sheet's weight to its supports within
+                one sweep, which the edge chains alone do only over many substeps when the load crosses rows and
+                columns (a sheet held at points). Inextensible along those geodesics, so a soft sheet that sags by
+                stretching sags less than its material says (docs/physics.md). Off by default (the chain solver
+                holds a hanging or cut sheet without them).
             name: object name.
             cuttable: its triangles get per-env active masks (``lapwarp.cutting``); an edge spring acts while one
                 of its triangles is present, a hinge while both are.
@@ -342,12 +372,8 @@ class SceneBuilder:
                     self._hinges.scale.append(1.0 / bend[:, None])
 
         fixed_g = self._fixed_of(sl)
-        if tethers and len(fixed_g) and not cuttable:
-            fl = fixed_g - off
-            free = np.setdiff1d(np.arange(len(x)), fl)
-            d = np.linalg.norm(x[free, None, :] - x[None, fl, :], axis=2)
-            nearest = np.argmin(d, axis=1)
-            self._tethers.append((free + off, fl[nearest] + off, d[np.arange(len(free)), nearest]))
+        if tethers:
+            self._geodesic.append((tri + off, self._ntri if cuttable else -1))
         obj = SceneObject(name, "cloth", sl.start, len(x), surface_tris=(tri + off).astype(np.int32),
                           tris=(tri + off).astype(np.int32), edges=(uniq + off).astype(np.int32), fixed=fixed_g,
                           element_start=self._ntri, cuttable=bool(cuttable))
@@ -762,16 +788,8 @@ class SceneBuilder:
             model.tet_face_indices = wp.array(faces.astype(np.int32), dtype=wp.vec3i, device=dev)
             model.tet_face_neighbor = wp.array(nbr.astype(np.int32), dtype=wp.int32, device=dev)
             self._tet_face_boundary = (nbr < 0).astype(np.int32)
-        if self._tethers:
-            tp = np.concatenate([t[0] for t in self._tethers])
-            if len(np.unique(tp)) != len(tp):
-                raise ValueError("a particle has more than one tether")
-            model.tether_count = len(tp)
-            model.tether_particle = wp.array(tp.astype(np.int32), dtype=wp.int32, device=dev)
-            model.tether_anchor = wp.array(np.concatenate([t[1] for t in self._tethers]).astype(np.int32),
-                                           dtype=wp.int32, device=dev)
-            model.tether_max = wp.array(np.concatenate([t[2] for t in self._tethers]).astype(f32), dtype=float,
-                                        device=dev)
+        if self._geodesic:
+            _build_geodesic_tethers(model, state, self._geodesic, x, N, dev)
         # rods ------------------------------------------------------------------------------------
         if self._nseg:
             S = self._nseg

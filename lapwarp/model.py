@@ -115,11 +115,12 @@ class Model:
     tri_count: int = 0
     tri_indices: wp.array | None = None  # (F,) vec3i global particle indices
 
-    # long-range tethers (cloth hanging from pinned particles, Kim et al. 2012) ---------------------
-    tether_count: int = 0
-    tether_particle: wp.array | None = None  # (K,) int32, each particle at most once
-    tether_anchor: wp.array | None = None  # (K,) int32 fixed anchor particle
-    tether_max: wp.array | None = None  # (K,) max distance m
+    # geodesic tethers of cloths (lapwarp.kernels.geodesic) ------------------------------------------
+    geo_particles: wp.array | None = None  # (G,) int32 particles of tethered cloths
+    geo_tris: wp.array | None = None  # (Fg,) vec3i their triangles (global particle indices)
+    geo_tri_element: wp.array | None = None  # (Fg,) int32 the triangle's index in State.tri_active, -1 = not cuttable
+    geo_order: wp.array | None = None  # (4, Fg) int32 the four fast-sweeping orders
+    geo_rest: wp.array | None = None  # (n,) vec3 rest positions (geodesics are measured on the rest sheet)
 
     # Cosserat rods (Kugelstadt & Schoemer 2016) ----------------------------------------------------
     segment_count: int = 0
@@ -177,6 +178,13 @@ class State:
     tet_face_active: wp.array2d | None = None  # (N, 4T) int32 tet faces on the current surface
     cut_dirty: wp.array2d | None = None  # (N, 1) int32 surfaces/connectivity need recomputing (1 after reset)
     particle_active: wp.array2d | None = None  # (N, n) int32 0 = every element of the particle removed (no contact)
+    # geodesic tethers (only with a tethered cloth): distance and anchor per particle, anchor flags and triangle
+    # masks they were computed for, status 0 done / 1 sweeping / 2 start again from the anchors
+    geo_dist: wp.array2d | None = None  # (N, n) float m, 1e30 = no tether
+    geo_source: wp.array2d | None = None  # (N, n) int32 anchor particle, -1 = none
+    geo_anchor: wp.array2d | None = None  # (N, n) int32
+    geo_tri_seen: wp.array2d | None = None  # (N, Fg) int32
+    geo_status: wp.array2d | None = None  # (N, 1) int32
 
     def arrays(self) -> dict:
         """All allocated arrays by name (used for reset copies and memory reports)."""

@@ -28,7 +28,7 @@ import warp as wp
 
 from lapwarp import launching
 from lapwarp.config import check_seed, rng_seed32
-from lapwarp.kernels import chains, chains_partitioned, world_kernels
+from lapwarp.kernels import chains, chains_partitioned, geodesic, world_kernels
 from lapwarp.model import Control, Model, State
 
 # Kernels with ~150 registers per thread (the chain solves): in blocks of 256 only one block fits an SM's register
@@ -334,6 +334,8 @@ class World:
             # attachments change only between steps (grasping updates them after the last sweep)
             launch(world_kernels.attachment_inverse_masses, (n, m.particle_count),
                    [m.particle_inv_mass, s.attach_particle, s.attach_compliance, inv_dt2], [self._w_eff])
+        if m.geo_particles is not None:
+            self._record_geodesic_refresh(launch)
         iters = max(1, self.iterations)
         use_lam = 1 if iters > 1 else 0
         lam = self._lam
@@ -398,9 +400,9 @@ class World:
                         compliance, w_eff, inv_dt2, use_lam, newton_steps, lam_arr, *scratch, mask],
                        [s.particle_q])
 
-        if m.tether_count:
-            launch(xpbd.solve_tethers, (n, m.tether_count),
-                   [m.tether_particle, m.tether_anchor, m.tether_max, w_eff], [s.particle_q])
+        if m.geo_particles is not None:
+            launch(geodesic.solve_geodesic_tethers, (n, m.geo_particles.shape[0]),
+                   [m.geo_particles, s.geo_dist, s.geo_source, w_eff], [s.particle_q])
         if m.edge_chains is None:
             off = m.edge_color_offsets
             for c in range(len(off) - 1):
@@ -443,6 +445,25 @@ class World:
             launch(xpbd.solve_attachments, n,
                    [s.attach_particle, s.attach_body, s.attach_offset, s.attach_compliance, bqp, bq, blend,
                     m.particle_inv_mass, inv_dt2], [s.particle_q])
+
+    #: sweep rounds (four orders each) of the geodesic tethers' distances per step while an env's are not final
+    GEODESIC_ROUNDS_PER_STEP = 2
+
+    def _record_geodesic_refresh(self, launch) -> None:
+        """Once per step, before the substeps: flag envs whose anchors (pinned or stiffly held particles) or cloth
+        triangles changed, and sweep the flagged envs' tether distances (``lapwarp.kernels.geodesic``)."""
+        m, n, s = self.model, self.num_envs, self.state
+        w_eff = self._w_eff if self._w_eff is not None else m.particle_inv_mass
+        launch(geodesic.detect_anchor_changes, (n, m.geo_particles.shape[0]),
+               [m.geo_particles, m.particle_inv_mass, w_eff], [s.geo_anchor, s.geo_status])
+        masked = int(s.tri_active is not None)
+        if masked:
+            launch(geodesic.detect_cut_changes, (n, m.geo_tris.shape[0]), [m.geo_tri_element, s.tri_active],
+                   [s.geo_tri_seen, s.geo_status])
+        launch(geodesic.sweep_geodesics, n,
+               [m.geo_particles, m.geo_tris, m.geo_tri_element, m.geo_order, m.geo_rest, s.geo_anchor,
+                s.tri_active if masked else self._dummy_mask, masked, self.GEODESIC_ROUNDS_PER_STEP],
+               [s.geo_dist, s.geo_source, s.geo_status])
 
     def _dummy_tf(self) -> wp.array:
         if not hasattr(self, "_dummy_tf_arr"):

@@ -87,6 +87,11 @@ class StateRows:
     tet_face_active: wp.array2d(dtype=wp.int32)
     cut_dirty: wp.array2d(dtype=wp.int32)
     particle_active: wp.array2d(dtype=wp.int32)
+    geo_dist: wp.array2d(dtype=float)
+    geo_source: wp.array2d(dtype=wp.int32)
+    geo_anchor: wp.array2d(dtype=wp.int32)
+    geo_tri_seen: wp.array2d(dtype=wp.int32)
+    geo_status: wp.array2d(dtype=wp.int32)
 
 
 @wp.func
@@ -120,6 +125,11 @@ def copy_state_rows(env_mask: wp.array(dtype=wp.int32), src: StateRows, dst: Sta
     copy_element(env, i, src.tet_face_active, dst.tet_face_active)
     copy_element(env, i, src.cut_dirty, dst.cut_dirty)
     copy_element(env, i, src.particle_active, dst.particle_active)
+    copy_element(env, i, src.geo_dist, dst.geo_dist)
+    copy_element(env, i, src.geo_source, dst.geo_source)
+    copy_element(env, i, src.geo_anchor, dst.geo_anchor)
+    copy_element(env, i, src.geo_tri_seen, dst.geo_tri_seen)
+    copy_element(env, i, src.geo_status, dst.geo_status)
     if write_body_q_prev != 0:
         copy_element(env, i, src.body_q, body_q_prev)
 

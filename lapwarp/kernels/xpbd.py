@@ -1,5 +1,5 @@
 """XPBD solver kernels: integration, constraint projection (distance, dihedral bending, stable
-co-rotated FEM tetrahedra, tethers, attachments, Cosserat rods), velocity update, stability check.
+co-rotated FEM tetrahedra, attachments, Cosserat rods), velocity update, stability check.
 
 Every kernel launches with the env first, ``dim=(num_envs, count)`` and ``env, i = wp.tid()``. Shared
 topology is indexed with the local constraint index ``i``; per-env parameters ``p`` with leading
@@ -391,29 +391,8 @@ def solve_tets(
 
 
 # ----------------------------------------------------------------------------------------------------
-# tethers (long-range attachments) and attachments to kinematic bodies
+# attachments to kinematic bodies
 # ----------------------------------------------------------------------------------------------------
-
-
-@wp.kernel
-def solve_tethers(
-    particle: wp.array(dtype=wp.int32),
-    anchor: wp.array(dtype=wp.int32),
-    max_dist: wp.array(dtype=float),
-    inv_mass: wp.array2d(dtype=float),
-    q: wp.array2d(dtype=wp.vec3),
-):
-    env, t = wp.tid()
-    i = particle[t]
-    if inv_mass[env % inv_mass.shape[0], i] == 0.0:
-        return
-    a = q[env, anchor[t]]
-    d = q[env, i] - a
-    length = wp.length(d)
-    m = max_dist[t]
-    # unilateral: only pulls back particles beyond their rest geodesic distance from the anchor
-    if length > m:
-        q[env, i] = a + d * (m / length)
 
 
 @wp.kernel

@@ -1,0 +1,143 @@
+"""Geodesic tethers (``SceneBuilder.add_cloth(tethers=True)``, ``lapwarp.kernels.geodesic``): distances against closed
+forms on a flat sheet, around a cut, from a grasp that appears and goes; a piece cut off every anchor falls; a sheet
+held at points stretches less with them."""
+
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+from lapwarp.assets import cloth_grid
+from lapwarp.builder import SceneBuilder
+from lapwarp.cutting import CuttingSystem
+
+DT = 0.1
+
+
+def _sheet(device, nx=11, size=0.05, fixed=(0,), num_envs=1, **kw):
+    v, t = cloth_grid(nx, nx, size, size, plane="xy")
+    b = SceneBuilder()
+    obj = b.add_cloth(v, t, areal_density=0.2, stretch_stiffness=1e3, bend_stiffness=1e-6, damping=1.0,
+                      fixed=np.asarray(fixed), tethers=True, **kw)
+    world = b.finalize(num_envs, device, substeps=10, attachment_capacity=1)
+    return world, obj, v, t
+
+
+def test_distances_on_a_flat_sheet_are_euclidean(device):
+    # one pinned corner of a convex sheet: every geodesic is the straight rest distance to it (the eikonal update
+    # with a virtual source is exact for a point source on a flat mesh; a graph shortest path would be up to 8 % long)
+    world, obj, v, _ = _sheet(device)
+    world.step(DT)
+    s = world.state
+    assert s.geo_status.numpy()[0, 0] == 0  # converged within the first step
+    d, src = s.geo_dist.numpy()[0], s.geo_source.numpy()[0]
+    assert np.all(src == 0)
+    exact = np.linalg.norm(v - v[0], axis=1)
+    np.testing.assert_allclose(d, exact, rtol=1e-4, atol=1e-7)
+
+
+def test_distances_go_around_a_cut(device):
+    # a slit (one band of quads, x in [20, 25] mm, y up to 30 mm) between the pinned corner (0, 0) and a point
+    # behind it: the geodesic wraps around the slit's top corners A and B, |A| + |AB| + |B p|. Measured 2.9 % long:
+    # past a corner the update's virtual source is only approximate, and it errs long (a slack tether, never a tight
+    # one); bound: never shorter, at most 5 % longer
+    nx, size = 11, 0.05
+    world, obj, v, t = _sheet(device, nx=nx, size=size, cuttable=True)
+    world.step(DT)
+    h = size / (nx - 1)
+    cen = v[t].mean(axis=1)
+    slit = (cen[:, 0] > 4 * h) & (cen[:, 0] < 5 * h) & (cen[:, 1] < 6 * h)
+    act = world.state.tri_active.numpy()
+    act[0, slit] = 0
+    world.state.tri_active.assign(act)
+    world.step(DT)  # the changed mask restarts the sweep; 2 rounds per step may not finish around a cut
+    world.step(DT)
+    s = world.state
+    assert s.geo_status.numpy()[0, 0] == 0
+    p = 1 * nx + 8  # (40, 5) mm, behind the slit
+    a, b = np.array([4 * h, 6 * h, 0.0]), np.array([5 * h, 6 * h, 0.0])
+    ref = np.linalg.norm(a - v[0]) + h + np.linalg.norm(v[p] - b)
+    d = s.geo_dist.numpy()[0, p]
+    assert ref * (1.0 - 1e-4) <= d < 1.05 * ref, (d, ref)
+    assert d > 1.3 * np.linalg.norm(v[p] - v[0])
+    # in front of the slit nothing changed
+    q = 3 * nx + 2
+    np.testing.assert_allclose(s.geo_dist.numpy()[0, q], np.linalg.norm(v[q] - v[0]), rtol=1e-4)
+
+
+def test_grasp_makes_an_anchor_and_release_removes_it(device):
+    world, obj, v, _ = _sheet(device, fixed=(0,))
+    world.step(DT)
+    s = world.state
+    far = len(v) - 1  # the opposite corner
+    q = world.positions(obj)[0]
+    s.attach_particle.assign(np.array([[far]], np.int32))
+    s.attach_body.assign(np.array([[-1]], np.int32))
+    s.attach_offset.assign(q[far][None, None].astype(np.float32))
+    s.attach_compliance.assign(np.array([[1e-8]], np.float32))
+    world.step(DT)
+    d, src = s.geo_dist.numpy()[0], s.geo_source.numpy()[0]
+    assert src[far] == far and d[far] == 0.0
+    near_far = len(v) - 2
+    assert src[near_far] == far
+    np.testing.assert_allclose(d[near_far], np.linalg.norm(v[near_far] - v[far]), rtol=1e-4)
+    # each particle is tied to the nearer of the two anchors
+    d0, d1 = np.linalg.norm(v - v[0], axis=1), np.linalg.norm(v - v[far], axis=1)
+    np.testing.assert_allclose(d, np.minimum(d0, d1), rtol=1e-4, atol=1e-7)
+    s.attach_particle.assign(np.array([[-1]], np.int32))
+    world.step(DT)
+    np.testing.assert_array_equal(s.geo_source.numpy()[0], 0)
+
+
+def test_piece_cut_off_every_anchor_has_no_tether_and_falls(device):
+    # a hanging sheet cut across by scissors: the lower piece loses its tethers and falls (~0.4 m in 0.3 s), the
+    # uncut env keeps hanging
+    b = SceneBuilder()
+    nx, h = 13, 0.005
+    v, t = cloth_grid(nx, nx, (nx - 1) * h, (nx - 1) * h, plane="xz")
+    top = np.nonzero(v[:, 2] > v[:, 2].max() - 1e-9)[0]
+    cloth = b.add_cloth(v, t, areal_density=0.2, stretch_stiffness=1e3, bend_stiffness=1e-6, damping=1.0,
+                        fixed=top, cuttable=True, tethers=True)
+    world = b.finalize(2, device, substeps=10)
+    world.step(DT)
+    z0 = 5.5 * h
+    cut = CuttingSystem(world, carving_distance=0.2e-3, num_tools=1, tool_radius=0.5 * h - 0.2e-3)
+    cut.add_object(cloth)
+    cut.finalize()
+    cut.hook_activation(wp.array([1.0, 0.0], dtype=float, device=device))
+    cut.set_tools([[-h, 0.0, z0]], [[(nx - 1) * h + h, 0.0, z0]])
+    cut.cut()
+    before = world.positions(cloth)
+    world.simulate(0.3, DT)
+    low = v[:, 2] < z0
+    src = world.state.geo_source.numpy()
+    assert np.all(src[0, low] == -1) and np.all(src[1, low] >= 0)
+    drop = world.positions(cloth)[:, low, 2] - before[:, low, 2]
+    assert drop[0].max() < -0.2 and drop[1].min() > -0.01
+    assert not world.unstable.numpy().any()
+
+
+def _held_sheet(device, tethers: bool):
+    # the benchmark's cloth_pulled in small: a 16 x 16 sheet pinned along its back edge, its front corners held
+    # by stiff attachments 6 mm down along the arc about that edge (no stretch needed)
+    nx, size = 16, 0.03
+    v, t = cloth_grid(nx, nx, size, size, plane="xy")
+    b = SceneBuilder()
+    obj = b.add_cloth(v, t, areal_density=0.2, stretch_stiffness=1e3, bend_stiffness=1e-6, damping=1.0,
+                      fixed=np.nonzero(v[:, 1] > size - 1e-9)[0], tethers=tethers)
+    drop = 0.006
+    back = size - np.sqrt(size**2 - drop**2)
+    for c in (0, nx - 1):
+        b.add_attachment(c, -1, offset=tuple(v[c] + (0.0, back, -drop)), compliance=1e-6)
+    world = b.finalize(1, device, substeps=20)
+    world.simulate(2.0, DT)
+    e = obj.edges
+    q = world.positions(obj)[0]
+    ratio = np.linalg.norm(q[e[:, 0]] - q[e[:, 1]], axis=1) / np.linalg.norm(v[e[:, 0]] - v[e[:, 1]], axis=1)
+    return ratio
+
+
+def test_tethers_carry_a_sheet_held_at_points(device):
+    free, tethered = _held_sheet(device, False), _held_sheet(device, True)
+    assert tethered.mean() < 1.01 and tethered.mean() < free.mean()
+    assert tethered.max() < free.max()
