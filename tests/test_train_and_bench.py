@@ -104,3 +104,14 @@ def test_progress_line_names_faults():
             {"/action/nonfinite_fraction": torch.tensor(0.02), "/env/unstable_fraction": torch.tensor(0.0)}]
     assert ppo.fault_summary(logs) == "  [non-finite actions 1.000%, unstable envs 25.000%]"
     assert ppo.fault_summary([{"/action/nonfinite_fraction": torch.tensor(0.0)}]) == ""
+
+
+def test_learning_rate_options_override_the_preset():
+    parser = ppo.build_parser()
+    args = parser.parse_args(["--preset", "gpu", "--lr-schedule", "fixed", "--learning-rate", "3e-4"])
+    *_, cfg, _ = ppo.training_config(args, parser, "cpu")
+    assert (cfg["algorithm"]["schedule"], cfg["algorithm"]["learning_rate"], cfg["algorithm"]["desired_kl"]) == (
+        "fixed", 3e-4, None)
+    for bad in (["--learning-rate", "0"], ["--learning-rate", "nan"], ["--preset", "paper", "--lr-schedule", "fixed"]):
+        with pytest.raises(SystemExit):
+            ppo.training_config(parser.parse_args(bad), parser, "cpu")

@@ -337,6 +337,11 @@ def build_parser() -> argparse.ArgumentParser:
                         help="write one row per iteration (env-steps, wall seconds, success, return, reward terms)")
     parser.add_argument("--result-json", default=None, metavar="JSON",
                         help="write the run's final figures (evaluation success, env-steps, times, device)")
+    parser.add_argument("--learning-rate", type=float, default=None, metavar="LR",
+                        help="override the preset's (initial) learning rate")
+    parser.add_argument("--lr-schedule", choices=["adaptive", "fixed"], default=None,
+                        help="override the preset's learning-rate schedule: adaptive (rsl-rl's KL-adaptive, target "
+                             "KL 0.01) or fixed")
     parser.add_argument("--verbose", action="store_true", help="print rsl-rl's full block per iteration")
     return parser
 
@@ -375,6 +380,15 @@ def training_config(args: argparse.Namespace, parser: argparse.ArgumentParser, d
         parser.error("--fast-pixels stores uint8 images, exact only for --obs rgb")
     if args.compile:
         train_cfg["torch_compile_mode"] = args.compile
+    alg = train_cfg["algorithm"]
+    if args.lr_schedule is not None:
+        if alg.get("class_name") is LinearSchedulePPO:
+            parser.error("--lr-schedule: the paper preset decays its rate linearly; use --preset gpu or cpu")
+        alg.update(schedule=args.lr_schedule, desired_kl=0.01 if args.lr_schedule == "adaptive" else None)
+    if args.learning_rate is not None:
+        if not 0.0 < args.learning_rate <= 1.0:  # NaN fails the comparison too
+            parser.error(f"--learning-rate must be in (0, 1], got {args.learning_rate}")
+        alg["learning_rate"] = args.learning_rate
     if args.video is not None:
         if not args.video.endswith(".mp4") or args.video_envs < 1:
             parser.error(f"--video writes an .mp4 file of --video-envs >= 1 envs, got {args.video!r}, "

@@ -81,7 +81,7 @@ from lapwarp.experts import Expert
 from lapwarp.instruments import TPSDConfig, tpsd_from_config
 from lapwarp.kernels.bodies import hinged_jaw_pose
 from lapwarp.kernels.geometry import closest_segment_segment, horizontal_distance
-from lapwarp.kernels.kinematics import point_to_ptsd
+from lapwarp.kernels.kinematics import point_to_ptsd, ptsd_to_transform
 from lapwarp.tasks.rig import (
     STATE_LIMITS_VIOLATED,
     WORKSPACE_VIOLATED,
@@ -669,6 +669,43 @@ def hook_hanging_loop(q: wp.array2d(dtype=wp.vec3), env: int, p: Params, tip: wp
     return goal
 
 
+@wp.func
+def discrete_command(rcm: wp.transform, s: wp.vec4, tip_pos: wp.vec3, goal: wp.vec3, spin: float, jaw: float,
+                     step: wp.vec4, jaw_step: float, b: RigBounds, turn: int) -> int:
+    """The discrete action (index ``2 k`` moves component k by +``step[k]``, ``2 k + 1`` by -``step[k]``, 10 is
+    the no-op) that follows the expert's plan. A discrete action moves one PTSD component by a whole step (pan and
+    tilt 1.5 degrees, ~2.6 mm at the tip; depth 1 mm along the tilted shaft), so choosing the component with the
+    largest PTSD error drives the tip on arcs far off the straight line to the goal (a far peg needs ~50 depth steps:
+    depth first pushes a held torus into the board, and a descent along the tilted shaft drifts out of the PICK
+    goal's lateral tolerance and back, forever). Instead the tip takes the step (pan, tilt or depth) that brings it
+    nearest to ``goal`` and stops where no step gets nearer (then it lies within half a step of the goal along each
+    component). The jaws go first (closing when in place, opening before a move); spin and motion take turns
+    (``turn``: the episode step's parity) so neither waits for the other (a torus on the board does not turn with
+    the jaws: spinning first would never lift it)."""
+    if wp.abs(jaw) >= 0.5 * jaw_step:
+        return wp.where(jaw > 0.0, 8, 9)
+    best = wp.length(goal - tip_pos) - 0.1 * step[3]  # a step must gain a tenth of a depth step
+    move = int(10)
+    for k in range(3):
+        c = wp.where(k == 2, 3, k)  # pan, tilt, depth
+        for sign in range(2):
+            t = s
+            t[c] = s[c] + wp.where(sign == 0, step[c], -step[c])
+            x = wp.transform_get_translation(ptsd_to_transform(rcm, t))
+            # the env rejects a step beyond the state limits or out of the workspace
+            inside = t[c] >= b.state_low[c] and t[c] <= b.state_high[c]
+            for i in range(3):
+                inside = inside and x[i] >= b.ws_low[i] and x[i] <= b.ws_high[i]
+            d = wp.length(goal - x)
+            if inside and d < best:
+                best = d
+                move = 2 * c + sign
+    turning = wp.abs(spin) >= 0.5 * step[2]
+    if turning and (move == 10 or turn == 0):
+        return wp.where(spin > 0.0, 4, 5)
+    return move
+
+
 @wp.kernel
 def expert_commands(q: wp.array2d(dtype=wp.vec3), ptsd: wp.array2d(dtype=wp.vec4),
                     pose: wp.array2d(dtype=wp.transform), rcm: wp.array2d(dtype=wp.transform),
@@ -677,10 +714,12 @@ def expert_commands(q: wp.array2d(dtype=wp.vec3), ptsd: wp.array2d(dtype=wp.vec4
                     episode_length: wp.array(dtype=wp.int32), open_angle: float, hold_depth: float,
                     clearance: float, descent: float, far_peg: float, hook_far: float, hook_near: float,
                     cross_height: float, hold_height: float, swing_rate: float, max_swing: float, max_step: float,
-                    stage: wp.array(dtype=wp.int32), heading: wp.array(dtype=wp.vec3), swing: wp.array(dtype=float),
-                    error_out: wp.array2d(dtype=float)):
-    """The scripted grasper (``PickAndPlaceExpert``): PTSD and jaw errors per env, and its per-env hooking state
-    (``stage``, the crossing direction ``heading``, the ``swing`` about the peg)."""
+                    discrete: int, discrete_step: wp.vec4, jaw_step: float, stage: wp.array(dtype=wp.int32),
+                    heading: wp.array(dtype=wp.vec3), swing: wp.array(dtype=float), error_out: wp.array2d(dtype=float),
+                    action_out: wp.array(dtype=wp.int32)):
+    """The scripted grasper (``PickAndPlaceExpert``): PTSD and jaw errors per env (continuous actions), the
+    discrete action index (``discrete`` != 0, see ``discrete_command``), and its per-env hooking state (``stage``,
+    the crossing direction ``heading``, the ``swing`` about the peg)."""
     env = wp.tid()
     if episode_length[env] == 0 or grasped[env] == 0 or task.phase[env] == PICK:
         stage[env] = HOOK_CARRY
@@ -752,6 +791,9 @@ def expert_commands(q: wp.array2d(dtype=wp.vec3), ptsd: wp.array2d(dtype=wp.vec4
     error_out[env, 2] = spin
     error_out[env, 3] = target[3] - s[3]
     error_out[env, 4] = jaw
+    if discrete != 0:
+        action_out[env] = discrete_command(rcm[env, 0], s, tip_pos, goal, spin, jaw, discrete_step, jaw_step, p.bounds,
+                                           episode_length[env] % 2)
 
 
 # ---------------------------------------------------------------------------- env
@@ -1032,6 +1074,10 @@ class PickAndPlaceExpert(Expert):
         self.heading = wp.zeros(n, dtype=wp.vec3, device=dev)
         self.swing = wp.zeros(n, dtype=float, device=dev)
         self.step_size = self.rig_step_size()
+        # what one discrete action moves: PTSD (rad, rad, rad, m) and the jaw (deg)
+        moved = (self._discrete_step * self.step_size).tolist()
+        self.discrete_step, self.jaw_step = wp.vec4(*moved[:4]), moved[4]
+        self.action = wp.zeros(n, dtype=wp.int32, device=dev)
 
     def __call__(self, obs=None) -> torch.Tensor:
         env, rig, s = self.env, self.env.rig, self.env.world.state
@@ -1040,6 +1086,9 @@ class PickAndPlaceExpert(Expert):
                              inputs=[s.particle_q, rig.ptsd, rig.pose, rig.rcm, rig.jaw_angle, env.grasp.grasped,
                                      s.attach_particle, env.params, env.task, env.episode_length, self.open_angle,
                                      self.hold_depth, self.clearance, self.descent, self.far_peg, *self.hook,
-                                     self.max_step], outputs=[self.stage, self.heading, self.swing, self.error],
+                                     self.max_step, int(env.is_discrete), self.discrete_step, self.jaw_step],
+                             outputs=[self.stage, self.heading, self.swing, self.error, self.action],
                              device=env.wp_device)
+        if env.is_discrete:
+            return wp.to_torch(self.action).long()
         return self.policy_actions(wp.to_torch(self.error) / self.step_size)

@@ -621,62 +621,91 @@ def expert_commands(q: wp.array2d(dtype=wp.vec3), ptsd: wp.array2d(dtype=wp.vec4
                     pose: wp.array2d(dtype=wp.transform), rcm: wp.array2d(dtype=wp.transform), p: Params, task: Task,
                     episode_length: wp.array(dtype=wp.int32), approach: float, tolerance: float, gain: float,
                     spin_gain: float, advance: float, max_step: float, steep_cos: float, lower: float,
-                    levering: wp.array(dtype=wp.int32), error_out: wp.array2d(dtype=float)):
-    """The scripted right grasper (``RopeThreadingExpert``): PTSD errors per env. ``levering`` is its memory (1 while
-    it levers a steep free end through, cleared at each episode's start)."""
+                    carry_clear: float, levering: wp.array(dtype=wp.int32), carried: wp.array(dtype=wp.int32),
+                    error_out: wp.array2d(dtype=float)):
+    """The scripted right grasper (``RopeThreadingExpert``): PTSD errors per env. ``levering`` and ``carried`` are
+    its memory (1 while it levers a steep free end through; the active eye whose predecessor's ring the held node has
+    been carried through), cleared at each episode's start."""
     env = wp.tid()
     r = p.right
     if episode_length[env] == 0:
         levering[env] = 0
+        carried[env] = 0
     for j in range(error_out.shape[1]):
         error_out[env, j] = 0.0
-    k = wp.min(task.active[env], p.num_eyes - 1)
-    eye = task.eye_pose[env, k]
-    c = eye_center(eye)
-    n = eye_normal(eye)
-    tip = pose[env, r]
-    end = q[env, p.rope_first]
-    # heading: the held segment towards the free end along the normal (it turns with the jaws at once; the free end
-    # lags and swings)
+    active = task.active[env]
+    carried[env] = wp.min(carried[env], active)  # a lost eye is threaded (and carried through) again
+    k = wp.min(active, p.num_eyes - 1)
     g = task.grasp_particle[env]
-    lead = q[env, g - 1] - q[env, g]
-    yaw_error = wp.atan2(lead[0] * n[1] - lead[1] * n[0], lead[0] * n[0] + lead[1] * n[1])
+    held = q[env, g]
+    tip = pose[env, r]
     axis = wp.transform_vector(tip, wp.vec3(0.0, 0.0, 1.0))
+    lead = q[env, g - 1] - held
+    move = wp.vec3(0.0)
+    yaw_error = float(0.0)
+    carrying = int(0)
+    if active >= 1 and active < p.num_eyes and carried[env] < active:
+        # after a pass the held node follows the rope through the ring it has just passed: the rope in front of it is
+        # too short to reach the next eye from there. The jaws do not collide with the eye (sofa_env's neither), but
+        # the rope beside the held node does, so the node goes through the ring's centre along its axis.
+        prev = task.eye_pose[env, active - 1]
+        cp = eye_center(prev)
+        npv = eye_normal(prev)
+        sg = wp.dot(held - cp, npv)
+        if sg > carry_clear:
+            carried[env] = active
+        else:
+            carrying = 1
+            yaw_error = wp.atan2(lead[0] * npv[1] - lead[1] * npv[0], lead[0] * npv[0] + lead[1] * npv[1])
+            off = cp - held
+            lateral = off - npv * wp.dot(off, npv)
+            move = lateral
+            if wp.length(lateral) < tolerance and wp.abs(yaw_error) < 0.1:
+                move = move + npv * max_step
+    if carrying == 0:
+        eye = task.eye_pose[env, k]
+        c = eye_center(eye)
+        n = eye_normal(eye)
+        end = q[env, p.rope_first]
+        # heading: the held segment towards the free end along the normal (it turns with the jaws at once; the free
+        # end lags and swings)
+        yaw_error = wp.atan2(lead[0] * n[1] - lead[1] * n[0], lead[0] * n[0] + lead[1] * n[1])
+        # where the rope crosses the ring plane (or, before it gets there, its free end)
+        x = end
+        s0 = wp.dot(end - c, n)
+        if s0 > 0.0:
+            for i in range(p.nodes - 1):
+                a = q[env, p.rope_first + i]
+                bnode = q[env, p.rope_first + i + 1]
+                sa = wp.dot(a - c, n)
+                sb = wp.dot(bnode - c, n)
+                if sa >= 0.0 and sb < 0.0:
+                    x = a + (bnode - a) * (sa / (sa - sb))
+                    break
+        off = c - x
+        lateral = off - n * wp.dot(off, n)
+        outside = wp.length(lateral) > CLEAR_RADIUS
+        move = lateral * gain
+        if outside:
+            levering[env] = 0
+        if s0 > 0.0 and outside:
+            # the free end went past the ring plane beside the ring (a reset can start it there): pull it back
+            move = -n * max_step
+        elif levering[env] != 0:
+            # lever the steep end through: lowering the grasper flattens the free part (the jaws, and with them the
+            # rope's held end, tilt up as the tip drops under the RCM, and the ring carries the free end while the
+            # rope behind it comes down); centred sideways only (its height is what the lever changes), pushed on
+            # gently
+            move = (lateral - wp.vec3(0.0, 0.0, lateral[2])) * gain + n * (0.3 * advance) - wp.vec3(0.0, 0.0, lower)
+        elif s0 < -approach or (s0 <= 0.0 and outside):
+            # to ``approach`` before the ring: quickly along the normal, gently across it (the hanging end swings)
+            move = lateral * gain - n * ((s0 + approach) * 0.5)
+        elif wp.length(lateral) < tolerance and wp.abs(yaw_error) < 0.1:
+            move = move + n * advance
+            # a free end steeper than the opening lets through jams in the ring's mouth: lever it instead
+            if wp.dot(wp.normalize(end - q[env, p.rope_first + 3]), n) < steep_cos:
+                levering[env] = 1
     spin = yaw_error * axis[2] * spin_gain  # a spin about the downward shaft turns the heading the other way
-    # where the rope crosses the ring plane (or, before it gets there, its free end)
-    x = end
-    s0 = wp.dot(end - c, n)
-    if s0 > 0.0:
-        for i in range(p.nodes - 1):
-            a = q[env, p.rope_first + i]
-            bnode = q[env, p.rope_first + i + 1]
-            sa = wp.dot(a - c, n)
-            sb = wp.dot(bnode - c, n)
-            if sa >= 0.0 and sb < 0.0:
-                x = a + (bnode - a) * (sa / (sa - sb))
-                break
-    off = c - x
-    lateral = off - n * wp.dot(off, n)
-    outside = wp.length(lateral) > CLEAR_RADIUS
-    move = lateral * gain
-    if outside:
-        levering[env] = 0
-    if s0 > 0.0 and outside:
-        # the free end went past the ring plane beside the ring (a reset can start it there): pull it back
-        move = -n * max_step
-    elif levering[env] != 0:
-        # lever the steep end through: lowering the grasper flattens the free part (the jaws, and with them the
-        # rope's held end, tilt up as the tip drops under the RCM, and the ring carries the free end while the rope
-        # behind it comes down); centred sideways only (its height is what the lever changes), pushed on gently
-        move = (lateral - wp.vec3(0.0, 0.0, lateral[2])) * gain + n * (0.3 * advance) - wp.vec3(0.0, 0.0, lower)
-    elif s0 < -approach or (s0 <= 0.0 and outside):
-        # to ``approach`` before the ring: quickly along the normal, gently across it (the hanging end swings)
-        move = lateral * gain - n * ((s0 + approach) * 0.5)
-    elif wp.length(lateral) < tolerance and wp.abs(yaw_error) < 0.1:
-        move = move + n * advance
-        # a free end steeper than the opening lets through jams in the ring's mouth: lever it instead
-        if wp.dot(wp.normalize(end - q[env, p.rope_first + 3]), n) < steep_cos:
-            levering[env] = 1
     if wp.length(move) > max_step:
         move = move * (max_step / wp.length(move))
     s = ptsd[env, r]
@@ -935,14 +964,16 @@ class RopeThreadingExpert(Expert):
 
     def __init__(self, env: RopeThreadingEnv, approach: float = 0.006, tolerance: float = 0.0015, gain: float = 0.15,
                  spin_gain: float = 0.5, advance: float = 0.001, max_step: float | None = None,
-                 steep_cos: float = 0.64, lower: float = 0.001):
+                 steep_cos: float = 0.64, lower: float = 0.001, carry_clear: float = 0.008):
         super().__init__(env)
         self.approach, self.tolerance, self.gain = float(approach), float(tolerance), float(gain)
         self.spin_gain = float(spin_gain)
         self.advance = float(advance)
         self.max_step = float(max_step if max_step is not None else (1.0 if env.is_discrete else 0.001))
         self.steep_cos, self.lower = float(steep_cos), float(lower)
+        self.carry_clear = float(carry_clear)
         self.levering = wp.zeros(env.num_envs, dtype=wp.int32, device=env.wp_device)
+        self.carried = wp.zeros(env.num_envs, dtype=wp.int32, device=env.wp_device)
         self.error = wp.zeros((env.num_envs, env.action_dim), dtype=float, device=env.wp_device)
         self.step_size = self.rig_step_size()
 
@@ -952,6 +983,7 @@ class RopeThreadingExpert(Expert):
             launching.launch(expert_commands, dim=env.num_envs,
                              inputs=[s.particle_q, rig.ptsd, rig.pose, rig.rcm, env.params, env.task,
                                      env.episode_length, self.approach, self.tolerance, self.gain, self.spin_gain,
-                                     self.advance, self.max_step, self.steep_cos, self.lower, self.levering],
+                                     self.advance, self.max_step, self.steep_cos, self.lower, self.carry_clear,
+                                     self.levering, self.carried],
                              outputs=[self.error], device=env.wp_device)
         return self.policy_actions(wp.to_torch(self.error) / self.step_size)
