@@ -572,16 +572,17 @@ def place_scene_visuals(q: wp.array2d(dtype=wp.vec3), p: Params, task: Task, rin
 @wp.func
 def place_level_ring(q: wp.array2d(dtype=wp.vec3), env: int, p: Params, tip: wp.transform, rcm: wp.transform,
                      com: wp.vec3, peg: wp.vec3, lowest: float, highest: float, clearance: float, descent: float,
-                     far_peg: float) -> tuple[wp.vec3, float]:
+                     far_peg: float, arrived: int) -> tuple[wp.vec3, float]:
     """PLACE for a ring that stays level when held (the stiff torus): the tip goal and spin error that carry its COM
     over the peg with the ring above the pegs' tops, then lower it around the peg (and keep lowering while it is
-    around the peg)."""
+    around the peg). ``arrived``: discrete steps brought the tip as near the last goal as they can (see
+    ``discrete_command``), which counts as over the peg."""
     tip_pos = wp.transform_get_translation(tip)
     dx = peg[0] - com[0]
     dz = peg[2] - com[2]
     e = wp.sqrt(dx * dx + dz * dz)
     dy = PEG_TOP + TUBE_RADIUS + clearance - lowest
-    if e < 0.002 or (lowest < PEG_TOP and e < 0.006):
+    if e < 0.002 or (lowest < PEG_TOP and e < 0.006) or (arrived != 0 and e < 0.006):
         dy = -wp.min(highest - SUCCESS_HEIGHT * 0.5, descent)
     # spin the torus about the held point until its COM lies beyond the grasp as seen from the RCM: the far
     # pegs are then within the shaft's reach
@@ -601,7 +602,7 @@ def place_level_ring(q: wp.array2d(dtype=wp.vec3), env: int, p: Params, tip: wp.
 def hook_hanging_loop(q: wp.array2d(dtype=wp.vec3), env: int, p: Params, tip: wp.transform, rcm: wp.transform,
                       attached: int, com: wp.vec3, peg: wp.vec3, lowest: float, hook_far: float, hook_near: float,
                       clearance: float, cross_height: float, hold_height: float, swing_rate: float, max_swing: float,
-                      stage: wp.array(dtype=wp.int32), heading: wp.array(dtype=wp.vec3),
+                      discrete: int, arrived: int, stage: wp.array(dtype=wp.int32), heading: wp.array(dtype=wp.vec3),
                       swing: wp.array(dtype=float)) -> wp.vec3:
     """PLACE for a loop that hangs from the grasp (the soft torus: two strands side by side, too narrow for the
     peg's top to enter between them when lowered onto it). The tip goal of four stages: CARRY the loop's COM to
@@ -609,7 +610,9 @@ def hook_hanging_loop(q: wp.array2d(dtype=wp.vec3), env: int, p: Params, tip: wp
     fold lies on the board there; CROSS with the held node at ``cross_height`` over the peg's top to ``hook_near``
     before it, the strands draped over the top one on each side of the peg's axis; PULL the held node down to
     ``hold_height``: the taut strands slide off the top, one around each side of the peg, and the loop lies around
-    it. A strand left on the top is pulled off by swinging the held node about the peg towards that strand's side."""
+    it. A strand left on the top is pulled off by swinging the held node about the peg towards that strand's side.
+    With discrete actions (``discrete``) a stage's goal also counts as reached where discrete steps bring the tip no
+    nearer (``arrived``: they land on a lattice 1-4 mm apart), and the swing waits for the tip to get there."""
     tip_pos = wp.transform_get_translation(tip)
     # the held node moves with the tip; it need not lie at the grasp centre (a grasp keeps the node's offset in the
     # jaw: after PICK it lies ~7 mm farther along the jaws)
@@ -636,7 +639,7 @@ def hook_hanging_loop(q: wp.array2d(dtype=wp.vec3), env: int, p: Params, tip: wp
         far = peg + normal * hook_far
         dy = PEG_TOP + TUBE_RADIUS + clearance - lowest
         goal = tip_pos + wp.vec3(far[0] - com[0], dy, far[2] - com[2])
-        if horizontal_distance(far, com) < 0.002 and wp.abs(dy) < 0.003:
+        if (horizontal_distance(far, com) < 0.002 or arrived != 0) and wp.abs(dy) < 0.003:
             stage[env] = HOOK_LOWER
     elif stage[env] == HOOK_LOWER:
         far = peg + heading[env] * hook_far
@@ -646,7 +649,7 @@ def hook_hanging_loop(q: wp.array2d(dtype=wp.vec3), env: int, p: Params, tip: wp
     elif stage[env] == HOOK_CROSS:
         near = peg - heading[env] * hook_near
         goal = tip_pos + wp.vec3(near[0] - held[0], cross_height - held[1], near[2] - held[2])
-        if horizontal_distance(near, held) < 0.0015:
+        if horizontal_distance(near, held) < 0.0015 or arrived != 0:
             stage[env] = HOOK_PULL
     else:
         u = heading[env]
@@ -660,7 +663,7 @@ def hook_hanging_loop(q: wp.array2d(dtype=wp.vec3), env: int, p: Params, tip: wp
             if x[1] + PEG_TARGET_Y > PEG_TOP and wp.sqrt(x[0] * x[0] + x[2] * x[2]) < PEG_RADIUS + TUBE_RADIUS:
                 on_top += x
                 count += 1
-        if count > 0 and held[1] < PEG_TOP - 0.005:
+        if count > 0 and held[1] < PEG_TOP - 0.005 and (discrete == 0 or arrived != 0):
             step = wp.where(wp.dot(on_top, side) >= 0.0, swing_rate, -swing_rate)
             swing[env] = wp.clamp(swing[env] + step, -max_swing, max_swing)
         a = swing[env]
@@ -670,8 +673,76 @@ def hook_hanging_loop(q: wp.array2d(dtype=wp.vec3), env: int, p: Params, tip: wp
 
 
 @wp.func
+def lattice_aim(q: wp.array2d(dtype=wp.vec3), env: int, first: int, rcm: wp.transform, s: wp.vec4, point: wp.vec3,
+                step: wp.vec4) -> wp.vec3:
+    """(pan, tilt, depth) of the shaft line that discrete steps can reach (pan and tilt are the current ones plus
+    whole steps) and that passes nearest to the torus' centre line within 6 mm of ``point``; depth: where it passes.
+    One pan or tilt step moves the line 2.5-4 mm at the torus, so aiming at ``point`` itself can leave the tube
+    that far off the jaws' mid-plane (they then push it away instead of closing on it); somewhere along the tube
+    near it a lattice line passes within a fraction of a millimetre. A line within 0.3 mm of the best is kept, and
+    the current one preferred, so that the choice does not flip while the tip moves."""
+    origin = wp.transform_get_translation(rcm)
+    aim = point_to_ptsd(rcm, point, s[2])
+    i0 = wp.round((aim[0] - s[0]) / step[0])
+    j0 = wp.round((aim[1] - s[1]) / step[1])
+    best = float(1.0e9)
+    choice = wp.vec3(s[0] + i0 * step[0], s[1] + j0 * step[1], aim[3])
+    for i in range(-2, 3):
+        for j in range(-2, 3):
+            pan = s[0] + (i0 + float(i)) * step[0]
+            tilt = s[1] + (j0 + float(j)) * step[1]
+            far = wp.transform_get_translation(ptsd_to_transform(rcm, wp.vec4(pan, tilt, s[2], 0.3)))
+            for k in range(_NODES):
+                a = q[env, first + k]
+                b = q[env, first + (k + 1) % _NODES]
+                mid = 0.5 * (a + b)
+                if horizontal_distance(mid, point) > 0.006:
+                    continue
+                st = closest_segment_segment(origin, far, a, b)
+                on_line = origin + (far - origin) * st[0]
+                d = wp.length(on_line - (a + (b - a) * st[1]))
+                if wp.abs(pan - s[0]) < 0.5 * step[0] and wp.abs(tilt - s[1]) < 0.5 * step[1]:
+                    d -= 0.0003  # keep the current line unless another is clearly nearer
+                if d < best:
+                    best = d
+                    choice = wp.vec3(pan, tilt, 0.3 * st[0])
+    return choice
+
+
+@wp.func
+def discrete_pick(q: wp.array2d(dtype=wp.vec3), env: int, first: int, rcm: wp.transform, s: wp.vec4,
+                  point: wp.vec3, jaw_angle: float, open_angle: float, hold_depth: float, clearance: float,
+                  step: wp.vec4, closing: wp.array(dtype=wp.int32)) -> tuple[wp.vec3, float]:
+    """PICK with discrete actions: the tip goal and jaw error that aim the shaft at the torus (``lattice_aim``; pan
+    and tilt at the current depth or ``clearance`` short of the hold), advance it along the shaft (depth only) until
+    the tube lies ``hold_depth`` along the jaws, and close. The continuous expert's vertical descent with a 3 mm
+    lateral tolerance keeps leaving and re-entering that tolerance on the PTSD lattice; along the shaft the descent
+    is exact. Once closing, the jaws close until they grasp or shut on nothing (``closing``; the jaws push the torus
+    a little), then open and aim again."""
+    aim = lattice_aim(q, env, first, rcm, s, point, step)
+    reach = aim[2] - hold_depth  # the depth that puts the tube hold_depth along the jaws
+    aimed = wp.abs(aim[0] - s[0]) < 0.5 * step[0] and wp.abs(aim[1] - s[1]) < 0.5 * step[1]
+    opened = jaw_angle >= open_angle - 0.5
+    if closing[env] != 0 and jaw_angle < 1.0:
+        closing[env] = 0  # shut on nothing
+    elif closing[env] == 0 and opened and aimed and wp.abs(s[3] - reach) <= step[3]:
+        closing[env] = 1
+    depth = wp.min(s[3], reach - clearance)  # aim above the torus first
+    if aimed:
+        depth = reach
+    jaw = float(0.0)
+    if closing[env] != 0:
+        jaw = -60.0  # in place: close (the grasp happens below the grasp threshold)
+        aim = wp.vec3(s[0], s[1], 0.0)
+        depth = s[3]
+    elif not opened:
+        jaw = open_angle - jaw_angle
+    return wp.transform_get_translation(ptsd_to_transform(rcm, wp.vec4(aim[0], aim[1], s[2], depth))), jaw
+
+
+@wp.func
 def discrete_command(rcm: wp.transform, s: wp.vec4, tip_pos: wp.vec3, goal: wp.vec3, spin: float, jaw: float,
-                     step: wp.vec4, jaw_step: float, b: RigBounds, turn: int) -> int:
+                     step: wp.vec4, jaw_step: float, b: RigBounds, turn: int) -> wp.vec2i:
     """The discrete action (index ``2 k`` moves component k by +``step[k]``, ``2 k + 1`` by -``step[k]``, 10 is
     the no-op) that follows the expert's plan. A discrete action moves one PTSD component by a whole step (pan and
     tilt 1.5 degrees, ~2.6 mm at the tip; depth 1 mm along the tilted shaft), so choosing the component with the
@@ -681,9 +752,7 @@ def discrete_command(rcm: wp.transform, s: wp.vec4, tip_pos: wp.vec3, goal: wp.v
     nearest to ``goal`` and stops where no step gets nearer (then it lies within half a step of the goal along each
     component). The jaws go first (closing when in place, opening before a move); spin and motion take turns
     (``turn``: the episode step's parity) so neither waits for the other (a torus on the board does not turn with
-    the jaws: spinning first would never lift it)."""
-    if wp.abs(jaw) >= 0.5 * jaw_step:
-        return wp.where(jaw > 0.0, 8, 9)
+    the jaws: spinning first would never lift it). Returns the action and whether no step gets nearer the goal."""
     best = wp.length(goal - tip_pos) - 0.1 * step[3]  # a step must gain a tenth of a depth step
     move = int(10)
     for k in range(3):
@@ -700,10 +769,12 @@ def discrete_command(rcm: wp.transform, s: wp.vec4, tip_pos: wp.vec3, goal: wp.v
             if inside and d < best:
                 best = d
                 move = 2 * c + sign
-    turning = wp.abs(spin) >= 0.5 * step[2]
-    if turning and (move == 10 or turn == 0):
-        return wp.where(spin > 0.0, 4, 5)
-    return move
+    arrived = wp.where(move == 10, 1, 0)
+    if wp.abs(jaw) >= 0.5 * jaw_step:
+        return wp.vec2i(wp.where(jaw > 0.0, 8, 9), arrived)
+    if wp.abs(spin) >= 0.5 * step[2] and (move == 10 or turn == 0):
+        return wp.vec2i(wp.where(spin > 0.0, 4, 5), arrived)
+    return wp.vec2i(move, arrived)
 
 
 @wp.kernel
@@ -715,8 +786,8 @@ def expert_commands(q: wp.array2d(dtype=wp.vec3), ptsd: wp.array2d(dtype=wp.vec4
                     clearance: float, descent: float, far_peg: float, hook_far: float, hook_near: float,
                     cross_height: float, hold_height: float, swing_rate: float, max_swing: float, max_step: float,
                     discrete: int, discrete_step: wp.vec4, jaw_step: float, stage: wp.array(dtype=wp.int32),
-                    heading: wp.array(dtype=wp.vec3), swing: wp.array(dtype=float), error_out: wp.array2d(dtype=float),
-                    action_out: wp.array(dtype=wp.int32)):
+                    heading: wp.array(dtype=wp.vec3), swing: wp.array(dtype=float), anchor: wp.array(dtype=wp.vec3),
+                    closing: wp.array(dtype=wp.int32), arrived: wp.array(dtype=wp.int32), error_out: wp.array2d(dtype=float), action_out: wp.array(dtype=wp.int32)):
     """The scripted grasper (``PickAndPlaceExpert``): PTSD and jaw errors per env (continuous actions), the
     discrete action index (``discrete`` != 0, see ``discrete_command``), and its per-env hooking state (``stage``,
     the crossing direction ``heading``, the ``swing`` about the peg)."""
@@ -724,6 +795,10 @@ def expert_commands(q: wp.array2d(dtype=wp.vec3), ptsd: wp.array2d(dtype=wp.vec4
     if episode_length[env] == 0 or grasped[env] == 0 or task.phase[env] == PICK:
         stage[env] = HOOK_CARRY
         swing[env] = 0.0
+    if episode_length[env] == 0:
+        closing[env] = 0
+        arrived[env] = 0
+    was = stage[env]
     tip = pose[env, 0]
     tip_pos = wp.transform_get_translation(tip)
     axis = wp.transform_vector(tip, wp.vec3(0.0, 0.0, 1.0))  # along the jaws
@@ -732,6 +807,10 @@ def expert_commands(q: wp.array2d(dtype=wp.vec3), ptsd: wp.array2d(dtype=wp.vec4
     goal = tip_pos
     jaw = float(0.0)
     spin = float(0.0)
+    if grasped[env] == 0:
+        anchor[env] = tip_pos
+    else:
+        closing[env] = 0
     if grasped[env] == 0:
         # the ring point whose tube runs across the jaw opening: the centre plus the ring radius along the opening
         # (horizontal), on the side nearer the tip; its height is that of the nearest node
@@ -754,7 +833,10 @@ def expert_commands(q: wp.array2d(dtype=wp.vec3), ptsd: wp.array2d(dtype=wp.vec4
         lateral = wp.sqrt((hold[0] - tip_pos[0]) * (hold[0] - tip_pos[0]) + (hold[2] - tip_pos[2])
                           * (hold[2] - tip_pos[2]))
         goal = hold
-        if lateral < 0.003 and wp.abs(hold[1] - tip_pos[1]) < 0.0015:
+        if discrete != 0:
+            goal, jaw = discrete_pick(q, env, p.torus_first, rcm[env, 0], ptsd[env, 0], point, jaw_angle[env, 0],
+                                      open_angle, hold_depth, clearance, discrete_step, closing)
+        elif lateral < 0.003 and wp.abs(hold[1] - tip_pos[1]) < 0.0015:
             jaw = -60.0  # in place: close (the grasp happens below the grasp threshold)
         else:
             opened = jaw_angle[env, 0] >= open_angle - 0.5
@@ -764,6 +846,11 @@ def expert_commands(q: wp.array2d(dtype=wp.vec3), ptsd: wp.array2d(dtype=wp.vec4
                 goal = wp.vec3(hold[0], wp.max(hold[1] + clearance, tip_pos[1]), hold[2])  # above it first
     elif task.phase[env] == PICK:
         goal = tip_pos + wp.vec3(0.0, p.lift_height - com[1] + 0.005, 0.0)  # lift
+        if discrete != 0:
+            # straight up from where the grasp happened: discrete steps leave the vertical by up to a step, and a
+            # goal above the current tip would let the lift drift along the tilted shaft (depth steps), dragging a
+            # ring that lies around a peg against it
+            goal = wp.vec3(anchor[env][0], goal[1], anchor[env][2])
     else:
         peg = nearest_peg(task, env, com)
         lowest = float(1.0e9)
@@ -774,11 +861,12 @@ def expert_commands(q: wp.array2d(dtype=wp.vec3), ptsd: wp.array2d(dtype=wp.vec4
         # a held stiff ring sags a few mm, a soft one hangs as a loop ~45 mm tall: tell them apart by the height
         if stage[env] == HOOK_CARRY and highest - lowest < 2.0 * TORUS_RADIUS:
             goal, spin = place_level_ring(q, env, p, tip, rcm[env, 0], com, peg, lowest, highest, clearance, descent,
-                                          far_peg)
+                                          far_peg, arrived[env])
         else:
             goal = hook_hanging_loop(q, env, p, tip, rcm[env, 0], attach_particle[env, 0], com, peg, lowest, hook_far,
                                      hook_near, clearance,
-                                     cross_height, hold_height, swing_rate, max_swing, stage, heading, swing)
+                                     cross_height, hold_height, swing_rate, max_swing, discrete, arrived[env], stage,
+                                     heading, swing)
     # at most max_step per step along the straight line to the goal (saturated PTSD errors would move the tip on
     # arcs about the RCM and drag the torus into the board)
     move = goal - tip_pos
@@ -792,8 +880,10 @@ def expert_commands(q: wp.array2d(dtype=wp.vec3), ptsd: wp.array2d(dtype=wp.vec4
     error_out[env, 3] = target[3] - s[3]
     error_out[env, 4] = jaw
     if discrete != 0:
-        action_out[env] = discrete_command(rcm[env, 0], s, tip_pos, goal, spin, jaw, discrete_step, jaw_step, p.bounds,
-                                           episode_length[env] % 2)
+        choice = discrete_command(rcm[env, 0], s, tip_pos, tip_pos + move, spin, jaw, discrete_step, jaw_step,
+                                  p.bounds, episode_length[env] % 2)
+        action_out[env] = choice[0]
+        arrived[env] = wp.where(stage[env] == was, choice[1], 0)  # a new stage's goal is not reached yet
 
 
 # ---------------------------------------------------------------------------- env
@@ -1073,6 +1163,9 @@ class PickAndPlaceExpert(Expert):
         self.stage = wp.zeros(n, dtype=wp.int32, device=dev)
         self.heading = wp.zeros(n, dtype=wp.vec3, device=dev)
         self.swing = wp.zeros(n, dtype=float, device=dev)
+        self.anchor = wp.zeros(n, dtype=wp.vec3, device=dev)  # the tip where the grasp happened (a discrete lift)
+        self.closing = wp.zeros(n, dtype=wp.int32, device=dev)  # discrete PICK: closing the jaws
+        self.arrived = wp.zeros(n, dtype=wp.int32, device=dev)  # discrete: no step got nearer the last goal
         self.step_size = self.rig_step_size()
         # what one discrete action moves: PTSD (rad, rad, rad, m) and the jaw (deg)
         moved = (self._discrete_step * self.step_size).tolist()
@@ -1087,7 +1180,8 @@ class PickAndPlaceExpert(Expert):
                                      s.attach_particle, env.params, env.task, env.episode_length, self.open_angle,
                                      self.hold_depth, self.clearance, self.descent, self.far_peg, *self.hook,
                                      self.max_step, int(env.is_discrete), self.discrete_step, self.jaw_step],
-                             outputs=[self.stage, self.heading, self.swing, self.error, self.action],
+                             outputs=[self.stage, self.heading, self.swing, self.anchor, self.closing, self.arrived, self.error,
+                                      self.action],
                              device=env.wp_device)
         if env.is_discrete:
             return wp.to_torch(self.action).long()

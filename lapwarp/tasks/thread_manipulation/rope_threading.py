@@ -656,6 +656,7 @@ def expert_commands(q: wp.array2d(dtype=wp.vec3), ptsd: wp.array2d(dtype=wp.vec4
             carried[env] = active
         else:
             carrying = 1
+            levering[env] = 0
             yaw_error = wp.atan2(lead[0] * npv[1] - lead[1] * npv[0], lead[0] * npv[0] + lead[1] * npv[1])
             off = cp - held
             lateral = off - npv * wp.dot(off, npv)
@@ -689,8 +690,12 @@ def expert_commands(q: wp.array2d(dtype=wp.vec3), ptsd: wp.array2d(dtype=wp.vec4
         if outside:
             levering[env] = 0
         if s0 > 0.0 and outside:
-            # the free end went past the ring plane beside the ring (a reset can start it there): pull it back
+            # the free end went past the ring plane beside the ring (a reset can start it there): pull it back; one
+            # that went below it (a long free part lying on the floor past the next eye after a carry) is also
+            # lifted: the hanging part comes up and back
             move = -n * max_step
+            if lateral[2] > CLEAR_RADIUS:
+                move = move + wp.vec3(0.0, 0.0, max_step)
         elif levering[env] != 0:
             # lever the steep end through: lowering the grasper flattens the free part (the jaws, and with them the
             # rope's held end, tilt up as the tip drops under the RCM, and the ring carries the free end while the
@@ -705,6 +710,14 @@ def expert_commands(q: wp.array2d(dtype=wp.vec3), ptsd: wp.array2d(dtype=wp.vec4
             # a free end steeper than the opening lets through jams in the ring's mouth: lever it instead
             if wp.dot(wp.normalize(end - q[env, p.rope_first + 3]), n) < steep_cos:
                 levering[env] = 1
+    if active >= 1 and active < p.num_eyes and carried[env] >= active:
+        # the held node stays past the ring it was carried through: a move back there would drag the rope beside
+        # the ring and out of it
+        prev = task.eye_pose[env, active - 1]
+        npv = eye_normal(prev)
+        back = wp.dot(move, npv)
+        if back < 0.0 and wp.dot(held - eye_center(prev), npv) + back < 0.5 * carry_clear:
+            move = move - npv * back
     spin = yaw_error * axis[2] * spin_gain  # a spin about the downward shaft turns the heading the other way
     if wp.length(move) > max_step:
         move = move * (max_step / wp.length(move))
