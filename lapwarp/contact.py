@@ -410,21 +410,17 @@ class ContactSystem:
         self.tri_mask = st.tri_active if st.tri_active is not None else self._dummy_mask
         self.face_mask = st.tet_face_active if st.tet_face_active is not None else self._dummy_mask
 
-        # cloth / surface triangles against tool capsules
+        # cloth / surface triangles against tool capsules, coloured like the segments
         tris, tgrp, trad = [], [], []
         for k, g in enumerate(self.groups):
             if g.triangles is not None:
                 tris.append(g.triangles)
                 tgrp.append(np.full(len(g.triangles), k))
                 trad.append(np.full(len(g.triangles), g.radius))
-        self._tri_flags = None
+        self.tri_color_offsets = [0]
         if tris:
             tri_all = np.concatenate(tris)
-            # stored colour by colour (no two triangles of a colour share a vertex), so the per-env pass in index
-            # order projects exactly as one launch per colour did
-            order, _ = color_graph(tri_all)
-            # bit k % 32 of word k // 32: triangles near a tool in this substep (kernels/contact.py flag_triangles)
-            self._tri_flags = wp.zeros((n, (len(tri_all) + 31) // 32), dtype=wp.int32, device=dev)
+            order, self.tri_color_offsets = color_graph(tri_all)
             self.tri_nodes = arr(tri_all[order].astype(np.int32), wp.vec3i)
             self.tri_group = arr(np.concatenate(tgrp)[order].astype(np.int32), wp.int32)
             self.tri_radius = arr(np.concatenate(trad)[order].astype(np.float32), float)
@@ -568,14 +564,12 @@ class ContactSystem:
         for c in range(len(off) - 1):
             launch(ck.collide_segments, (n, off[c + 1] - off[c]),
                    [self._segments, off[c], shapes, motion, solve, ignore, masks], [q, reports])
-        if self._tri_flags is not None:
-            # two launches per sweep whatever the triangle count: flag the triangles near a tool, then one thread
-            # per env projects those (TissueDissection's tet faces took 46 colour launches per sweep)
+        off = self.tri_color_offsets
+        if len(off) > 1:
             launch(ck.compute_tool_axes, n, [shapes, motion, self._tri_pad], [self._tool_axes])
-            launch(ck.flag_triangles, (n, self.tri_nodes.shape[0]),
-                   [self._triangles, self._tool_axes, solve, masks, q], [self._tri_flags])
-            launch(ck.collide_flagged_triangles, n,
-                   [self._triangles, shapes, motion, self._tool_axes, solve, ignore, self._tri_flags], [q, reports])
+        for c in range(len(off) - 1):
+            launch(ck.collide_triangles, (n, off[c + 1] - off[c]),
+                   [self._triangles, off[c], shapes, motion, self._tool_axes, solve, ignore, masks], [q, reports])
         for sf in self._surfaces:
             launch(sf["mesh"].refit)  # BVH bounds of the surface as it is now (after this sweep's constraints)
             launch(ck.collide_surface, (n, len(self.cp_particle)),

@@ -505,53 +505,52 @@ def compute_tool_axes(shapes: ShapeTable, motion: BodyMotion, pad: float, axes: 
     axes.hi[env] = hi + wp.vec3(pad)
 
 
-@wp.func
-def triangle_near_tool(env: int, k: int, triangles: ContactTriangles, axes: ToolAxes, solve: ParticleSolve,
-                       masks: CutMasks, q: wp.array2d(dtype=wp.vec3)) -> int:
-    """1 if triangle ``k`` is present, not pinned at all three corners, and its box overlaps the box around every
-    tool capsule of the env (padded by the triangles' radius): the cheap test every triangle takes."""
+@wp.kernel
+def collide_triangles(
+    triangles: ContactTriangles,
+    start: int,
+    shapes: ShapeTable,
+    motion: BodyMotion,
+    axes: ToolAxes,
+    solve: ParticleSolve,
+    ignore: IgnoreMask,
+    masks: CutMasks,
+    q: wp.array2d(dtype=wp.vec3),
+    reports: ContactReports,
+):
+    # One launch per colour of triangles (a colour shares no vertex): a tool resting on a triangle's interior is
+    # seen even where no vertex is near it, so a capsule moving ~its radius per substep cannot slip between
+    # the vertices of a tensioned sheet (vertex-only contact let it through at 1 mm per substep).
+    env, k0 = wp.tid()
+    k = start + k0
     if masks.tri_col.shape[0] > 0:
         # cuttable objects: tri_col >= 0 is a cloth triangle (tri_active), <= -2 the tet face -2 - tri_col
         # (tet_face_active: only faces on the current surface collide), -1 always collides
         tc = masks.tri_col[k]
         if tc >= 0:
             if masks.tri_active[env, tc] == 0:
-                return 0
+                return
         elif tc <= -2:
             if masks.tet_face_active[env, -2 - tc] == 0:
-                return 0
-    tri = triangles.nodes[k]
-    pe = env % solve.inv_mass.shape[0]
-    if solve.inv_mass[pe, tri[0]] + solve.inv_mass[pe, tri[1]] + solve.inv_mass[pe, tri[2]] == 0.0:
-        return 0
-    x0 = q[env, tri[0]]
-    x1 = q[env, tri[1]]
-    x2 = q[env, tri[2]]
-    tmin = wp.min(x0, wp.min(x1, x2))
-    tmax = wp.max(x0, wp.max(x1, x2))
-    lo = axes.lo[env]
-    hi = axes.hi[env]
-    if tmax[0] < lo[0] or tmax[1] < lo[1] or tmax[2] < lo[2] or tmin[0] > hi[0] or tmin[1] > hi[1] or tmin[2] > hi[2]:
-        return 0
-    return 1
-
-
-@wp.func
-def project_triangle(env: int, k: int, triangles: ContactTriangles, shapes: ShapeTable, motion: BodyMotion,
-                     axes: ToolAxes, solve: ParticleSolve, ignore: IgnoreMask, q: wp.array2d(dtype=wp.vec3),
-                     reports: ContactReports):
-    """Push triangle ``k``'s corners out of every tool capsule it touches (a tool resting on a triangle's interior
-    is seen even where no vertex is near it, so a capsule moving ~its radius per substep cannot slip between the
-    vertices of a tensioned sheet: vertex-only contact let it through at 1 mm per substep)."""
+                return
     tri = triangles.nodes[k]
     pe = env % solve.inv_mass.shape[0]
     w0 = solve.inv_mass[pe, tri[0]]
     w1 = solve.inv_mass[pe, tri[1]]
     w2 = solve.inv_mass[pe, tri[2]]
+    if w0 + w1 + w2 == 0.0:
+        return
     g = triangles.group[k]
     x0 = q[env, tri[0]]
     x1 = q[env, tri[1]]
     x2 = q[env, tri[2]]
+    # cull: the triangle's box against the box around every tool of the env (padded by the triangles' radius)
+    tmin = wp.min(x0, wp.min(x1, x2))
+    tmax = wp.max(x0, wp.max(x1, x2))
+    lo = axes.lo[env]
+    hi = axes.hi[env]
+    if tmax[0] < lo[0] or tmax[1] < lo[1] or tmax[2] < lo[2] or tmin[0] > hi[0] or tmin[1] > hi[1] or tmin[2] > hi[2]:
+        return
     ignore_bits = ignored_bodies(ignore, env, tri[0]) | ignored_bodies(ignore, env, tri[1])
     ignore_bits = ignore_bits | ignored_bodies(ignore, env, tri[2])
     for s in range(shapes.kind.shape[0]):
@@ -601,35 +600,6 @@ def project_triangle(env: int, k: int, triangles: ContactTriangles, shapes: Shap
     q[env, tri[0]] = x0
     q[env, tri[1]] = x1
     q[env, tri[2]] = x2
-
-
-@wp.kernel
-def flag_triangles(triangles: ContactTriangles, axes: ToolAxes, solve: ParticleSolve, masks: CutMasks,
-                   q: wp.array2d(dtype=wp.vec3), flags: wp.array2d(dtype=wp.int32)):
-    """Phase 1 of triangle contact, one thread per (env, triangle): set bit ``k % 32`` of word ``k // 32`` of the
-    env's flags for every triangle near a tool (bitwise OR: the flags do not depend on thread order)."""
-    env, k = wp.tid()
-    if triangle_near_tool(env, k, triangles, axes, solve, masks, q) != 0:
-        wp.atomic_or(flags, env, k >> 5, wp.int32(1) << wp.int32(k & 31))
-
-
-@wp.kernel
-def collide_flagged_triangles(triangles: ContactTriangles, shapes: ShapeTable, motion: BodyMotion, axes: ToolAxes,
-                              solve: ParticleSolve, ignore: IgnoreMask, flags: wp.array2d(dtype=wp.int32),
-                              q: wp.array2d(dtype=wp.vec3), reports: ContactReports):
-    """Phase 2, one thread per env: project the flagged triangles one after the other in index order, which is colour
-    order (``lapwarp.contact`` stores them by colour), so the result is that of one launch per colour; clears the
-    flags for the next sweep."""
-    env = wp.tid()
-    for word_index in range(flags.shape[1]):
-        word = flags[env, word_index]
-        if word == 0:
-            continue
-        flags[env, word_index] = 0
-        for bit in range(32):
-            if ((word >> wp.int32(bit)) & 1) != 0:
-                project_triangle(env, word_index * 32 + bit, triangles, shapes, motion, axes, solve, ignore, q,
-                                 reports)
 
 
 @wp.kernel
