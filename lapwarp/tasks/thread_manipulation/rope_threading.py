@@ -616,123 +616,332 @@ def place_rope_visuals(q: wp.array2d(dtype=wp.vec3), p: Params, task: Task, poin
             eyes_out[colour, env, i] = pose
 
 
+# the expert's phases: threading; the regrasp for another overhang (open the jaws while laying the rope on the floor,
+# slide them along it to the new node, close them)
+THREAD, RELEASE, SLIDE, CLOSE = 0, 1, 2, 3
+#: the expert's reach: the grasp node whose overhang lets the free end pass a ring ``d`` mm from the RCM is
+#: min(15 + (d - 119), 22 + 0.55 (d - 126)) (CPU runs with two eyes: node 15 passes rings up to ~120 mm away, 21
+#: ~126 mm, 28 ~139 mm; the grasp centre reaches 115 mm, the held rope starts square to the shaft and droops more,
+#: outwards, as it grows)
+REACH_NEAR, REACH_FAR = wp.constant(wp.vec3(15.0, 119.0, 1.0)), wp.constant(wp.vec3(22.0, 126.0, 0.55))
+MAX_REGRASP_NODE = 29  # the longest overhang the lever is known to thread (RESULTS.md)
+MIN_REGRASP_NODE = 10  # the shortest start overhang (sofa_zoo's 15 - 5)
+NODE_SPACING = ROPE_LENGTH / ROPE_NODES
+
+
+@wp.struct
+class ExpertParams:
+    approach: float
+    tolerance: float
+    gain: float
+    spin_gain: float
+    advance: float
+    max_step: float
+    steep_cos: float
+    lower: float
+    carry_clear: float
+    carry_angle: float
+    overhang_slack: float
+    slide_step: float
+    open_angle: float
+    regrasp_past: float
+    regrasp_push: float
+    regrasp_hover: float
+
+
+@wp.struct
+class ExpertMemory:
+    """Per env: the phase, the rope node the right grasper holds (or goes to grasp), ``levering`` (1 while it levers
+    a steep free end through), ``carried`` (the active eye whose predecessor's ring the held node has been carried
+    through) and ``left`` (1 while the bimanual left grasper closes on the rope); set at each episode's start."""
+
+    phase: wp.array(dtype=wp.int32)
+    node: wp.array(dtype=wp.int32)
+    levering: wp.array(dtype=wp.int32)
+    carried: wp.array(dtype=wp.int32)
+    left: wp.array(dtype=wp.int32)
+
+
+@wp.func
+def overhang_node(d: float) -> int:
+    """The grasp node the expert needs to pass a ring ``d`` (m) from the RCM (``REACH_NEAR``, ``REACH_FAR``)."""
+    mm = d * 1000.0
+    near = REACH_NEAR[0] + (mm - REACH_NEAR[1]) * REACH_NEAR[2]
+    far = REACH_FAR[0] + (mm - REACH_FAR[1]) * REACH_FAR[2]
+    return int(wp.ceil(wp.min(near, far)))
+
+
+@wp.func
+def heading_error(a: wp.vec3, b: wp.vec3) -> float:
+    """The turn about +z that takes ``a``'s horizontal heading to ``b``'s (rad)."""
+    return wp.atan2(a[0] * b[1] - a[1] * b[0], a[0] * b[0] + a[1] * b[1])
+
+
+@wp.func
+def hinge_error(hinge: wp.vec3, along: wp.vec3) -> float:
+    """The smallest turn about +z that lays the jaws' hinge axis along the line ``along`` (either way: the rope
+    lies between the jaws both ways round)."""
+    e = heading_error(hinge, along)
+    if e > 0.5 * wp.pi:
+        e -= wp.pi
+    elif e < -0.5 * wp.pi:
+        e += wp.pi
+    return e
+
+
 @wp.kernel
 def expert_commands(q: wp.array2d(dtype=wp.vec3), ptsd: wp.array2d(dtype=wp.vec4),
-                    pose: wp.array2d(dtype=wp.transform), rcm: wp.array2d(dtype=wp.transform), p: Params, task: Task,
-                    episode_length: wp.array(dtype=wp.int32), approach: float, tolerance: float, gain: float,
-                    spin_gain: float, advance: float, max_step: float, steep_cos: float, lower: float,
-                    carry_clear: float, levering: wp.array(dtype=wp.int32), carried: wp.array(dtype=wp.int32),
+                    pose: wp.array2d(dtype=wp.transform), rcm: wp.array2d(dtype=wp.transform),
+                    jaw: wp.array2d(dtype=float), grasped: wp.array(dtype=wp.int32),
+                    left_grasped: wp.array(dtype=wp.int32), p: Params, task: Task,
+                    episode_length: wp.array(dtype=wp.int32), ep: ExpertParams, mem: ExpertMemory,
                     error_out: wp.array2d(dtype=float)):
-    """The scripted right grasper (``RopeThreadingExpert``): PTSD errors per env. ``levering`` and ``carried`` are
-    its memory (1 while it levers a steep free end through; the active eye whose predecessor's ring the held node has
-    been carried through), cleared at each episode's start."""
+    """The scripted graspers (``RopeThreadingExpert``): PTSD and jaw errors per env."""
     env = wp.tid()
     r = p.right
-    if episode_length[env] == 0:
-        levering[env] = 0
-        carried[env] = 0
     for j in range(error_out.shape[1]):
         error_out[env, j] = 0.0
-    active = task.active[env]
-    carried[env] = wp.min(carried[env], active)  # a lost eye is threaded (and carried through) again
-    k = wp.min(active, p.num_eyes - 1)
-    g = task.grasp_particle[env]
-    held = q[env, g]
     tip = pose[env, r]
-    axis = wp.transform_vector(tip, wp.vec3(0.0, 0.0, 1.0))
-    lead = q[env, g - 1] - held
+    if episode_length[env] == 0:
+        mem.levering[env] = 0
+        mem.carried[env] = 0
+        mem.left[env] = 0
+        mem.phase[env] = THREAD
+        mem.node[env] = task.grasp_index[env]
+        # regrasp the rope further from its end when an eye after the first lies beyond the start overhang's reach,
+        # nearer to it when the overhang is longer than the gap between two eyes (plus ``overhang_slack``): carried
+        # through the first ring, it would push the free end past the next one
+        g0 = task.grasp_index[env]
+        need = int(MIN_REGRASP_NODE)
+        cap = g0
+        for e in range(1, p.num_eyes):
+            d = wp.length(eye_center(task.eye_pose[env, e]) - wp.transform_get_translation(rcm[env, r]))
+            need = wp.max(need, overhang_node(d))
+            gap = wp.length(eye_center(task.eye_pose[env, e]) - eye_center(task.eye_pose[env, e - 1]))
+            cap = wp.min(cap, int((gap + ep.overhang_slack) / (2.0 * NODE_SPACING)))
+        want = wp.min(wp.max(cap, need), MAX_REGRASP_NODE)
+        if p.num_eyes > 1 and (want > g0 or want < g0 - 1):
+            mem.phase[env] = RELEASE
+            mem.node[env] = want
+    phase = mem.phase[env]
+    node = mem.node[env]
     move = wp.vec3(0.0)
     yaw_error = float(0.0)
-    carrying = int(0)
-    if active >= 1 and active < p.num_eyes and carried[env] < active:
-        # after a pass the held node follows the rope through the ring it has just passed: the rope in front of it is
-        # too short to reach the next eye from there. The jaws do not collide with the eye (sofa_env's neither), but
-        # the rope beside the held node does, so the node goes through the ring's centre along its axis.
-        prev = task.eye_pose[env, active - 1]
-        cp = eye_center(prev)
-        npv = eye_normal(prev)
-        sg = wp.dot(held - cp, npv)
-        if sg > carry_clear:
-            carried[env] = active
+    jaw_error = float(0.0)
+    step = ep.max_step
+    if phase != THREAD:
+        step = ep.slide_step
+        center = grasp_center(tip)
+        target = q[env, p.rope_first + node]
+        if phase == RELEASE:
+            # open the jaws while laying the held rope on the floor (let go higher up, it would fall and bounce)
+            jaw_error = ep.open_angle + 1.0 - jaw[env, r]
+            move = wp.vec3(0.0, 0.0, ROPE_RADIUS + 0.0005 - center[2])
+            if grasped[env] == 0 and jaw[env, r] >= ep.open_angle:
+                phase = SLIDE
         else:
-            carrying = 1
-            levering[env] = 0
-            yaw_error = wp.atan2(lead[0] * npv[1] - lead[1] * npv[0], lead[0] * npv[0] + lead[1] * npv[1])
-            off = cp - held
-            lateral = off - npv * wp.dot(off, npv)
-            move = lateral
-            if wp.length(lateral) < tolerance and wp.abs(yaw_error) < 0.1:
-                move = move + npv * max_step
-    if carrying == 0:
-        eye = task.eye_pose[env, k]
-        c = eye_center(eye)
-        n = eye_normal(eye)
-        end = q[env, p.rope_first]
-        # heading: the held segment towards the free end along the normal (it turns with the jaws at once; the free
-        # end lags and swings)
-        yaw_error = wp.atan2(lead[0] * n[1] - lead[1] * n[0], lead[0] * n[0] + lead[1] * n[1])
-        # where the rope crosses the ring plane (or, before it gets there, its free end)
-        x = end
-        s0 = wp.dot(end - c, n)
-        if s0 > 0.0:
-            for i in range(p.nodes - 1):
-                a = q[env, p.rope_first + i]
-                bnode = q[env, p.rope_first + i + 1]
-                sa = wp.dot(a - c, n)
-                sb = wp.dot(bnode - c, n)
-                if sa >= 0.0 and sb < 0.0:
-                    x = a + (bnode - a) * (sa / (sa - sb))
-                    break
-        off = c - x
-        lateral = off - n * wp.dot(off, n)
-        outside = wp.length(lateral) > CLEAR_RADIUS
-        move = lateral * gain
-        if outside:
-            levering[env] = 0
-        if s0 > 0.0 and outside:
-            # the free end went past the ring plane beside the ring (a reset can start it there): pull it back; one
-            # that went below it (a long free part lying on the floor past the next eye after a carry) is also
-            # lifted: the hanging part comes up and back
-            move = -n * max_step
-            if lateral[2] > CLEAR_RADIUS:
-                move = move + wp.vec3(0.0, 0.0, max_step)
-        elif levering[env] != 0:
-            # lever the steep end through: lowering the grasper flattens the free part (the jaws, and with them the
-            # rope's held end, tilt up as the tip drops under the RCM, and the ring carries the free end while the
-            # rope behind it comes down); centred sideways only (its height is what the lever changes), pushed on
-            # gently
-            move = (lateral - wp.vec3(0.0, 0.0, lateral[2])) * gain + n * (0.3 * advance) - wp.vec3(0.0, 0.0, lower)
-        elif s0 < -approach or (s0 <= 0.0 and outside):
-            # to ``approach`` before the ring: quickly along the normal, gently across it (the hanging end swings)
-            move = lateral * gain - n * ((s0 + approach) * 0.5)
-        elif wp.length(lateral) < tolerance and wp.abs(yaw_error) < 0.1:
-            move = move + n * advance
-            # a free end steeper than the opening lets through jams in the ring's mouth: lever it instead
-            if wp.dot(wp.normalize(end - q[env, p.rope_first + 3]), n) < steep_cos:
-                levering[env] = 1
-    if active >= 1 and active < p.num_eyes and carried[env] >= active:
-        # the held node stays past the ring it was carried through: a move back there would drag the rope beside
-        # the ring and out of it
-        prev = task.eye_pose[env, active - 1]
-        npv = eye_normal(prev)
-        back = wp.dot(move, npv)
-        if back < 0.0 and wp.dot(held - eye_center(prev), npv) + back < 0.5 * carry_clear:
-            move = move - npv * back
+            # the rope lies along the jaws' hinge axis (the tip's x) between them: the open jaws slide along it to
+            # the new node, turned with the rope there
+            along = q[env, p.rope_first + node - 1] - q[env, p.rope_first + node + 1]
+            yaw_error = hinge_error(wp.transform_vector(tip, wp.vec3(1.0, 0.0, 0.0)), along)
+            move = target - center
+            if phase == SLIDE:
+                jaw_error = ep.open_angle - jaw[env, r]
+                if wp.length(move) < 0.001 and wp.abs(yaw_error) < 0.1:
+                    phase = CLOSE
+            else:
+                jaw_error = -10.0
+                if grasped[env] != 0:
+                    phase = THREAD
+                    best = float(1.0e9)
+                    for i in range(1, p.nodes - 1):  # the held node has neighbours on both sides
+                        d = wp.length(q[env, p.rope_first + i] - center)
+                        if d < best:
+                            best = d
+                            node = i
+                elif jaw[env, r] < 2.0:
+                    phase = RELEASE  # closed on nothing: open and slide again
+        mem.phase[env] = phase
+        mem.node[env] = node
+    if phase == THREAD:
+        active = task.active[env]
+        mem.carried[env] = wp.min(mem.carried[env], active)  # a lost eye is threaded (and carried through) again
+        k = wp.min(active, p.num_eyes - 1)
+        g = p.rope_first + node
+        held = q[env, g]
+        lead = q[env, g - 1] - held
+        carrying = int(0)
+        if active >= 1 and active < p.num_eyes and mem.carried[env] < active:
+            # after a pass the held node follows the rope through the ring it has just passed: the rope in front of
+            # it is too short to reach the next eye from there. The jaws do not collide with the eye (sofa_env's
+            # neither), but the rope beside the held node does, so the node goes through the ring's centre, along
+            # the line from there towards the next eye's approach point (at most ``carry_angle`` off the ring's
+            # axis): the free part then comes out in line with the next ring. Off that line the held node pivots
+            # the rope about the ring (the free part swings the other way) until it lies on it.
+            prev = task.eye_pose[env, active - 1]
+            cp = eye_center(prev)
+            npv = eye_normal(prev)
+            if wp.dot(held - cp, npv) > ep.carry_clear:
+                mem.carried[env] = active
+            else:
+                carrying = 1
+                mem.levering[env] = 0
+                aim = eye_center(task.eye_pose[env, k]) - eye_normal(task.eye_pose[env, k]) * ep.approach - cp
+                turn = wp.clamp(heading_error(npv, aim), -ep.carry_angle, ep.carry_angle)
+                u = wp.quat_rotate(wp.quat_from_axis_angle(wp.vec3(0.0, 0.0, 1.0), turn),
+                                   wp.normalize(wp.vec3(npv[0], npv[1], 0.0)))
+                yaw_error = heading_error(lead, u)
+                off = cp - held
+                move = off - u * wp.dot(off, u)
+                if wp.length(move) < ep.tolerance and wp.abs(yaw_error) < 0.1:
+                    move = move + u * ep.max_step
+        if carrying == 0:
+            eye = task.eye_pose[env, k]
+            c = eye_center(eye)
+            n = eye_normal(eye)
+            end = q[env, p.rope_first]
+            # heading: the held segment towards the free end along the normal (it turns with the jaws at once; the
+            # free end lags and swings). After a carry, the held node may lie beside the next ring's axis where it
+            # cannot move across (the rope behind runs through the last ring): the rope then points at the ring,
+            # at most ``carry_angle`` off its axis, and the free end swings in
+            target = n
+            if active >= 1 and mem.carried[env] >= active:
+                turn = wp.clamp(heading_error(n, c - held), -ep.carry_angle, ep.carry_angle)
+                target = wp.quat_rotate(wp.quat_from_axis_angle(wp.vec3(0.0, 0.0, 1.0), turn), n)
+            yaw_error = heading_error(lead, target)
+            # where the rope crosses the ring plane (or, before it gets there, its free end)
+            x = end
+            s0 = wp.dot(end - c, n)
+            if s0 > 0.0:
+                for i in range(p.nodes - 1):
+                    a = q[env, p.rope_first + i]
+                    bnode = q[env, p.rope_first + i + 1]
+                    sa = wp.dot(a - c, n)
+                    sb = wp.dot(bnode - c, n)
+                    if sa >= 0.0 and sb < 0.0:
+                        x = a + (bnode - a) * (sa / (sa - sb))
+                        break
+            off = c - x
+            lateral = off - n * wp.dot(off, n)
+            outside = wp.length(lateral) > CLEAR_RADIUS
+            move = lateral * ep.gain
+            if outside:
+                mem.levering[env] = 0
+            if s0 > 0.0 and outside:
+                # the free end went past the ring plane beside the ring (a reset can start it there): pull it back;
+                # after a carry, one that went below it (a long free part lying on the floor past the next eye) is
+                # also lifted: the hanging part comes up and back
+                move = -n * ep.max_step
+                if active >= 1 and lateral[2] > CLEAR_RADIUS:
+                    move = move + wp.vec3(0.0, 0.0, ep.max_step)
+            elif mem.levering[env] != 0:
+                # lever the steep end through: lowering the grasper flattens the free part (the jaws, and with them
+                # the rope's held end, tilt up as the tip drops under the RCM, and the ring carries the free end
+                # while the rope behind it comes down); centred sideways only (its height is what the lever
+                # changes), pushed on gently
+                move = ((lateral - wp.vec3(0.0, 0.0, lateral[2])) * ep.gain + n * (0.3 * ep.advance)
+                        - wp.vec3(0.0, 0.0, ep.lower))
+            elif s0 < -ep.approach or (s0 <= 0.0 and outside):
+                # to ``approach`` before the ring: quickly along the normal, gently across it (the hanging end swings)
+                move = lateral * ep.gain - n * ((s0 + ep.approach) * 0.5)
+            elif wp.length(lateral) < ep.tolerance and wp.abs(yaw_error) < 0.1:
+                move = move + n * ep.advance
+                # a free end steeper than the opening lets through jams in the ring's mouth: lever it instead. After
+                # a carry the rope may come in askew (pointed at the ring) or point up (the held rope tilts up with
+                # the shaft far from the RCM): only a steep drop calls for the lever there
+                tail = wp.normalize(end - q[env, p.rope_first + 3])
+                steep = wp.dot(tail, n) < ep.steep_cos
+                if active >= 1:
+                    steep = tail[2] < -wp.sqrt(1.0 - ep.steep_cos * ep.steep_cos)
+                if steep:
+                    mem.levering[env] = 1
+        if p.bimanual != 0 and task.active_state[env] == TRANSITION:
+            # the eye is passed: push on until the free end is ``regrasp_push`` past the ring (within the left
+            # grasper's reach), then hold the rope still for the left grasper (pushed on, the held node would follow
+            # the free end through the ring, and both graspers would hold it on the same side)
+            cb = eye_center(task.eye_pose[env, k])
+            if wp.dot(q[env, p.rope_first] - cb, eye_normal(task.eye_pose[env, k])) > ep.regrasp_push:
+                move = wp.vec3(0.0)
+                yaw_error = 0.0
+        if active >= 1 and active < p.num_eyes and mem.carried[env] >= active:
+            # the held node stays past the ring it was carried through: a move back there would drag the rope beside
+            # the ring and out of it
+            prev = task.eye_pose[env, active - 1]
+            npv = eye_normal(prev)
+            back = wp.dot(move, npv)
+            if back < 0.0 and wp.dot(held - eye_center(prev), npv) + back < 0.5 * ep.carry_clear:
+                move = move - npv * back
+    write_grasper_errors(error_out, env, r, pose, ptsd, rcm, p.bounds, move, step, yaw_error, jaw_error, ep.spin_gain)
+    if p.bimanual != 0:
+        left_grasper(q, pose, ptsd, rcm, jaw, left_grasped, p, task, ep, mem, env, error_out)
+
+
+@wp.func
+def write_grasper_errors(error_out: wp.array2d(dtype=float), env: int, g: int, pose: wp.array2d(dtype=wp.transform),
+                         ptsd: wp.array2d(dtype=wp.vec4), rcm: wp.array2d(dtype=wp.transform), bounds: RigBounds,
+                         move: wp.vec3, step: float, yaw_error: float, jaw_error: float, spin_gain: float):
+    """Grasper ``g``'s PTSD and jaw errors: its tip moved by ``move`` (at most ``step``), its heading turned by
+    ``yaw_error`` (x ``spin_gain``)."""
+    tip = pose[env, g]
+    axis = wp.transform_vector(tip, wp.vec3(0.0, 0.0, 1.0))
     spin = yaw_error * axis[2] * spin_gain  # a spin about the downward shaft turns the heading the other way
-    if wp.length(move) > max_step:
-        move = move * (max_step / wp.length(move))
-    s = ptsd[env, r]
+    if wp.length(move) > step:
+        move = move * (step / wp.length(move))
+    s = ptsd[env, g]
     # inside the workspace (with 0.5 mm to spare): a physics step that would leave it is rejected whole, and a
     # grasper pressed against the border would stop moving
     margin = wp.vec3(0.0005)
-    goal = wp.min(wp.max(wp.transform_get_translation(tip) + move, p.bounds.ws_low + margin),
-                  p.bounds.ws_high - margin)
-    target = point_to_ptsd(rcm[env, r], goal, s[2])
-    col = 5 * r
+    goal = wp.min(wp.max(wp.transform_get_translation(tip) + move, bounds.ws_low + margin), bounds.ws_high - margin)
+    target = point_to_ptsd(rcm[env, g], goal, s[2])
+    col = 5 * g
     error_out[env, col + 0] = target[0] - s[0]
     error_out[env, col + 1] = target[1] - s[1]
     error_out[env, col + 2] = spin
     error_out[env, col + 3] = target[3] - s[3]
+    error_out[env, col + 4] = jaw_error
+
+
+@wp.func
+def left_grasper(q: wp.array2d(dtype=wp.vec3), pose: wp.array2d(dtype=wp.transform), ptsd: wp.array2d(dtype=wp.vec4),
+                 rcm: wp.array2d(dtype=wp.transform), jaw: wp.array2d(dtype=float),
+                 left_grasped: wp.array(dtype=wp.int32), p: Params, task: Task, ep: ExpertParams,
+                 mem: ExpertMemory, env: int, error_out: wp.array2d(dtype=float)):
+    """The bimanual regrasp (grasper 0): it waits, jaws open, ``regrasp_hover`` above the active eye's axis
+    ``regrasp_past`` beyond the ring, its hinge axis along the eye's normal (along the rope to come); once the eye is
+    passed (TRANSITION) it comes down on the rope node nearest that point (and past the ring) and closes its jaws
+    there: both graspers then hold the rope on either side of the ring."""
+    k = wp.min(task.active[env], p.num_eyes - 1)
+    eye = task.eye_pose[env, k]
+    c = eye_center(eye)
+    n = eye_normal(eye)
+    tip = pose[env, 0]
+    center = grasp_center(tip)
+    hinge = wp.transform_vector(tip, wp.vec3(1.0, 0.0, 0.0))
+    wait = c + n * ep.regrasp_past
+    move = wait + wp.vec3(0.0, 0.0, ep.regrasp_hover) - center
+    along = n
+    jaw_error = ep.open_angle - jaw[env, 0]
+    if left_grasped[env] != 0:
+        move = wp.vec3(0.0)
+        jaw_error = 0.0
+    elif task.active_state[env] == TRANSITION:
+        best = float(1.0e9)
+        node = int(1)
+        for i in range(1, p.nodes - 1):
+            d = wp.length(q[env, p.rope_first + i] - wait)
+            if d < best and wp.dot(q[env, p.rope_first + i] - c, n) > 0.5 * ep.regrasp_past:
+                best = d
+                node = i
+        target = q[env, p.rope_first + node]
+        along = q[env, p.rope_first + node - 1] - q[env, p.rope_first + node + 1]
+        move = target - center
+        if mem.left[env] != 0 or wp.length(move) < 0.001:
+            mem.left[env] = 1  # closing (the rope moves on as the right grasper pushes: the jaws follow its node)
+            jaw_error = -10.0
+    else:
+        mem.left[env] = 0
+    write_grasper_errors(error_out, env, 0, pose, ptsd, rcm, p.bounds, move, ep.slide_step, hinge_error(hinge, along),
+                         jaw_error, ep.spin_gain)
 
 
 # ---------------------------------------------------------------------------- env
@@ -960,8 +1169,8 @@ class RopeThreadingEnv(BatchedEnv):
 
 # ---------------------------------------------------------------------------- expert
 class RopeThreadingExpert(Expert):
-    """Scripted right grasper from the privileged state: it turns the rope (spin) until the part from the grasped
-    node to the free end runs along the active eye's normal, brings the free end to ``approach`` before the ring
+    """Scripted graspers from the privileged state. The right one turns the rope (spin) until the part from the
+    grasped node to the free end runs along the active eye's normal, brings the free end to ``approach`` before the ring
     centre, then advances along the normal by ``advance`` per step while keeping the point where the rope crosses
     the ring plane centred (``gain`` x its offset; it advances only while that offset is below ``tolerance``).
 
@@ -972,31 +1181,70 @@ class RopeThreadingExpert(Expert):
     ``lower`` per step (pushing on at 0.3 ``advance``, centred sideways) until the eye is passed or the end leaves
     the opening (then it approaches again). Lowering flattens the free part: the jaws, and with them the rope's held
     end, tilt up as the tip drops under the RCM (by 10-35 deg in most levers), and the ring carries the free end while
-    the rope behind it comes down. Moves follow straight lines in legs of ``max_step`` inside the workspace. The
-    bimanual regrasp is not scripted (the left grasper idles)."""
+    the rope behind it comes down. Moves follow straight lines in legs of ``max_step`` inside the workspace.
+
+    More eyes (the right grasper alone threads them in order):
+
+    * Reach: the grasp centre stays within 115 mm of the RCM and the held rope starts square to the shaft, so the
+      free end reaches only so far (``overhang_node``: node 15 passes rings up to ~120 mm from the RCM, 28 ~139 mm;
+      the paper's second ring lies ~108-141 mm away). When an eye after the first lies beyond the start overhang's
+      reach, the expert first regrasps further from the end (at most node ``MAX_REGRASP_NODE``): it opens the jaws
+      to ``open_angle`` while laying the rope on the floor, slides the open jaws along the rope (it lies along their
+      hinge axis) to the new node at ``slide_step`` per step and closes them there (~60 steps). It regrasps nearer
+      the end when the overhang is longer than the gap between two eyes plus ``overhang_slack`` (carried through
+      the first ring, it would push the free end past the next one), as far as the reach allows.
+    * Carry: after a pass the held node follows the free part through the passed ring, through its centre (the jaws
+      do not collide with the eye, the rope beside the node does), along the line towards the next eye's approach
+      point (at most ``carry_angle`` off the ring's axis; off that line the node pivots the rope about the ring)
+      until it is ``carry_clear`` past the ring; from there it threads the next eye as the first, the rope pointing
+      at the ring (at most ``carry_angle`` off its axis) where the held node lies beside its axis, and it does not go
+      back towards the passed ring (that would drag the rope beside the ring and out of it); a free end lying on
+      the floor past the next ring is lifted back. Only a steep drop of the free end calls for the lever there (the
+      rope may come in askew, or tilted up with the shaft far from the RCM).
+
+    Bimanual: once the eye is passed (TRANSITION) the right grasper pushes on until the free end is
+    ``regrasp_push`` past the ring (nearer the left grasper's RCM: a ring 80 mm out is at the edge of its reach) and
+    holds still; the left one waits, jaws open, ``regrasp_hover`` above the point ``regrasp_past`` beyond the ring on
+    its axis and then closes on the rope node nearest that point (both graspers then hold the rope on either side of
+    the ring)."""
 
     def __init__(self, env: RopeThreadingEnv, approach: float = 0.006, tolerance: float = 0.0015, gain: float = 0.15,
                  spin_gain: float = 0.5, advance: float = 0.001, max_step: float | None = None,
-                 steep_cos: float = 0.64, lower: float = 0.001, carry_clear: float = 0.008):
+                 steep_cos: float = 0.64, lower: float = 0.001, carry_clear: float = 0.008,
+                 carry_angle: float = 40.0, overhang_slack: float = 0.006, slide_step: float | None = None,
+                 open_angle: float = 17.0, regrasp_past: float = 0.012, regrasp_push: float = 0.016,
+                 regrasp_hover: float = 0.015):
         super().__init__(env)
-        self.approach, self.tolerance, self.gain = float(approach), float(tolerance), float(gain)
-        self.spin_gain = float(spin_gain)
-        self.advance = float(advance)
-        self.max_step = float(max_step if max_step is not None else (1.0 if env.is_discrete else 0.001))
-        self.steep_cos, self.lower = float(steep_cos), float(lower)
-        self.carry_clear = float(carry_clear)
-        self.levering = wp.zeros(env.num_envs, dtype=wp.int32, device=env.wp_device)
-        self.carried = wp.zeros(env.num_envs, dtype=wp.int32, device=env.wp_device)
-        self.error = wp.zeros((env.num_envs, env.action_dim), dtype=float, device=env.wp_device)
+        ep = self.params = ExpertParams()
+        ep.approach, ep.tolerance, ep.gain = float(approach), float(tolerance), float(gain)
+        ep.spin_gain, ep.advance = float(spin_gain), float(advance)
+        ep.max_step = float(max_step if max_step is not None else (1.0 if env.is_discrete else 0.001))
+        ep.steep_cos, ep.lower, ep.carry_clear = float(steep_cos), float(lower), float(carry_clear)
+        ep.carry_angle, ep.overhang_slack = math.radians(carry_angle), float(overhang_slack)
+        ep.slide_step = float(slide_step if slide_step is not None else 1.5 * ep.max_step)
+        ep.open_angle = float(open_angle)
+        ep.regrasp_past, ep.regrasp_push = float(regrasp_past), float(regrasp_push)
+        ep.regrasp_hover = float(regrasp_hover)
+        n, dev = env.num_envs, env.wp_device
+        self.memory = m = ExpertMemory()
+        m.phase, m.node = wp.zeros(n, dtype=wp.int32, device=dev), wp.zeros(n, dtype=wp.int32, device=dev)
+        m.levering, m.carried = wp.zeros(n, dtype=wp.int32, device=dev), wp.zeros(n, dtype=wp.int32, device=dev)
+        m.left = wp.zeros(n, dtype=wp.int32, device=dev)
+        self.error = wp.zeros((n, env.action_dim), dtype=float, device=dev)
         self.step_size = self.rig_step_size()
+
+    @property
+    def levering(self) -> wp.array:
+        """``(num_envs,)`` int32: 1 while the expert levers a steep free end through."""
+        return self.memory.levering
 
     def __call__(self, obs=None) -> torch.Tensor:
         env, rig, s = self.env, self.env.rig, self.env.world.state
+        left = env.left_grasp if env.left_grasp is not None else env.right_grasp  # unread without the left grasper
         with env._torch_stream_scope():
             launching.launch(expert_commands, dim=env.num_envs,
-                             inputs=[s.particle_q, rig.ptsd, rig.pose, rig.rcm, env.params, env.task,
-                                     env.episode_length, self.approach, self.tolerance, self.gain, self.spin_gain,
-                                     self.advance, self.max_step, self.steep_cos, self.lower, self.carry_clear,
-                                     self.levering, self.carried],
+                             inputs=[s.particle_q, rig.ptsd, rig.pose, rig.rcm, rig.jaw_angle, env.right_grasp.grasped,
+                                     left.grasped, env.params, env.task, env.episode_length, self.params,
+                                     self.memory],
                              outputs=[self.error], device=env.wp_device)
         return self.policy_actions(wp.to_torch(self.error) / self.step_size)
