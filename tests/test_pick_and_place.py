@@ -3,8 +3,8 @@ noise-free start pose, the STATE size and its peg columns), Table A's reward wei
 configured value and the step that truncates), the bank of settled drops (on the board, spread or at sofa_env's fixed
 drop, at rest after a reset, its entries distinct), reset randomisation and seeding, the start-grasped configuration
 (grasp, hold, release, the lost-grasp event and the PICK/PLACE phases, the released torus falling), the scripted
-expert on configuration Pick (soft and stiff torus), no tunnelling of a held torus dragged into a peg at full speed
-(LapGym's #42), and invalid configurations."""
+expert on configuration Pick (soft and stiff torus) and, with discrete actions, on Pick and Place, no tunnelling of a
+held torus dragged into a peg at full speed (LapGym's #42), and invalid configurations."""
 
 from __future__ import annotations
 
@@ -270,6 +270,23 @@ def test_start_grasped_holds_then_releases():
 
 
 # ---------------------------------------------------------------------------- the expert
+def first_episode_successes(env: PickAndPlaceEnv) -> tuple[torch.Tensor, torch.Tensor]:
+    """Run ``env``'s scripted expert until every env's first episode ended (at most its step limit): which ended,
+    and which of them with the success term on their last step."""
+    n = env.num_envs
+    expert = make_expert(env)
+    finished = torch.zeros(n, dtype=torch.bool)
+    solved = torch.zeros(n, dtype=torch.bool)
+    for _ in range(env.cfg.max_episode_steps):
+        _, _, done, _ = env.step(expert())
+        done = done.cpu()
+        solved |= done & ~finished & torch.as_tensor(env.success.numpy() == 1)
+        finished |= done
+        if bool(finished.all()):
+            break
+    return finished, solved
+
+
 @pytest.mark.parametrize("torus", ["soft", "stiff"])
 def test_expert_solves_pick(torus):
     """Configuration Pick, 8 envs, seed 5: the scripted expert grasps the torus and lifts its COM to 50 mm within the
@@ -278,18 +295,24 @@ def test_expert_solves_pick(torus):
     8/8 for both, in 92-103 (soft) and 80-91 (stiff) steps."""
     n = 8
     env = make(num_envs=n, only_learn_pick=True, torus=torus, torus_bank_size=n, seed=5)
-    expert = make_expert(env)
-    finished = torch.zeros(n, dtype=torch.bool)
-    solved = torch.zeros(n, dtype=torch.bool)
-    for _ in range(env.cfg.max_episode_steps):
-        _, _, done, _ = env.step(expert())
-        done = done.cpu()
-        first = done & ~finished
-        solved |= first & torch.as_tensor(env.success.numpy() == 1)
-        finished |= done
-        if bool(finished.all()):
-            break
+    finished, solved = first_episode_successes(env)
     assert bool(finished.all())  # every episode ends by the limit
+    assert int(solved.sum()) >= n - 1, solved.tolist()
+
+
+@pytest.mark.parametrize("torus", ["soft", "stiff"])
+@pytest.mark.parametrize("configuration", ["pick", "place"])
+def test_expert_solves_with_discrete_actions(configuration, torus):
+    """Discrete actions (one PTSD or jaw component by a whole step per env step), configurations Pick and Place, 8
+    envs, seed 5: the expert succeeds in >= 7 of 8 first episodes within the 300-step limit. Here (CPU) 8/8 in all
+    four; on 192 first episodes per configuration (CPU, 32 envs, seeds 0-5) the author measured Pick 97 % / 99 %,
+    Place 95 % / 95 %, Pick-and-Place 97 % / 97 % (soft / stiff; mean successful episodes 164 / 139, 188 / 144, 378
+    / 295 steps)."""
+    n = 8
+    overrides = dict(only_learn_pick=True) if configuration == "pick" else PLACE
+    env = make(num_envs=n, torus=torus, torus_bank_size=n, seed=5, action_type="DISCRETE", **overrides)
+    finished, solved = first_episode_successes(env)
+    assert bool(finished.all())
     assert int(solved.sum()) >= n - 1, solved.tolist()
 
 

@@ -572,17 +572,17 @@ def place_scene_visuals(q: wp.array2d(dtype=wp.vec3), p: Params, task: Task, rin
 @wp.func
 def place_level_ring(q: wp.array2d(dtype=wp.vec3), env: int, p: Params, tip: wp.transform, rcm: wp.transform,
                      com: wp.vec3, peg: wp.vec3, lowest: float, highest: float, clearance: float, descent: float,
-                     far_peg: float, arrived: int) -> tuple[wp.vec3, float]:
+                     far_peg: float, centred: float) -> tuple[wp.vec3, float]:
     """PLACE for a ring that stays level when held (the stiff torus): the tip goal and spin error that carry its COM
     over the peg with the ring above the pegs' tops, then lower it around the peg (and keep lowering while it is
-    around the peg). ``arrived``: discrete steps brought the tip as near the last goal as they can (see
-    ``discrete_command``), which counts as over the peg."""
+    around the peg) once the COM is within ``centred`` of the peg (2 mm; discrete steps land on a lattice 3-4 mm
+    apart at the far pegs, which may never come that near: 3.5 mm for them, the ring's hole leaves the peg 5.5 mm)."""
     tip_pos = wp.transform_get_translation(tip)
     dx = peg[0] - com[0]
     dz = peg[2] - com[2]
     e = wp.sqrt(dx * dx + dz * dz)
     dy = PEG_TOP + TUBE_RADIUS + clearance - lowest
-    if e < 0.002 or (lowest < PEG_TOP and e < 0.006) or (arrived != 0 and e < 0.006):
+    if e < centred or (lowest < PEG_TOP and e < 0.006):
         dy = -wp.min(highest - SUCCESS_HEIGHT * 0.5, descent)
     # spin the torus about the held point until its COM lies beyond the grasp as seen from the RCM: the far
     # pegs are then within the shaft's reach
@@ -600,9 +600,9 @@ def place_level_ring(q: wp.array2d(dtype=wp.vec3), env: int, p: Params, tip: wp.
 
 @wp.func
 def hook_hanging_loop(q: wp.array2d(dtype=wp.vec3), env: int, p: Params, tip: wp.transform, rcm: wp.transform,
-                      attached: int, com: wp.vec3, peg: wp.vec3, lowest: float, hook_far: float, hook_near: float,
+                      held: wp.vec3, com: wp.vec3, peg: wp.vec3, lowest: float, hook_far: float, hook_near: float,
                       clearance: float, cross_height: float, hold_height: float, swing_rate: float, max_swing: float,
-                      discrete: int, arrived: int, stage: wp.array(dtype=wp.int32), heading: wp.array(dtype=wp.vec3),
+                      arrived: int, stage: wp.array(dtype=wp.int32), heading: wp.array(dtype=wp.vec3),
                       swing: wp.array(dtype=float)) -> wp.vec3:
     """PLACE for a loop that hangs from the grasp (the soft torus: two strands side by side, too narrow for the
     peg's top to enter between them when lowered onto it). The tip goal of four stages: CARRY the loop's COM to
@@ -611,12 +611,10 @@ def hook_hanging_loop(q: wp.array2d(dtype=wp.vec3), env: int, p: Params, tip: wp
     before it, the strands draped over the top one on each side of the peg's axis; PULL the held node down to
     ``hold_height``: the taut strands slide off the top, one around each side of the peg, and the loop lies around
     it. A strand left on the top is pulled off by swinging the held node about the peg towards that strand's side.
-    With discrete actions (``discrete``) a stage's goal also counts as reached where discrete steps bring the tip no
-    nearer (``arrived``: they land on a lattice 1-4 mm apart), and the swing waits for the tip to get there."""
+    ``held``: where the held node is (discrete actions: where the jaw holds it, see ``expert_commands``); the held
+    node has crossed once over ``near`` or, discrete, ``arrived``: no discrete step brings it nearer (they land on a
+    lattice 1-4 mm apart)."""
     tip_pos = wp.transform_get_translation(tip)
-    # the held node moves with the tip; it need not lie at the grasp centre (a grasp keeps the node's offset in the
-    # jaw: after PICK it lies ~7 mm farther along the jaws)
-    held = q[env, attached]
     # the loop's horizontal normal: its strands lie side by side along the principal axis of its nodes' horizontal
     # spread
     cxx = float(0.0)
@@ -639,7 +637,7 @@ def hook_hanging_loop(q: wp.array2d(dtype=wp.vec3), env: int, p: Params, tip: wp
         far = peg + normal * hook_far
         dy = PEG_TOP + TUBE_RADIUS + clearance - lowest
         goal = tip_pos + wp.vec3(far[0] - com[0], dy, far[2] - com[2])
-        if (horizontal_distance(far, com) < 0.002 or arrived != 0) and wp.abs(dy) < 0.003:
+        if horizontal_distance(far, com) < 0.002 and wp.abs(dy) < 0.003:
             stage[env] = HOOK_LOWER
     elif stage[env] == HOOK_LOWER:
         far = peg + heading[env] * hook_far
@@ -663,7 +661,7 @@ def hook_hanging_loop(q: wp.array2d(dtype=wp.vec3), env: int, p: Params, tip: wp
             if x[1] + PEG_TARGET_Y > PEG_TOP and wp.sqrt(x[0] * x[0] + x[2] * x[2]) < PEG_RADIUS + TUBE_RADIUS:
                 on_top += x
                 count += 1
-        if count > 0 and held[1] < PEG_TOP - 0.005 and (discrete == 0 or arrived != 0):
+        if count > 0 and held[1] < PEG_TOP - 0.005:
             step = wp.where(wp.dot(on_top, side) >= 0.0, swing_rate, -swing_rate)
             swing[env] = wp.clamp(swing[env] + step, -max_swing, max_swing)
         a = swing[env]
@@ -741,31 +739,31 @@ def discrete_pick(q: wp.array2d(dtype=wp.vec3), env: int, first: int, rcm: wp.tr
 
 
 @wp.func
-def discrete_command(rcm: wp.transform, s: wp.vec4, tip_pos: wp.vec3, goal: wp.vec3, spin: float, jaw: float,
+def discrete_command(rcm: wp.transform, s: wp.vec4, handle: wp.vec3, goal: wp.vec3, spin: float, jaw: float,
                      step: wp.vec4, jaw_step: float, b: RigBounds, turn: int) -> wp.vec2i:
     """The discrete action (index ``2 k`` moves component k by +``step[k]``, ``2 k + 1`` by -``step[k]``, 10 is
-    the no-op) that follows the expert's plan. A discrete action moves one PTSD component by a whole step (pan and
-    tilt 1.5 degrees, ~2.6 mm at the tip; depth 1 mm along the tilted shaft), so choosing the component with the
-    largest PTSD error drives the tip on arcs far off the straight line to the goal (a far peg needs ~50 depth steps:
-    depth first pushes a held torus into the board, and a descent along the tilted shaft drifts out of the PICK
-    goal's lateral tolerance and back, forever). Instead the tip takes the step (pan, tilt or depth) that brings it
-    nearest to ``goal`` and stops where no step gets nearer (then it lies within half a step of the goal along each
-    component). The jaws go first (closing when in place, opening before a move); spin and motion take turns
-    (``turn``: the episode step's parity) so neither waits for the other (a torus on the board does not turn with
-    the jaws: spinning first would never lift it). Returns the action and whether no step gets nearer the goal."""
-    best = wp.length(goal - tip_pos) - 0.1 * step[3]  # a step must gain a tenth of a depth step
-    move = int(10)
+    the no-op) and whether no motion step gets nearer ``goal``. A discrete action moves one PTSD component by a
+    whole step (pan and tilt 1.5 degrees: 2-4 mm; depth 1 mm along the tilted shaft), so moving the component with
+    the largest PTSD error first sends the tip on arcs far off the straight line to the goal (a far peg needs ~50
+    depth steps: depth first pushes a held torus into the board). Instead the motion is the pan, tilt or depth step
+    that brings ``handle`` (a point of the tip frame) nearest to ``goal``, or none where no step gets it nearer. The
+    jaws go first (closing when in place, opening before a move); spin and motion take turns (``turn``: the episode
+    step's parity), so that neither waits for the other (a torus lying on the board does not turn with the jaws:
+    spinning first would never lift it)."""
+    best = wp.length(goal - wp.transform_point(ptsd_to_transform(rcm, s), handle)) - 0.1 * step[3]
+    move = int(10)  # a step must gain a tenth of a depth step
     for k in range(3):
         c = wp.where(k == 2, 3, k)  # pan, tilt, depth
         for sign in range(2):
             t = s
             t[c] = s[c] + wp.where(sign == 0, step[c], -step[c])
-            x = wp.transform_get_translation(ptsd_to_transform(rcm, t))
-            # the env rejects a step beyond the state limits or out of the workspace
+            pose = ptsd_to_transform(rcm, t)
+            # the env rejects a step beyond the state limits or with the tip out of the workspace
             inside = t[c] >= b.state_low[c] and t[c] <= b.state_high[c]
+            x = wp.transform_get_translation(pose)
             for i in range(3):
                 inside = inside and x[i] >= b.ws_low[i] and x[i] <= b.ws_high[i]
-            d = wp.length(goal - x)
+            d = wp.length(goal - wp.transform_point(pose, handle))
             if inside and d < best:
                 best = d
                 move = 2 * c + sign
@@ -781,16 +779,20 @@ def discrete_command(rcm: wp.transform, s: wp.vec4, tip_pos: wp.vec3, goal: wp.v
 def expert_commands(q: wp.array2d(dtype=wp.vec3), ptsd: wp.array2d(dtype=wp.vec4),
                     pose: wp.array2d(dtype=wp.transform), rcm: wp.array2d(dtype=wp.transform),
                     jaw_angle: wp.array2d(dtype=float), grasped: wp.array(dtype=wp.int32),
-                    attach_particle: wp.array2d(dtype=wp.int32), p: Params, task: Task,
-                    episode_length: wp.array(dtype=wp.int32), open_angle: float, hold_depth: float,
+                    attach_particle: wp.array2d(dtype=wp.int32), attach_body: wp.array2d(dtype=wp.int32),
+                    attach_offset: wp.array2d(dtype=wp.vec3), body_q: wp.array2d(dtype=wp.transform), p: Params,
+                    task: Task, episode_length: wp.array(dtype=wp.int32), open_angle: float, hold_depth: float,
                     clearance: float, descent: float, far_peg: float, hook_far: float, hook_near: float,
                     cross_height: float, hold_height: float, swing_rate: float, max_swing: float, max_step: float,
                     discrete: int, discrete_step: wp.vec4, jaw_step: float, stage: wp.array(dtype=wp.int32),
                     heading: wp.array(dtype=wp.vec3), swing: wp.array(dtype=float), anchor: wp.array(dtype=wp.vec3),
-                    closing: wp.array(dtype=wp.int32), arrived: wp.array(dtype=wp.int32), error_out: wp.array2d(dtype=float), action_out: wp.array(dtype=wp.int32)):
-    """The scripted grasper (``PickAndPlaceExpert``): PTSD and jaw errors per env (continuous actions), the
-    discrete action index (``discrete`` != 0, see ``discrete_command``), and its per-env hooking state (``stage``,
-    the crossing direction ``heading``, the ``swing`` about the peg)."""
+                    closing: wp.array(dtype=wp.int32), arrived: wp.array(dtype=wp.int32), ref: wp.array(dtype=wp.vec3),
+                    error_out: wp.array2d(dtype=float), action_out: wp.array(dtype=wp.int32)):
+    """The scripted grasper (``PickAndPlaceExpert``): PTSD and jaw errors per env (continuous actions) or the
+    discrete action index (``discrete`` != 0: ``action_out``), and its per-env state: the hooking ``stage``, the
+    crossing direction ``heading``, the ``swing`` about the peg; discrete only: the tip where the grasp happened
+    (``anchor``), whether the jaws are ``closing`` in PICK, whether the tip ``arrived`` at the last goal and the
+    reference point ``ref`` it chases."""
     env = wp.tid()
     if episode_length[env] == 0 or grasped[env] == 0 or task.phase[env] == PICK:
         stage[env] = HOOK_CARRY
@@ -807,11 +809,11 @@ def expert_commands(q: wp.array2d(dtype=wp.vec3), ptsd: wp.array2d(dtype=wp.vec4
     goal = tip_pos
     jaw = float(0.0)
     spin = float(0.0)
+    handle = wp.vec3(0.0)  # discrete: the point of the tip frame that the goal is for (the tip, or the held node)
+    if grasped[env] != 0:
+        closing[env] = 0  # discrete PICK: a grasp ends the closing
     if grasped[env] == 0:
-        anchor[env] = tip_pos
-    else:
-        closing[env] = 0
-    if grasped[env] == 0:
+        anchor[env] = tip_pos  # discrete: the lift goes straight up from where the grasp happens
         # the ring point whose tube runs across the jaw opening: the centre plus the ring radius along the opening
         # (horizontal), on the side nearer the tip; its height is that of the nearest node
         across = wp.normalize(wp.vec3(opening[0], 0.0, opening[2]))
@@ -853,6 +855,10 @@ def expert_commands(q: wp.array2d(dtype=wp.vec3), ptsd: wp.array2d(dtype=wp.vec4
             goal = wp.vec3(anchor[env][0], goal[1], anchor[env][2])
     else:
         peg = nearest_peg(task, env, com)
+        if discrete != 0:
+            # the held node in the tip frame, where the jaw holds it (the jaw angle does not change while it holds)
+            jaw_pose = body_q[env, attach_body[env, 0]]
+            handle = wp.transform_point(wp.transform_inverse(tip), wp.transform_point(jaw_pose, attach_offset[env, 0]))
         lowest = float(1.0e9)
         highest = float(-1.0e9)
         for i in range(_NODES):
@@ -861,11 +867,17 @@ def expert_commands(q: wp.array2d(dtype=wp.vec3), ptsd: wp.array2d(dtype=wp.vec4
         # a held stiff ring sags a few mm, a soft one hangs as a loop ~45 mm tall: tell them apart by the height
         if stage[env] == HOOK_CARRY and highest - lowest < 2.0 * TORUS_RADIUS:
             goal, spin = place_level_ring(q, env, p, tip, rcm[env, 0], com, peg, lowest, highest, clearance, descent,
-                                          far_peg, arrived[env])
+                                          far_peg, wp.where(discrete != 0, 0.0035, 0.002))
         else:
-            goal = hook_hanging_loop(q, env, p, tip, rcm[env, 0], attach_particle[env, 0], com, peg, lowest, hook_far,
-                                     hook_near, clearance,
-                                     cross_height, hold_height, swing_rate, max_swing, discrete, arrived[env], stage,
+            # the held node moves with the tip; it need not lie at the grasp centre (a grasp keeps the node's offset
+            # in the jaw: after PICK it lies ~7 mm farther along the jaws). Discrete: where the jaw holds it (the
+            # node lags when the board or the peg stops it, and a goal relative to the node would then run away
+            # with the tip, pressing the node into the board until the grasp tears)
+            held = q[env, attach_particle[env, 0]]
+            if discrete != 0:
+                held = wp.transform_point(tip, handle)
+            goal = hook_hanging_loop(q, env, p, tip, rcm[env, 0], held, com, peg, lowest, hook_far, hook_near,
+                                     clearance, cross_height, hold_height, swing_rate, max_swing, arrived[env], stage,
                                      heading, swing)
     # at most max_step per step along the straight line to the goal (saturated PTSD errors would move the tip on
     # arcs about the RCM and drag the torus into the board)
@@ -880,10 +892,28 @@ def expert_commands(q: wp.array2d(dtype=wp.vec3), ptsd: wp.array2d(dtype=wp.vec4
     error_out[env, 3] = target[3] - s[3]
     error_out[env, 4] = jaw
     if discrete != 0:
-        choice = discrete_command(rcm[env, 0], s, tip_pos, tip_pos + move, spin, jaw, discrete_step, jaw_step,
-                                  p.bounds, episode_length[env] % 2)
+        # the goal moves the held node in PLACE (a pan or tilt step also turns it about the tip, so a goal for the
+        # tip would shift with every step), else the tip
+        point = wp.transform_point(tip, handle)
+        goal = point + (goal - tip_pos)
+        # that point chases a reference that moves like the continuous tip, at most max_step per step along the
+        # straight line to the goal. Discrete steps are skewed to that line (a pan step also moves the point up or
+        # down, by 2-4 mm); chasing the goal itself, or a point a leg ahead, lets their sideways errors add up, and
+        # jerking a hanging loop at full speed swings it: its strands then land on the peg's top (soft Place, CPU,
+        # 96 episodes: 27 % chasing the goal, 68 / 85 / 95 / 88 % with a reference at 2 / 1.5 / 1 / 0.7 mm per
+        # step; slower runs out of time)
+        if episode_length[env] == 0 or wp.length(ref[env] - point) > 0.006:
+            ref[env] = point  # a start, or a limit held the tip back: start over from it
+        lead = goal - ref[env]
+        if wp.length(lead) > max_step:
+            lead = lead * (max_step / wp.length(lead))
+        ref[env] = ref[env] + lead
+        choice = discrete_command(rcm[env, 0], s, handle, ref[env], spin, jaw, discrete_step, jaw_step, p.bounds,
+                                  episode_length[env] % 2)
         action_out[env] = choice[0]
-        arrived[env] = wp.where(stage[env] == was, choice[1], 0)  # a new stage's goal is not reached yet
+        # arrived: the reference is at the goal and no step gets nearer (not yet for a stage that began this step)
+        reached = choice[1] != 0 and wp.length(goal - ref[env]) < 1.0e-6 and stage[env] == was
+        arrived[env] = wp.where(reached, 1, 0)
 
 
 # ---------------------------------------------------------------------------- env
@@ -1144,7 +1174,23 @@ class PickAndPlaceExpert(Expert):
     ``hold_height``, so the strands slide off the top around both sides of the peg, swinging about the peg by
     ``swing_rate`` per step (at most ``max_swing``) while a strand stays on the top (see ``hook_hanging_loop``).
     Continuous actions follow the straight line to each goal in legs of ``max_step`` (saturated PTSD errors would
-    sweep the tip on arcs about the RCM)."""
+    sweep the tip on arcs about the RCM).
+
+    Discrete actions (``Discrete(11)``: one PTSD or jaw component by a whole step, or nothing) follow the same plan
+    with three changes, each against a way the base class's rule (move the component with the largest error in
+    steps) failed (CPU, 16 envs, seeds 0 and 1: Pick 56 %, Place 25 %, Pick-and-Place 16 %, soft; 34 %, 13 %, 16 %,
+    stiff): the largest PTSD error first sweeps the tip on arcs (a far peg's 50 depth steps first push a held torus
+    into the board) and descents along the tilted shaft oscillate in and out of the PICK goal's lateral tolerance.
+    (1) The tip (in PLACE: the held node) takes the pan, tilt or depth step that brings it nearest to a reference
+    point moving like the continuous tip, at ``max_step`` = 1 mm per step (see ``expert_commands``). (2) PICK aims
+    the shaft at the torus (pan and tilt) before advancing along it (depth only), on a shaft line that the lattice
+    of discrete steps reaches and that passes within a fraction of a millimetre of the tube (``lattice_aim``: a step
+    moves the line 2.5-4 mm at the torus, and jaws off centre by that push the tube away instead of grasping it);
+    jaws that shut on nothing open again, and the lift goes straight up from the grasp. (3) Tolerances the lattice
+    may not meet: a stiff ring is lowered once its COM is within 3.5 mm of the peg (2 mm), the hook's crossing ends
+    where no step gets nearer. Jaw steps go first, spin and motion take turns (``discrete_command``). With them
+    (CPU, 32 envs, seeds 0-5, 192 first episodes each): Pick 97 % / 99 %, Place 95 % / 95 %, Pick-and-Place 97 % /
+    97 % (soft / stiff), taking up to about twice the continuous expert's steps (Place: 188 / 144 against 109 / 75)."""
 
     def __init__(self, env: PickAndPlaceEnv, open_angle: float = 11.0, hold_depth: float = 0.022,
                  clearance: float = 0.006, descent: float = 0.004, far_peg: float = 0.11, hook_far: float = 0.011,
@@ -1154,8 +1200,9 @@ class PickAndPlaceExpert(Expert):
         self.open_angle, self.hold_depth, self.clearance = float(open_angle), float(hold_depth), float(clearance)
         self.descent, self.far_peg = float(descent), float(far_peg)
         self.hook = tuple(float(x) for x in (hook_far, hook_near, cross_height, hold_height, swing_rate, max_swing))
-        # discrete actions move one component by a whole step (1-3 mm): a shorter leg would round to the no-op
-        self.max_step = float(max_step if max_step is not None else (1.0 if env.is_discrete else 0.0015))
+        # discrete actions: the speed of the reference point their tip chases (slower than the continuous legs: a
+        # discrete step jerks the tip by up to 4 mm, see ``expert_commands``)
+        self.max_step = float(max_step if max_step is not None else (0.001 if env.is_discrete else 0.0015))
         n, dev = env.num_envs, env.wp_device
         self.error = wp.zeros((n, 5), dtype=float, device=dev)
         # per env: the hooking stage, its crossing direction and the swing about the peg (reset by the kernel at an
@@ -1163,26 +1210,29 @@ class PickAndPlaceExpert(Expert):
         self.stage = wp.zeros(n, dtype=wp.int32, device=dev)
         self.heading = wp.zeros(n, dtype=wp.vec3, device=dev)
         self.swing = wp.zeros(n, dtype=float, device=dev)
-        self.anchor = wp.zeros(n, dtype=wp.vec3, device=dev)  # the tip where the grasp happened (a discrete lift)
-        self.closing = wp.zeros(n, dtype=wp.int32, device=dev)  # discrete PICK: closing the jaws
-        self.arrived = wp.zeros(n, dtype=wp.int32, device=dev)  # discrete: no step got nearer the last goal
+        # discrete actions only: the tip where the grasp happened (the lift goes straight up from it), whether the
+        # jaws are closing in PICK, whether the tip arrived at the last goal, the reference point it chases
+        self.anchor = wp.zeros(n, dtype=wp.vec3, device=dev)
+        self.closing = wp.zeros(n, dtype=wp.int32, device=dev)
+        self.arrived = wp.zeros(n, dtype=wp.int32, device=dev)
+        self.ref = wp.zeros(n, dtype=wp.vec3, device=dev)
+        self.action = wp.zeros(n, dtype=wp.int32, device=dev)
         self.step_size = self.rig_step_size()
         # what one discrete action moves: PTSD (rad, rad, rad, m) and the jaw (deg)
         moved = (self._discrete_step * self.step_size).tolist()
         self.discrete_step, self.jaw_step = wp.vec4(*moved[:4]), moved[4]
-        self.action = wp.zeros(n, dtype=wp.int32, device=dev)
 
     def __call__(self, obs=None) -> torch.Tensor:
         env, rig, s = self.env, self.env.rig, self.env.world.state
         with env._torch_stream_scope():
             launching.launch(expert_commands, dim=env.num_envs,
                              inputs=[s.particle_q, rig.ptsd, rig.pose, rig.rcm, rig.jaw_angle, env.grasp.grasped,
-                                     s.attach_particle, env.params, env.task, env.episode_length, self.open_angle,
-                                     self.hold_depth, self.clearance, self.descent, self.far_peg, *self.hook,
-                                     self.max_step, int(env.is_discrete), self.discrete_step, self.jaw_step],
-                             outputs=[self.stage, self.heading, self.swing, self.anchor, self.closing, self.arrived, self.error,
-                                      self.action],
-                             device=env.wp_device)
-        if env.is_discrete:
+                                     s.attach_particle, s.attach_body, s.attach_offset, s.body_q, env.params,
+                                     env.task, env.episode_length, self.open_angle, self.hold_depth, self.clearance,
+                                     self.descent, self.far_peg, *self.hook, self.max_step, int(env.is_discrete),
+                                     self.discrete_step, self.jaw_step],
+                             outputs=[self.stage, self.heading, self.swing, self.anchor, self.closing, self.arrived,
+                                      self.ref, self.error, self.action], device=env.wp_device)
+        if env.is_discrete:  # chosen by the kernel (``discrete_command``), not by ``policy_actions``
             return wp.to_torch(self.action).long()
         return self.policy_actions(wp.to_torch(self.error) / self.step_size)
