@@ -711,6 +711,22 @@ def test_expert_threads_the_eye(device):
     assert finished.all(), finished
 
 
+def _first_episodes(env, expert, watch):
+    """Run the expert until every env finished its first episode; ``watch()`` runs after each action is chosen,
+    before the step. Returns (finished, succeeded) per env."""
+    finished = np.zeros(env.num_envs, dtype=bool)
+    succeeded = np.zeros(env.num_envs, dtype=bool)
+    for _ in range(env.max_episode_length):
+        actions = expert()
+        watch()
+        _, _, done, _ = env.step(actions)
+        done = done.cpu().numpy().astype(bool)
+        succeeded |= done & ~finished & (env.last_episode_success.numpy() != 0)
+        finished |= done
+        if finished.all():
+            break
+    return finished, succeeded
+
 def test_expert_levers_long_overhangs(device):
     """4 envs, seed 3, grasp node 28 (56 mm of free rope, its end hanging ~60 deg steep), sofa_zoo's eye noise: the
     scripted expert levers every env's free end through (lowers the grasper; the expert before the lever jammed the
@@ -719,17 +735,11 @@ def test_expert_levers_long_overhangs(device):
     env = make(device, num_envs=4, seed=3, grasp_index=28, grasp_index_noise=(0, 1))
     expert = make_expert(env)
     levered = np.zeros(4, dtype=bool)
-    finished = np.zeros(4, dtype=bool)
-    succeeded = np.zeros(4, dtype=bool)
-    for _ in range(env.max_episode_length):
-        actions = expert()
-        levered |= expert.levering.numpy() != 0
-        _, _, done, _ = env.step(actions)
-        done = done.cpu().numpy().astype(bool)
-        succeeded |= done & ~finished & (env.last_episode_success.numpy() != 0)
-        finished |= done
-        if finished.all():
-            break
+
+    def watch():
+        levered[:] |= expert.levering.numpy() != 0
+
+    finished, succeeded = _first_episodes(env, expert, watch)
     assert levered.all(), levered
     assert succeeded.all(), (finished, succeeded)
 
@@ -743,18 +753,12 @@ def test_expert_threads_two_eyes(device):
     expert = make_expert(env)
     regrasped = np.zeros(4, dtype=bool)
     carried = np.zeros(4, dtype=bool)
-    finished = np.zeros(4, dtype=bool)
-    succeeded = np.zeros(4, dtype=bool)
-    for _ in range(env.max_episode_length):
-        actions = expert()
-        regrasped |= expert.memory.node.numpy() > 15
-        carried |= expert.memory.carried.numpy() >= 1
-        _, _, done, _ = env.step(actions)
-        done = done.cpu().numpy().astype(bool)
-        succeeded |= done & ~finished & (env.last_episode_success.numpy() != 0)
-        finished |= done
-        if finished.all():
-            break
+
+    def watch():
+        regrasped[:] |= expert.memory.node.numpy() > 15
+        carried[:] |= expert.memory.carried.numpy() >= 1
+
+    finished, succeeded = _first_episodes(env, expert, watch)
     assert regrasped.all() and carried.all(), (regrasped, carried)
     assert succeeded.all(), (finished, succeeded)
 
