@@ -855,8 +855,9 @@ def expert_commands(q: wp.array2d(dtype=wp.vec3), ptsd: wp.array2d(dtype=wp.vec4
             goal = wp.vec3(anchor[env][0], goal[1], anchor[env][2])
     else:
         peg = nearest_peg(task, env, com)
-        if discrete != 0:
-            # the held node in the tip frame, where the jaw holds it (the jaw angle does not change while it holds)
+        if discrete != 0 and attach_body[env, 0] >= 0:
+            # the held node in the tip frame, where the jaw holds it (the jaw angle does not change while it holds;
+            # a torus dropped in PLACE has no attachment: the tip itself goes to the goal)
             jaw_pose = body_q[env, attach_body[env, 0]]
             handle = wp.transform_point(wp.transform_inverse(tip), wp.transform_point(jaw_pose, attach_offset[env, 0]))
         lowest = float(1.0e9)
