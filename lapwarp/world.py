@@ -34,6 +34,9 @@ from lapwarp.model import Control, Model, State
 # Kernels with ~150 registers per thread (the chain solves): in blocks of 256 only one block fits an SM's register
 # file, in blocks of 64 six do (measured on the H100: the cloth's three chain families take 2.77 ms per substep at 64
 # threads per block, 3.08 ms at 256)
+#: the tet sweeps ``World.tet_solver`` may name
+TET_SOLVERS = ("colored", "fused")
+
 _REGISTER_HEAVY = frozenset({chains.solve_chains, chains.solve_cloth_chains, chains_partitioned.factor_link_blocks,
                              chains_partitioned.solve_link_separators, chains_partitioned.solve_link_blocks,
                              chains_partitioned.solve_node_separators, chains_partitioned.solve_node_blocks})
@@ -132,6 +135,10 @@ class World:
         self.chain_block_links = 0
         # tets' rotation: warm-started extraction iterations per projection (0 = SVD polar decomposition)
         self.tet_rotation_iterations = 2
+        # tet sweep: "colored" = one launch per graph colour; "fused" = one launch per sweep, a thread block of
+        # tet_block_threads per env with the env's tet particles in shared memory (xpbd.fused_tet_kernel)
+        self.tet_solver = "colored"
+        self.tet_block_threads = 64
         self.rng = wp.empty(self.num_envs, dtype=wp.uint32, device=self.device)
         self.unstable = wp.zeros(self.num_envs, dtype=wp.int32, device=self.device)
         self._unstable_now = wp.zeros(self.num_envs, dtype=wp.int32, device=self.device)
@@ -157,6 +164,13 @@ class World:
         # ... and at the start state (saved and restored with it, so a reset episode repeats bit for bit)
         self._start_tet_rotation = wp.clone(self._tet_rotation) if m.tet_count else None
         self._no_rotation = wp.zeros((1, 0), dtype=wp.quat, device=dev)
+        # the fused tet sweep's colour table and particle window (the tets' lowest particle and the window's length)
+        self._tet_color_offsets = wp.array(np.asarray(m.tet_color_offsets, dtype=np.int32), dtype=wp.int32,
+                                           device=dev)
+        self._tet_window = (0, 0)
+        if m.tet_count:
+            idx = m.tet_indices.numpy()
+            self._tet_window = (int(idx.min()), int(idx.max() - idx.min() + 1))
         self._edge_scratch = self._chain_scratch(m.edge_chains)
         # the partitioned chain solve's extra scratch per chain set, allocated on first use (_chain_partition)
         self._partitions = {}
@@ -302,8 +316,10 @@ class World:
         if self.model.particle_count == 0:
             return
         key = (float(dt), self.substeps_for(float(dt)), self.iterations, self.rod_newton_steps, self.chain_newton_steps,
-               self.tet_rotation_iterations, self.chain_block_links)
+               self.tet_rotation_iterations, self.chain_block_links, self.tet_solver, self.tet_block_threads)
         if self._cmd_key != key:
+            if self.tet_solver not in TET_SOLVERS:
+                raise ValueError(f"world.tet_solver must be one of {TET_SOLVERS}, got {self.tet_solver!r}")
             self._cmds = self._record_step(float(dt))
             self._cmd_key = key
         for cmd in self._cmds:
@@ -317,12 +333,12 @@ class World:
 
         sm_count = dev.sm_count if dev.is_cuda else 0
 
-        def launch(kernel, dim=None, inputs=(), outputs=()):
+        def launch(kernel, dim=None, inputs=(), outputs=(), block_dim=None):
             # A plain callable (e.g. ``mesh.refit``) is recorded as is: it must only launch device work.
             if dim is None and not isinstance(kernel, wp.Kernel):
                 cmds.append(kernel)
                 return
-            block = launching.block_dim_for(dim, sm_count, 64 if kernel in _REGISTER_HEAVY else 256)
+            block = block_dim or launching.block_dim_for(dim, sm_count, 64 if kernel in _REGISTER_HEAVY else 256)
             rec = wp.launch(kernel, dim=dim, inputs=inputs, outputs=list(outputs), device=dev, record_cmd=True,
                             block_dim=block)
             cmds.append(rec.launch)
@@ -412,12 +428,19 @@ class World:
                 launch(xpbd.solve_edges, (n, off[c + 1] - off[c]),
                        [off[c], m.edge_indices, m.edge_rest, m.edge_compliance, w_eff, inv_dt2, use_lam,
                         lam.get("edge", self._dummy_f), edge_mask], [s.particle_q])
+        tet_args = [m.tet_indices, m.tet_inv_rest, m.tet_params, w_eff, inv_dt2, use_lam,
+                    lam.get("tet", self._dummy_v2), tet_map, tet_mask, self.tet_rotation_iterations]
+        tet_out = [self._tet_rotation if self.tet_rotation_iterations > 0 else self._no_rotation, s.particle_q]
         off = m.tet_color_offsets
-        for c in range(len(off) - 1):
-            launch(xpbd.solve_tets, (n, off[c + 1] - off[c]),
-                   [off[c], m.tet_indices, m.tet_inv_rest, m.tet_params, w_eff, inv_dt2, use_lam,
-                    lam.get("tet", self._dummy_v2), tet_map, tet_mask, self.tet_rotation_iterations],
-                   [self._tet_rotation if self.tet_rotation_iterations > 0 else self._no_rotation, s.particle_q])
+        if m.tet_count and self.tet_solver == "fused":
+            first, count = self._tet_window
+            # on the CPU a tiled block has one lane (Warp's CPU tile semantics): the same sweep, in order
+            threads = self.tet_block_threads if self.device.is_cuda else 1
+            launch(xpbd.fused_tet_kernel(count), (n, threads), [self._tet_color_offsets, first, *tet_args], tet_out,
+                   block_dim=threads)
+        else:
+            for c in range(len(off) - 1):
+                launch(xpbd.solve_tets, (n, off[c + 1] - off[c]), [off[c], *tet_args], tet_out)
         off = m.hinge_color_offsets
         for c in range(len(off) - 1):
             launch(xpbd.solve_hinges, (n, off[c + 1] - off[c]),
