@@ -77,7 +77,7 @@ def bench_one(task: str, num_envs: int, device: str, seconds: float, invalid_act
         "time_step": env.cfg.time_step,
         "observation_type": env.cfg.observation_type, "cuda_graph": env._use_cuda_graph,
         "resolution": list(env.cfg.image_shape) if env.uses_images else None,
-        "tet_solver": env.world.tet_solver if env.world.model.tet_count else None,
+        "tet_solver": ("fused" if env.world.fused_tets else "colored") if env.world.model.tet_count else None,
     }
     env.close()
     return result
@@ -97,7 +97,7 @@ def main(argv: list[str] | None = None) -> int:
                         help="extra config overrides, values parsed as JSON (e.g. sphere_radius=0.02)")
     parser.add_argument("--policy", choices=["random", "expert"], default="random",
                         help="random actions from a pre-drawn pool, or the scripted expert (timed with the step)")
-    parser.add_argument("--tet-solver", choices=["colored", "fused"], default=None,
+    parser.add_argument("--tet-solver", choices=["auto", "colored", "fused"], default=None,
                         help="the world's tet sweep (default: the world's own choice)")
     parser.add_argument("--out", default=None, help="JSON output path")
     args = parser.parse_args(argv)

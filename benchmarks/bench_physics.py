@@ -188,7 +188,8 @@ def run(scene: str, num_envs: int, device: str, substeps: int, iterations: int, 
         "chain_newton_steps": world.chain_newton_steps if m.edge_chains is not None else None,
         "chain_block_links": world.chain_block_links,
         "chain_families": m.edge_chains.num_families if m.edge_chains is not None else None,
-        "tet_solver": world.tet_solver if m.tet_count else None, "tethers": m.geo_particles is not None,
+        "tet_solver": ("fused" if world.fused_tets else "colored") if m.tet_count else None,
+        "tethers": m.geo_particles is not None,
         "cuda_graph": graph is not None, "steps_timed": steps,
         "seconds": elapsed,
         "env_steps_per_s": num_envs * steps / elapsed, "unstable_envs": int(world.unstable.numpy().sum()),
@@ -211,7 +212,7 @@ def main() -> None:
     p.add_argument("--newton-steps", type=int, default=None, help="Newton steps per cloth chain solve")
     p.add_argument("--chain-block-links", type=int, nargs="+", default=[0],
                    help="one run per value: 0 = one thread per chain, B >= 2 = blocks of B links")
-    p.add_argument("--tet-solver", nargs="+", default=[None], choices=["colored", "fused"],
+    p.add_argument("--tet-solver", nargs="+", default=[None], choices=["auto", "colored", "fused"],
                    help="one run per value (tet scenes; default: the world's own choice)")
     p.add_argument("--steps", type=int, default=30, help="timed env steps")
     p.add_argument("--settle-steps", type=int, default=30, help="untimed env steps before timing")

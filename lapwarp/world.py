@@ -35,7 +35,9 @@ from lapwarp.model import Control, Model, State
 # file, in blocks of 64 six do (measured on the H100: the cloth's three chain families take 2.77 ms per substep at 64
 # threads per block, 3.08 ms at 256)
 #: the tet sweeps ``World.tet_solver`` may name
-TET_SOLVERS = ("colored", "fused")
+TET_SOLVERS = ("auto", "colored", "fused")
+#: the largest tet particle window the fused sweep keeps in shared memory (12 B each: 48 KB, the static limit)
+FUSED_TET_MAX_PARTICLES = 4096
 
 _REGISTER_HEAVY = frozenset({chains.solve_chains, chains.solve_cloth_chains, chains_partitioned.factor_link_blocks,
                              chains_partitioned.solve_link_separators, chains_partitioned.solve_link_blocks,
@@ -135,10 +137,12 @@ class World:
         self.chain_block_links = 0
         # tets' rotation: warm-started extraction iterations per projection (0 = SVD polar decomposition)
         self.tet_rotation_iterations = 2
-        # tet sweep: "colored" = one launch per graph colour; "fused" = one launch per sweep, a thread block of
-        # tet_block_threads per env with the env's tet particles in shared memory (xpbd.fused_tet_kernel)
-        self.tet_solver = "colored"
-        self.tet_block_threads = 64
+        # tet sweep (TET_SOLVERS): "colored" = one launch per graph colour; "fused" = one launch per sweep, a thread
+        # block of tet_block_threads per env with the env's tet particles in shared memory (xpbd.fused_tet_kernel);
+        # "auto" = fused where the particle window fits FUSED_TET_MAX_PARTICLES. 32 threads measured fastest on the
+        # H200 for every task with tets (16 / 32 / 64 / 128 tried; benchmarks/RESULTS.md, "Fused tet sweep")
+        self.tet_solver = "auto"
+        self.tet_block_threads = 32
         self.rng = wp.empty(self.num_envs, dtype=wp.uint32, device=self.device)
         self.unstable = wp.zeros(self.num_envs, dtype=wp.int32, device=self.device)
         self._unstable_now = wp.zeros(self.num_envs, dtype=wp.int32, device=self.device)
@@ -293,6 +297,12 @@ class World:
         need = dt / self.model.max_substep if np.isfinite(self.model.max_substep) else 0.0
         return max(self.MIN_AUTO_SUBSTEPS, int(np.ceil(need - 1e-9)))
 
+    @property
+    def fused_tets(self) -> bool:
+        """Whether the tet sweep runs fused (``tet_solver`` "fused", or "auto" with the window in shared memory)."""
+        return self.tet_solver == "fused" or (self.tet_solver == "auto"
+                                              and self._tet_window[1] <= FUSED_TET_MAX_PARTICLES)
+
     def set_iterations(self, iterations: int) -> None:
         """Change the sweeps per substep (allocates multipliers; not inside a captured graph)."""
         self.iterations = int(iterations)
@@ -320,6 +330,10 @@ class World:
         if self._cmd_key != key:
             if self.tet_solver not in TET_SOLVERS:
                 raise ValueError(f"world.tet_solver must be one of {TET_SOLVERS}, got {self.tet_solver!r}")
+            if self.tet_solver == "fused" and self._tet_window[1] > FUSED_TET_MAX_PARTICLES:
+                raise ValueError(f"world.tet_solver 'fused' keeps the tets' particles in shared memory: this scene's "
+                                 f"window of {self._tet_window[1]} particles exceeds {FUSED_TET_MAX_PARTICLES}; use "
+                                 f"'colored' or 'auto'")
             self._cmds = self._record_step(float(dt))
             self._cmd_key = key
         for cmd in self._cmds:
@@ -432,7 +446,7 @@ class World:
                     lam.get("tet", self._dummy_v2), tet_map, tet_mask, self.tet_rotation_iterations]
         tet_out = [self._tet_rotation if self.tet_rotation_iterations > 0 else self._no_rotation, s.particle_q]
         off = m.tet_color_offsets
-        if m.tet_count and self.tet_solver == "fused":
+        if m.tet_count and self.fused_tets:
             first, count = self._tet_window
             # on the CPU a tiled block has one lane (Warp's CPU tile semantics): the same sweep, in order
             threads = self.tet_block_threads if self.device.is_cuda else 1

@@ -52,5 +52,21 @@ def test_fused_tet_sweep_matches_the_per_colour_launches(device, iterations, rot
 def test_unknown_tet_solver_is_rejected(device):
     world, _ = _scene(device, "colored")
     world.tet_solver = "jacobi"
-    with pytest.raises(ValueError, match="colored.*fused"):
+    with pytest.raises(ValueError, match="auto.*colored.*fused"):
         world.step(0.05)
+
+
+def test_auto_fuses_the_tets_that_fit_shared_memory(device):
+    from lapwarp import world as world_module
+
+    world, _ = _scene(device, "auto")
+    assert world.fused_tets
+    world_module_limit = world_module.FUSED_TET_MAX_PARTICLES
+    try:
+        world_module.FUSED_TET_MAX_PARTICLES = world._tet_window[1] - 1
+        assert not world.fused_tets  # a window too large for shared memory falls back to the per-colour launches
+        world.tet_solver = "fused"
+        with pytest.raises(ValueError, match="shared memory"):
+            world.step(0.05)
+    finally:
+        world_module.FUSED_TET_MAX_PARTICLES = world_module_limit
