@@ -39,12 +39,10 @@ def sync(device: str) -> None:
 
 
 def bench_one(task: str, num_envs: int, device: str, seconds: float, invalid_actions: str, overrides: dict,
-              policy: str = "random", tet_solver: str | None = None, chain_launch: str | None = None) -> dict:
+              policy: str = "random", tet_solver: str | None = None) -> dict:
     env = lapwarp.make(task, num_envs=num_envs, device=device, invalid_actions=invalid_actions, **overrides)
     if tet_solver is not None:
         env.world.tet_solver = tet_solver  # before the first step records (and the env captures) the launches
-    if chain_launch is not None:
-        env.world.cloth_chain_launch = chain_launch
     gen = torch.Generator(device=env.device).manual_seed(0)
     if policy == "expert":
         # The scripted expert acts on the live state every step (its own device work is timed too): this is the
@@ -80,7 +78,6 @@ def bench_one(task: str, num_envs: int, device: str, seconds: float, invalid_act
         "observation_type": env.cfg.observation_type, "cuda_graph": env._use_cuda_graph,
         "resolution": list(env.cfg.image_shape) if env.uses_images else None,
         "tet_solver": ("fused" if env.world.fused_tets else "colored") if env.world.model.tet_count else None,
-        "cloth_chain_launch": env.world.cloth_chain_launch if env.world.model.edge_chains is not None else None,
     }
     env.close()
     return result
@@ -102,8 +99,6 @@ def main(argv: list[str] | None = None) -> int:
                         help="random actions from a pre-drawn pool, or the scripted expert (timed with the step)")
     parser.add_argument("--tet-solver", choices=["auto", "colored", "fused"], default=None,
                         help="the world's tet sweep (default: the world's own choice)")
-    parser.add_argument("--chain-launch", choices=["families", "fused"], default=None,
-                        help="how the cloth's edge-chain families launch (default: the world's own choice)")
     parser.add_argument("--out", default=None, help="JSON output path")
     args = parser.parse_args(argv)
 
@@ -117,8 +112,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{'task':<10} {'num_envs':>9} {'nan mode':>8} {'env-steps/s':>14} {'step ms':>9}")
     for n in args.num_envs:
         for mode in modes:
-            r = bench_one(args.task, n, args.device, args.seconds, mode, overrides, args.policy, args.tet_solver,
-                         args.chain_launch)
+            r = bench_one(args.task, n, args.device, args.seconds, mode, overrides, args.policy, args.tet_solver)
             results.append(r)
             print(f"{r['task']:<10} {n:>9} {mode:>8} {r['env_steps_per_s']:>14,.0f} {r['step_ms']:>9.3f}", flush=True)
     report = {"benchmark": "env_step", "regime": f"env step only, {args.policy} actions", "device": args.device,

@@ -1,13 +1,11 @@
-"""Fused sweeps against the launches they replace, side by side in one process (one JSON line per run).
+"""The fused tet sweep against the per-colour launches, side by side in one process (one JSON line per run).
 
     python benchmarks/bench_fused.py --device cuda:0 --num-envs 4096 --out fused.jsonl \\
-        --tasks GraspLiftAndTouch PrecisionCutting --tet-threads 32 64 --chain-threads 32 64 128
+        --tasks GraspLiftAndTouch ThreadInHole --tet-threads 16 32 64
 
-* Tets: ``world.tet_solver`` "colored" (one launch per colour) against "fused" at each ``--tet-threads`` (threads per
-  env block), on the physics benchmark's 1,008-tet block (3 and 30 kPa, 20 substeps; physics only, CUDA graph) and on
-  each task with tets (whole ``env.step``, random actions, default configuration).
-* Cloth edge chains: ``world.cloth_chain_launch`` "families" against "fused" at each ``--chain-threads``, on the
-  physics benchmark's hanging and pulled cloth (``--cloth-substeps``) and on each task with cloth.
+``world.tet_solver`` "colored" (one launch per colour) against "fused" at each ``--tet-threads`` (threads per env
+block), on the physics benchmark's 1,008-tet block (3 and 30 kPa, 20 substeps; physics only, CUDA graph) and on each
+given task with tets (whole ``env.step``, random actions, default configuration).
 
 Env-steps/s are 4,096 env steps of 0.1 s simulated (physics) or one control step (tasks) per env. Only GPU figures are
 speed claims; on the CPU a block has one lane and the runs only check that everything launches.
@@ -26,11 +24,9 @@ from bench_physics import DT, SCENES, quality
 import lapwarp
 
 
-def _graph_rate(world, device: str, num_envs: int, steps: int, before_step=None) -> float:
+def _graph_rate(world, device: str, num_envs: int, steps: int) -> float:
     """Env-steps/s of ``world.step(DT)`` replayed from a CUDA graph (plain steps on the CPU)."""
-    for k in range(3):
-        if before_step is not None:
-            before_step(k)
+    for _ in range(3):
         world.step(DT)
     wp.synchronize_device(device)
     graph = None
@@ -60,35 +56,15 @@ def physics_runs(args) -> list[dict]:
             runs.append({"scene": scene, "substeps": 20, "variant": solver, "threads": threads,
                          "env_steps_per_s": rate, **quality(scene, world, obj, rest)})
             del world
-    for scene in ("cloth_free", "cloth_cut", "cloth_pulled"):
-        for sub in args.cloth_substeps:
-            for launch, threads in [("families", 0)] + [("fused", t) for t in args.chain_threads]:
-                world, obj, rest, drag = SCENES[scene](args.num_envs, args.device, sub, 1, "chains")
-                world.cloth_chain_launch = launch
-                if threads:
-                    world.chain_block_threads = threads
-                for k in range(args.settle_steps):  # settle (and drag) untimed
-                    if drag is not None:
-                        drag(k + 1)
-                    world.step(DT)
-                rate = _graph_rate(world, args.device, args.num_envs, args.steps)
-                runs.append({"scene": scene, "substeps": sub, "variant": launch, "threads": threads,
-                             "env_steps_per_s": rate, **quality(scene, world, obj, rest)})
-                del world
     return runs
 
 
 def task_run(task: str, variant: str, threads: int, args) -> dict:
     env = lapwarp.make(task, num_envs=args.num_envs, device=args.device, invalid_actions="zero")
     world = env.world
-    if variant in ("colored", "fused") and world.model.tet_count:
-        world.tet_solver = variant
-        if threads:
-            world.tet_block_threads = threads
-    if variant in ("families", "chains-fused"):
-        world.cloth_chain_launch = "families" if variant == "families" else "fused"
-        if threads:
-            world.chain_block_threads = threads
+    world.tet_solver = variant
+    if threads:
+        world.tet_block_threads = threads
     gen = torch.Generator(device=env.device).manual_seed(0)
     if env.is_discrete:
         pool = [torch.randint(0, 2 * env.action_dim + 1, (args.num_envs,), device=env.device, generator=gen)
@@ -109,8 +85,7 @@ def task_run(task: str, variant: str, threads: int, args) -> dict:
     rate = args.num_envs * steps / (time.perf_counter() - start)
     m = world.model
     rec = {"task": task, "variant": variant, "threads": threads, "env_steps_per_s": rate, "tets": m.tet_count,
-           "tet_colors": len(m.tet_color_offsets) - 1,
-           "chain_families": m.edge_chains.num_families if m.edge_chains is not None else None}
+           "tet_colors": len(m.tet_color_offsets) - 1}
     env.close()
     return rec
 
@@ -119,13 +94,10 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--device", default="cuda:0")
     p.add_argument("--num-envs", type=int, default=4096)
-    p.add_argument("--tasks", nargs="*", default=[], choices=lapwarp.list_tasks())
+    p.add_argument("--tasks", nargs="*", default=[], choices=lapwarp.list_tasks(), help="tasks with tets")
     p.add_argument("--tet-threads", type=int, nargs="+", default=[32])
-    p.add_argument("--chain-threads", type=int, nargs="+", default=[64])
-    p.add_argument("--cloth-substeps", type=int, nargs="+", default=[10])
     p.add_argument("--no-physics", action="store_true", help="only the tasks")
     p.add_argument("--steps", type=int, default=20, help="timed physics steps")
-    p.add_argument("--settle-steps", type=int, default=30, help="untimed cloth steps before timing")
     p.add_argument("--seconds", type=float, default=2.0, help="timed seconds per task run")
     p.add_argument("--out", default=None, help="append one JSON line per run to this file")
     args = p.parse_args(argv)
@@ -144,15 +116,7 @@ def main(argv: list[str] | None = None) -> int:
         for rec in physics_runs(args):
             emit(rec)
     for task in args.tasks:
-        probe = lapwarp.make(task, num_envs=1, device="cpu")
-        has_tets, has_chains = probe.world.model.tet_count > 0, probe.world.model.edge_chains is not None
-        probe.close()
-        variants = []
-        if has_tets:
-            variants += [("colored", 0)] + [("fused", t) for t in args.tet_threads]
-        if has_chains:
-            variants += [("families", 0)] + [("chains-fused", t) for t in args.chain_threads]
-        for variant, threads in variants:
+        for variant, threads in [("colored", 0)] + [("fused", t) for t in args.tet_threads]:
             emit(task_run(task, variant, threads, args))
     return 0
 

@@ -150,14 +150,11 @@ def quality(scene: str, world, obj, rest: np.ndarray) -> dict:
 
 
 def run(scene: str, num_envs: int, device: str, substeps: int, iterations: int, edge_solver: str, steps: int,
-        settle: int, newton_steps: int | None = None, block_links: int = 0, tet_solver: str | None = None,
-        chain_launch: str | None = None) -> dict:
+        settle: int, newton_steps: int | None = None, block_links: int = 0, tet_solver: str | None = None) -> dict:
     wp.synchronize_device(device)
     world, obj, rest, drag = SCENES[scene](num_envs, device, substeps or None, iterations, edge_solver)
     if tet_solver is not None:
         world.tet_solver = tet_solver
-    if chain_launch is not None:
-        world.cloth_chain_launch = chain_launch
     if newton_steps:
         world.chain_newton_steps = newton_steps
     world.chain_block_links = block_links
@@ -193,7 +190,6 @@ def run(scene: str, num_envs: int, device: str, substeps: int, iterations: int, 
         "chain_families": m.edge_chains.num_families if m.edge_chains is not None else None,
         "tet_solver": ("fused" if world.fused_tets else "colored") if m.tet_count else None,
         "tethers": m.geo_particles is not None,
-        "cloth_chain_launch": world.cloth_chain_launch if m.edge_chains is not None else None,
         "cuda_graph": graph is not None, "steps_timed": steps,
         "seconds": elapsed,
         "env_steps_per_s": num_envs * steps / elapsed, "unstable_envs": int(world.unstable.numpy().sum()),
@@ -218,8 +214,6 @@ def main() -> None:
                    help="one run per value: 0 = one thread per chain, B >= 2 = blocks of B links")
     p.add_argument("--tet-solver", nargs="+", default=[None], choices=["auto", "colored", "fused"],
                    help="one run per value (tet scenes; default: the world's own choice)")
-    p.add_argument("--chain-launch", nargs="+", default=[None], choices=["families", "fused"],
-                   help="one run per value (cloth scenes; default: the world's own choice)")
     p.add_argument("--steps", type=int, default=30, help="timed env steps")
     p.add_argument("--settle-steps", type=int, default=30, help="untimed env steps before timing")
     p.add_argument("--out", default=None, help="append one JSON line per run to this file")
@@ -234,15 +228,13 @@ def main() -> None:
             for sub in args.substeps:
                 for it in args.iterations:
                     tet_solvers = args.tet_solver if scene.startswith("tet") else [None]
-                    launches = args.chain_launch if scene.startswith("cloth") else [None]
-                    for n, block, tets, cl in itertools.product(args.num_envs, args.chain_block_links, tet_solvers,
-                                                                launches):
+                    for n, block, tets in itertools.product(args.num_envs, args.chain_block_links, tet_solvers):
                         rec = run(scene, n, args.device, sub, it, solver, args.steps, args.settle_steps,
-                                  args.newton_steps, block, tets, cl)
+                                  args.newton_steps, block, tets)
                         quality_text = (f"sag={rec['sag_m']:.3e} m" if "sag_m" in rec else
                                         f"stretch mean={rec['stretch_mean']:.4f} max={rec['stretch_max']:.3f}")
                         print(f"{scene:12s} {str(rec['edge_solver']):8s} envs={n:6d} substeps={rec['substeps']:4d} "
-                              f"iters={it} block={block} tets={rec['tet_solver']} chains={rec['cloth_chain_launch']} "
+                              f"iters={it} block={block} tets={rec['tet_solver']} "
                               f"{rec['env_steps_per_s']:12.1f} env-steps/s  {quality_text}  "
                               f"unstable={rec['unstable_envs']}", flush=True)
                         if args.out:

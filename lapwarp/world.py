@@ -36,8 +36,6 @@ from lapwarp.model import Control, Model, State
 # threads per block, 3.08 ms at 256)
 #: the tet sweeps ``World.tet_solver`` may name
 TET_SOLVERS = ("auto", "colored", "fused")
-#: how the cloth's edge-chain families launch (``World.cloth_chain_launch``)
-CHAIN_LAUNCHES = ("families", "fused")
 #: the largest tet particle window the fused sweep keeps in shared memory (12 B each: 48 KB, the static limit)
 FUSED_TET_MAX_PARTICLES = 4096
 
@@ -137,10 +135,6 @@ class World:
         # chain (kernels/chains.py); B > 1 = the partitioned solve (kernels/chains_partitioned.py), blocks of B links
         # side by side plus a serial pass over the m / B separators, for few long chains (a rope per env on the GPU)
         self.chain_block_links = 0
-        # cloth edge chains (one thread per chain): "families" = one launch per family; "fused" = one launch per
-        # sweep, a block of chain_block_threads per env walking the families with a barrier between them
-        self.cloth_chain_launch = "families"
-        self.chain_block_threads = 64
         # tets' rotation: warm-started extraction iterations per projection (0 = SVD polar decomposition)
         self.tet_rotation_iterations = 2
         # tet sweep (TET_SOLVERS): "colored" = one launch per graph colour; "fused" = one launch per sweep, a thread
@@ -332,12 +326,8 @@ class World:
         if self.model.particle_count == 0:
             return
         key = (float(dt), self.substeps_for(float(dt)), self.iterations, self.rod_newton_steps, self.chain_newton_steps,
-               self.tet_rotation_iterations, self.chain_block_links, self.tet_solver, self.tet_block_threads,
-               self.cloth_chain_launch, self.chain_block_threads)
+               self.tet_rotation_iterations, self.chain_block_links, self.tet_solver, self.tet_block_threads)
         if self._cmd_key != key:
-            if self.cloth_chain_launch not in CHAIN_LAUNCHES:
-                raise ValueError(f"world.cloth_chain_launch must be one of {CHAIN_LAUNCHES}, got "
-                                 f"{self.cloth_chain_launch!r}")
             if self.tet_solver not in TET_SOLVERS:
                 raise ValueError(f"world.tet_solver must be one of {TET_SOLVERS}, got {self.tet_solver!r}")
             if self.tet_solver == "fused" and self._tet_window[1] > FUSED_TET_MAX_PARTICLES:
@@ -433,13 +423,6 @@ class World:
                                                     mask, lam_arr, use_lam, newton_steps, inv_dt2)
                     chains_partitioned.record_family(launch, n, fam, blocks, sc, s.particle_q)
                 return
-            if kernel is chains.solve_cloth_chains and self.cloth_chain_launch == "fused":
-                threads = self.chain_block_threads if self.device.is_cuda else 1
-                launch(chains.solve_cloth_chain_families, (n, threads),
-                       [self._family_table(cs), cs.edge_count, cs.closed, cs.node, cs.constraint, rest, compliance,
-                        w_eff, inv_dt2, use_lam, newton_steps, lam_arr, *scratch, mask], [s.particle_q],
-                       block_dim=threads)
-                return
             # one launch per family of chains that share no node (Gauss-Seidel across families)
             for first, count, link_base, node_base in cs.families:
                 launch(kernel, (n, count),
@@ -507,14 +490,6 @@ class World:
             launch(xpbd.solve_attachments, n,
                    [s.attach_particle, s.attach_body, s.attach_offset, s.attach_compliance, bqp, bq, blend,
                     m.particle_inv_mass, inv_dt2], [s.particle_q])
-
-    def _family_table(self, cs) -> wp.array:
-        """``cs.families`` (first chain, chains, link base, node base per family) as a device array, made once."""
-        tables = self.__dict__.setdefault("_family_tables", {})
-        if id(cs) not in tables:
-            tables[id(cs)] = wp.array(np.asarray(cs.families, dtype=np.int32).reshape(-1, 4), dtype=wp.vec4i,
-                                      device=self.device)
-        return tables[id(cs)]
 
     #: sweep rounds (four orders each) of the geodesic tethers' distances per step while an env's are not final
     GEODESIC_ROUNDS_PER_STEP = 2

@@ -86,10 +86,8 @@ def node_row(n_prev: wp.vec3, dl_prev: float, k_prev: float, n_j: wp.vec3, dl_j:
     return lo, 1.0 - lo - up, up, dx - par, par
 
 
-@wp.func
-def solve_chain(
-    env: int,
-    i: int,
+@wp.kernel
+def solve_chains(
     family_start: int,
     stride: int,
     link_base: int,
@@ -115,7 +113,7 @@ def solve_chain(
     active: wp.array2d(dtype=wp.int32),
     q: wp.array2d(dtype=wp.vec3),
 ):
-    """Chain ``family_start + i`` of env ``env``: ``newton_steps`` direct solves (below), positions updated in place."""
+    env, i = wp.tid()
     r = family_start + i  # chain index
     # link k of this chain at slot s0 + k * stride, node j at nb + j * stride: the chains of a family are interleaved
     # (link-major), so the threads of a warp, walking their chains in step, touch neighbouring memory
@@ -307,87 +305,8 @@ def solve_chain(
                 q[env, chain_node[nb + j * stride]] = node_par[env, nb + j * stride] + y
 
 
-@wp.kernel
-def solve_chains(
-    family_start: int,
-    stride: int,
-    link_base: int,
-    node_base: int,
-    chain_edge_count: wp.array(dtype=wp.int32),
-    chain_closed: wp.array(dtype=wp.int32),
-    chain_node: wp.array(dtype=wp.int32),
-    chain_constraint: wp.array(dtype=wp.int32),
-    rest: wp.array(dtype=float),
-    compliance: wp.array2d(dtype=float),
-    inv_mass: wp.array2d(dtype=float),
-    inv_dt2: float,
-    use_lambda: int,
-    newton_steps: int,
-    lam: wp.array2d(dtype=float),
-    scratch_l: wp.array2d(dtype=float),
-    scratch_c: wp.array2d(dtype=float),
-    scratch_d: wp.array2d(dtype=float),
-    scratch_e: wp.array2d(dtype=float),
-    node_c: wp.array2d(dtype=float),
-    node_d: wp.array2d(dtype=wp.vec3),
-    node_par: wp.array2d(dtype=wp.vec3),
-    active: wp.array2d(dtype=wp.int32),
-    q: wp.array2d(dtype=wp.vec3),
-):
-    """One family of chains, one thread per (env, chain)."""
-    env, i = wp.tid()
-    solve_chain(env, i, family_start, stride, link_base, node_base, chain_edge_count, chain_closed, chain_node,
-            chain_constraint, rest, compliance, inv_mass, inv_dt2, use_lambda, newton_steps, lam, scratch_l,
-            scratch_c, scratch_d, scratch_e, node_c, node_d, node_par, active, q)
-
-
-@wp.kernel
-def solve_chain_families(
-    families: wp.array(dtype=wp.vec4i),
-    chain_edge_count: wp.array(dtype=wp.int32),
-    chain_closed: wp.array(dtype=wp.int32),
-    chain_node: wp.array(dtype=wp.int32),
-    chain_constraint: wp.array(dtype=wp.int32),
-    rest: wp.array(dtype=float),
-    compliance: wp.array2d(dtype=float),
-    inv_mass: wp.array2d(dtype=float),
-    inv_dt2: float,
-    use_lambda: int,
-    newton_steps: int,
-    lam: wp.array2d(dtype=float),
-    scratch_l: wp.array2d(dtype=float),
-    scratch_c: wp.array2d(dtype=float),
-    scratch_d: wp.array2d(dtype=float),
-    scratch_e: wp.array2d(dtype=float),
-    node_c: wp.array2d(dtype=float),
-    node_d: wp.array2d(dtype=wp.vec3),
-    node_par: wp.array2d(dtype=wp.vec3),
-    active: wp.array2d(dtype=wp.int32),
-    q: wp.array2d(dtype=wp.vec3),
-):
-    """Every family of a chain set in one launch: a thread block per env walks the families in order (first chain,
-    chains, link base, node base per row of ``families``), its threads taking the family's chains in chunks of
-    ``block_dim``, with a block barrier between families (Gauss-Seidel across them, as the per-family launches).
-    Removes two of every three launches of a cloth's sweep and keeps the env's positions in the SM's L1 across the
-    families; on the CPU a block has one lane (the same solves, in order)."""
-    env, lane = wp.tid()
-    lanes = wp.block_dim()
-    barrier = wp.tile_zeros(shape=1, dtype=int, storage="shared")
-    for f in range(families.shape[0]):
-        fam = families[f]
-        for base in range(0, fam[1], lanes):
-            if base + lane < fam[1]:
-                solve_chain(env, base + lane, fam[0], fam[1], fam[2], fam[3], chain_edge_count, chain_closed,
-                        chain_node, chain_constraint, rest, compliance, inv_mass, inv_dt2, use_lambda, newton_steps,
-                        lam, scratch_l, scratch_c, scratch_d, scratch_e, node_c, node_d, node_par, active, q)
-        # a barrier (nothing written): the next family reads the positions this one moved
-        wp.tile_scatter_masked(barrier, 0, 0, False)
-
-
 # The same solve capped at 96 registers per thread (from 148; a few values spill to local memory). A cloth launches
 # hundreds of chains per env, enough warps to hide the spills, and more of them fit an SM: on the H100 at 4,096 envs
 # the 40 x 40 cloth's chain families take 2.26 ms per substep instead of 2.77 (cloth_free, 10 substeps: 101.7k ->
 # 116.1k env-steps/s). A rod's few long chains are latency-bound and lose 5 % with the cap, so they keep solve_chains.
 solve_cloth_chains = wp.kernel(solve_chains.func, cuda_max_registers=96, module="unique", enable_backward=False)
-solve_cloth_chain_families = wp.kernel(solve_chain_families.func, cuda_max_registers=96, module="unique",
-                                       enable_backward=False)
