@@ -122,6 +122,11 @@ class ContactSystem:
         self.num_envs = world.num_envs
         self.capacity = int(capacity)
         self.report_margin = float(report_margin)
+        # triangle contact: "colored" = one launch per colour of triangles; "fused" = every colour in one launch, a
+        # thread block of triangle_block_threads per env with a barrier between colours (ck.collide_triangle_colors);
+        # read when the World records a step (record_key)
+        self.triangle_sweep = "fused"
+        self.triangle_block_threads = 32
         self.shapes: list[Shape] = []
         self.groups: list[ParticleGroup] = []
         self.self_sets: list[dict] = []
@@ -432,6 +437,7 @@ class ContactSystem:
                                           lo=wp.zeros(n, dtype=wp.vec3, device=dev),
                                           hi=wp.zeros(n, dtype=wp.vec3, device=dev))
             self._tri_pad = float(np.concatenate(trad).max())
+            self._tri_color_table = arr(np.asarray(self.tri_color_offsets, dtype=np.int32), wp.int32)
         self.tri_col = self._no_col
         if tris and any(g.tri_col is not None for g in self.groups if g.triangles is not None):
             cols = [g.tri_col if g.tri_col is not None else np.full(len(g.triangles), -1)
@@ -549,6 +555,15 @@ class ContactSystem:
                                             force_scale=1.0 / (h * h * sweep.substeps))
         return self._solves[key]
 
+    #: the triangle sweeps ``triangle_sweep`` may name
+    TRIANGLE_SWEEPS = ("colored", "fused")
+
+    def record_key(self) -> tuple:
+        """The settings the recorded launches depend on (the World records a step again when they change)."""
+        if self.triangle_sweep not in self.TRIANGLE_SWEEPS:
+            raise ValueError(f"triangle_sweep must be one of {self.TRIANGLE_SWEEPS}, got {self.triangle_sweep!r}")
+        return (self.triangle_sweep, int(self.triangle_block_threads))
+
     def record_sweep(self, world, launch, sweep) -> None:
         """Record the contact projections of one sweep (called by the World while it records a step)."""
         n, q = self.num_envs, world.state.particle_q
@@ -567,9 +582,15 @@ class ContactSystem:
         off = self.tri_color_offsets
         if len(off) > 1:
             launch(ck.compute_tool_axes, n, [shapes, motion, self._tri_pad], [self._tool_axes])
-        for c in range(len(off) - 1):
-            launch(ck.collide_triangles, (n, off[c + 1] - off[c]),
-                   [self._triangles, off[c], shapes, motion, self._tool_axes, solve, ignore, masks], [q, reports])
+        if len(off) > 1 and self.triangle_sweep == "fused":
+            threads = self.triangle_block_threads if self.device.is_cuda else 1  # one lane per block on the CPU
+            launch(ck.collide_triangle_colors, (n, threads),
+                   [self._triangles, self._tri_color_table, shapes, motion, self._tool_axes, solve, ignore, masks],
+                   [q, reports], block_dim=threads)
+        elif len(off) > 1:
+            for c in range(len(off) - 1):
+                launch(ck.collide_triangles, (n, off[c + 1] - off[c]),
+                       [self._triangles, off[c], shapes, motion, self._tool_axes, solve, ignore, masks], [q, reports])
         for sf in self._surfaces:
             launch(sf["mesh"].refit)  # BVH bounds of the surface as it is now (after this sweep's constraints)
             launch(ck.collide_surface, (n, len(self.cp_particle)),

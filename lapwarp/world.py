@@ -326,7 +326,8 @@ class World:
         if self.model.particle_count == 0:
             return
         key = (float(dt), self.substeps_for(float(dt)), self.iterations, self.rod_newton_steps, self.chain_newton_steps,
-               self.tet_rotation_iterations, self.chain_block_links, self.tet_solver, self.tet_block_threads)
+               self.tet_rotation_iterations, self.chain_block_links, self.tet_solver, self.tet_block_threads,
+               *(solver.record_key() for solver in self.solvers if hasattr(solver, "record_key")))
         if self._cmd_key != key:
             if self.tet_solver not in TET_SOLVERS:
                 raise ValueError(f"world.tet_solver must be one of {TET_SOLVERS}, got {self.tet_solver!r}")

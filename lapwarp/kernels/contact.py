@@ -505,10 +505,11 @@ def compute_tool_axes(shapes: ShapeTable, motion: BodyMotion, pad: float, axes: 
     axes.hi[env] = hi + wp.vec3(pad)
 
 
-@wp.kernel
-def collide_triangles(
+@wp.func
+def collide_triangle(
+    env: int,
+    k: int,
     triangles: ContactTriangles,
-    start: int,
     shapes: ShapeTable,
     motion: BodyMotion,
     axes: ToolAxes,
@@ -518,11 +519,9 @@ def collide_triangles(
     q: wp.array2d(dtype=wp.vec3),
     reports: ContactReports,
 ):
-    # One launch per colour of triangles (a colour shares no vertex): a tool resting on a triangle's interior is
-    # seen even where no vertex is near it, so a capsule moving ~its radius per substep cannot slip between
-    # the vertices of a tensioned sheet (vertex-only contact let it through at 1 mm per substep).
-    env, k0 = wp.tid()
-    k = start + k0
+    """Triangle ``k`` of env ``env`` against the env's tools (capsules), over its interior: a tool resting on a
+    triangle's interior is seen even where no vertex is near it, so a capsule moving ~its radius per substep cannot
+    slip between the vertices of a tensioned sheet (vertex-only contact let it through at 1 mm per substep)."""
     if masks.tri_col.shape[0] > 0:
         # cuttable objects: tri_col >= 0 is a cloth triangle (tri_active), <= -2 the tet face -2 - tri_col
         # (tet_face_active: only faces on the current surface collide), -1 always collides
@@ -600,6 +599,53 @@ def collide_triangles(
     q[env, tri[0]] = x0
     q[env, tri[1]] = x1
     q[env, tri[2]] = x2
+
+
+@wp.kernel
+def collide_triangles(
+    triangles: ContactTriangles,
+    start: int,
+    shapes: ShapeTable,
+    motion: BodyMotion,
+    axes: ToolAxes,
+    solve: ParticleSolve,
+    ignore: IgnoreMask,
+    masks: CutMasks,
+    q: wp.array2d(dtype=wp.vec3),
+    reports: ContactReports,
+):
+    """One colour of triangles (a colour shares no vertex), one thread per (env, triangle)."""
+    env, k0 = wp.tid()
+    collide_triangle(env, start + k0, triangles, shapes, motion, axes, solve, ignore, masks, q, reports)
+
+
+@wp.kernel
+def collide_triangle_colors(
+    triangles: ContactTriangles,
+    color_offsets: wp.array(dtype=wp.int32),
+    shapes: ShapeTable,
+    motion: BodyMotion,
+    axes: ToolAxes,
+    solve: ParticleSolve,
+    ignore: IgnoreMask,
+    masks: CutMasks,
+    q: wp.array2d(dtype=wp.vec3),
+    reports: ContactReports,
+):
+    """Every colour in one launch: a thread block per env takes each colour's triangles in chunks of ``block_dim``,
+    with a block barrier between colours (Gauss-Seidel across them, as one launch per colour). A colour is small
+    (TissueDissection's tissue surfaces are 46 colours per sweep) and most of its triangles are culled at once, so the
+    per-colour launches were nearly all fixed cost. On the CPU a block has one lane: the same triangles in order."""
+    env, lane = wp.tid()
+    lanes = wp.block_dim()
+    barrier = wp.tile_zeros(shape=1, dtype=int, storage="shared")
+    for c in range(color_offsets.shape[0] - 1):
+        end = color_offsets[c + 1]
+        for base in range(color_offsets[c], end, lanes):
+            if base + lane < end:
+                collide_triangle(env, base + lane, triangles, shapes, motion, axes, solve, ignore, masks, q, reports)
+        # nothing written: a barrier, so the next colour reads the positions this one moved
+        wp.tile_scatter_masked(barrier, 0, 0, False)
 
 
 @wp.kernel
