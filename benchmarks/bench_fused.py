@@ -51,8 +51,7 @@ def _graph_rate(world, device: str, num_envs: int, steps: int) -> float:
 def physics_runs(args) -> list[dict]:
     runs = []
     for scene in ("tet", "tet_stiff"):
-        for solver, threads in ([("colored", 0)] + [("fused", t) for t in args.tet_threads]
-                                + [("fused_global", t) for t in args.tet_threads]):
+        for solver, threads in [("colored", 0)] + [("fused", t) for t in args.tet_threads]:
             world, obj, rest, _ = SCENES[scene](args.num_envs, args.device, 20, 1, "chains")
             world.tet_solver = solver
             if threads:
@@ -138,7 +137,6 @@ def main(argv: list[str] | None = None) -> int:
         variants = []
         if probe.world.model.tet_count:
             variants += [("tets-colored", 0)] + [("tets-fused", t) for t in args.tet_threads]
-            variants += [("tets-fused_global", t) for t in args.tet_threads]
         if _triangle_colors(probe.world):
             variants += [("triangles-colored", 0)] + [("triangles-fused", t) for t in args.triangle_threads]
         probe.close()

@@ -35,7 +35,7 @@ from lapwarp.model import Control, Model, State
 # file, in blocks of 64 six do (measured on the H100: the cloth's three chain families take 2.77 ms per substep at 64
 # threads per block, 3.08 ms at 256)
 #: the tet sweeps ``World.tet_solver`` may name
-TET_SOLVERS = ("auto", "colored", "fused", "fused_global")
+TET_SOLVERS = ("auto", "colored", "fused")
 #: the largest tet particle window the fused sweep keeps in shared memory (12 B each: 48 KB, the static limit)
 FUSED_TET_MAX_PARTICLES = 4096
 
@@ -300,7 +300,7 @@ class World:
     @property
     def fused_tets(self) -> bool:
         """Whether the tet sweep runs fused (``tet_solver`` "fused", or "auto" with the window in shared memory)."""
-        return self.tet_solver in ("fused", "fused_global") or (self.tet_solver == "auto"
+        return self.tet_solver == "fused" or (self.tet_solver == "auto"
                                               and self._tet_window[1] <= FUSED_TET_MAX_PARTICLES)
 
     def set_iterations(self, iterations: int) -> None:
@@ -451,8 +451,8 @@ class World:
             first, count = self._tet_window
             # on the CPU a tiled block has one lane (Warp's CPU tile semantics): the same sweep, in order
             threads = self.tet_block_threads if self.device.is_cuda else 1
-            kernel = xpbd.solve_tet_colors if self.tet_solver == "fused_global" else xpbd.fused_tet_kernel(count)
-            launch(kernel, (n, threads), [self._tet_color_offsets, first, *tet_args], tet_out, block_dim=threads)
+            launch(xpbd.fused_tet_kernel(count), (n, threads), [self._tet_color_offsets, first, *tet_args], tet_out,
+                   block_dim=threads)
         else:
             for c in range(len(off) - 1):
                 launch(xpbd.solve_tets, (n, off[c + 1] - off[c]), [off[c], *tet_args], tet_out)

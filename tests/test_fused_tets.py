@@ -36,18 +36,17 @@ def _scene(device, solver, iterations=1, rotation_iterations=2, cut=False):
 @pytest.mark.parametrize("iterations,rotation_iterations,cut", [(1, 2, False), (2, 0, False), (1, 2, True)])
 def test_fused_tet_sweep_matches_the_per_colour_launches(device, iterations, rotation_iterations, cut):
     result = {}
-    for solver in ("colored", "fused", "fused_global"):
+    for solver in ("colored", "fused"):
         world, block = _scene(device, solver, iterations, rotation_iterations, cut)
         for _ in range(4):
             world.step(0.05)
         result[solver] = world.positions(block)
     sag = -result["colored"][..., 2].min()
     assert sag > 1e-3  # the free end hangs: the comparison is not between two resting blocks
-    for fused in ("fused", "fused_global"):
-        if device == "cpu":
-            np.testing.assert_array_equal(result[fused], result["colored"])
-        else:
-            np.testing.assert_allclose(result[fused], result["colored"], atol=1e-6 * 0.04 + 1e-3 * sag)
+    if device == "cpu":
+        np.testing.assert_array_equal(result["fused"], result["colored"])
+    else:
+        np.testing.assert_allclose(result["fused"], result["colored"], atol=1e-6 * 0.04 + 1e-3 * sag)
 
 
 def test_unknown_tet_solver_is_rejected(device):

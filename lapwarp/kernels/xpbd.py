@@ -365,10 +365,9 @@ def tet_projection(
             (d3 * dlD + h3 * dlH) * w3)
 
 
-@wp.func
-def solve_tet(
-    env: int,
-    c: int,
+@wp.kernel
+def solve_tets(
+    start: int,
     indices: wp.array(dtype=wp.vec4i),
     inv_rest: wp.array(dtype=wp.mat33),
     params: wp.array2d(dtype=wp.vec3),
@@ -382,7 +381,9 @@ def solve_tet(
     tet_rotation: wp.array2d(dtype=wp.quat),
     q: wp.array2d(dtype=wp.vec3),
 ):
-    """Project tet ``c`` (colour-ordered) of env ``env`` in place."""
+    """The tets of one graph colour, one thread per (env, tet)."""
+    env, t = wp.tid()
+    c = start + t
     if tet_element.shape[0] > 0:
         if tet_active[env, tet_element[c]] == 0:
             return
@@ -416,60 +417,6 @@ def solve_tet(
     q[env, k[1]] = x1 + dx1
     q[env, k[2]] = x2 + dx2
     q[env, k[3]] = x3 + dx3
-
-
-@wp.kernel
-def solve_tets(
-    start: int,
-    indices: wp.array(dtype=wp.vec4i),
-    inv_rest: wp.array(dtype=wp.mat33),
-    params: wp.array2d(dtype=wp.vec3),
-    inv_mass: wp.array2d(dtype=float),
-    inv_dt2: float,
-    use_lambda: int,
-    lam: wp.array2d(dtype=wp.vec2),
-    tet_element: wp.array(dtype=wp.int32),
-    tet_active: wp.array2d(dtype=wp.int32),
-    rotation_iterations: int,
-    tet_rotation: wp.array2d(dtype=wp.quat),
-    q: wp.array2d(dtype=wp.vec3),
-):
-    """The tets of one graph colour, one thread per (env, tet)."""
-    env, t = wp.tid()
-    solve_tet(env, start + t, indices, inv_rest, params, inv_mass, inv_dt2, use_lambda, lam, tet_element, tet_active,
-              rotation_iterations, tet_rotation, q)
-
-
-@wp.kernel
-def solve_tet_colors(
-    color_offsets: wp.array(dtype=wp.int32),
-    first: int,
-    indices: wp.array(dtype=wp.vec4i),
-    inv_rest: wp.array(dtype=wp.mat33),
-    params: wp.array2d(dtype=wp.vec3),
-    inv_mass: wp.array2d(dtype=float),
-    inv_dt2: float,
-    use_lambda: int,
-    lam: wp.array2d(dtype=wp.vec2),
-    tet_element: wp.array(dtype=wp.int32),
-    tet_active: wp.array2d(dtype=wp.int32),
-    rotation_iterations: int,
-    tet_rotation: wp.array2d(dtype=wp.quat),
-    q: wp.array2d(dtype=wp.vec3),
-):
-    """Every colour in one launch with the positions left in global memory: a block per env, one barrier per colour
-    (the shared-memory kernel below needs one per written corner and chunk). ``first`` is unused (the same
-    arguments as the shared-memory kernel)."""
-    env, lane = wp.tid()
-    lanes = wp.block_dim()
-    barrier = wp.tile_zeros(shape=1, dtype=int, storage="shared")
-    for col in range(color_offsets.shape[0] - 1):
-        end = color_offsets[col + 1]
-        for base in range(color_offsets[col], end, lanes):
-            if base + lane < end:
-                solve_tet(env, base + lane, indices, inv_rest, params, inv_mass, inv_dt2, use_lambda, lam, tet_element,
-                          tet_active, rotation_iterations, tet_rotation, q)
-        wp.tile_scatter_masked(barrier, 0, 0, False)
 
 
 _FUSED_TET_KERNELS: dict = {}
