@@ -374,6 +374,8 @@ class ContactSystem:
                                        thickness=self.shape_thickness, mu=self.shape_mu, pair_index=self.pair_index)
 
         cp = [g.particles for g in self.groups]
+        cp_all = np.concatenate(cp).astype(np.int64) if cp else np.zeros(0, np.int64)
+        cp_groups = np.concatenate([np.full(len(g.particles), k) for k, g in enumerate(self.groups)]) if cp else []
         self.cp_particle = arr(np.concatenate(cp).astype(np.int32) if cp else np.zeros(0, np.int32), wp.int32)
         self.cp_group = arr(np.concatenate([np.full(len(g.particles), k) for k, g in enumerate(self.groups)])
                             .astype(np.int32) if cp else np.zeros(0, np.int32), wp.int32)
@@ -467,7 +469,12 @@ class ContactSystem:
                 face_mask = self.tri_mask if sh.surface["kind"] == "cloth" else self.face_mask
             # thickness and friction: the kernel reads the surface's own row of the shape table
             owner = sh.surface["owner"]
-            self._surfaces.append(dict(mesh=mesh, verts=arr(verts.astype(np.int32), wp.int32), surface=make_struct(
+            # the contact particles that can touch this surface (their group pairs with it, not its own vertices):
+            # the launch covers only them, not every contact particle (LigatingLoop: ~50 loop nodes, not 800)
+            cand = np.nonzero((pair[sidx, np.asarray(cp_groups, dtype=np.int64)] >= 0)
+                              & ~((cp_all >= owner[0]) & (cp_all < owner[1])))[0] if len(cp_all) else []
+            self._surfaces.append(dict(mesh=mesh, verts=arr(verts.astype(np.int32), wp.int32),
+                                       candidates=arr(np.asarray(cand, dtype=np.int32), wp.int32), surface=make_struct(
                 ck.ContactSurface, shape=sidx, mesh=mesh.id, tris=arr(t.astype(np.int32), wp.vec3i),
                 owner_start=int(owner[0]), owner_end=int(owner[1]), closed=int(sh.surface["closed"]),
                 face_col=face_col, face_active=face_mask)))
@@ -593,8 +600,10 @@ class ContactSystem:
                        [self._triangles, off[c], shapes, motion, self._tool_axes, solve, ignore, masks], [q, reports])
         for sf in self._surfaces:
             launch(sf["mesh"].refit)  # BVH bounds of the surface as it is now (after this sweep's constraints)
-            launch(ck.collide_surface, (n, len(self.cp_particle)),
-                   [self._particles, sf["surface"], shapes, solve, masks, report, self.report_margin],
+            if len(sf["candidates"]) == 0:
+                continue
+            launch(ck.collide_surface, (n, len(sf["candidates"])),
+                   [self._particles, sf["candidates"], sf["surface"], shapes, solve, masks, report, self.report_margin],
                    [q, self.surf_delta, self.surf_count, reports])
             launch(ck.apply_surface_deltas, (n, sf["verts"].shape[0]), [sf["verts"], self.surf_delta,
                                                                         self.surf_count], [q])

@@ -651,6 +651,7 @@ def collide_triangle_colors(
 @wp.kernel
 def collide_surface(
     particles: ContactParticles,
+    candidates: wp.array(dtype=wp.int32),
     surface: ContactSurface,
     shapes: ShapeTable,
     solve: ParticleSolve,
@@ -666,7 +667,9 @@ def collide_surface(
     # holds every env's triangles over the flat view of state.particle_q (group = env), refit just before
     # this launch; the query starts at this env's subtree so envs never see each other although all of them
     # sit at the origin. Two-way: the triangle's share of the correction goes to surf_delta (averaged later).
-    env, k = wp.tid()
+    # ``candidates``: the contact particles whose group pairs with this surface, minus its own vertices.
+    env, k0 = wp.tid()
+    k = candidates[k0]
     g = particles.group[k]
     pair = shapes.pair_index[surface.shape, g]
     if pair < 0:
