@@ -90,6 +90,23 @@ class ParticleGroup:
     tri_col: np.ndarray | None = None
 
 
+def _bounding_radius(shape: Shape) -> float:
+    """Radius about the shape's local origin that holds all of it (``inf``: planes, meshes and surfaces, never
+    culled by it). Rounded up by 1e-6 m and 1e-4 relative so the float32 cull never drops a touching particle."""
+    r, h, z = (list(shape.params) + [0.0, 0.0, 0.0])[:3]
+    if shape.kind == "sphere":
+        bound = r
+    elif shape.kind == "capsule":
+        bound = h + r
+    elif shape.kind == "box":
+        bound = float(np.linalg.norm([r, h, z]))
+    elif shape.kind == "cylinder":
+        bound = float(np.hypot(r, h))
+    else:
+        return float("inf")
+    return bound * (1.0 + 1.0e-4) + 1.0e-6
+
+
 class ContactSystem:
     """Contact between the particles of a World and colliders, plus particle-particle contact.
 
@@ -369,6 +386,11 @@ class ContactSystem:
         if S == 0:  # no shapes: the kernels loop over nothing
             self.shape_kind = wp.zeros(0, dtype=wp.int32, device=dev)
         self.pair_index = arr(pair, wp.int32)
+        S1 = max(S, 1)
+        self._shape_poses = make_struct(ck.ShapePoses, tf=wp.zeros((n, S1), dtype=wp.transform, device=dev),
+                                        tf_inv=wp.zeros((n, S1), dtype=wp.transform, device=dev),
+                                        bound=arr(np.array([_bounding_radius(s) for s in self.shapes] or [0.0],
+                                                           np.float32), float))
         self.shape_table = make_struct(ck.ShapeTable, kind=self.shape_kind, body=self.shape_body,
                                        local=self.shape_local, params=self.shape_params, mesh=self.shape_mesh,
                                        thickness=self.shape_thickness, mu=self.shape_mu, pair_index=self.pair_index)
@@ -580,8 +602,11 @@ class ContactSystem:
         shapes, motion, solve = self.shape_table, self.body_motion(world, sweep), self._particle_solve(world, sweep)
         ignore, masks, reports = self.ignore, self._cut_masks, self.reports
         if len(self.cp_particle):
+            if len(self.shapes):
+                launch(ck.pose_shapes, (n, len(self.shapes)), [shapes, motion], [self._shape_poses])
             launch(ck.collide_particles, (n, len(self.cp_particle)),
-                   [self._particles, shapes, motion, solve, ignore, masks, report, self.report_margin], [q, reports])
+                   [self._particles, shapes, motion, self._shape_poses, solve, ignore, masks, report,
+                    self.report_margin], [q, reports])
         off = self.seg_color_offsets
         for c in range(len(off) - 1):
             launch(ck.collide_segments, (n, off[c + 1] - off[c]),

@@ -334,11 +334,32 @@ def shape_axis_end(shapes: ShapeTable, s: int, tf: wp.transform, side: float):
 # ----------------------------------------------------------------------------------------------------
 
 
+@wp.struct
+class ShapePoses:
+    """Every shape's world pose and inverse at the end of the current substep, per env (``pose_shapes``, once per
+    sweep), and its bounding radius about its local origin (``inf`` for planes and meshes: never culled)."""
+
+    tf: wp.array2d(dtype=wp.transform)
+    tf_inv: wp.array2d(dtype=wp.transform)
+    bound: wp.array(dtype=float)
+
+
+@wp.kernel
+def pose_shapes(shapes: ShapeTable, motion: BodyMotion, poses: ShapePoses):
+    """The substep's shape poses, once per (env, shape) instead of once per (particle, shape): a pose interpolates
+    the body's motion (a slerp), which ``collide_particles`` did for every particle against every shape."""
+    env, s = wp.tid()
+    tf = shape_pose(shapes, s, env, motion, motion.blend)
+    poses.tf[env, s] = tf
+    poses.tf_inv[env, s] = wp.transform_inverse(tf)
+
+
 @wp.kernel
 def collide_particles(
     particles: ContactParticles,
     shapes: ShapeTable,
     motion: BodyMotion,
+    poses: ShapePoses,
     solve: ParticleSolve,
     ignore: IgnoreMask,
     masks: CutMasks,
@@ -368,8 +389,12 @@ def collide_particles(
         if passes_through(shapes, s, ignore_bits):
             continue
         reach = r + shapes.thickness[s]
-        tf = shape_pose(shapes, s, env, motion, motion.blend)
-        pl = wp.transform_point(wp.transform_inverse(tf), x)
+        tf = poses.tf[env, s]
+        # exact cull: beyond the shape's bounding sphere by more than reach + report margin there is neither contact
+        # nor a report (pen <= -report_margin below)
+        if wp.length(x - wp.transform_get_translation(tf)) > poses.bound[s] + reach + report_margin:
+            continue
+        pl = wp.transform_point(poses.tf_inv[env, s], x)
         nd = sdf_local(shapes.kind[s], shapes.params[s], shapes.mesh[s], pl, reach + report_margin + 1.0e-3)
         d = nd[3]
         pen = reach - d
