@@ -601,16 +601,16 @@ class ContactSystem:
         report = 1 if sweep.last else 0
         shapes, motion, solve = self.shape_table, self.body_motion(world, sweep), self._particle_solve(world, sweep)
         ignore, masks, reports = self.ignore, self._cut_masks, self.reports
+        if len(self.shapes):
+            launch(ck.pose_shapes, (n, len(self.shapes)), [shapes, motion], [self._shape_poses])
         if len(self.cp_particle):
-            if len(self.shapes):
-                launch(ck.pose_shapes, (n, len(self.shapes)), [shapes, motion], [self._shape_poses])
             launch(ck.collide_particles, (n, len(self.cp_particle)),
                    [self._particles, shapes, motion, self._shape_poses, solve, ignore, masks, report,
                     self.report_margin], [q, reports])
         off = self.seg_color_offsets
         for c in range(len(off) - 1):
             launch(ck.collide_segments, (n, off[c + 1] - off[c]),
-                   [self._segments, off[c], shapes, motion, solve, ignore, masks], [q, reports])
+                   [self._segments, off[c], shapes, motion, self._shape_poses, solve, ignore, masks], [q, reports])
         off = self.tri_color_offsets
         if len(off) > 1:
             launch(ck.compute_tool_axes, n, [shapes, motion, self._tri_pad], [self._tool_axes])

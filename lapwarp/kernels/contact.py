@@ -429,6 +429,7 @@ def collide_segments(
     start: int,
     shapes: ShapeTable,
     motion: BodyMotion,
+    poses: ShapePoses,
     solve: ParticleSolve,
     ignore: IgnoreMask,
     masks: CutMasks,
@@ -462,7 +463,11 @@ def collide_segments(
             continue
         if passes_through(shapes, s, ignore_bits):
             continue
-        tf = shape_pose(shapes, s, env, motion, motion.blend)
+        tf = poses.tf[env, s]
+        # exact cull: the segment's bounding sphere against the shape's
+        reach = segments.radius[k] + shapes.thickness[s] + poses.bound[s] + 0.5 * wp.length(xb - xa)
+        if wp.length(0.5 * (xa + xb) - wp.transform_get_translation(tf)) > reach:
+            continue
         c0 = shape_axis_end(shapes, s, tf, -1.0)
         c1 = shape_axis_end(shapes, s, tf, 1.0)
         st = closest_segment_segment(xa, xb, c0, c1)
