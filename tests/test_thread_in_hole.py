@@ -437,15 +437,15 @@ def test_thread_does_not_enter_the_wall():
 @pytest.mark.parametrize("name", ["normal", "inverted"])
 def test_expert_succeeds_with_the_window_inside(name):
     """2 envs, seed 1, the expert: every env's first episode ends in success (``last_episode_success``, not a time-out)
-    within Table C's 300 steps (measured: normal 42 / 63 steps, inverted 47 / 106). With all 12 nodes as tracking points
+    within Table C's 300 steps (measured: normal 52 / 46 steps, inverted 42 / 53). With all 12 nodes as tracking points
     the observations expose the whole thread, and ``keep_final_observations`` the terminal state before the auto-reset.
     At reset ``ratio_rope_in_hole`` (the privileged critic's ratio) is 0 and the independent count (below) finds no node
     inside. On every step the ``ratio_rope_in_hole`` feature agrees with an independent count of the nodes inside the
     cylinder from the floor centre to the opening (radius r_out; a node within 10 micrometres of its boundary may count
     either way), and ``successful_task`` is 0 until the episode ends. On the success step: ``successful_task`` 1,
-    ``ratio_rope_in_hole`` >= the window's share (6/12; measured 0.5 / 0.5 normal, 0.5 / 0.92 inverted), every window
+    ``ratio_rope_in_hole`` >= the window's share (6/12; measured 0.5 in all four episodes), every window
     node of the terminal state inside that cylinder, the reward the weighted sum of the step's features (1e-4) including
-    the +100 (reward > 99; measured 100.1-100.9), and the post-reset critic ratio 0 again (seed 1 draws clean starts;
+    the +100 (reward > 99; measured 100.1), and the post-reset critic ratio 0 again (seed 1 draws clean starts;
     see ``test_reset_never_starts_inside_the_hole``). The whole run keeps the thread out of the wall: no node inside the
     hole's deformed closed surface by more than 1 mm."""
     N = NODES[name]
@@ -510,6 +510,36 @@ def test_expert_succeeds_with_the_window_inside(name):
             break
     assert finished.all() and solved.all(), (finished.tolist(), solved.tolist())
     assert worst_inside <= 1e-3, worst_inside
+
+
+def first_episode_successes(env: ThreadInHoleEnv, expert, steps: int) -> tuple[int, int, int]:
+    """Run ``expert`` for at most ``steps`` steps: (first episodes that ended in success, first episodes that ended,
+    steps run)."""
+    finished = np.zeros(env.num_envs, dtype=bool)
+    solved = np.zeros(env.num_envs, dtype=bool)
+    step = 0
+    while step < steps and not finished.all():
+        _, _, done, _ = env.step(expert())
+        step += 1
+        done = done.cpu().numpy().astype(bool)
+        solved |= done & ~finished & (env.last_episode_success.numpy() == 1)
+        finished |= done
+    return int(solved.sum()), int(finished.sum()), step
+
+
+@pytest.mark.parametrize("action_type, name, steps", [
+    ("CONTINUOUS", "flexible", 150), ("CONTINUOUS", "inverted", 150),
+    ("DISCRETE", "normal", 200), ("DISCRETE", "flexible", 200), ("DISCRETE", "inverted", 200)])
+def test_expert_solves_first_episodes(action_type, name, steps):
+    """16 envs, seed 0: at least 15 of the expert's 16 first episodes end in success within ``steps`` (Table C allows
+    300). Measured (CPU): 16 / 16 each, the last after 88 / 64 (continuous flexible / inverted), 118 / 130 / 109
+    (discrete normal / flexible / inverted) steps. The earlier expert (a fraction of the end's offset per step;
+    discrete: the PTSD component with the largest error) failed these: continuous flexible 15 / 16 but one only after
+    282 steps and one timed out (a start beside the hole, below its top), continuous inverted 14 / 16 (that start, and
+    a steady 4-6 mm swing of the stiff thread above the opening); discrete 0-6 of 32 (32 envs, seeds 0 and 1)."""
+    env = make(num_envs=16, seed=0, configuration=name, action_type=action_type)
+    solved, finished, ran = first_episode_successes(env, ThreadInHoleExpert(env), steps)
+    assert solved >= 15, (solved, finished, ran)
 
 
 # ---------------------------------------------------------------------------- seeding and reset
