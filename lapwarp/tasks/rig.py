@@ -106,6 +106,46 @@ class RigBounds:
     inv_diagonal: float
 
 
+#: candidates of :func:`ptsd_step`: pan +/-, tilt +/-, depth +/- (the one-component discrete moves experts weigh)
+PTSD_STEPS = 6
+
+
+@wp.func
+def ptsd_step_component(j: int) -> int:
+    """The PTSD component candidate ``j`` moves: 0 pan, 1 tilt, 3 depth (spin is left alone)."""
+    k = j // 2
+    return wp.where(k == 2, 3, k)
+
+
+@wp.func
+def ptsd_step(s: wp.vec4, step: wp.vec4, j: int) -> wp.vec4:
+    """PTSD ``s`` after candidate ``j`` (0 .. ``PTSD_STEPS`` - 1) of the discrete moves: its component by +``step``
+    (even ``j``) or -``step`` (odd); the env's discrete action index of the move is :func:`ptsd_step_action`."""
+    c = ptsd_step_component(j)
+    t = s
+    t[c] = s[c] + wp.where(j % 2 == 0, step[c], -step[c])
+    return t
+
+
+@wp.func
+def ptsd_step_action(j: int) -> int:
+    """The discrete action index of candidate ``j`` (row ``2 c`` moves component ``c`` up, ``2 c + 1`` down)."""
+    return 2 * ptsd_step_component(j) + j % 2
+
+
+@wp.func
+def ptsd_accepted(rcm: wp.transform, t: wp.vec4, b: RigBounds) -> bool:
+    """Whether the env accepts PTSD ``t`` (it rejects a move beyond the state limits or with the tip out of the
+    Cartesian workspace)."""
+    inside = True
+    for c in range(4):
+        inside = inside and t[c] >= b.state_low[c] and t[c] <= b.state_high[c]
+    x = wp.transform_get_translation(ptsd_to_transform(rcm, t))
+    for i in range(3):
+        inside = inside and x[i] >= b.ws_low[i] and x[i] <= b.ws_high[i]
+    return inside
+
+
 @wp.func
 def over_diagonal(x: float, inv_diagonal: float) -> float:
     """sofa_env's normalisation of distance and velocity features: x over the workspace diagonal, clipped to

@@ -74,6 +74,7 @@ from lapwarp.instruments import TPSDConfig, tpsd_from_config
 from lapwarp.kernels.kinematics import point_to_ptsd, ptsd_to_transform
 from lapwarp.tasks.rig import (
     CAUTER_TIP,
+    PTSD_STEPS,
     STATE_LIMITS_VIOLATED,
     WORKSPACE_VIOLATED,
     InstrumentRig,
@@ -82,6 +83,9 @@ from lapwarp.tasks.rig import (
     count_flag,
     cutting_center,
     place_hook_tools,
+    ptsd_accepted,
+    ptsd_step,
+    ptsd_step_action,
     write_unit_point,
     write_unit_ptsd,
 )
@@ -614,25 +618,16 @@ def expert_discrete(q: wp.array2d(dtype=wp.vec3), tet_active: wp.array2d(dtype=w
     move = noop
     forced = noop
     forced_d = float(1.0e9)
-    for k in range(3):
-        c = wp.where(k == 2, 3, k)  # pan, tilt, depth
-        for sign in range(2):
-            u = s
-            u[c] = s[c] + wp.where(sign == 0, step[c], -step[c])
-            cand = ptsd_to_transform(rcm[env, 0], u)
-            # the env rejects a step beyond the state limits or with the tip out of the workspace
-            inside = u[c] >= b.state_low[c] and u[c] <= b.state_high[c]
-            xc = wp.transform_get_translation(cand)
-            for i in range(3):
-                inside = inside and xc[i] >= b.ws_low[i] and xc[i] <= b.ws_high[i]
-            if inside:
-                d = hook_reach(cand, best)
-                if d < gain:
-                    gain = d
-                    move = 2 * c + sign
-                if d < forced_d:
-                    forced_d = d
-                    forced = 2 * c + sign
+    for j in range(PTSD_STEPS):
+        u = ptsd_step(s, step, j)
+        if ptsd_accepted(rcm[env, 0], u, b):
+            d = hook_reach(ptsd_to_transform(rcm[env, 0], u), best)
+            if d < gain:
+                gain = d
+                move = ptsd_step_action(j)
+            if d < forced_d:
+                forced_d = d
+                forced = ptsd_step_action(j)
     if move == noop and best_d > reach:
         move = forced
     action_out[env] = move

@@ -75,6 +75,7 @@ from lapwarp.experts import Expert
 from lapwarp.instruments import TPSDConfig, start_tip, tpsd_from_config
 from lapwarp.kernels.kinematics import point_to_ptsd, ptsd_to_transform
 from lapwarp.tasks.rig import (
+    PTSD_STEPS,
     STATE_LIMITS_VIOLATED,
     WORKSPACE_VIOLATED,
     InstrumentRig,
@@ -83,6 +84,9 @@ from lapwarp.tasks.rig import (
     RigContacts,
     count_flag,
     over_diagonal,
+    ptsd_accepted,
+    ptsd_step,
+    ptsd_step_action,
     write_unit_point,
     write_unit_ptsd,
 )
@@ -500,19 +504,12 @@ def discrete_step_toward(rcm: wp.transform, s: wp.vec4, h: wp.vec3, rigid: int, 
     w = wp.vec3(lateral_weight, lateral_weight, 1.0)
     best = wp.length(wp.cw_mul(w, ref - thread_point(rcm, s, h, rigid))) - 0.1 * step[3]
     move = int(8)
-    for k in range(3):
-        c = wp.where(k == 2, 3, k)  # pan, tilt, depth
-        for sign in range(2):
-            t = s
-            t[c] = s[c] + wp.where(sign == 0, step[c], -step[c])
-            inside = t[c] >= b.state_low[c] and t[c] <= b.state_high[c]
-            x = wp.transform_get_translation(ptsd_to_transform(rcm, t))
-            for i in range(3):
-                inside = inside and x[i] >= b.ws_low[i] and x[i] <= b.ws_high[i]
-            d = wp.length(wp.cw_mul(w, ref - thread_point(rcm, t, h, rigid)))
-            if inside and d < best:
-                best = d
-                move = 2 * c + sign
+    for j in range(PTSD_STEPS):
+        t = ptsd_step(s, step, j)
+        d = wp.length(wp.cw_mul(w, ref - thread_point(rcm, t, h, rigid)))
+        if d < best and ptsd_accepted(rcm, t, b):
+            best = d
+            move = ptsd_step_action(j)
     return move
 
 
