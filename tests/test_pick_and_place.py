@@ -316,6 +316,30 @@ def test_expert_solves_with_discrete_actions(configuration, torus):
     assert int(solved.sum()) >= n - 1, solved.tolist()
 
 
+def test_discrete_expert_turns_a_stiff_ring_only_as_far_as_reach_needs():
+    """Stiff torus, configuration Place, discrete actions, 16 envs, seed 1: three envs carry the ring to a far peg
+    with its COM on the wrong side of the grasp. Turning it until the COM lies straight beyond the grasp (1.5 degrees
+    a step, taking turns with motion) took 294, 298 and 300 (a time-out) steps, 15/16 solved; turning only until the
+    depth limit reaches the grasp (``level_ring_slack``) solves all 16, here (CPU) in at most 269 steps."""
+    n = 16
+    env = make(num_envs=n, torus="stiff", torus_bank_size=n, seed=1, action_type="DISCRETE", **PLACE)
+    expert = make_expert(env)
+    length = torch.zeros(n, dtype=torch.long)
+    finished = torch.zeros(n, dtype=torch.bool)
+    solved = torch.zeros(n, dtype=torch.bool)
+    for step in range(env.cfg.max_episode_steps):
+        _, _, done, _ = env.step(expert())
+        done = done.cpu()
+        new = done & ~finished
+        solved |= new & torch.as_tensor(env.success.numpy() == 1)
+        length[new] = step + 1
+        finished |= done
+        if bool(finished.all()):
+            break
+    assert bool(solved.all()), solved.tolist()
+    assert int(length.max()) <= 280, length.tolist()
+
+
 # ---------------------------------------------------------------------------- LapGym's issue #42: tunnelling
 def peg_overlaps(x: np.ndarray) -> tuple[float, float]:
     """For torus nodes ``x`` ``(29, 3)``: the deepest overlap (m) of the 3.5 mm tube around any node with any peg (a
