@@ -13,6 +13,7 @@ sys.path.insert(0, str(ROOT / "train"))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 import bench_env  # noqa: E402
+import bench_fused  # noqa: E402
 import ppo  # noqa: E402
 import soak  # noqa: E402
 
@@ -67,6 +68,17 @@ def test_bench_env_writes_json(device, tmp_path):
     report = json.loads(out.read_text())
     assert [r["num_envs"] for r in report["results"]] == [1, 1, 8, 8]
     assert all(r["env_steps_per_s"] > 0 for r in report["results"])
+
+
+def test_bench_fused_compares_each_sweep_of_a_task(device, tmp_path):
+    """``bench_fused.py`` times the per-colour and the fused tet and triangle sweeps of a task (one JSON line each)."""
+    out = tmp_path / "fused.jsonl"
+    assert bench_fused.main(["--device", device, "--num-envs", "2", "--no-physics", "--seconds", "0.05", "--tasks",
+                             "TissueDissection", "--out", str(out)]) == 0
+    rows = [json.loads(line) for line in out.read_text().splitlines()]
+    assert [(r["variant"], r["threads"]) for r in rows] == [("tets-colored", 0), ("tets-fused", 32),
+                                                            ("triangles-colored", 0), ("triangles-fused", 32)]
+    assert all(r["env_steps_per_s"] > 0 and r["tets"] == 300 and r["triangle_colors"] > 1 for r in rows)
 
 
 def test_ppo_trains_from_rgb_images(device, tmp_path, capsys):
