@@ -25,7 +25,7 @@ import trimesh
 import warp as wp
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from bench_physics import DT, SCENES  # noqa: E402
+from bench_physics import DT, SCENES, timed_steps  # noqa: E402
 
 from lapwarp.contact import ContactSystem  # noqa: E402
 
@@ -85,24 +85,9 @@ def run(scene: str, num_envs: int, device: str, substeps: int, steps: int, settl
     dev = wp.get_device(device)
     for _ in range(max(1, settle)):
         world.step(DT)
-    wp.synchronize_device(device)
-    graph = None
-    if dev.is_cuda:
-        with wp.ScopedCapture(device=dev) as cap:
-            world.step(DT)
-        graph = cap.graph
-        wp.capture_launch(graph)
-    wp.synchronize_device(device)
-    t0 = time.perf_counter()
-    for _ in range(steps):
-        if graph is not None:
-            wp.capture_launch(graph)
-        else:
-            world.step(DT)
-    wp.synchronize_device(device)
-    elapsed = time.perf_counter() - t0
+    elapsed = timed_steps(world, device, steps)
     rec = {"scene": scene, "contact": contact, "device": dev.name if dev.is_cuda else "cpu", "num_envs": num_envs,
-           "substeps": substeps, "steps_timed": steps, "seconds": elapsed, "cuda_graph": graph is not None,
+           "substeps": substeps, "steps_timed": steps, "seconds": elapsed, "cuda_graph": dev.is_cuda,
            "env_steps_per_s": num_envs * steps / elapsed, "unstable_envs": int(world.unstable.numpy().sum())}
     if cs is not None:
         counts = cs.counts()

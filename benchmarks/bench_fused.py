@@ -23,29 +23,9 @@ import time
 
 import torch
 import warp as wp
-from bench_physics import DT, SCENES, quality
+from bench_physics import DT, SCENES, quality, timed_steps
 
 import lapwarp
-
-
-def _graph_rate(world, device: str, num_envs: int, steps: int) -> float:
-    """Env-steps/s of ``world.step(DT)`` replayed from a CUDA graph (plain steps on the CPU)."""
-    for _ in range(3):
-        world.step(DT)
-    wp.synchronize_device(device)
-    graph = None
-    if wp.get_device(device).is_cuda:
-        with wp.ScopedCapture(device=device) as cap:
-            world.step(DT)
-        graph = cap.graph
-    start = time.perf_counter()
-    for _ in range(steps):
-        if graph is not None:
-            wp.capture_launch(graph)
-        else:
-            world.step(DT)
-    wp.synchronize_device(device)
-    return num_envs * steps / (time.perf_counter() - start)
 
 
 def physics_runs(args) -> list[dict]:
@@ -56,7 +36,9 @@ def physics_runs(args) -> list[dict]:
             world.tet_solver = solver
             if threads:
                 world.tet_block_threads = threads
-            rate = _graph_rate(world, args.device, args.num_envs, args.steps)
+            for _ in range(3):  # compile, record the launches, settle the first contacts
+                world.step(DT)
+            rate = args.num_envs * args.steps / timed_steps(world, args.device, args.steps)
             runs.append({"scene": scene, "substeps": 20, "variant": solver, "threads": threads,
                          "env_steps_per_s": rate, **quality(scene, world, obj, rest)})
             del world

@@ -149,6 +149,27 @@ def quality(scene: str, world, obj, rest: np.ndarray) -> dict:
     return out
 
 
+def timed_steps(world, device: str, steps: int) -> float:
+    """Seconds for ``steps`` env steps of ``DT``: on CUDA one step captured as a graph (after one warm replay) and
+    replayed; on the CPU plain steps. The world's launches must already be recorded (step it once before)."""
+    wp.synchronize_device(device)
+    graph = None
+    if wp.get_device(device).is_cuda:
+        with wp.ScopedCapture(device=device) as cap:
+            world.step(DT)
+        graph = cap.graph
+        wp.capture_launch(graph)  # warm
+    wp.synchronize_device(device)
+    t0 = time.perf_counter()
+    for _ in range(steps):
+        if graph is not None:
+            wp.capture_launch(graph)
+        else:
+            world.step(DT)
+    wp.synchronize_device(device)
+    return time.perf_counter() - t0
+
+
 def run(scene: str, num_envs: int, device: str, substeps: int, iterations: int, edge_solver: str, steps: int,
         settle: int, newton_steps: int | None = None, block_links: int = 0, tet_solver: str | None = None) -> dict:
     wp.synchronize_device(device)
@@ -164,22 +185,7 @@ def run(scene: str, num_envs: int, device: str, substeps: int, iterations: int, 
         if drag is not None:
             drag(k + 1)
         world.step(DT)
-    wp.synchronize_device(device)
-    graph = None
-    if dev.is_cuda:
-        with wp.ScopedCapture(device=dev) as cap:
-            world.step(DT)
-        graph = cap.graph
-        wp.capture_launch(graph)  # warm
-    wp.synchronize_device(device)
-    t0 = time.perf_counter()
-    for _ in range(steps):
-        if graph is not None:
-            wp.capture_launch(graph)
-        else:
-            world.step(DT)
-    wp.synchronize_device(device)
-    elapsed = time.perf_counter() - t0
+    elapsed = timed_steps(world, device, steps)
     m = world.model
     rec = {
         "scene": scene, "device": dev.name if dev.is_cuda else "cpu", "num_envs": num_envs,
@@ -190,7 +196,7 @@ def run(scene: str, num_envs: int, device: str, substeps: int, iterations: int, 
         "chain_families": m.edge_chains.num_families if m.edge_chains is not None else None,
         "tet_solver": ("fused" if world.fused_tets else "colored") if m.tet_count else None,
         "tethers": m.geo_particles is not None,
-        "cuda_graph": graph is not None, "steps_timed": steps,
+        "cuda_graph": dev.is_cuda, "steps_timed": steps,
         "seconds": elapsed,
         "env_steps_per_s": num_envs * steps / elapsed, "unstable_envs": int(world.unstable.numpy().sum()),
         "state_bytes_per_env": world.state_bytes_per_env(),

@@ -365,6 +365,55 @@ def tet_projection(
             (d3 * dlD + h3 * dlH) * w3)
 
 
+@wp.func
+def tet_removed(env: int, c: int, tet_element: wp.array(dtype=wp.int32), tet_active: wp.array2d(dtype=wp.int32)):
+    """Tet ``c`` (colour-ordered) of env ``env`` was cut away (an empty element map: nothing is cuttable)."""
+    if tet_element.shape[0] > 0:
+        return tet_active[env, tet_element[c]] == 0
+    return False
+
+
+@wp.func
+def project_tet(
+    env: int,
+    c: int,
+    k: wp.vec4i,
+    x0: wp.vec3, x1: wp.vec3, x2: wp.vec3, x3: wp.vec3,
+    inv_rest: wp.array(dtype=wp.mat33),
+    params: wp.array2d(dtype=wp.vec3),
+    inv_mass: wp.array2d(dtype=float),
+    inv_dt2: float,
+    use_lambda: int,
+    lam: wp.array2d(dtype=wp.vec2),
+    rotation_iterations: int,
+    tet_rotation: wp.array2d(dtype=wp.quat),
+    write: bool,
+):
+    """:func:`tet_projection` of tet ``c`` of env ``env`` (corners ``k`` at ``x0 .. x3``) with its multipliers and
+    rotation warm start; when ``write``, stores its new rotation and (if it acts) multipliers. Returns whether it
+    acts and the four corner displacements (the caller moves the corners)."""
+    pe = env % inv_mass.shape[0]
+    lD = float(0.0)
+    lH = float(0.0)
+    if use_lambda != 0:
+        lv = lam[env, c]
+        lD = lv[0]
+        lH = lv[1]
+    iters = int(0)
+    q0 = wp.quat_identity()
+    if tet_rotation.shape[1] > 0:  # warm-started rotation extraction (the default)
+        iters = rotation_iterations
+        q0 = tet_rotation[env, c]
+    ok, dlD, dlH, qr, dx0, dx1, dx2, dx3 = tet_projection(
+        x0, x1, x2, x3, inv_mass[pe, k[0]], inv_mass[pe, k[1]], inv_mass[pe, k[2]], inv_mass[pe, k[3]], inv_rest[c],
+        params[env % params.shape[0], c], inv_dt2, lD, lH, q0, iters)
+    if write and iters > 0:
+        tet_rotation[env, c] = qr
+    if write and ok != 0 and use_lambda != 0:
+        lam[env, c] = wp.vec2(lD + dlD, lH + dlH)
+    return ok, dx0, dx1, dx2, dx3
+
+
 @wp.kernel
 def solve_tets(
     start: int,
@@ -384,35 +433,17 @@ def solve_tets(
     """The tets of one graph colour, one thread per (env, tet)."""
     env, t = wp.tid()
     c = start + t
-    if tet_element.shape[0] > 0:
-        if tet_active[env, tet_element[c]] == 0:
-            return
+    if tet_removed(env, c, tet_element, tet_active):
+        return
     k = indices[c]
-    pe = env % inv_mass.shape[0]
     x0 = q[env, k[0]]
     x1 = q[env, k[1]]
     x2 = q[env, k[2]]
     x3 = q[env, k[3]]
-    lD = float(0.0)
-    lH = float(0.0)
-    if use_lambda != 0:
-        lv = lam[env, c]
-        lD = lv[0]
-        lH = lv[1]
-    iters = int(0)
-    q0 = wp.quat_identity()
-    if tet_rotation.shape[1] > 0:
-        iters = rotation_iterations
-        q0 = tet_rotation[env, c]
-    ok, dlD, dlH, qr, dx0, dx1, dx2, dx3 = tet_projection(
-        x0, x1, x2, x3, inv_mass[pe, k[0]], inv_mass[pe, k[1]], inv_mass[pe, k[2]], inv_mass[pe, k[3]], inv_rest[c],
-        params[env % params.shape[0], c], inv_dt2, lD, lH, q0, iters)
-    if iters > 0:
-        tet_rotation[env, c] = qr
+    ok, dx0, dx1, dx2, dx3 = project_tet(env, c, k, x0, x1, x2, x3, inv_rest, params, inv_mass, inv_dt2, use_lambda,
+                                         lam, rotation_iterations, tet_rotation, True)
     if ok == 0:
         return
-    if use_lambda != 0:
-        lam[env, c] = wp.vec2(lD + dlD, lH + dlH)
     q[env, k[0]] = x0 + dx0
     q[env, k[1]] = x1 + dx1
     q[env, k[2]] = x2 + dx2
@@ -458,19 +489,13 @@ def fused_tet_kernel(tile_particles: int):
         env, lane = wp.tid()
         lanes = wp.block_dim()
         xs = wp.tile_load(q[env], shape=P, offset=first, storage="shared")
-        pe = env % inv_mass.shape[0]
-        masked = tet_element.shape[0] > 0
-        warm = tet_rotation.shape[1] > 0
         for col in range(color_offsets.shape[0] - 1):
             start = color_offsets[col]
             end = color_offsets[col + 1]
             for base in range(start, end, lanes):
                 # every lane runs the cooperative scatters below, the ones past the colour's end with nothing
                 c = wp.min(base + lane, end - 1)
-                has = base + lane < end
-                if masked:
-                    if tet_active[env, tet_element[c]] == 0:
-                        has = False
+                has = base + lane < end and not tet_removed(env, c, tet_element, tet_active)
                 k = indices[c]
                 i0 = k[0] - first
                 i1 = k[1] - first
@@ -480,25 +505,9 @@ def fused_tet_kernel(tile_particles: int):
                 x1 = wp.tile_extract(xs, i1)
                 x2 = wp.tile_extract(xs, i2)
                 x3 = wp.tile_extract(xs, i3)
-                lD = float(0.0)
-                lH = float(0.0)
-                if use_lambda != 0:
-                    lv = lam[env, c]
-                    lD = lv[0]
-                    lH = lv[1]
-                iters = int(0)
-                q0 = wp.quat_identity()
-                if warm:
-                    iters = rotation_iterations
-                    q0 = tet_rotation[env, c]
-                ok, dlD, dlH, qr, dx0, dx1, dx2, dx3 = tet_projection(
-                    x0, x1, x2, x3, inv_mass[pe, k[0]], inv_mass[pe, k[1]], inv_mass[pe, k[2]], inv_mass[pe, k[3]],
-                    inv_rest[c], params[env % params.shape[0], c], inv_dt2, lD, lH, q0, iters)
-                if has and warm:
-                    tet_rotation[env, c] = qr
+                ok, dx0, dx1, dx2, dx3 = project_tet(env, c, k, x0, x1, x2, x3, inv_rest, params, inv_mass, inv_dt2,
+                                                     use_lambda, lam, rotation_iterations, tet_rotation, has)
                 moves = has and ok != 0
-                if moves and use_lambda != 0:
-                    lam[env, c] = wp.vec2(lD + dlD, lH + dlH)
                 wp.tile_scatter_masked(xs, i0, x0 + dx0, moves)
                 wp.tile_scatter_masked(xs, i1, x1 + dx1, moves)
                 wp.tile_scatter_masked(xs, i2, x2 + dx2, moves)
