@@ -22,8 +22,10 @@ when <= -0.5 (index in [5, N - 1]; closed ratio ``(a - N + 1) / (6 - N)``). Feat
 centre of mass (nodes 0 .. a - 1) to the centre of the band's current nodes and its change; the loop COM inside the
 cavity's deformed outer hull (the winding number of its outer wall closed over both end rings, sofa_env's test); the
 tip outside it; shaft contacts with the cavity; the overlap (the fraction of the band's outer
-triangles within ``touch_distance`` of a loop sphere); closed ratio x overlap x in-cavity x tip-outside ("closed
-around the marking"); closed ratio x (1 - in-cavity) ("closed in thin air"); success (closed around > 0, overlap >
+triangles within ``touch_distance`` of a loop sphere); closed ratio x overlap x in-cavity x tip-outside x encircles
+("closed around the marking"; encircles: the closed loop has wound about the cavity's axis at the band since its
+centre entered the cavity, see below);
+closed ratio x (1 - in-cavity) ("closed in thin air"); success (closed around > 0, overlap >
 ``target_loop_overlap_ratio``, ratio > ``target_loop_closed_ratio``) ends the episode.
 
 Reset (sofa_env's with ``randomize_loop_state``): closedness c ~ U[0, 1] gives the active index
@@ -47,6 +49,16 @@ Deliberate differences from sofa_env (task-cards §10, §12):
 * Band triangles are the outer-surface triangles whose rest centroid lies in the band (sofa_env: those whose first
   vertex is a band node, an artefact of its triangle order); "touched" means a loop node within the sphere radius
   plus ``touch_distance`` (sofa_env's contact listener reports pairs within its 3 mm alarm distance).
+* "Closed around the marking" also needs the loop to have encircled the cavity (``loop_encloses_band``: at least
+  half a turn about most of the outer nodes of the band's middle ring, seen along the cavity's deformed axis) at
+  some step since its centre entered the cavity's hull. sofa_env's test (loop centre inside the capped outer hull,
+  band triangles touched, tip outside) also passes a loop closed small and pushed into the tube's open end, touching
+  the band through the 2 mm wall from inside: a state-based PPO policy found that in 20 iterations (99.7 %
+  "success", the loop never around the cavity).
+* Known limitation: at the default 2 x 20 substeps per env step the 2 MPa cavity is far softer than its material
+  (one XPBD sweep per substep, docs/physics.md): its free end sags 12 mm under its own weight (0.87 mm at 4x the
+  substeps, 0.18 mm at 16x, the Euler-Bernoulli value for E I of the tube), and a loop closed tight crushes it and
+  cuts into it rather than squeezing it.
 * No cavity self-contact (sofa_env's is on); no ``with_gripper`` variant; no POSITION actions.
 * The loop's damping is a velocity damping rate (``loop_damping``) standing in for sofa_env's implicit Euler.
 """
@@ -134,6 +146,9 @@ class LigatingLoopConfig(EnvConfig):
         randomize_marking_position: band start ~ U(``marking_start_range``) per reset; else ``marking_start``.
         randomize_loop_state: closedness ~ U[0, 1] per reset (else fully open).
         target_loop_closed_ratio / target_loop_overlap_ratio: success thresholds.
+        require_encircling: "closed around the marking" (and success) also needs the loop to have encircled the
+            cavity at the band (see the module docstring); False is sofa_env's test, which a loop pushed into the
+            tube's open end passes.
         index_steps_per_action: index changes per closing action (sofa_zoo's frame skip 2 applied it twice).
         touch_distance: how far beyond the loop's 1 mm spheres a band triangle counts as touched, m.
         start_ptsd / ptsd_noise: start and uniform reset noise (deg, deg, deg, m).
@@ -164,6 +179,7 @@ class LigatingLoopConfig(EnvConfig):
     randomize_loop_state: bool = True
     target_loop_closed_ratio: Fraction = 0.8
     target_loop_overlap_ratio: Fraction = 0.1
+    require_encircling: bool = True
     index_steps_per_action: Annotated[int, Range(ge=1, le=10)] = 1
     touch_distance: NonNegative = 0.003
     start_ptsd: PTSD = (0.0, 0.0, 180.0, 0.03)
@@ -231,6 +247,7 @@ class Params:
     touch: float
     target_ratio: float
     target_overlap: float
+    require_encircling: int
     ring_z: wp.array(dtype=float)  # rest z of each axial ring
     outer_tris: wp.array(dtype=wp.vec3i)  # the outer wall's triangles (global indices)
     outer_tri_z: wp.array(dtype=float)  # their rest centroids' z
@@ -243,6 +260,7 @@ class Params:
 class Task:
     band_start: wp.array(dtype=float)
     active_index: wp.array(dtype=wp.int32)
+    encircled: wp.array(dtype=wp.int32)  # 1 once the loop wound about the band since its centre entered the cavity
 
 
 @wp.func
@@ -335,6 +353,49 @@ def band_center(q: wp.array2d(dtype=wp.vec3), env: int, p: Params, start: float)
 
 
 @wp.func
+def ring_center(q: wp.array2d(dtype=wp.vec3), env: int, p: Params, ring: int) -> wp.vec3:
+    """The mean of axial ring ``ring``'s outer nodes (a point of the deformed axis)."""
+    c = wp.vec3(0.0)
+    for j in range(p.angular):
+        c += q[env, outer_node(p, j, ring)]
+    return c / float(p.angular)
+
+
+@wp.func
+def loop_encloses_band(q: wp.array2d(dtype=wp.vec3), env: int, p: Params, start: float, a: int) -> int:
+    """How many of the outer nodes of the band's middle ring the closed loop (free nodes 0 .. a - 1, closed along the
+    shaft from node a - 1 back to node 0) winds about, seen along the cavity's deformed axis at the band (the line
+    between the centres of the rings just outside the band): all ``angular`` of them for a loop around the tube,
+    none for one beside it or inside its bore (a loop pushed into the open end also winds about the axis)."""
+    first = int(p.axial)
+    last = int(-1)
+    for k in range(p.axial):
+        if in_band(p.ring_z[k], start, p.band_width) == 1:
+            first = wp.min(first, k)
+            last = wp.max(last, k)
+    if last < 0:
+        return 0
+    lo = wp.max(first - 1, 0)
+    hi = wp.min(last + 1, p.axial - 1)
+    d = wp.normalize(ring_center(q, env, p, hi) - ring_center(q, env, p, lo))
+    ring = (first + last) / 2
+    count = int(0)
+    for j in range(p.angular):
+        c = q[env, outer_node(p, j, ring)]
+        prev = q[env, p.loop_first + a - 1] - c
+        prev = prev - d * wp.dot(prev, d)
+        total = float(0.0)
+        for k in range(a):
+            v = q[env, p.loop_first + k] - c
+            v = v - d * wp.dot(v, d)
+            total += wp.atan2(wp.dot(d, wp.cross(prev, v)), wp.dot(prev, v))
+            prev = v
+        if wp.abs(total) > wp.pi:  # more than half a turn: wound about the node
+            count += 1
+    return count
+
+
+@wp.func
 def marking_overlap(q: wp.array2d(dtype=wp.vec3), env: int, p: Params, start: float, a: int) -> float:
     """The fraction of the band's outer triangles within the sphere radius + ``touch`` of a free loop node."""
     counts = marking_overlap_part(q, env, p, start, a, 0, 1)
@@ -381,7 +442,8 @@ EVAL_LANES = 64
 def eval_ligating_loop(q: wp.array2d(dtype=wp.vec3), pose: wp.array2d(dtype=wp.transform), contacts: RigContacts,
                        cavity_group: int, p: Params, task: Task, num_nodes: int,
                        features_out: wp.array2d(dtype=float)):
-    """sofa_env's reward features (a pure function of the state). A thread block per env: its lanes split the
+    """sofa_env's reward features (a function of the state and of ``task.encircled``, which it updates: idempotent
+    on one state). A thread block per env: its lanes split the
     ~700 wall triangles of the two winding numbers and the band overlap, summed with tile reductions (one thread
     per env walked them alone: 4.25 ms per launch at 4,096 envs on the H100, ~8 % of the env step); lane 0 writes.
     On the CPU a block has one lane (the serial sums, in the same order)."""
@@ -396,10 +458,20 @@ def eval_ligating_loop(q: wp.array2d(dtype=wp.vec3), pose: wp.array2d(dtype=wp.t
     counts = marking_overlap_part(q, env, p, start, a, lane, lanes)
     touched = wp.tile_sum(wp.tile(counts[0]))[0]
     band_tris = wp.tile_sum(wp.tile(counts[1]))[0]
+    in_cavity = inside_hull(com_angle)
+    # sofa_env's "closed around" also passes a loop closed small and pushed into the tube's open end (a PPO policy
+    # found that in 20 iterations): the loop must also have enclosed the band (wound about most of its middle ring's
+    # outer nodes) since its centre entered the cavity. Remembered, not required at the end: closed tight, the loop
+    # cuts into the over-soft cavity (see the module docstring) and its last nodes pass the tube's axis.
+    encircles = task.encircled[env]
+    if in_cavity == 0:
+        encircles = 0
+    elif encircles == 0 and lane == 0 and 2 * loop_encloses_band(q, env, p, start, a) > p.angular:
+        encircles = 1
     if lane != 0:
         return
+    task.encircled[env] = encircles
     band = band_center(q, env, p, start)
-    in_cavity = inside_hull(com_angle)
     tip_outside = 1 - inside_hull(tip_angle)
     overlap = float(touched) / float(wp.max(band_tris, 1))
     ratio = closed_ratio(a, num_nodes)
@@ -409,7 +481,7 @@ def eval_ligating_loop(q: wp.array2d(dtype=wp.vec3), pose: wp.array2d(dtype=wp.t
             pair = contacts.pair_index[s, cavity_group]
             if pair >= 0:
                 collisions += contacts.report_count[env, pair]
-    around = ratio * overlap * float(in_cavity * tip_outside)
+    around = ratio * overlap * float(in_cavity * tip_outside * wp.where(p.require_encircling != 0, encircles, 1))
     features_out[env, F.DISTANCE_LOOP_TO_MARKING_CENTER] = over_diagonal(wp.length(band - com), p.bounds.inv_diagonal)
     features_out[env, F.LOOP_CENTER_IN_CAVITY] = float(in_cavity)
     features_out[env, F.INSTRUMENT_NOT_IN_CAVITY] = float(tip_outside)
@@ -450,6 +522,7 @@ def draw_loop_state(env_mask: wp.array(dtype=wp.int32), rng: wp.array(dtype=wp.u
         c = rand_uniform(rng, env, 0.0, 1.0)
         a = int(wp.round(5.0 + (1.0 - c) * float(num_nodes - 6)))
     task.active_index[env] = wp.clamp(a, 5, num_nodes - 1)
+    task.encircled[env] = 0
     start = band_fixed
     if randomize_band != 0:
         start = rand_uniform(rng, env, band_low, band_high)
@@ -606,6 +679,7 @@ class LigatingLoopEnv(BatchedEnv):
         self.task = t = Task()
         t.band_start = wp.full(n, cfg.marking_start, dtype=float, device=dev)
         t.active_index = self.closure.active_index
+        t.encircled = wp.zeros(n, dtype=wp.int32, device=dev)
         hv, _ = self.cavity_rest
         first = self.cavity.particle_start
         self.params = p = Params()
@@ -614,6 +688,7 @@ class LigatingLoopEnv(BatchedEnv):
         p.axial, p.angular, p.outer_radius = CAVITY_AXIAL, CAVITY_ANGULAR, CAVITY_OUTER
         p.band_width, p.touch = cfg.marking_width, cfg.touch_distance
         p.target_ratio, p.target_overlap = cfg.target_loop_closed_ratio, cfg.target_loop_overlap_ratio
+        p.require_encircling = int(cfg.require_encircling)
         p.ring_z = wp.array(hv[:CAVITY_AXIAL, 2].astype(np.float32), dtype=float, device=dev)
         surf = np.asarray(self.cavity.surface_tris) - first
         outer = np.all(surf >= CAVITY_ANGULAR * CAVITY_AXIAL, axis=1)
@@ -819,7 +894,9 @@ def expert_commands(q: wp.array2d(dtype=wp.vec3), ptsd: wp.array2d(dtype=wp.vec4
     ph = phase[env]
     target = wp.vec3(top[0], top[1], top[2] + hover)
     if ph == APPROACH:
-        if wp.length(center - target) < tolerance:
+        # slide only with the loop fully open: half open, its 9 mm radius is below the cylinder's 10 mm and it would
+        # crush the soft cylinder instead of passing around it
+        if wp.length(center - target) < tolerance and a >= num_nodes - 1:
             ph = SLIDE
     if ph == SLIDE:
         z = wp.max(band, center[2] - speed)
@@ -829,6 +906,10 @@ def expert_commands(q: wp.array2d(dtype=wp.vec3), ptsd: wp.array2d(dtype=wp.vec4
         if center[2] < band + tolerance:
             ph = CLOSE
     ratio = closed_ratio(a, num_nodes)
+    if (ph == CLOSE or ph == REOPEN) and p.require_encircling != 0 and task.encircled[env] == 0:
+        # the loop no longer counts as around the cylinder (it slipped off or cut into the soft cylinder, its centre
+        # left the hull): start again from beyond the free end with the loop fully open
+        ph = APPROACH
     if ph == CLOSE and ratio > target_ratio + retry_margin:
         # closed past the target without success (the loop slipped off the band or its centre left the squeezed
         # cylinder): open it part of the way and close it again
