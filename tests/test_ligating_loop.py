@@ -617,3 +617,35 @@ def test_loop_shape_converged_at_default_substeps(device):
 
     assert deviation(default) < 1.5e-3
     assert deviation(unscaled) > 5.0e-3
+
+
+@pytest.mark.parametrize("substeps", [
+    pytest.param(None, marks=pytest.mark.xfail(strict=True, reason=(
+        "known limitation (solver convergence at the default physics_substeps=20, see the task's docstring and "
+        "docs/physics.md): the 2 MPa cavity's free end sags 12 mm under its own weight against the beam's 0.15 mm "
+        "(one XPBD sweep per substep does not reach a stiff tet's modulus; 80 substeps 0.87 mm, 320: 0.18 mm)"))),
+    320,
+])
+def test_cavity_sag_matches_closed_form(device, substeps):
+    """The cavity as a cantilevered tube under its own weight (0.1 kg over 50 mm, g = 0.981 m/s^2, E 2 MPa, nu 0 so
+    G = E / 2), clamped over its three fixed rings (z < 5 mm) and free over L = 50 - 4.17 mm: Euler-Bernoulli bending
+    w L^4 / (8 E I) plus Timoshenko shear w L^2 / (2 kappa G A) (thin-walled tube, kappa = 1/2) = 0.153 mm. The free
+    end ring's mean drop after 0.5 s with zero actions (settled) matches it within 30 % at 320 substeps per physics
+    step (measured 0.177 mm; an extrapolation in 1 / n^2 from 80 and 320 substeps gives ~0.13 mm converged, the coarse
+    linear tets a little stiffer than the beam); the default substeps do not (xfail: 12 mm)."""
+    overrides = dict(randomize_loop_state=False, bank_settle_steps=1)
+    if substeps is not None:
+        overrides["physics_substeps"] = substeps
+    env = make(device, 1, **overrides)
+    env.reset()
+    for _ in range(5):
+        env.step(torch.zeros(1, 5))
+    end = state(env)["cavity"][0, [outer_node(j, AXIAL - 1) for j in range(ANGULAR)]].mean(axis=0)
+    free = LENGTH - 2.0 * LENGTH / (AXIAL - 1)  # the last fixed ring is at z = 4.17 mm
+    w = 0.1 * 0.981 / LENGTH
+    youngs = 2.0e6
+    inertia = math.pi / 4.0 * (R_OUT**4 - R_IN**4)
+    area = math.pi * (R_OUT**2 - R_IN**2)
+    expected = w * free**4 / (8.0 * youngs * inertia) + w * free**2 / (2.0 * 0.5 * 0.5 * youngs * area)
+    assert expected == pytest.approx(1.53e-4, rel=0.01)
+    assert -end[1] == pytest.approx(expected, rel=0.3), (-end[1], expected)
