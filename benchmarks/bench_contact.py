@@ -18,7 +18,6 @@ import argparse
 import json
 import os
 import sys
-import time
 
 import numpy as np
 import trimesh
@@ -115,17 +114,7 @@ def crossover(device: str, num_envs: int, sizes, steps: int) -> list[dict]:
             cs.add_particle_contact([(p, 0.001)], method=method)
             cs.finalize()
             w.step(DT)
-            wp.synchronize_device(device)
-            graph = None
-            if wp.get_device(device).is_cuda:
-                with wp.ScopedCapture(device=device) as cap:
-                    w.step(DT)
-                graph = cap.graph
-            t0 = time.perf_counter()
-            for _ in range(steps):
-                wp.capture_launch(graph) if graph is not None else w.step(DT)
-            wp.synchronize_device(device)
-            rec[f"{method}_env_steps_per_s"] = num_envs * steps / (time.perf_counter() - t0)
+            rec[f"{method}_env_steps_per_s"] = num_envs * steps / timed_steps(w, device, steps)
         print(f"members={m:5d} envs={num_envs}: brute {rec['brute_env_steps_per_s']:10.1f}  "
               f"grid {rec['grid_env_steps_per_s']:10.1f} env-steps/s", flush=True)
         out.append(rec)
