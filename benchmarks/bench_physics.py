@@ -171,11 +171,14 @@ def timed_steps(world, device: str, steps: int) -> float:
 
 
 def run(scene: str, num_envs: int, device: str, substeps: int, iterations: int, edge_solver: str, steps: int,
-        settle: int, newton_steps: int | None = None, block_links: int = 0, tet_solver: str | None = None) -> dict:
+        settle: int, newton_steps: int | None = None, block_links: int = 0, tet_solver: str | None = None,
+        tet_method: str | None = None) -> dict:
     wp.synchronize_device(device)
     world, obj, rest, drag = SCENES[scene](num_envs, device, substeps or None, iterations, edge_solver)
     if tet_solver is not None:
         world.tet_solver = tet_solver
+    if tet_method is not None:
+        world.tet_method = tet_method
     if newton_steps:
         world.chain_newton_steps = newton_steps
     world.chain_block_links = block_links
@@ -195,6 +198,7 @@ def run(scene: str, num_envs: int, device: str, substeps: int, iterations: int, 
         "chain_block_links": world.chain_block_links,
         "chain_families": m.edge_chains.num_families if m.edge_chains is not None else None,
         "tet_solver": ("fused" if world.fused_tets else "colored") if m.tet_count else None,
+        "tet_method": world.tet_method if m.tet_count else None,
         "tethers": m.geo_particles is not None,
         "cuda_graph": dev.is_cuda, "steps_timed": steps,
         "seconds": elapsed,
@@ -220,6 +224,8 @@ def main() -> None:
                    help="one run per value: 0 = one thread per chain, B >= 2 = blocks of B links")
     p.add_argument("--tet-solver", nargs="+", default=[None], choices=["auto", "colored", "fused"],
                    help="one run per value (tet scenes; default: the world's own choice)")
+    p.add_argument("--tet-method", nargs="+", default=[None], choices=["xpbd", "vbd"],
+                   help="one run per value (tet scenes; default: the world's own)")
     p.add_argument("--steps", type=int, default=30, help="timed env steps")
     p.add_argument("--settle-steps", type=int, default=30, help="untimed env steps before timing")
     p.add_argument("--out", default=None, help="append one JSON line per run to this file")
@@ -234,13 +240,15 @@ def main() -> None:
             for sub in args.substeps:
                 for it in args.iterations:
                     tet_solvers = args.tet_solver if scene.startswith("tet") else [None]
-                    for n, block, tets in itertools.product(args.num_envs, args.chain_block_links, tet_solvers):
+                    tet_methods = args.tet_method if scene.startswith("tet") else [None]
+                    for n, block, tets, method in itertools.product(args.num_envs, args.chain_block_links,
+                                                                    tet_solvers, tet_methods):
                         rec = run(scene, n, args.device, sub, it, solver, args.steps, args.settle_steps,
-                                  args.newton_steps, block, tets)
+                                  args.newton_steps, block, tets, method)
                         quality_text = (f"sag={rec['sag_m']:.3e} m" if "sag_m" in rec else
                                         f"stretch mean={rec['stretch_mean']:.4f} max={rec['stretch_max']:.3f}")
                         print(f"{scene:12s} {str(rec['edge_solver']):8s} envs={n:6d} substeps={rec['substeps']:4d} "
-                              f"iters={it} block={block} tets={rec['tet_solver']} "
+                              f"iters={it} block={block} tets={rec['tet_solver']}/{rec['tet_method']} "
                               f"{rec['env_steps_per_s']:12.1f} env-steps/s  {quality_text}  "
                               f"unstable={rec['unstable_envs']}", flush=True)
                         if args.out:

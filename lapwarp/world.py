@@ -30,12 +30,15 @@ from lapwarp import launching
 from lapwarp.config import check_seed, rng_seed32
 from lapwarp.kernels import chains, chains_partitioned, geodesic, world_kernels
 from lapwarp.model import Control, Model, State
+from lapwarp.vbd import tet_components, vertex_layout
 
 # Kernels with ~150 registers per thread (the chain solves): in blocks of 256 only one block fits an SM's register
 # file, in blocks of 64 six do (measured on the H100: the cloth's three chain families take 2.77 ms per substep at 64
 # threads per block, 3.08 ms at 256)
 #: the tet sweeps ``World.tet_solver`` may name
 TET_SOLVERS = ("auto", "colored", "fused")
+#: the tet methods ``World.tet_method`` may name: XPBD constraint projection or per-vertex descent (kernels/vbd.py)
+TET_METHODS = ("xpbd", "vbd")
 #: the largest tet particle window the fused sweep keeps in shared memory (12 B each: 48 KB, the static limit)
 FUSED_TET_MAX_PARTICLES = 4096
 
@@ -143,6 +146,10 @@ class World:
         # H200 for every task with tets (16 / 32 / 64 / 128 tried; benchmarks/RESULTS.md, "Fused tet sweep")
         self.tet_solver = "auto"
         self.tet_block_threads = 32
+        # how a sweep solves the tets (TET_METHODS): "xpbd" projects each tet's constraints from zero multipliers
+        # every substep (a stiff body carries its load only at h c / l <~ 0.7); "vbd" moves each vertex by a Newton
+        # step of the substep's potential (kernels/vbd.py), whose fixed point is the equilibrium at any stiffness
+        self.tet_method = "xpbd"
         self.rng = wp.empty(self.num_envs, dtype=wp.uint32, device=self.device)
         self.unstable = wp.zeros(self.num_envs, dtype=wp.int32, device=self.device)
         self._unstable_now = wp.zeros(self.num_envs, dtype=wp.int32, device=self.device)
@@ -167,6 +174,7 @@ class World:
         self._tet_rotation = wp.full((n, max(m.tet_count, 1)), wp.quat_identity(), dtype=wp.quat, device=dev)
         # ... and at the start state (saved and restored with it, so a reset episode repeats bit for bit)
         self._start_tet_rotation = wp.clone(self._tet_rotation) if m.tet_count else None
+        self._alloc_vertex_solve()
         self._no_rotation = wp.zeros((1, 0), dtype=wp.quat, device=dev)
         # the fused tet sweep's colour table and particle window (the tets' lowest particle and the window's length)
         self._tet_color_offsets = wp.array(np.asarray(m.tet_color_offsets, dtype=np.int32), dtype=wp.int32,
@@ -194,6 +202,26 @@ class World:
         self._cmds: list = []
         self._cmd_key = None
         self.solvers: list = []
+
+    def _alloc_vertex_solve(self) -> None:
+        """The per-vertex tet solve's layout (``lapwarp.vbd``: vertices by colour, incident tets) and the tet meshes
+        without a pinned particle in some env (which it refuses, kernels/vbd.py says why). Built with the World, as
+        its host copies must not happen while a step is recorded inside a CUDA graph capture."""
+        m, dev = self.model, self.device
+        self._vbd_layout = None
+        self._unanchored_tets: list[tuple[int, int]] = []
+        if not m.tet_count:
+            return
+        idx = m.tet_indices.numpy()
+        pinned = m.particle_inv_mass.numpy() == 0.0  # (1 or num_envs, particles)
+        self._unanchored_tets = [(int(c.min()), int(c.max())) for c in tet_components(idx)
+                                 if not pinned[:, c].any(axis=1).all()]
+        lay = vertex_layout(idx)
+        self._vbd_layout = (
+            wp.array(lay.vertices, dtype=wp.int32, device=dev), lay.color_offsets,
+            wp.array(np.asarray(lay.color_offsets, dtype=np.int32), dtype=wp.int32, device=dev),
+            wp.array(lay.adj_offsets, dtype=wp.int32, device=dev), wp.array(lay.adj_tets, dtype=wp.int32, device=dev),
+            wp.array(lay.adj_corners, dtype=wp.int32, device=dev))
 
     def _chain_scratch(self, chains) -> tuple:
         """Per-env scratch of a chain set's direct solve: per link the multiplier of the Newton steps, modified
@@ -291,10 +319,13 @@ class World:
         return self.particle_force
 
     def substeps_for(self, dt: float) -> int:
-        """Substeps of a ``step(dt)``: the fixed count, or automatically ``max(10, ceil(dt / model.max_substep))``."""
+        """Substeps of a ``step(dt)``: the fixed count, or automatically 10, and with ``tet_method`` "xpbd"
+        ``max(10, ceil(dt / model.max_substep))`` (XPBD tets reach their stiffness only at ``h c / l <~ 0.7``; the
+        per-vertex solve has no such bound)."""
         if self.substeps is not None:
             return self.substeps
-        need = dt / self.model.max_substep if np.isfinite(self.model.max_substep) else 0.0
+        xpbd_tets = self.tet_method == "xpbd" and np.isfinite(self.model.max_substep)
+        need = dt / self.model.max_substep if xpbd_tets else 0.0
         return max(self.MIN_AUTO_SUBSTEPS, int(np.ceil(need - 1e-9)))
 
     @property
@@ -327,8 +358,16 @@ class World:
             return
         key = (float(dt), self.substeps_for(float(dt)), self.iterations, self.rod_newton_steps, self.chain_newton_steps,
                self.tet_rotation_iterations, self.chain_block_links, self.tet_solver, self.tet_block_threads,
+               self.tet_method,
                *(solver.record_key() for solver in self.solvers if hasattr(solver, "record_key")))
         if self._cmd_key != key:
+            if self.tet_method not in TET_METHODS:
+                raise ValueError(f"world.tet_method must be one of {TET_METHODS}, got {self.tet_method!r}")
+            if self.tet_method == "vbd" and self._unanchored_tets:
+                first, last = self._unanchored_tets[0]
+                raise ValueError(f"world.tet_method 'vbd' moves a stiff body as a whole only slowly, so it takes only "
+                                 f"tet meshes with a pinned particle in every env; the mesh of particles "
+                                 f"{first}..{last} has none: use 'xpbd' (docs/physics.md)")
             if self.tet_solver not in TET_SOLVERS:
                 raise ValueError(f"world.tet_solver must be one of {TET_SOLVERS}, got {self.tet_solver!r}")
             if self.tet_solver == "fused" and self._tet_window[1] > FUSED_TET_MAX_PARTICLES:
@@ -384,7 +423,7 @@ class World:
                 cmds.append(arr.zero_)
             for it in range(iters):
                 sweep = Sweep(sub, it, substeps, iters, h)
-                self._record_sweep(launch, xpbd, inv_dt2, use_lam, sweep.blend)
+                self._record_sweep(launch, xpbd, inv_dt2, use_lam, sweep)
                 for solver in self.solvers:
                     solver.record_sweep(self, launch, sweep)
             launch(xpbd.update_particle_velocities, (n, m.particle_count), [s.particle_q, self._q_pred, 1.0 / h],
@@ -401,9 +440,10 @@ class World:
         cmds.append(self.check_stability)
         return cmds
 
-    def _record_sweep(self, launch, xpbd, inv_dt2: float, use_lam: int, blend: float) -> None:
+    def _record_sweep(self, launch, xpbd, inv_dt2: float, use_lam: int, sweep: Sweep) -> None:
         m, n, s = self.model, self.num_envs, self.state
         lam = self._lam
+        blend = sweep.blend
         # inverse masses for the deformables' own constraints: attached particles count as heavier (see
         # attachment_inverse_masses); the attachments themselves and the integration use the true ones
         w_eff = self._w_eff if self._w_eff is not None else m.particle_inv_mass
@@ -447,7 +487,9 @@ class World:
                     lam.get("tet", self._dummy_v2), tet_map, tet_mask, self.tet_rotation_iterations]
         tet_out = [self._tet_rotation if self.tet_rotation_iterations > 0 else self._no_rotation, s.particle_q]
         off = m.tet_color_offsets
-        if m.tet_count and self.fused_tets:
+        if m.tet_count and self.tet_method == "vbd":
+            self._record_vbd_sweep(launch, w_eff, inv_dt2, sweep, tet_map, tet_mask, tet_out[0])
+        elif m.tet_count and self.fused_tets:
             first, count = self._tet_window
             # on the CPU a tiled block has one lane (Warp's CPU tile semantics): the same sweep, in order
             threads = self.tet_block_threads if self.device.is_cuda else 1
@@ -491,6 +533,32 @@ class World:
             launch(xpbd.solve_attachments, n,
                    [s.attach_particle, s.attach_body, s.attach_offset, s.attach_compliance, bqp, bq, blend,
                     m.particle_inv_mass, inv_dt2], [s.particle_q])
+
+    def _record_vbd_sweep(self, launch, w_eff, inv_dt2: float, sweep: Sweep, tet_map, tet_mask, rotation) -> None:
+        """The tets' per-vertex sweep (``tet_method`` "vbd", kernels/vbd.py); the first sweep of a substep starts the
+        tet vertices from the inertial guess without gravity (``vbd.begin_substep``)."""
+        from lapwarp.kernels import vbd
+
+        m, n, s, dev = self.model, self.num_envs, self.state, self.device
+        vertices, offsets, offsets_dev, adj_offsets, adj_tets, adj_corners = self._vbd_layout
+        if sweep.iteration == 0:
+            launch(vbd.begin_substep, (n, vertices.shape[0]),
+                   [vertices, m.particle_inv_mass, m.gravity, sweep.h,
+                    s.particle_active if s.particle_active is not None else self._dummy_mask,
+                    int(s.particle_active is not None),
+                    self.particle_force if self.particle_force is not None else self._dummy_v3,
+                    int(self.particle_force is not None), self._q_pred], [s.particle_q])
+        common = [vertices, adj_offsets, adj_tets, adj_corners, m.tet_indices, m.tet_inv_rest, m.tet_params, w_eff,
+                  self._q_pred, inv_dt2, tet_map, tet_mask, self.tet_rotation_iterations]
+        if self.fused_tets:
+            first, count = self._tet_window
+            threads = self.tet_block_threads if dev.is_cuda else 1
+            launch(vbd.fused_vertex_kernel(count), (n, threads), [offsets_dev, first, *common],
+                   [rotation, s.particle_q], block_dim=threads)
+        else:
+            for c in range(len(offsets) - 1):
+                launch(vbd.solve_vertices, (n, offsets[c + 1] - offsets[c]), [offsets[c], *common],
+                       [rotation, s.particle_q])
 
     #: sweep rounds (four orders each) of the geodesic tethers' distances per step while an env's are not final
     GEODESIC_ROUNDS_PER_STEP = 2
@@ -564,7 +632,7 @@ class World:
             return
         src, dst = ((self._start_tet_rotation, self._tet_rotation) if restore
                     else (self._tet_rotation, self._start_tet_rotation))
-        launching.launch(world_kernels.copy_masked_quat_rows, dim=src.shape, inputs=[env_mask, src], outputs=[dst],
+        launching.launch(world_kernels.copy_masked_2d, dim=src.shape, inputs=[env_mask, src], outputs=[dst],
                          device=self.device)
 
     def _restore(self, env_mask: wp.array) -> None:

@@ -2,7 +2,9 @@
 tet particles in shared memory) against the per-colour launches: the same projections in the same order, so the same
 positions (bit for bit on the CPU, where a block has one lane; within float32 rounding on the GPU, where the two
 kernels may contract multiply-adds differently), with per-env materials, a window that does not start at particle 0,
-several sweeps per substep (multipliers), the SVD rotation, and cut tets."""
+several sweeps per substep (multipliers), the SVD rotation, and cut tets; for both tet methods (XPBD projections and
+the per-vertex solve, kernels/vbd.py). Also: the per-vertex solve's layout (a vertex colouring no tet violates,
+every incidence listed once), its refusal of unanchored meshes and of unknown method names."""
 
 from __future__ import annotations
 
@@ -13,7 +15,7 @@ from lapwarp.assets import box_tets, cloth_grid
 from lapwarp.builder import SceneBuilder
 
 
-def _scene(device, solver, iterations=1, rotation_iterations=2, cut=False):
+def _scene(device, solver, iterations=1, rotation_iterations=2, cut=False, method="xpbd"):
     b = SceneBuilder()
     # a cloth first, so the tets' particle window starts past particle 0
     cv, ct = cloth_grid(4, 4, 0.02, 0.02, plane="xz")
@@ -23,6 +25,7 @@ def _scene(device, solver, iterations=1, rotation_iterations=2, cut=False):
                            fixed=np.nonzero(v[:, 0] < 1e-9)[0], cuttable=cut)
     world = b.finalize(num_envs=3, device=device, substeps=8, iterations=iterations)
     world.tet_solver = solver
+    world.tet_method = method
     world.tet_rotation_iterations = rotation_iterations
     if cut:
         import warp as wp
@@ -33,11 +36,13 @@ def _scene(device, solver, iterations=1, rotation_iterations=2, cut=False):
     return world, block
 
 
-@pytest.mark.parametrize("iterations,rotation_iterations,cut", [(1, 2, False), (2, 0, False), (1, 2, True)])
-def test_fused_tet_sweep_matches_the_per_colour_launches(device, iterations, rotation_iterations, cut):
+@pytest.mark.parametrize("method,iterations,rotation_iterations,cut", [
+    ("xpbd", 1, 2, False), ("xpbd", 2, 0, False), ("xpbd", 1, 2, True),
+    ("vbd", 1, 2, False), ("vbd", 2, 0, False), ("vbd", 1, 2, True)])
+def test_fused_tet_sweep_matches_the_per_colour_launches(device, method, iterations, rotation_iterations, cut):
     result = {}
     for solver in ("colored", "fused"):
-        world, block = _scene(device, solver, iterations, rotation_iterations, cut)
+        world, block = _scene(device, solver, iterations, rotation_iterations, cut, method)
         for _ in range(4):
             world.step(0.05)
         result[solver] = world.positions(block)
@@ -70,3 +75,37 @@ def test_auto_fuses_the_tets_that_fit_shared_memory(device):
             world.step(0.05)
     finally:
         world_module.FUSED_TET_MAX_PARTICLES = world_module_limit
+
+
+def test_vertex_layout_colours_and_incidences(device):
+    from lapwarp.vbd import tet_components, vertex_layout
+
+    world, _ = _scene(device, "colored")
+    tets = world.model.tet_indices.numpy()
+    lay = vertex_layout(tets)
+    color = {int(v): c for c in range(len(lay.color_offsets) - 1)
+             for v in lay.vertices[lay.color_offsets[c]:lay.color_offsets[c + 1]]}
+    assert sorted(color) == sorted(np.unique(tets).tolist())
+    for tet in tets:  # no tet has two vertices of one colour
+        assert len({color[int(v)] for v in tet}) == 4
+    seen = set()
+    for j, v in enumerate(lay.vertices):
+        for a in range(lay.adj_offsets[j], lay.adj_offsets[j + 1]):
+            assert tets[lay.adj_tets[a], lay.adj_corners[a]] == v
+            seen.add((int(lay.adj_tets[a]), int(lay.adj_corners[a])))
+    assert len(seen) == 4 * len(tets) == lay.adj_offsets[-1]
+    assert len(tet_components(tets)) == 1
+    assert len(tet_components(np.array([[0, 1, 2, 3], [4, 5, 6, 7], [3, 8, 9, 10]]))) == 2
+
+
+def test_vertex_solve_refuses_unanchored_meshes_and_unknown_methods(device):
+    b = SceneBuilder()
+    v, t = box_tets((0.02, 0.02, 0.01), (2, 2, 1))
+    b.add_tet_mesh(v, t, density=1000.0, youngs_modulus=3e4, poisson_ratio=0.3)  # free: nothing pinned
+    world = b.finalize(num_envs=2, device=device, substeps=4)
+    world.tet_method = "vbd"
+    with pytest.raises(ValueError, match="pinned particle"):
+        world.step(0.05)
+    world.tet_method = "implicit"
+    with pytest.raises(ValueError, match="xpbd.*vbd"):
+        world.step(0.05)

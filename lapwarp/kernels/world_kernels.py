@@ -29,14 +29,6 @@ def clear_masked_int(env_mask: wp.array(dtype=wp.int32), flags_out: wp.array(dty
 
 
 @wp.kernel
-def copy_masked_quat_rows(env_mask: wp.array(dtype=wp.int32), src: wp.array2d(dtype=wp.quat),
-                          dst: wp.array2d(dtype=wp.quat)):
-    env, i = wp.tid()
-    if env_mask[env] != 0:
-        dst[env, i] = src[env, i]
-
-
-@wp.kernel
 def mark_masked_rows(env_mask: wp.array(dtype=wp.int32), flags_out: wp.array2d(dtype=wp.int32)):
     env = wp.tid()
     if env_mask[env] != 0:

@@ -286,20 +286,15 @@ def extract_rotation(F: wp.mat33, q0: wp.quat, iterations: int) -> wp.quat:
 
 
 @wp.func
-def tet_projection(
+def tet_constraints(
     x0: wp.vec3, x1: wp.vec3, x2: wp.vec3, x3: wp.vec3,
-    w0: float, w1: float, w2: float, w3: float,
     Dm_inv: wp.mat33,
-    p: wp.vec3,
-    inv_dt2: float,
-    lD: float,
-    lH: float,
     q0: wp.quat,
     rotation_iterations: int,
 ):
-    """One coupled XPBD projection of a co-rotated tet: returns whether it acts, the multiplier increments
-    ``(dlD, dlH)``, the tet's rotation (warm start of the next projection; ``rotation_iterations`` 0 = SVD polar
-    decomposition) and the four corner displacements."""
+    """The co-rotated tet's two constraints and their gradients: ``(C_D, C_H, qr, d0 .. d3, h0 .. h3)`` with ``qr``
+    the extracted rotation (warm start of the next extraction; ``rotation_iterations`` 0 = SVD polar
+    decomposition), ``d_i`` / ``h_i`` the gradients of ``C_D = |F - R|_F`` / ``C_H = det F - 1`` at corner ``i``."""
     F = wp.matrix_from_cols(x1 - x0, x2 - x0, x3 - x0) * Dm_inv
     # Energy V (mu |F - R|^2 + lambda/2 (det F - 1)^2) = C_D^2 / (2 alpha_D) + C_H^2 / (2 alpha_H): both
     # constraints vanish at rest, so stiff materials (alpha / dt^2 << w |grad C|^2) stay stable.
@@ -329,6 +324,25 @@ def tet_projection(
     h2 = mat_col(GH, 1)
     h3 = mat_col(GH, 2)
     h0 = -(h1 + h2 + h3)
+    return C_D, C_H, qr, d0, d1, d2, d3, h0, h1, h2, h3
+
+
+@wp.func
+def tet_projection(
+    x0: wp.vec3, x1: wp.vec3, x2: wp.vec3, x3: wp.vec3,
+    w0: float, w1: float, w2: float, w3: float,
+    Dm_inv: wp.mat33,
+    p: wp.vec3,
+    inv_dt2: float,
+    lD: float,
+    lH: float,
+    q0: wp.quat,
+    rotation_iterations: int,
+):
+    """One coupled XPBD projection of a co-rotated tet: returns whether it acts, the multiplier increments
+    ``(dlD, dlH)``, the tet's rotation (warm start of the next projection; ``rotation_iterations`` 0 = SVD polar
+    decomposition) and the four corner displacements."""
+    C_D, C_H, qr, d0, d1, d2, d3, h0, h1, h2, h3 = tet_constraints(x0, x1, x2, x3, Dm_inv, q0, rotation_iterations)
     aD = p[0] * inv_dt2
     hydro = p[1] >= 0.0  # alpha_H < 0 marks lambda = 0 (nu = 0): no volume term
     aH = wp.max(p[1], 0.0) * inv_dt2
