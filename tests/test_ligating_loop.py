@@ -619,26 +619,20 @@ def test_loop_shape_converged_at_default_substeps(device):
     assert deviation(unscaled) > 5.0e-3
 
 
-@pytest.mark.parametrize("substeps", [
-    pytest.param(None, marks=pytest.mark.xfail(strict=True, reason=(
-        "known limitation (solver convergence at the default physics_substeps=20, see the task's docstring and "
-        "docs/physics.md): the 2 MPa cavity's free end sags 12 mm under its own weight against the beam's 0.15 mm "
-        "(one XPBD sweep per substep does not reach a stiff tet's modulus; 80 substeps 0.87 mm, 320: 0.18 mm)"))),
-    320,
-])
-def test_cavity_sag_matches_closed_form(device, substeps):
+@pytest.mark.parametrize("method", ["vbd", "xpbd"])
+def test_cavity_sag_matches_closed_form(device, method):
     """The cavity as a cantilevered tube under its own weight (0.1 kg over 50 mm, g = 0.981 m/s^2, E 2 MPa, nu 0 so
     G = E / 2), clamped over its three fixed rings (z < 5 mm) and free over L = 50 - 4.17 mm: Euler-Bernoulli bending
-    w L^4 / (8 E I) plus Timoshenko shear w L^2 / (2 kappa G A) (thin-walled tube, kappa = 1/2) = 0.153 mm. The free
-    end ring's mean drop after 0.5 s with zero actions (settled) matches it within 30 % at 320 substeps per physics
-    step (measured 0.177 mm; an extrapolation in 1 / n^2 from 80 and 320 substeps gives ~0.13 mm converged, the coarse
-    linear tets a little stiffer than the beam); the default substeps do not (xfail: 12 mm)."""
-    overrides = dict(randomize_loop_state=False, bank_settle_steps=1)
-    if substeps is not None:
-        overrides["physics_substeps"] = substeps
-    env = make(device, 1, **overrides)
+    w L^4 / (8 E I) plus Timoshenko shear w L^2 / (2 kappa G A) (thin-walled tube, kappa = 1/2) = 0.153 mm. At the
+    default 20 substeps per physics step, with the per-vertex tet solve (``cavity_solver = "vbd"``), the free end
+    ring's mean drop after 2 s with zero actions matches it within 10 % (measured 0.145 mm: the coarse linear tets are
+    a little stiffer than the beam; it creeps there, 0.13 mm after 1 s, because one sweep per substep relaxes a stiff
+    body's slow modes over many substeps). With XPBD's tets (the task's default, known limitation) it sags > 10x the
+    closed form within 0.25 s (measured 12 mm: one sweep per substep does not reach a stiff tet's modulus; 320
+    substeps per physics step 0.18 mm)."""
+    env = make(device, 1, randomize_loop_state=False, bank_settle_steps=1, cavity_solver=method)
     env.reset()
-    for _ in range(5):
+    for _ in range(40 if method == "vbd" else 5):
         env.step(torch.zeros(1, 5))
     end = state(env)["cavity"][0, [outer_node(j, AXIAL - 1) for j in range(ANGULAR)]].mean(axis=0)
     free = LENGTH - 2.0 * LENGTH / (AXIAL - 1)  # the last fixed ring is at z = 4.17 mm
@@ -648,4 +642,7 @@ def test_cavity_sag_matches_closed_form(device, substeps):
     area = math.pi * (R_OUT**2 - R_IN**2)
     expected = w * free**4 / (8.0 * youngs * inertia) + w * free**2 / (2.0 * 0.5 * 0.5 * youngs * area)
     assert expected == pytest.approx(1.53e-4, rel=0.01)
-    assert -end[1] == pytest.approx(expected, rel=0.3), (-end[1], expected)
+    if method == "vbd":
+        assert -end[1] == pytest.approx(expected, rel=0.1), (-end[1], expected)
+    else:
+        assert -end[1] > 10.0 * expected, (-end[1], expected)

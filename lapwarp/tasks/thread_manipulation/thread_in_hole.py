@@ -11,7 +11,9 @@ Physics (SI, sofa_env's millimetres converted; z up, gravity 0.981 m/s^2 along -
   a ``beam_radius`` cross-section, Young's modulus E, total mass, velocity damping; it collides as a tube of radius
   ``r`` with the cylinder's deforming surface (its nodes against the triangles; the nodes are ``L / N`` ~ 2 r apart).
 * Hole: sofa_env's Cavity, a hollow cylinder of 2 radial x 10 angular x 10 vertical nodes (200 nodes, 540 tets),
-  co-rotated XPBD FEM, its bottom ring fixed; the thread collides with its inner and outer walls and caps.
+  co-rotated FEM solved per vertex (``hole_solver``, kernels/vbd.py: the normal hole's self-weight sag within a few
+  percent of the closed form; XPBD's tets at the default substeps sag 9.6x too much), its bottom ring fixed; the
+  thread collides with its inner and outer walls and caps.
 * Grasp: the thread's first node is attached to the grasper's jaw and its first segment keeps its orientation relative
   to the jaw (``GraspSystem.start_grasped``; sofa_env: a 1e9 N/m spring and the root frame forced to the gripper's
   orientation). The jaws and shaft collide with the cylinder.
@@ -146,6 +148,9 @@ class ThreadInHoleConfig(EnvConfig):
         maximum_state_velocity / discrete_action_magnitude: speeds of a continuous action of 1 and of a discrete
             action (deg/s, deg/s, deg/s, m/s).
         thread_damping: velocity damping rate of the thread, 1/s. hole_damping: of the cylinder, 1/s.
+        hole_solver: the cylinder's tet solve (``World.tet_method``): ``vbd`` (per vertex: its equilibrium at the
+            material's stiffness) or ``xpbd`` (one XPBD sweep per substep: the normal hole sags 149 um under its own
+            weight against the closed form's 15.6 um at the default substeps; what earlier versions ran).
         gravity: m/s^2 along -z (sofa_env's -981 mm/s^2).
         poisson_ratio: thread and hole (sofa_env's 0.3).
         settle_steps: physics steps the thread settles at build (sofa_env's 50, after every reset).
@@ -173,6 +178,7 @@ class ThreadInHoleConfig(EnvConfig):
     discrete_action_magnitude: tuple[Positive, Positive, Positive, Positive] = (15.0, 15.0, 15.0, 0.01)
     thread_damping: NonNegative = 5.0
     hole_damping: NonNegative = 10.0
+    hole_solver: Literal["vbd", "xpbd"] = "vbd"
     gravity: NonNegative = 0.981
     poisson_ratio: Annotated[float, Range(ge=0.0, lt=0.5)] = 0.3
     settle_steps: Annotated[int, Range(ge=1, le=10_000)] = 50
@@ -655,6 +661,7 @@ class ThreadInHoleEnv(BatchedEnv):
         self.hole_rest = (hv, ht)
         world = builder.finalize(num_envs=n, device=str(dev), substeps=cfg.physics_substeps, seed=cfg.seed,
                                  attachment_capacity=1)
+        world.tet_method = cfg.hole_solver
         self.rig.finalize(world)
         self.contact = c = ContactSystem(world, capacity=cfg.contact_capacity, body_ignore_mask=True)
         thread_group = c.add_particle_group(self.thread, radius=radius, name="thread")
