@@ -28,6 +28,11 @@ def test_ppo_trains_saves_resumes_and_plays(device, tmp_path, capsys):
     checkpoints = sorted(tmp_path.glob("Reach/*/model_*.pt"))
     assert checkpoints, "training must save a checkpoint"
     assert ppo.main(args[:-2] + ["--log-dir", str(tmp_path / "resumed"), "--resume", str(checkpoints[-1])]) == 0
+    # an explicit rate replaces the one the checkpoint's optimizer state brings back (rsl-rl's load restores it)
+    assert ppo.main(args[:-2] + ["--log-dir", str(tmp_path / "resumed_rate"), "--resume", str(checkpoints[-1]),
+                                 "--lr-schedule", "fixed", "--learning-rate", "5e-5"]) == 0
+    out = capsys.readouterr().out
+    assert "learning rate 5.00e-05 (the checkpoint's was" in out and "lr 5.00e-05" in out
     assert ppo.main(["--device", device, "--preset", "cpu", "--num-envs", "4", "--eval-envs", "4",
                      "--play", str(checkpoints[-1])]) == 0
     assert "loaded" in capsys.readouterr().out
@@ -124,6 +129,10 @@ def test_learning_rate_options_override_the_preset():
     *_, cfg, _ = ppo.training_config(args, parser, "cpu")
     assert (cfg["algorithm"]["schedule"], cfg["algorithm"]["learning_rate"], cfg["algorithm"]["desired_kl"]) == (
         "fixed", 3e-4, None)
+    args = parser.parse_args(["--preset", "gpu", "--lr-schedule", "linear", "--max-iterations", "250"])
+    *_, cfg, _ = ppo.training_config(args, parser, "cpu")
+    assert cfg["algorithm"]["class_name"] is ppo.LinearSchedulePPO and cfg["algorithm"]["total_updates"] == 250
+    assert (cfg["algorithm"]["schedule"], cfg["algorithm"]["desired_kl"]) == ("fixed", None)
     for bad in (["--learning-rate", "0"], ["--learning-rate", "nan"], ["--preset", "paper", "--lr-schedule", "fixed"]):
         with pytest.raises(SystemExit):
             ppo.training_config(parser.parse_args(bad), parser, "cpu")

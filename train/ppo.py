@@ -339,9 +339,10 @@ def build_parser() -> argparse.ArgumentParser:
                         help="write the run's final figures (evaluation success, env-steps, times, device)")
     parser.add_argument("--learning-rate", type=float, default=None, metavar="LR",
                         help="override the preset's (initial) learning rate")
-    parser.add_argument("--lr-schedule", choices=["adaptive", "fixed"], default=None,
+    parser.add_argument("--lr-schedule", choices=["adaptive", "fixed", "linear"], default=None,
                         help="override the preset's learning-rate schedule: adaptive (rsl-rl's KL-adaptive, target "
-                             "KL 0.01) or fixed")
+                             "KL 0.01), fixed, or linear (rate and clip range decay to 0 over --max-iterations, the "
+                             "paper preset's schedule)")
     parser.add_argument("--verbose", action="store_true", help="print rsl-rl's full block per iteration")
     return parser
 
@@ -384,7 +385,10 @@ def training_config(args: argparse.Namespace, parser: argparse.ArgumentParser, d
     if args.lr_schedule is not None:
         if alg.get("class_name") is LinearSchedulePPO:
             parser.error("--lr-schedule: the paper preset decays its rate linearly; use --preset gpu or cpu")
-        alg.update(schedule=args.lr_schedule, desired_kl=0.01 if args.lr_schedule == "adaptive" else None)
+        if args.lr_schedule == "linear":
+            alg.update(class_name=LinearSchedulePPO, total_updates=iterations, schedule="fixed", desired_kl=None)
+        else:
+            alg.update(schedule=args.lr_schedule, desired_kl=0.01 if args.lr_schedule == "adaptive" else None)
     if args.learning_rate is not None:
         if not 0.0 < args.learning_rate <= 1.0:  # NaN fails the comparison too
             parser.error(f"--learning-rate must be in (0, 1], got {args.learning_rate}")
@@ -452,6 +456,14 @@ def train(argv: list[str] | None, quiet: contextlib.ExitStack) -> int:
         runner.load(checkpoint, map_location=device)
         if ranks.is_main:
             print(f"loaded {checkpoint}")
+        if args.resume and args.learning_rate is not None:
+            # rsl-rl's load restores the optimizer with the checkpoint's rate; an explicit rate is what the user asked
+            restored = runner.alg.learning_rate
+            runner.alg.learning_rate = args.learning_rate
+            for group in runner.alg.optimizer.param_groups:
+                group["lr"] = args.learning_rate
+            if ranks.is_main:
+                print(f"learning rate {args.learning_rate:.2e} (the checkpoint's was {restored:.2e})")
     if not args.play:
         contexts = gather_objects(cuda_contexts()) if ranks.distributed else None
         if ranks.is_main:
