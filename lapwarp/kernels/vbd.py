@@ -20,7 +20,11 @@ What it does not do: move a stiff body as a whole. Its rigid motion under gravit
 Gauss-Seidel across its vertices, one colour at a time against the stiff tets, so a free 30 kPa block falls 3.7 cm in
 0.5 s instead of 1.25 m (XPBD: exact, its prediction moves every particle). The World therefore takes this method
 only for tet meshes anchored by pinned particles in every env (``World.tet_method``; a ValueError otherwise): clamped
-tissue whose shape under load is the point (LigatingLoop's cavity, ThreadInHole's hole).
+tissue whose shape under load is the point (LigatingLoop's cavity, ThreadInHole's hole). Starting a free body from
+the full prediction instead makes its free fall exact, but one sweep of per-vertex steps does not conserve momentum
+(a vertex's step is not mirrored on its neighbours), so such a body resting on a mesh pressed on it with 1.47x its
+weight and a block on an incline steep enough to slide stuck: XPBD's constraints, which move both ends, do not have
+that problem.
 
 The energy and its constraints are the XPBD tets' (``xpbd.tet_constraints``: ``C_D = |F - R|``, ``C_H = det F - 1``
 with compliances ``alpha_D = 1 / (2 mu V)``, ``alpha_H = 1 / (lambda V)``, ``alpha_H < 0`` = no volume term), so the
