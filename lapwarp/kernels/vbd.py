@@ -26,14 +26,14 @@ the full prediction instead makes its free fall exact, but one sweep of per-vert
 weight and a block on an incline steep enough to slide stuck: XPBD's constraints, which move both ends, do not have
 that problem.
 
-The energy and its constraints are the XPBD tets' (``xpbd.tet_constraints``: ``C_D = |F - R|``, ``C_H = det F - 1``
+The energy and its constraints are the XPBD tets' (``xpbd.tet_strain``: ``C_D = |F - R|``, ``C_H = det F - 1``
 with compliances ``alpha_D = 1 / (2 mu V)``, ``alpha_H = 1 / (lambda V)``, ``alpha_H < 0`` = no volume term), so the
 material, per-env parameters, cutting masks and the rotation warm start are shared with the XPBD path.
 """
 
 import warp as wp
 
-from lapwarp.kernels.xpbd import tet_constraints, tet_removed
+from lapwarp.kernels.xpbd import tet_removed, tet_strain
 
 wp.set_module_options({"enable_backward": False})
 
@@ -92,27 +92,19 @@ def tet_vertex_terms(
         iters = rotation_iterations
         q0 = tet_rotation[env, c]
     Dm_inv = inv_rest[c]
-    C_D, C_H, qr, d0, d1, d2, d3, h0, h1, h2, h3 = tet_constraints(x0, x1, x2, x3, Dm_inv, q0, iters)
+    C_D, C_H, qr, DC, cof = tet_strain(x0, x1, x2, x3, Dm_inv, q0, iters)
     if corner == 0 and iters > 0:
         tet_rotation[env, c] = qr
     p = params[env % params.shape[0], c]
-    d = d0
-    g = h0
-    # d F / d x_corner = I (x) m, m the corner's row of Dm^-1 (corner 0: minus their sum)
-    m = -(wp.vec3(Dm_inv[0, 0], Dm_inv[0, 1], Dm_inv[0, 2]) + wp.vec3(Dm_inv[1, 0], Dm_inv[1, 1], Dm_inv[1, 2])
-          + wp.vec3(Dm_inv[2, 0], Dm_inv[2, 1], Dm_inv[2, 2]))
-    if corner == 1:
-        d = d1
-        g = h1
-        m = wp.vec3(Dm_inv[0, 0], Dm_inv[0, 1], Dm_inv[0, 2])
-    elif corner == 2:
-        d = d2
-        g = h2
-        m = wp.vec3(Dm_inv[1, 0], Dm_inv[1, 1], Dm_inv[1, 2])
-    elif corner == 3:
-        d = d3
-        g = h3
-        m = wp.vec3(Dm_inv[2, 0], Dm_inv[2, 1], Dm_inv[2, 2])
+    # d F / d x_corner = I (x) m, m the corner's row of Dm^-1 (corner 0: minus their sum): only this corner's gradients
+    m = wp.vec3(0.0)
+    if corner == 0:
+        m = -(wp.vec3(Dm_inv[0, 0], Dm_inv[0, 1], Dm_inv[0, 2]) + wp.vec3(Dm_inv[1, 0], Dm_inv[1, 1], Dm_inv[1, 2])
+              + wp.vec3(Dm_inv[2, 0], Dm_inv[2, 1], Dm_inv[2, 2]))
+    else:
+        m = wp.vec3(Dm_inv[corner - 1, 0], Dm_inv[corner - 1, 1], Dm_inv[corner - 1, 2])
+    d = DC * m
+    g = cof * m
     inv_aD = 1.0 / p[0]
     f = -d * (C_D * inv_aD)
     H = wp.identity(3, dtype=float) * (wp.dot(m, m) * inv_aD)

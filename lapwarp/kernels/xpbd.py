@@ -286,15 +286,16 @@ def extract_rotation(F: wp.mat33, q0: wp.quat, iterations: int) -> wp.quat:
 
 
 @wp.func
-def tet_constraints(
+def tet_strain(
     x0: wp.vec3, x1: wp.vec3, x2: wp.vec3, x3: wp.vec3,
     Dm_inv: wp.mat33,
     q0: wp.quat,
     rotation_iterations: int,
 ):
-    """The co-rotated tet's two constraints and their gradients: ``(C_D, C_H, qr, d0 .. d3, h0 .. h3)`` with ``qr``
-    the extracted rotation (warm start of the next extraction; ``rotation_iterations`` 0 = SVD polar
-    decomposition), ``d_i`` / ``h_i`` the gradients of ``C_D = |F - R|_F`` / ``C_H = det F - 1`` at corner ``i``."""
+    """The co-rotated tet's deformation: ``(C_D, C_H, qr, DC, cof)``: the constraints ``C_D = |F - R|_F`` and
+    ``C_H = det F - 1``, the extracted rotation ``qr`` (warm start of the next extraction; ``rotation_iterations``
+    0 = SVD polar decomposition), ``dC_D / dF = (F - R) / C_D`` (0 at rest) and ``dC_H / dF = cof F``. The gradient at
+    corner ``j`` = 1..3 is the matrix times row ``j - 1`` of ``Dm_inv``; corner 0's is minus their sum."""
     F = wp.matrix_from_cols(x1 - x0, x2 - x0, x3 - x0) * Dm_inv
     # Energy V (mu |F - R|^2 + lambda/2 (det F - 1)^2) = C_D^2 / (2 alpha_D) + C_H^2 / (2 alpha_H): both
     # constraints vanish at rest, so stiff materials (alpha / dt^2 << w |grad C|^2) stay stable.
@@ -311,11 +312,27 @@ def tet_constraints(
     f2 = mat_col(F, 1)
     f3 = mat_col(F, 2)
     C_H = wp.determinant(F) - 1.0
-    DmT = wp.transpose(Dm_inv)
-    GD = wp.mat33(0.0)
+    DC = wp.mat33(0.0)
     if C_D > 1.0e-9:
-        GD = FR * (1.0 / C_D) * DmT
-    GH = wp.matrix_from_cols(wp.cross(f2, f3), wp.cross(f3, f1), wp.cross(f1, f2)) * DmT
+        DC = FR * (1.0 / C_D)
+    cof = wp.matrix_from_cols(wp.cross(f2, f3), wp.cross(f3, f1), wp.cross(f1, f2))
+    return C_D, C_H, qr, DC, cof
+
+
+@wp.func
+def tet_constraints(
+    x0: wp.vec3, x1: wp.vec3, x2: wp.vec3, x3: wp.vec3,
+    Dm_inv: wp.mat33,
+    q0: wp.quat,
+    rotation_iterations: int,
+):
+    """The co-rotated tet's two constraints and their gradients: ``(C_D, C_H, qr, d0 .. d3, h0 .. h3)`` with ``qr``
+    the extracted rotation (see :func:`tet_strain`), ``d_i`` / ``h_i`` the gradients of ``C_D = |F - R|_F`` /
+    ``C_H = det F - 1`` at corner ``i``."""
+    C_D, C_H, qr, DC, cof = tet_strain(x0, x1, x2, x3, Dm_inv, q0, rotation_iterations)
+    DmT = wp.transpose(Dm_inv)
+    GD = DC * DmT
+    GH = cof * DmT
     d1 = mat_col(GD, 0)
     d2 = mat_col(GD, 1)
     d3 = mat_col(GD, 2)
