@@ -648,6 +648,7 @@ class ExpertParams:
     overhang_slack: float
     slide_step: float
     open_angle: float
+    left_open_angle: float  # the bimanual left grasper's open jaws (deg)
     regrasp_past: float
     regrasp_push: float
     regrasp_hover: float
@@ -874,9 +875,12 @@ def expert_commands(q: wp.array2d(dtype=wp.vec3), ptsd: wp.array2d(dtype=wp.vec4
         if p.bimanual != 0 and task.active_state[env] == TRANSITION:
             # the eye is passed: push on until the free end is ``regrasp_push`` past the ring (within the left
             # grasper's reach), then hold the rope still for the left grasper (pushed on, the held node would follow
-            # the free end through the ring, and both graspers would hold it on the same side)
+            # the free end through the ring, and both graspers would hold it on the same side). Discrete: at once
+            # (pushed or levered on, the free part only droops past the ring or the lever drags it down, and every
+            # step of the right grasper is one the left one waits for: the episodes ran out of steps)
             cb = eye_center(task.eye_pose[env, k])
-            if wp.dot(q[env, p.rope_first] - cb, eye_normal(task.eye_pose[env, k])) > ep.regrasp_push:
+            past = wp.dot(q[env, p.rope_first] - cb, eye_normal(task.eye_pose[env, k]))
+            if ep.discrete != 0 or past > ep.regrasp_push:
                 move = wp.vec3(0.0)
                 yaw_error = 0.0
         if active >= 1 and active < p.num_eyes and mem.carried[env] >= active:
@@ -933,22 +937,23 @@ def discrete_choice(env: int, g: int, pose: wp.array2d(dtype=wp.transform), ptsd
                     mem: ExpertMemory, start: bool, goal: bool) -> wp.vec2:
     """Grasper ``g``'s best discrete step and what it gains: (action index, -1 for the no-op; the score it saves).
 
-    The tip chases a reference point moved like the continuous tip (by ``move``, at most ``step``, inside the
-    workspace). A discrete step moves the tip 1.0-1.4 mm (pan, tilt) or 1.2 mm (depth), more than most continuous
-    moves, so a step chosen by its own ``move`` alone would never come (the centring's 0.1-0.3 mm): without ``goal``
-    the reference keeps the moves of the steps before (the tip follows it within a lattice cell, and the small moves
-    add up to whole steps); with ``goal`` (``move`` is the way to a goal: a node to close on, a waiting point) it
-    starts at the tip each step, so the tip stops at the lattice point nearest the goal instead of dithering around
-    it. A candidate's score is the tip's distance to the reference, the spin error (the heading error about the
-    shaft) and the jaw error, each over its scale; the candidates are the pan, tilt and depth steps the env accepts,
-    the two spin steps and the two jaw steps within the jaw's limits."""
+    The tip chases a reference point moved like the continuous tip (by ``move``, at most ``step`` without ``goal``,
+    inside the workspace). A discrete step moves the tip 1.0-1.4 mm (pan, tilt) or 1.2 mm (depth), more than most
+    continuous moves, so a step chosen by its own ``move`` alone would never come (the centring's 0.1-0.3 mm): without
+    ``goal`` the reference keeps the moves of the steps before (the tip follows it within a lattice cell, and the small
+    moves add up to whole steps); with ``goal`` (``move`` is the way to a goal: a node to close on, a waiting point) it
+    starts at the tip each step and is the goal itself, so the tip stops at the lattice point nearest the goal instead
+    of dithering around it (a goal capped at ``step``, half a cell off in pan and tilt, let no single step gain
+    ``hold``: the tip stalled short of a node 2-3 mm away). A candidate's score is the tip's distance to the reference,
+    the spin error (the heading error about the shaft) and the jaw error, each over its scale; the candidates are the
+    pan, tilt and depth steps the env accepts, the two spin steps and the two jaw steps within the jaw's limits."""
     if ep.discrete == 0:
         return wp.vec2(-1.0, 0.0)
     tip = pose[env, g]
     x = wp.transform_get_translation(tip)
     axis = wp.transform_vector(tip, wp.vec3(0.0, 0.0, 1.0))
     spin_error = yaw_error * axis[2]  # a spin about the downward shaft turns the heading the other way
-    if wp.length(move) > step:
+    if not goal and wp.length(move) > step:
         move = move * (step / wp.length(move))
     ref = mem.ref[env, g]
     if start or goal or wp.length(ref - x) > ep.ref_reset:
@@ -1005,7 +1010,7 @@ def left_grasper(q: wp.array2d(dtype=wp.vec3), pose: wp.array2d(dtype=wp.transfo
     wait = c + n * ep.regrasp_past
     move = wait + wp.vec3(0.0, 0.0, ep.regrasp_hover) - center
     along = n
-    jaw_error = ep.open_angle - jaw[env, 0]
+    jaw_error = ep.left_open_angle - jaw[env, 0]
     if left_grasped[env] != 0:
         move = wp.vec3(0.0)
         jaw_error = 0.0
@@ -1292,9 +1297,9 @@ class RopeThreadingExpert(Expert):
 
     Bimanual: once the eye is passed (TRANSITION) the right grasper pushes on until the free end is
     ``regrasp_push`` past the ring (nearer the left grasper's RCM: a ring 80 mm out is at the edge of its reach) and
-    holds still; the left one waits, jaws open, ``regrasp_hover`` above the point ``regrasp_past`` beyond the ring on
-    its axis and then closes on the rope node nearest that point (both graspers then hold the rope on either side of
-    the ring).
+    holds still (discrete: at once); the left one waits, jaws open to ``left_open_angle``, ``regrasp_hover`` above the
+    point ``regrasp_past`` beyond the ring on its axis and then closes on the rope node nearest that point (both
+    graspers then hold the rope on either side of the ring).
 
     Discrete actions (one component of one grasper by one step per env step: pan and tilt 1.2 deg, 1.0-1.4 mm at the
     tip and grasp centre; depth 1.2 mm; spin 2.5 deg; jaw 0.5 deg) are chosen by ``discrete_choice`` from the same
@@ -1302,8 +1307,9 @@ class RopeThreadingExpert(Expert):
     below half a step, i.e. on the centring (``gain`` x a ring offset of a millimetre or two) and the advance, and
     solved no base episode. Each grasper's tip chases a reference point instead: while threading the reference
     accumulates the continuous moves (the tip follows it within a lattice cell, so small centring moves add up to
-    whole steps), in the regrasp phases and for the left grasper it is the goal itself, at most ``max_step`` /
-    ``slide_step`` away (an accumulated goal error would keep the tip dithering around its node). Every candidate --
+    whole steps), in the regrasp phases and for the left grasper it is the goal itself (an accumulated goal error
+    would keep the tip dithering around its node; not capped at ``slide_step``: a capped goal half a lattice cell off
+    both pan and tilt let no single step gain ``hold``, and the regrasp stalled in SLIDE for good). Every candidate --
     the pan, tilt and depth steps the env accepts (``ptsd_step``, ``ptsd_accepted``), the two spin steps, the two jaw
     steps -- is scored by the tip's distance to the reference over ``position_scale``, the spin error over
     ``spin_scale`` and the jaw error over ``jaw_scale``; the step that lowers the score most by at least ``hold`` is
@@ -1311,16 +1317,22 @@ class RopeThreadingExpert(Expert):
     ``reach`` (discrete 2 mm: the lattice may not come within 1 mm).
 
     CPU, first episodes, 32 envs (``benchmarks/expert_success.py``): base discrete 96 / 96 (seeds 0-2, the last
-    episode of a seed ending after 112-189 of the 200 steps; before: 0), continuous unchanged (32 / 32 each seed);
-    discrete two eyes 21 / 32 (continuous 27 / 32) and bimanual 13 / 32 (continuous 32 / 32), seed 0: with one action
-    per step the left grasper's ~60 mm way to its waiting point and its jaw take steps from the right one's threading,
-    and many bimanual episodes time out during the regrasp."""
+    episode of a seed ending after 112-189 of the 200 steps; before: 0), continuous unchanged (32 / 32 each seed).
+    Discrete two eyes 24 / 32 and 26 / 32 (seeds 0, 1; before the uncapped goal and the narrower jaws: 21 / 32 each;
+    continuous 30 / 32 at seed 1) and bimanual 24 / 32 and 16 / 32 (before the right grasper held still at once, the
+    uncapped goal and the left's narrower jaws: 13 / 32 and 10 / 32; continuous 32 / 32). Bimanual is a step budget:
+    with one action per step the left grasper's ~60 mm way to the ring (pan, tilt and depth steps one at a time), its
+    spin, jaw and closing take ~100 steps and the right one's threading ~45-70 of the 200; the failures are the
+    episodes whose pass comes after ~160 steps. Two eyes: the regrasp (~70-100 steps, most of them the jaw's 0.5 deg
+    steps), the lever and the carry leave little of the 350 steps, and a free end pushed past the second ring beside
+    it after a carry stalls (pulled back, the held node would drag the rope out of the first ring; continuous too)."""
 
     def __init__(self, env: RopeThreadingEnv, approach: float = 0.006, tolerance: float = 0.0015, gain: float = 0.15,
                  spin_gain: float = 0.5, advance: float = 0.001, max_step: float | None = None,
                  steep_cos: float = 0.64, lower: float = 0.001, carry_clear: float = 0.008,
                  carry_angle: float = 40.0, overhang_slack: float = 0.006, slide_step: float | None = None,
-                 open_angle: float = 17.0, regrasp_past: float = 0.012, regrasp_push: float = 0.016,
+                 open_angle: float | None = None, left_open_angle: float | None = None, regrasp_past: float = 0.012,
+                 regrasp_push: float = 0.016,
                  regrasp_hover: float = 0.015, reach: float | None = None, position_scale: float = 0.001,
                  spin_scale: float = 0.05, jaw_scale: float = 1.0, hold: float = 0.1, ref_reset: float = 0.003):
         super().__init__(env)
@@ -1331,7 +1343,12 @@ class RopeThreadingExpert(Expert):
         ep.steep_cos, ep.lower, ep.carry_clear = float(steep_cos), float(lower), float(carry_clear)
         ep.carry_angle, ep.overhang_slack = math.radians(carry_angle), float(overhang_slack)
         ep.slide_step = float(slide_step if slide_step is not None else 1.5 * ep.max_step)
-        ep.open_angle = float(open_angle)
+        # discrete: the jaw moves 0.5 deg a step and one step is taken per env step: the jaws open no wider than they
+        # must (sofa_env's release at 15 deg; the left grasper's 14 deg leave the 2 mm rope ~1.6 mm to either side
+        # at its grasp centre) and so close sooner
+        ep.open_angle = float(open_angle if open_angle is not None else (15.5 if env.is_discrete else 17.0))
+        ep.left_open_angle = float(left_open_angle if left_open_angle is not None
+                                   else (14.0 if env.is_discrete else ep.open_angle))
         ep.regrasp_past, ep.regrasp_push = float(regrasp_past), float(regrasp_push)
         ep.regrasp_hover = float(regrasp_hover)
         # discrete: the lattice of whole steps may not come within 1 mm of the node (it dithered 1.0-1.8 mm off)
