@@ -411,11 +411,8 @@ class World:
         lam = self._lam
         for sub in range(substeps):
             launch(xpbd.integrate_particles, (n, m.particle_count),
-                   [m.particle_inv_mass, m.particle_damping, m.gravity, h,
-                    s.particle_active if s.particle_active is not None else self._dummy_mask,
-                    int(s.particle_active is not None),
-                    self.particle_force if self.particle_force is not None else self._dummy_v3,
-                    int(self.particle_force is not None), s.particle_q, s.particle_qd], [self._q_pred])
+                   [m.particle_inv_mass, m.particle_damping, m.gravity, h, *self._prediction_masks(), s.particle_q,
+                    s.particle_qd], [self._q_pred])
             if m.segment_count:
                 launch(xpbd.integrate_segments, (n, m.segment_count),
                        [m.segment_inv_inertia, m.segment_damping, h, s.segment_q, s.segment_qd], [self._sq_prev])
@@ -534,6 +531,15 @@ class World:
                    [s.attach_particle, s.attach_body, s.attach_offset, s.attach_compliance, bqp, bq, blend,
                     m.particle_inv_mass, inv_dt2], [s.particle_q])
 
+    def _prediction_masks(self) -> tuple:
+        """``(active, use_active, force, use_force)`` of the prediction (``xpbd.integrate_particles``) and of what
+        must repeat its choices (``vbd.begin_substep``): cut-loose particles and external forces, or dummies."""
+        s = self.state
+        return (s.particle_active if s.particle_active is not None else self._dummy_mask,
+                int(s.particle_active is not None),
+                self.particle_force if self.particle_force is not None else self._dummy_v3,
+                int(self.particle_force is not None))
+
     def _record_vbd_sweep(self, launch, w_eff, inv_dt2: float, sweep: Sweep, tet_map, tet_mask, rotation) -> None:
         """The tets' per-vertex sweep (``tet_method`` "vbd", kernels/vbd.py); the first sweep of a substep starts the
         tet vertices from the inertial guess without gravity (``vbd.begin_substep``)."""
@@ -543,11 +549,8 @@ class World:
         vertices, offsets, offsets_dev, adj_offsets, adj_tets, adj_corners = self._vbd_layout
         if sweep.iteration == 0:
             launch(vbd.begin_substep, (n, vertices.shape[0]),
-                   [vertices, m.particle_inv_mass, m.gravity, sweep.h,
-                    s.particle_active if s.particle_active is not None else self._dummy_mask,
-                    int(s.particle_active is not None),
-                    self.particle_force if self.particle_force is not None else self._dummy_v3,
-                    int(self.particle_force is not None), self._q_pred], [s.particle_q])
+                   [vertices, m.particle_inv_mass, m.gravity, sweep.h, *self._prediction_masks(), self._q_pred],
+                   [s.particle_q])
         common = [vertices, adj_offsets, adj_tets, adj_corners, m.tet_indices, m.tet_inv_rest, m.tet_params, w_eff,
                   self._q_pred, inv_dt2, tet_map, tet_mask, self.tet_rotation_iterations]
         if self.fused_tets:
