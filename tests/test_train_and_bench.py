@@ -136,3 +136,36 @@ def test_learning_rate_options_override_the_preset():
     for bad in (["--learning-rate", "0"], ["--learning-rate", "nan"], ["--preset", "paper", "--lr-schedule", "fixed"]):
         with pytest.raises(SystemExit):
             ppo.training_config(parser.parse_args(bad), parser, "cpu")
+
+
+class _EndsAtStepTwo:
+    """Four envs whose episodes all end at step 2 before the time limit, envs 0 and 3 in success and envs 1 and 2 in
+    failure (as RopeCutting's wrong cut or an unstable reset ends one): the env's own success flag tells them apart."""
+
+    num_envs, device, max_episode_length = 4, "cpu", 10
+
+    def __init__(self):
+        import warp as wp
+
+        self.last_episode_success = wp.zeros(4, dtype=wp.int32, device="cpu")
+        self.steps = 0
+
+    def reset(self):
+        import torch
+
+        self.steps = 0
+        return torch.zeros(4, 1), {}
+
+    def step(self, actions):
+        import torch
+
+        self.steps += 1
+        done = torch.full((4,), self.steps == 2)
+        if self.steps == 2:
+            self.last_episode_success.assign([1, 0, 0, 1])
+        return torch.zeros(4, 1), torch.ones(4), done, {"time_outs": torch.zeros(4, dtype=torch.bool)}
+
+
+def test_evaluation_counts_failed_episodes_as_failures():
+    success, mean_return = ppo.evaluate(_EndsAtStepTwo(), lambda obs: obs)
+    assert (success, mean_return) == (0.5, 2.0)

@@ -44,6 +44,7 @@ from datetime import datetime
 
 import torch
 import torch.distributed as dist
+import warp as wp
 from fast_pixels import Uint8Images, use_fast_pixels
 from rank_setup import (
     DistributedRunner,
@@ -150,7 +151,12 @@ PRESET_DEFAULTS = {"paper": (8, 1000), "gpu": (4096, 150), "cpu": (256, 80)}
 
 @torch.inference_mode()
 def evaluate(env, policy, max_steps: int | None = None) -> tuple[float, float]:
-    """Run the deterministic policy until every env finished one episode: (success rate, mean return)."""
+    """Run the deterministic policy until every env finished one episode: (success rate, mean return).
+
+    An episode succeeded when the env says so (``last_episode_success``), not merely because it ended before its
+    time limit: failures (RopeCutting's wrong cut, GraspLiftAndTouch's and TissueManipulation's failure features)
+    and unstable resets also terminate an episode."""
+    last_success = wp.to_torch(env.last_episode_success)
     obs, _ = env.reset()
     finished = torch.zeros(env.num_envs, dtype=torch.bool, device=env.device)
     success = torch.zeros_like(finished)
@@ -160,7 +166,7 @@ def evaluate(env, policy, max_steps: int | None = None) -> tuple[float, float]:
         obs, reward, done, extras = env.step(policy(obs))
         running += reward
         new = done & ~finished
-        success |= new & ~extras["time_outs"]
+        success |= new & (last_success != 0)
         returns = torch.where(new, running, returns)
         running = torch.where(done, torch.zeros_like(running), running)
         finished |= done
