@@ -649,6 +649,7 @@ class ExpertParams:
     slide_step: float
     open_angle: float
     left_open_angle: float  # the bimanual left grasper's open jaws (deg)
+    left_spin_slack: float  # discrete: the left grasper's hinge error left alone (rad)
     regrasp_past: float
     regrasp_push: float
     regrasp_hover: float
@@ -1009,6 +1010,12 @@ def left_grasper(q: wp.array2d(dtype=wp.vec3), pose: wp.array2d(dtype=wp.transfo
     hinge = wp.transform_vector(tip, wp.vec3(1.0, 0.0, 0.0))
     wait = c + n * ep.regrasp_past
     move = wait + wp.vec3(0.0, 0.0, ep.regrasp_hover) - center
+    if ep.discrete != 0:
+        # discrete: wait back along the line from the RCM to the wait point (the shaft's line there), not above it:
+        # one step changes one of pan, tilt and depth, so the way down to the rope is then depth steps the way there
+        # needs anyway (from straight above, the pan and tilt went ~5 deg past and back: ~10 steps)
+        back = wp.normalize(wp.transform_get_translation(rcm[env, 0]) - wait)
+        move = wait + back * ep.regrasp_hover - center
     along = n
     jaw_error = ep.left_open_angle - jaw[env, 0]
     if left_grasped[env] != 0:
@@ -1031,6 +1038,10 @@ def left_grasper(q: wp.array2d(dtype=wp.vec3), pose: wp.array2d(dtype=wp.transfo
     else:
         mem.left[env] = 0
     yaw_error = hinge_error(hinge, along)
+    if ep.discrete != 0 and wp.abs(yaw_error) < ep.left_spin_slack:
+        # discrete: a hinge a few degrees off the rope still holds it between the jaws (4.5 mm wide: ~0.5 mm at
+        # 7 deg); each 2.5 deg spin step is a step the episode lacks
+        yaw_error = 0.0
     write_grasper_errors(error_out, env, 0, pose, ptsd, rcm, p.bounds, move, ep.slide_step, yaw_error, jaw_error,
                          ep.spin_gain)
     return discrete_choice(env, 0, pose, ptsd, rcm, jaw, p.bounds, move, ep.slide_step, yaw_error, jaw_error, ep, mem,
@@ -1298,7 +1309,8 @@ class RopeThreadingExpert(Expert):
     Bimanual: once the eye is passed (TRANSITION) the right grasper pushes on until the free end is
     ``regrasp_push`` past the ring (nearer the left grasper's RCM: a ring 80 mm out is at the edge of its reach) and
     holds still (discrete: at once); the left one waits, jaws open to ``left_open_angle``, ``regrasp_hover`` above the
-    point ``regrasp_past`` beyond the ring on its axis and then closes on the rope node nearest that point (both
+    point ``regrasp_past`` beyond the ring on its axis (discrete: back from it along the line to its RCM, and its hinge
+    left within ``left_spin_slack`` deg of the rope) and then closes on the rope node nearest that point (both
     graspers then hold the rope on either side of the ring).
 
     Discrete actions (one component of one grasper by one step per env step: pan and tilt 1.2 deg, 1.0-1.4 mm at the
@@ -1319,11 +1331,13 @@ class RopeThreadingExpert(Expert):
     CPU, first episodes, 32 envs (``benchmarks/expert_success.py``): base discrete 96 / 96 (seeds 0-2, the last
     episode of a seed ending after 112-189 of the 200 steps; before: 0), continuous unchanged (32 / 32 each seed).
     Discrete two eyes 24 / 32 and 26 / 32 (seeds 0, 1; before the uncapped goal and the narrower jaws: 21 / 32 each;
-    continuous 30 / 32 at seed 1) and bimanual 24 / 32 and 16 / 32 (before the right grasper held still at once, the
-    uncapped goal and the left's narrower jaws: 13 / 32 and 10 / 32; continuous 32 / 32). Bimanual is a step budget:
+    continuous 30 / 32 at seed 1) and bimanual 26 / 32 and 20 / 32 (24 / 32 and 16 / 32 before the left grasper
+    waited on its shaft's line and let its hinge be 7 deg off; 13 / 32 and 10 / 32 before the right grasper held still
+    at once, the uncapped goal and the left's narrower jaws; continuous 32 / 32). Bimanual is a step budget:
     with one action per step the left grasper's ~60 mm way to the ring (pan, tilt and depth steps one at a time), its
     spin, jaw and closing take ~100 steps and the right one's threading ~45-70 of the 200; the failures are the
-    episodes whose pass comes after ~160 steps. Two eyes: the regrasp (~70-100 steps, most of them the jaw's 0.5 deg
+    episodes whose pass comes after ~160 steps, and some whose left jaws close on a free end folded back on itself
+    without catching it. Two eyes: the regrasp (~70-100 steps, most of them the jaw's 0.5 deg
     steps), the lever and the carry leave little of the 350 steps, and a free end pushed past the second ring beside
     it after a carry stalls (pulled back, the held node would drag the rope out of the first ring; continuous too)."""
 
@@ -1333,7 +1347,8 @@ class RopeThreadingExpert(Expert):
                  carry_angle: float = 40.0, overhang_slack: float = 0.006, slide_step: float | None = None,
                  open_angle: float | None = None, left_open_angle: float | None = None, regrasp_past: float = 0.012,
                  regrasp_push: float = 0.016,
-                 regrasp_hover: float = 0.015, reach: float | None = None, position_scale: float = 0.001,
+                 regrasp_hover: float | None = None, left_spin_slack: float = 7.0, reach: float | None = None,
+                 position_scale: float = 0.001,
                  spin_scale: float = 0.05, jaw_scale: float = 1.0, hold: float = 0.1, ref_reset: float = 0.003):
         super().__init__(env)
         ep = self.params = ExpertParams()
@@ -1350,7 +1365,10 @@ class RopeThreadingExpert(Expert):
         ep.left_open_angle = float(left_open_angle if left_open_angle is not None
                                    else (14.0 if env.is_discrete else ep.open_angle))
         ep.regrasp_past, ep.regrasp_push = float(regrasp_past), float(regrasp_push)
-        ep.regrasp_hover = float(regrasp_hover)
+        # discrete: the left grasper waits back along its shaft's line (``left_grasper``), where a longer way back
+        # costs no step (the depth steps down come after the pass instead of before) and keeps the jaws' tips clear
+        ep.regrasp_hover = float(regrasp_hover if regrasp_hover is not None else (0.02 if env.is_discrete else 0.015))
+        ep.left_spin_slack = math.radians(float(left_spin_slack))
         # discrete: the lattice of whole steps may not come within 1 mm of the node (it dithered 1.0-1.8 mm off)
         ep.reach = float(reach if reach is not None else (0.002 if env.is_discrete else 0.001))
         ep.discrete = int(env.is_discrete)
