@@ -172,7 +172,7 @@ def timed_steps(world, device: str, steps: int) -> float:
 
 def run(scene: str, num_envs: int, device: str, substeps: int, iterations: int, edge_solver: str, steps: int,
         settle: int, newton_steps: int | None = None, block_links: int = 0, tet_solver: str | None = None,
-        tet_method: str | None = None) -> dict:
+        tet_method: str | None = None, tether_passes: int | None = None) -> dict:
     wp.synchronize_device(device)
     world, obj, rest, drag = SCENES[scene](num_envs, device, substeps or None, iterations, edge_solver)
     if tet_solver is not None:
@@ -182,6 +182,8 @@ def run(scene: str, num_envs: int, device: str, substeps: int, iterations: int, 
     if newton_steps:
         world.chain_newton_steps = newton_steps
     world.chain_block_links = block_links
+    if tether_passes is not None:
+        world.tether_passes = tether_passes
     dev = wp.get_device(device)
     # settle (and drag) before timing; this also compiles the kernels and records a step's launches
     for k in range(max(1, settle)):
@@ -200,6 +202,7 @@ def run(scene: str, num_envs: int, device: str, substeps: int, iterations: int, 
         "tet_solver": ("fused" if world.fused_tets else "colored") if m.tet_count else None,
         "tet_method": world.tet_method if m.tet_count else None,
         "tethers": m.geo_particles is not None,
+        "tether_passes": world.tether_passes if m.geo_particles is not None else None,
         "cuda_graph": dev.is_cuda, "steps_timed": steps,
         "seconds": elapsed,
         "env_steps_per_s": num_envs * steps / elapsed, "unstable_envs": int(world.unstable.numpy().sum()),
@@ -226,6 +229,9 @@ def main() -> None:
                    help="one run per value (tet scenes; default: the world's own choice)")
     p.add_argument("--tet-method", nargs="+", default=[None], choices=["xpbd", "vbd"],
                    help="one run per value (tet scenes; default: the world's own)")
+    p.add_argument("--tether-passes", type=int, nargs="+", default=[None],
+                   help="passes over each particle's geodesic tethers per projection (tethered scenes; default: the "
+                        "World's)")
     p.add_argument("--steps", type=int, default=30, help="timed env steps")
     p.add_argument("--settle-steps", type=int, default=30, help="untimed env steps before timing")
     p.add_argument("--out", default=None, help="append one JSON line per run to this file")
@@ -241,14 +247,16 @@ def main() -> None:
                 for it in args.iterations:
                     tet_solvers = args.tet_solver if scene.startswith("tet") else [None]
                     tet_methods = args.tet_method if scene.startswith("tet") else [None]
-                    for n, block, tets, method in itertools.product(args.num_envs, args.chain_block_links,
-                                                                    tet_solvers, tet_methods):
+                    passes = args.tether_passes if "tethers" in scene or scene == "cloth" else [None]
+                    for n, block, tets, method, tp in itertools.product(args.num_envs, args.chain_block_links,
+                                                                        tet_solvers, tet_methods, passes):
                         rec = run(scene, n, args.device, sub, it, solver, args.steps, args.settle_steps,
-                                  args.newton_steps, block, tets, method)
+                                  args.newton_steps, block, tets, method, tp)
                         quality_text = (f"sag={rec['sag_m']:.3e} m" if "sag_m" in rec else
                                         f"stretch mean={rec['stretch_mean']:.4f} max={rec['stretch_max']:.3f}")
                         print(f"{scene:12s} {str(rec['edge_solver']):8s} envs={n:6d} substeps={rec['substeps']:4d} "
                               f"iters={it} block={block} tets={rec['tet_solver']}/{rec['tet_method']} "
+                              f"tether_passes={rec['tether_passes']} "
                               f"{rec['env_steps_per_s']:12.1f} env-steps/s  {quality_text}  "
                               f"unstable={rec['unstable_envs']}", flush=True)
                         if args.out:

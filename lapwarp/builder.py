@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import warp as wp
 
+from lapwarp.kernels import geodesic
 from lapwarp.model import Model, SceneObject, State
 
 __all__ = ["SceneBuilder", "color_graph"]
@@ -127,11 +128,14 @@ def _build_geodesic_tethers(model: Model, state: State, cloths: list, x: np.ndar
     model.geo_order = wp.array(order.astype(np.int32), dtype=wp.int32, device=dev)
     model.geo_rest = wp.array(x.astype(np.float32), dtype=wp.vec3, device=dev)
     n = len(x)
-    state.geo_dist = wp.full((N, n), 1.0e30, dtype=float, device=dev)
-    state.geo_source = wp.full((N, n), -1, dtype=wp.int32, device=dev)
+    groups = geodesic.GROUPS
+    state.geo_dist = wp.full((N, groups * n), 1.0e30, dtype=float, device=dev)
+    state.geo_source = wp.full((N, groups * n), -1, dtype=wp.int32, device=dev)
     state.geo_anchor = wp.full((N, n), -1, dtype=wp.int32, device=dev)  # unknown: the first step finds them
+    state.geo_label = wp.full((N, n), -1, dtype=wp.int32, device=dev)
     state.geo_tri_seen = wp.ones((N, len(tris)), dtype=wp.int32, device=dev)
-    state.geo_status = wp.full((N, 1), 2, dtype=wp.int32, device=dev)
+    # column 0: 2 = restart from the anchors; column 1: the number of anchor groups (set by the restart)
+    state.geo_status = wp.array(np.tile(np.array([2, 0], np.int32), (N, 1)), dtype=wp.int32, device=dev)
 
 
 def _dihedral_angle(x1, x2, x3, x4) -> float:

@@ -180,11 +180,12 @@ class State:
     particle_active: wp.array2d | None = None  # (N, n) int32 0 = every element of the particle removed (no contact)
     # geodesic tethers (only with a tethered cloth): distance and anchor per particle, anchor flags and triangle
     # masks they were computed for, status 0 done / 1 sweeping / 2 start again from the anchors
-    geo_dist: wp.array2d | None = None  # (N, n) float m, 1e30 = no tether
-    geo_source: wp.array2d | None = None  # (N, n) int32 anchor particle, -1 = none
+    geo_dist: wp.array2d | None = None  # (N, GROUPS * n) float m per anchor group (column g * n + p), 1e30 = no tether
+    geo_source: wp.array2d | None = None  # (N, GROUPS * n) int32 nearest anchor particle of the group, -1 = none
     geo_anchor: wp.array2d | None = None  # (N, n) int32
     geo_tri_seen: wp.array2d | None = None  # (N, Fg) int32
-    geo_status: wp.array2d | None = None  # (N, 1) int32
+    geo_label: wp.array2d | None = None  # (N, n) int32 anchor group of each anchor (scratch of a restart), -1 = none
+    geo_status: wp.array2d | None = None  # (N, 2) int32 sweep status, number of anchor groups
 
     def arrays(self) -> dict:
         """All allocated arrays by name (used for reset copies and memory reports)."""

@@ -134,6 +134,11 @@ class World:
         self.rod_newton_steps = 2
         # Newton steps of each cloth edge-chain solve per sweep (the families' solves follow each other)
         self.chain_newton_steps = 1
+        # passes over a particle's geodesic tethers (one per anchor group, kernels/geodesic.py) per projection: the
+        # groups' projections in sequence partly undo each other where the sheet is taut between two held points;
+        # a second pass costs ~2 % of a held sheet's step (CPU) and takes its worst edge from 1.099 to 1.067
+        # (benchmarks' cloth_pulled_tethers, 20 substeps)
+        self.tether_passes = 2
         # links per block of the direct chain solves (rods and cloth edge chains): 0 (or 1) = one thread walks each
         # chain (kernels/chains.py); B > 1 = the partitioned solve (kernels/chains_partitioned.py), blocks of B links
         # side by side plus a serial pass over the m / B separators, for few long chains (a rope per env on the GPU)
@@ -470,7 +475,7 @@ class World:
 
         def solve_tethers():
             launch(geodesic.solve_geodesic_tethers, (n, m.geo_particles.shape[0]),
-                   [m.geo_particles, s.geo_dist, s.geo_source, w_eff], [s.particle_q])
+                   [m.geo_particles, s.geo_dist, s.geo_source, s.geo_status, w_eff, self.tether_passes], [s.particle_q])
 
         if m.geo_particles is not None:
             solve_tethers()
@@ -580,7 +585,7 @@ class World:
         launch(geodesic.sweep_geodesics, n,
                [m.geo_particles, m.geo_tris, m.geo_tri_element, m.geo_order, m.geo_rest, s.geo_anchor,
                 s.tri_active if masked else self._dummy_mask, masked, self.GEODESIC_ROUNDS_PER_STEP],
-               [s.geo_dist, s.geo_source, s.geo_status])
+               [s.geo_label, s.geo_dist, s.geo_source, s.geo_status])
 
     def _dummy_tf(self) -> wp.array:
         if not hasattr(self, "_dummy_tf_arr"):

@@ -14,6 +14,16 @@ from lapwarp.cutting import CuttingSystem
 DT = 0.1
 
 
+def _fields(world, env=0):
+    """(distances, sources, groups): each ``(GROUPS, n)``, one row per anchor group (``geodesic.GROUPS``), and the
+    env's number of anchor groups."""
+    s = world.state
+    n = s.geo_anchor.shape[1]
+    d = s.geo_dist.numpy()[env].reshape(-1, n)
+    src = s.geo_source.numpy()[env].reshape(-1, n)
+    return d, src, int(s.geo_status.numpy()[env, 1])
+
+
 def _sheet(device, nx=11, size=0.05, fixed=(0,), num_envs=1, **kw):
     v, t = cloth_grid(nx, nx, size, size, plane="xy")
     b = SceneBuilder()
@@ -30,7 +40,9 @@ def test_distances_on_a_flat_sheet_are_euclidean(device):
     world.step(DT)
     s = world.state
     assert s.geo_status.numpy()[0, 0] == 0  # converged within the first step
-    d, src = s.geo_dist.numpy()[0], s.geo_source.numpy()[0]
+    d, src, groups = _fields(world)
+    assert groups == 1 and np.all(src[1:] == -1)
+    d, src = d[0], src[0]
     assert np.all(src == 0)
     exact = np.linalg.norm(v - v[0], axis=1)
     np.testing.assert_allclose(d, exact, rtol=1e-4, atol=1e-7)
@@ -57,12 +69,12 @@ def test_distances_go_around_a_cut(device):
     p = 1 * nx + 8  # (40, 5) mm, behind the slit
     a, b = np.array([4 * h, 6 * h, 0.0]), np.array([5 * h, 6 * h, 0.0])
     ref = np.linalg.norm(a - v[0]) + h + np.linalg.norm(v[p] - b)
-    d = s.geo_dist.numpy()[0, p]
+    d = _fields(world)[0][0, p]
     assert ref * (1.0 - 1e-4) <= d < 1.05 * ref, (d, ref)
     assert d > 1.3 * np.linalg.norm(v[p] - v[0])
     # in front of the slit nothing changed
     q = 3 * nx + 2
-    np.testing.assert_allclose(s.geo_dist.numpy()[0, q], np.linalg.norm(v[q] - v[0]), rtol=1e-4)
+    np.testing.assert_allclose(_fields(world)[0][0, q], np.linalg.norm(v[q] - v[0]), rtol=1e-4)
 
 
 def test_grasp_makes_an_anchor_and_release_removes_it(device):
@@ -76,17 +88,21 @@ def test_grasp_makes_an_anchor_and_release_removes_it(device):
     s.attach_offset.assign(q[far][None, None].astype(np.float32))
     s.attach_compliance.assign(np.array([[1e-8]], np.float32))
     world.step(DT)
-    d, src = s.geo_dist.numpy()[0], s.geo_source.numpy()[0]
-    assert src[far] == far and d[far] == 0.0
-    near_far = len(v) - 2
-    assert src[near_far] == far
-    np.testing.assert_allclose(d[near_far], np.linalg.norm(v[near_far] - v[far]), rtol=1e-4)
-    # each particle is tied to the nearer of the two anchors
+    d, src, groups = _fields(world)
+    # two anchor groups (the pinned corner 0 and the grasped corner, numbered by their smallest particle): every
+    # particle is tied to both, at its rest distance from each
+    assert groups == 2
+    assert src[1, far] == far and d[1, far] == 0.0 and src[0, far] == 0
+    assert np.all(src[0] == 0) and np.all(src[1] == far)
     d0, d1 = np.linalg.norm(v - v[0], axis=1), np.linalg.norm(v - v[far], axis=1)
-    np.testing.assert_allclose(d, np.minimum(d0, d1), rtol=1e-4, atol=1e-7)
+    np.testing.assert_allclose(d[0], d0, rtol=1e-4, atol=1e-7)
+    np.testing.assert_allclose(d[1], d1, rtol=1e-4, atol=1e-7)
     s.attach_particle.assign(np.array([[-1]], np.int32))
     world.step(DT)
-    np.testing.assert_array_equal(s.geo_source.numpy()[0], 0)
+    d, src, groups = _fields(world)
+    assert groups == 1
+    np.testing.assert_array_equal(src[0], 0)
+    np.testing.assert_array_equal(src[1:], -1)
 
 
 def test_piece_cut_off_every_anchor_has_no_tether_and_falls(device):
@@ -110,8 +126,8 @@ def test_piece_cut_off_every_anchor_has_no_tether_and_falls(device):
     before = world.positions(cloth)
     world.simulate(0.3, DT)
     low = v[:, 2] < z0
-    src = world.state.geo_source.numpy()
-    assert np.all(src[0, low] == -1) and np.all(src[1, low] >= 0)
+    src0, src1 = _fields(world, 0)[1], _fields(world, 1)[1]
+    assert np.all(src0[:, low] == -1) and np.all(src1[0, low] >= 0)
     drop = world.positions(cloth)[:, low, 2] - before[:, low, 2]
     assert drop[0].max() < -0.2 and drop[1].min() > -0.01
     assert not world.unstable.numpy().any()
@@ -131,6 +147,8 @@ def _held_sheet(device, tethers: bool):
         b.add_attachment(c, -1, offset=tuple(v[c] + (0.0, back, -drop)), compliance=1e-6)
     world = b.finalize(1, device, substeps=20)
     world.simulate(2.0, DT)
+    if tethers:  # three anchor groups: the pinned back edge (16 particles, one group) and each held corner
+        assert int(world.state.geo_status.numpy()[0, 1]) == 3
     e = obj.edges
     q = world.positions(obj)[0]
     ratio = np.linalg.norm(q[e[:, 0]] - q[e[:, 1]], axis=1) / np.linalg.norm(v[e[:, 0]] - v[e[:, 1]], axis=1)
@@ -138,6 +156,26 @@ def _held_sheet(device, tethers: bool):
 
 
 def test_tethers_carry_a_sheet_held_at_points(device):
+    # issue #14's quality target for a held sheet: mean edge stretch <= 1.01, worst edge <= 1.10. Measured (CPU):
+    # without tethers 1.059 / 3.43; tethered to the nearest anchor of each group (the back edge, each held corner)
+    # 0.9996 / 1.052 (one pass over the tethers per projection: 1.0004 / 1.074); to the nearest anchor only
+    # (before) 1.007 / 1.30, its worst edges where the two corners' regions met and pulled the sheet apart
     free, tethered = _held_sheet(device, False), _held_sheet(device, True)
-    assert tethered.mean() < 1.01 and tethered.mean() < free.mean()
-    assert tethered.max() < free.max()
+    assert tethered.mean() <= 1.01 and tethered.max() <= 1.10
+    assert free.mean() > 1.03 and free.max() > 2.0  # the scene needs the tethers (the test can fail)
+
+
+def test_anchor_groups_past_the_last_field_share_it(device):
+    # five separate anchors (four corners and the centre of an 11 x 11 sheet) in four fields: numbered by particle,
+    # the fourth and fifth (particles 110 and 120) share the last field, which holds the nearer of the two
+    fixed = (0, 10, 60, 110, 120)
+    world, obj, v, _ = _sheet(device, fixed=fixed)
+    world.step(DT)
+    d, src, groups = _fields(world)
+    assert groups == 4 == d.shape[0]
+    for g, a in enumerate(fixed[:3]):
+        assert np.all(src[g] == a)
+        np.testing.assert_allclose(d[g], np.linalg.norm(v - v[a], axis=1), rtol=1e-4, atol=1e-7)
+    d3, d4 = np.linalg.norm(v - v[110], axis=1), np.linalg.norm(v - v[120], axis=1)
+    np.testing.assert_allclose(d[3], np.minimum(d3, d4), rtol=1e-4, atol=1e-7)
+    assert set(np.unique(src[3])) == {110, 120}

@@ -1,19 +1,25 @@
-"""Kernels of the geodesic tethers: per-env long-range attachments from cloth particles to their nearest anchor,
-with lengths that follow cuts and grasps (``SceneBuilder.add_cloth(tethers=True)``; host side in ``lapwarp.world``).
+"""Kernels of the geodesic tethers: per-env long-range attachments from cloth particles to the nearest anchor of each
+anchor group, with lengths that follow cuts and grasps (``SceneBuilder.add_cloth(tethers=True)``; host side in
+``lapwarp.world``).
 
 A tether (Kim et al. 2012, "long range attachments") keeps particle ``p`` within its rest geodesic distance
-``dist[env, p]`` of its anchor ``source[env, p]``: an inequality constraint, so a sheet can fold and swing but the
-weight of the whole sheet never has to travel through dozens of edge constraints within one sweep. Anchors are the
-particles that cannot move on their own: pinned (inverse mass 0) or held by a stiff attachment (a grasp, a held
-corner). The distances are geodesics over the *present* triangles of each env, so a cut lengthens them (the path
-goes around the cut) and a piece cut off every anchor has no tether and falls.
+``dist[env, g * n + p]`` of anchor ``source[env, g * n + p]``, the nearest anchor of group ``g``: an inequality
+constraint, so a sheet can fold and swing but the weight of the whole sheet never has to travel through dozens of
+edge constraints within one sweep. Anchors are the particles that cannot move on their own: pinned (inverse mass 0) or
+held by a stiff attachment (a grasp, a held corner); a group is a set of anchors connected through present triangle
+edges (a pinned edge, a grasped patch, one held corner). Every particle is tied to every group (up to ``GROUPS``
+distance fields per env): an inextensible sheet satisfies all of them at once, and tying each particle to its nearest
+anchor only let a sheet held at two corners be pulled apart where the corners' regions met (docs/physics.md). The
+distances are geodesics over the *present* triangles of each env, so a cut lengthens them (the path goes around the
+cut) and a piece cut off every anchor has no tether and falls.
 
 Distances are computed per env on the device by fast sweeping (Zhao 2005) of the triangle-mesh eikonal update
-(Kimmel and Sethian 1998): one thread per env visits the triangles in four precomputed orders (sorted along four
-directions) and updates each corner from the other two, from a virtual point source when both carry the same
-anchor and along the edges otherwise. One round (four orders) converges on a convex sheet; a cut adds rounds. An env
-is swept only after its anchors or its triangles changed (``status`` 2: start again from the anchors) and until a
-round changes nothing (``status`` 1 -> 0); before that, unreached particles have no tether (never a wrong one).
+(Kimmel and Sethian 1998): one thread per env labels the anchor groups, then visits the triangles in four
+precomputed orders (sorted along four directions) and updates each corner from the other two, in every group's field,
+from a virtual point source when both carry the same anchor and along the edges otherwise. One round (four orders)
+converges on a convex sheet; a cut adds rounds. An env is swept only after its anchors or its triangles changed
+(``status[env, 0]`` 2: start again from the anchors) and until a round changes nothing (``status`` 1 -> 0); before
+that, unreached particles have no tether (never a wrong one). ``status[env, 1]`` holds the env's number of groups.
 """
 
 from __future__ import annotations
@@ -26,6 +32,9 @@ INF = 1.0e30
 ANCHOR_MASS_RATIO = 1.0e-3
 # a distance must drop by more than this (m) to count as a change: float rounding cannot keep a round "changing"
 CHANGE_TOL = 1.0e-7
+# anchor groups with their own distance field per env: a particle is tethered to its nearest anchor of each (a sheet
+# held at its back edge and at two corners: three); further groups share the last field
+GROUPS = wp.constant(4)
 
 
 @wp.kernel
@@ -69,33 +78,34 @@ def detect_cut_changes(
 
 
 @wp.func
-def _relax(env: int, k: int, cand: float, src: int, rest: wp.array(dtype=wp.vec3), dist: wp.array2d(dtype=float),
-           source: wp.array2d(dtype=wp.int32)) -> int:
+def _relax(env: int, base: int, k: int, cand: float, src: int, rest: wp.array(dtype=wp.vec3),
+           dist: wp.array2d(dtype=float), source: wp.array2d(dtype=wp.int32)) -> int:
     # a geodesic is never shorter than the straight rest distance to its anchor (guards the eikonal estimate)
     c = wp.max(cand, wp.length(rest[k] - rest[src]))
-    if c < dist[env, k] - CHANGE_TOL:
-        dist[env, k] = c
-        source[env, k] = src
+    if c < dist[env, base + k] - CHANGE_TOL:
+        dist[env, base + k] = c
+        source[env, base + k] = src
         return 1
     return 0
 
 
 @wp.func
-def _update_corner(env: int, i: int, j: int, k: int, rest: wp.array(dtype=wp.vec3), dist: wp.array2d(dtype=float),
-                   source: wp.array2d(dtype=wp.int32)) -> int:
-    """Improve corner ``k`` of triangle (i, j, k) from ``i`` and ``j``; 1 if it changed."""
+def _update_corner(env: int, base: int, i: int, j: int, k: int, rest: wp.array(dtype=wp.vec3),
+                   dist: wp.array2d(dtype=float), source: wp.array2d(dtype=wp.int32)) -> int:
+    """Improve corner ``k`` of triangle (i, j, k) from ``i`` and ``j`` in the distance field at column ``base``
+    (one anchor group's); 1 if it changed."""
     changed = int(0)
     xi = rest[i]
     xj = rest[j]
     xk = rest[k]
-    si = source[env, i]
-    sj = source[env, j]
-    di = dist[env, i]
-    dj = dist[env, j]
+    si = source[env, base + i]
+    sj = source[env, base + j]
+    di = dist[env, base + i]
+    dj = dist[env, base + j]
     if si >= 0:
-        changed += _relax(env, k, di + wp.length(xk - xi), si, rest, dist, source)
+        changed += _relax(env, base, k, di + wp.length(xk - xi), si, rest, dist, source)
     if sj >= 0:
-        changed += _relax(env, k, dj + wp.length(xk - xj), sj, rest, dist, source)
+        changed += _relax(env, base, k, dj + wp.length(xk - xj), sj, rest, dist, source)
     if si >= 0 and si == sj:
         # virtual point source s in the triangle's plane with |s - i| = di, |s - j| = dj, across edge ij from k; the
         # straight ray s -> k must enter the triangle through edge ij for the estimate to hold
@@ -115,8 +125,77 @@ def _update_corner(env: int, i: int, j: int, k: int, rest: wp.array(dtype=wp.vec
                 if xc >= 0.0 and xc <= c:
                     dx = kx - sx
                     dy = ky - sy
-                    changed += _relax(env, k, wp.sqrt(dx * dx + dy * dy), si, rest, dist, source)
+                    changed += _relax(env, base, k, wp.sqrt(dx * dx + dy * dy), si, rest, dist, source)
     return changed
+
+
+@wp.func
+def _tri_present(env: int, f: int, tri_element: wp.array(dtype=wp.int32), tri_active: wp.array2d(dtype=wp.int32),
+                 masked: int) -> int:
+    if masked != 0:
+        e = tri_element[f]
+        if e >= 0:
+            if tri_active[env, e] == 0:
+                return 0
+    return 1
+
+
+@wp.func
+def _join(env: int, a: int, b: int, label: wp.array2d(dtype=wp.int32)) -> int:
+    """Both anchors take the smaller of their component labels; 1 if one changed."""
+    la = label[env, a]
+    lb = label[env, b]
+    if la < 0 or lb < 0 or la == lb:
+        return 0
+    lo = wp.min(la, lb)
+    label[env, a] = lo
+    label[env, b] = lo
+    return 1
+
+
+@wp.func
+def _label_anchor_groups(env: int, particles: wp.array(dtype=wp.int32), tris: wp.array(dtype=wp.vec3i),
+                         tri_element: wp.array(dtype=wp.int32), order: wp.array2d(dtype=wp.int32),
+                         anchor: wp.array2d(dtype=wp.int32), tri_active: wp.array2d(dtype=wp.int32), masked: int,
+                         label: wp.array2d(dtype=wp.int32)) -> int:
+    """Anchor groups: the env's anchors connected through the edges of present triangles (a pinned edge, a grasped
+    patch, a held corner). ``label[env, p]`` = the anchor's group (0 .. GROUPS - 1, numbered by smallest particle;
+    groups past the last slot share it), -1 for other particles. Returns the number of groups used."""
+    for i in range(particles.shape[0]):
+        p = particles[i]
+        label[env, p] = wp.where(anchor[env, p] != 0, p, -1)
+    # the smallest particle index spreads through each component; the four sweep orders carry it along any straight
+    # run of anchors in one round
+    for _round in range(particles.shape[0]):
+        changed = int(0)
+        for o in range(order.shape[0]):
+            for n in range(order.shape[1]):
+                f = order[o, n]
+                if _tri_present(env, f, tri_element, tri_active, masked) != 0:
+                    t = tris[f]
+                    changed += _join(env, t[0], t[1], label)
+                    changed += _join(env, t[1], t[2], label)
+                    changed += _join(env, t[2], t[0], label)
+        if changed == 0:
+            break
+    # a component's root (label == own index) gets the next slot, encoded as -(slot + 2) (-1 means no anchor); the
+    # other anchors copy their root's code; then every code is decoded
+    groups = int(0)
+    for i in range(particles.shape[0]):
+        p = particles[i]
+        if label[env, p] == p:
+            label[env, p] = -(wp.min(groups, GROUPS - 1) + 2)
+            groups += 1
+    for i in range(particles.shape[0]):
+        p = particles[i]
+        r = label[env, p]
+        if r >= 0:
+            label[env, p] = label[env, r]
+    for i in range(particles.shape[0]):
+        p = particles[i]
+        code = label[env, p]
+        label[env, p] = wp.where(code <= -2, -code - 2, -1)
+    return wp.min(groups, GROUPS)
 
 
 @wp.kernel
@@ -130,40 +209,45 @@ def sweep_geodesics(
     tri_active: wp.array2d(dtype=wp.int32),
     masked: int,
     max_rounds: int,
+    label: wp.array2d(dtype=wp.int32),
     dist: wp.array2d(dtype=float),
     source: wp.array2d(dtype=wp.int32),
     status: wp.array2d(dtype=wp.int32),
 ):
-    """One thread per env: restart from the anchors if asked (status 2), then up to ``max_rounds`` rounds of the four
-    sweep orders; status 0 once a round changed nothing."""
+    """One thread per env: restart from the anchors if asked (status 2: label the anchor groups, each group's own
+    anchors at distance 0), then up to ``max_rounds`` rounds of the four sweep orders over every group's distance
+    field; status 0 once a round changed nothing. ``status[env, 1]`` keeps the number of groups."""
     env = wp.tid()
     st = status[env, 0]
     if st == 0:
         return
+    n_all = dist.shape[1] // GROUPS
     if st == 2:
+        status[env, 1] = _label_anchor_groups(env, particles, tris, tri_element, order, anchor, tri_active, masked,
+                                              label)
         for i in range(particles.shape[0]):
             p = particles[i]
-            if anchor[env, p] != 0:
-                dist[env, p] = 0.0
-                source[env, p] = p
-            else:
-                dist[env, p] = INF
-                source[env, p] = -1
+            for g in range(GROUPS):
+                dist[env, g * n_all + p] = INF
+                source[env, g * n_all + p] = -1
+            g = label[env, p]
+            if g >= 0:
+                dist[env, g * n_all + p] = 0.0
+                source[env, g * n_all + p] = p
+    groups = status[env, 1]
     st = int(1)
     for _round in range(max_rounds):
         changed = int(0)
         for o in range(order.shape[0]):
             for n in range(order.shape[1]):
                 f = order[o, n]
-                if masked != 0:
-                    e = tri_element[f]
-                    if e >= 0:
-                        if tri_active[env, e] == 0:
-                            continue
-                t = tris[f]
-                changed += _update_corner(env, t[0], t[1], t[2], rest, dist, source)
-                changed += _update_corner(env, t[1], t[2], t[0], rest, dist, source)
-                changed += _update_corner(env, t[2], t[0], t[1], rest, dist, source)
+                if _tri_present(env, f, tri_element, tri_active, masked) != 0:
+                    t = tris[f]
+                    for g in range(groups):
+                        base = g * n_all
+                        changed += _update_corner(env, base, t[0], t[1], t[2], rest, dist, source)
+                        changed += _update_corner(env, base, t[1], t[2], t[0], rest, dist, source)
+                        changed += _update_corner(env, base, t[2], t[0], t[1], rest, dist, source)
         if changed == 0:
             st = 0
             break
@@ -175,22 +259,28 @@ def solve_geodesic_tethers(
     particles: wp.array(dtype=wp.int32),
     dist: wp.array2d(dtype=float),
     source: wp.array2d(dtype=wp.int32),
+    status: wp.array2d(dtype=wp.int32),
     inv_mass: wp.array2d(dtype=float),
+    passes: int,
     q: wp.array2d(dtype=wp.vec3),
 ):
-    """Pull each tethered particle back onto the sphere of its geodesic distance about its anchor (unilateral; the
-    anchor does not move: it is pinned or held, and never itself tethered)."""
+    """Pull each tethered particle back onto the sphere of its geodesic distance about its nearest anchor of each
+    group, group after group, ``passes`` times (unilateral; the anchors do not move: pinned or held, and never
+    themselves tethered). Every particle takes the groups in the same order, so neighbours end on the same tether."""
     env, i = wp.tid()
     p = particles[i]
-    a = source[env, p]
-    if a < 0 or a == p:
-        return
     if inv_mass[env % inv_mass.shape[0], p] == 0.0:
         return
+    n_all = dist.shape[1] // GROUPS
     x = q[env, p]
-    xa = q[env, a]
-    d = x - xa
-    length = wp.length(d)
-    m = dist[env, p]
-    if length > m:
-        q[env, p] = xa + d * (m / length)
+    for _pass in range(passes):
+        for g in range(status[env, 1]):
+            a = source[env, g * n_all + p]
+            if a >= 0 and a != p:
+                xa = q[env, a]
+                d = x - xa
+                length = wp.length(d)
+                m = dist[env, g * n_all + p]
+                if length > m:
+                    x = xa + d * (m / length)
+    q[env, p] = x
