@@ -67,7 +67,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="count only each env's first episode (the default; unbiased when episode lengths differ)")
     parser.add_argument("--as-finished", dest="first_episodes", action="store_false",
                         help="count episodes as they finish until --episodes (biased towards short episodes)")
-    parser.add_argument("--out", default=None)
+    parser.add_argument("--out", default=None,
+                        help="append one JSON line per result to this file (as bench_physics.py and soak.py do)")
     args = parser.parse_args(argv)
     if args.first_episodes:
         args.episodes = args.num_envs
@@ -81,7 +82,7 @@ def main(argv: list[str] | None = None) -> int:
             records.append(r)
             print(json.dumps(r), flush=True)
     if args.out:
-        with open(args.out, "w") as f:
+        with open(args.out, "a") as f:
             f.writelines(json.dumps(r) + "\n" for r in records)
     return 0
 
