@@ -86,7 +86,7 @@ def test_tiny_cpu_run_writes_progress_results_summary_and_plots(tmp_path, capsys
         result = json.loads((row_dir / f"seed{seed}.json").read_text())
         assert result["seed"] == seed and result["env_steps"] == 256 and result["device"] == "cpu"
         assert result["row"] == "reach" and result["config"] == "sphere_radius=0.008 randomize_start=True"
-        assert 0.0 <= result["success"] <= 1.0 and result["commit"]
+        assert 0.0 <= result["success"] <= 1.0 and 0.0 <= result["sampled_success"] <= 1.0 and result["commit"]
     with open(out / "tiny" / "summary.csv", newline="") as f:
         reader = csv.DictReader(f)
         summary = list(reader)
@@ -99,6 +99,8 @@ def test_tiny_cpu_run_writes_progress_results_summary_and_plots(tmp_path, capsys
     mean = (json.loads((row_dir / "seed0.json").read_text())["success"]
             + json.loads((row_dir / "seed1.json").read_text())["success"]) / 2
     assert float(line["success_mean"]) == pytest.approx(mean, abs=1e-4)
+    sampled = [json.loads((row_dir / f"seed{k}.json").read_text())["sampled_success"] for k in (0, 1)]
+    assert float(line["sampled_success_mean"]) == pytest.approx(sum(sampled) / 2, abs=1e-4)
     assert (out / "tiny" / "reach.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     text = capsys.readouterr().out
     assert "finished reach seed 1" in text and "summary:" in text

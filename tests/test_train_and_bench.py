@@ -25,6 +25,7 @@ def test_ppo_trains_saves_resumes_and_plays(device, tmp_path, capsys):
     assert ppo.main(args) == 0
     out = capsys.readouterr().out
     assert "it     2/2" in out and "evaluation on 8 episodes: success rate" in out
+    assert "sampled actions (as in training rollouts), 8 episodes: success rate" in out
     checkpoints = sorted(tmp_path.glob("Reach/*/model_*.pt"))
     assert checkpoints, "training must save a checkpoint"
     assert ppo.main(args[:-2] + ["--log-dir", str(tmp_path / "resumed"), "--resume", str(checkpoints[-1])]) == 0

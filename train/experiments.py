@@ -11,7 +11,8 @@ that define it, observation type, iterations, the paper's final success). Each (
 side on several GPUs (``--devices``). Files, under ``--out`` (``benchmarks/results/learning``):
 
     <experiment>/<row>/seed<k>.csv    per iteration: env_steps, wall_s, success (training), mean_return, reward/<term>
-    <experiment>/<row>/seed<k>.json   final: evaluation success (deterministic policy), env-steps, times, device
+    <experiment>/<row>/seed<k>.json   final: evaluation success (deterministic policy; ``sampled_success`` with
+                                      actions sampled as in training), env-steps, times, device
     <experiment>/<row>/seed<k>.log    the run's console output
     <experiment>/summary.csv          one line per row (columns ``SUMMARY_COLUMNS``)
     <experiment>/<row>.png            success against env-steps and against wall time, the paper's value dashed
@@ -40,7 +41,7 @@ PPO_SCRIPT = ROOT / "train" / "ppo.py"
 DEFAULT_OUT = ROOT / "benchmarks" / "results" / "learning"
 
 SUMMARY_COLUMNS = ["row", "task", "config", "obs", "learner", "seeds", "env_steps", "success_mean", "success_std",
-                   "wall_s_per_run", "device", "commit", "paper_success", "paper_note"]
+                   "sampled_success_mean", "wall_s_per_run", "device", "commit", "paper_success", "paper_note"]
 
 
 @dataclass(frozen=True)
@@ -309,6 +310,9 @@ def summarize(experiment: Experiment, rows: list[Row], out: Path) -> list[dict]:
             "env_steps": results[0]["env_steps"],
             "success_mean": round(statistics.fmean(successes), 4),
             "success_std": round(statistics.pstdev(successes), 4) if len(successes) > 1 else 0.0,
+            # sampled actions, as the paper's training-rollout curves (runs from before ppo.py reported it: none)
+            "sampled_success_mean": (round(statistics.fmean(sampled), 4) if (sampled := [
+                r["sampled_success"] for r in results if "sampled_success" in r]) else ""),
             "wall_s_per_run": round(statistics.fmean(r["wall_s"] for r in results), 1),
             "device": " / ".join(sorted({r["device"] for r in results})),
             "commit": " / ".join(sorted({r.get("commit", "unknown") for r in results})),
