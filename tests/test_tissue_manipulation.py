@@ -99,6 +99,16 @@ def test_default_substeps_stay_close_to_the_converged_answer():
 
 
 
+def test_per_vertex_tissue_solve_is_close_to_the_converged_answer():
+    """``tissue_solver="vbd"`` at the default 20 substeps against XPBD at 800 (within 0.11 mm of 1,600 substeps, and
+    VBD at 400 within 0.07 mm of that): the landmarks' (x, z) within 0.6 mm over the same moves (measured 0.41 mm,
+    mean 0.22 mm; XPBD at 20 substeps: 3.0 mm, mean 1.1 mm)."""
+    converged = np.asarray(drive(make(physics_substeps=800, **FIXED_LANDMARK), MOVES))
+    per_vertex = np.asarray(drive(make(tissue_solver="vbd", **FIXED_LANDMARK), MOVES))
+    error = np.linalg.norm((per_vertex - converged)[..., [0, 2]], axis=-1)
+    assert error.max() < 6e-4 and error.mean() < 3e-4, (error.max(), error.mean())
+
+
 def polygon_iou(a: np.ndarray, b: np.ndarray, resolution: int = 200) -> float:
     """Intersection over union of two simple polygons ``(V, 2)``, on a ``resolution`` x ``resolution`` grid over both
     (even-odd ray casting)."""
@@ -118,16 +128,21 @@ def polygon_iou(a: np.ndarray, b: np.ndarray, resolution: int = 200) -> float:
     return float((ia & ib).sum() / max((ia | ib).sum(), 1))
 
 
-def test_reachable_polygons_are_this_physics_and_match_sofa_env_boxes():
-    stored = load_reachable_polygons()
+@pytest.mark.parametrize("solver", ["xpbd", "vbd"])
+def test_reachable_polygons_are_this_physics_and_match_sofa_env_boxes(solver):
+    stored = load_reachable_polygons(solver)
     assert stored.shape == (NUM_LANDMARKS, 48, 2)
     # the stored regions are this physics' output: traced again, every landmark's region overlaps the stored one with
     # an intersection over union >= 0.95. Not vertex by vertex: float rounding differs between machines (another CPU's
     # vector code, the H100) and can tip the flap into the other buckling branch while the grasper presses it down
     # (an AMD EPYC CPU traced points up to 9.7 mm away at landmark 6, IoU 0.978; the other landmarks >= 0.993)
-    traced = trace_reachable_polygons(DEVICE)
+    traced = trace_reachable_polygons(DEVICE, tissue_solver=solver)
     for k in range(NUM_LANDMARKS):
         assert polygon_iou(traced[k], stored[k]) >= 0.95, k
+    if solver == "vbd":
+        # the converged tissue's regions are narrower at low x than sofa_env's boxes (landmarks 4 and 7 reach -15.2
+        # and -11.7 mm, sofa_env's -19 mm or less): not compared (module docstring, "Convergence")
+        return
     # sofa_env's polygons (traced by its own scene) span these bounding boxes (task-cards §2), m
     low, high = stored.min(axis=1), stored.max(axis=1)
     margin = 3.5e-3  # our tets are not sofa_env's mesh: the largest deviation is 3.1 mm (landmark 8's top)
@@ -208,9 +223,11 @@ def test_invalid_configurations_raise(overrides, message):
         make(**overrides)
 
 
-@pytest.mark.parametrize("threshold, randomize", [(0.002, True), (0.005, True), (0.002, False)])
-def test_expert_solves_the_paper_configurations(threshold, randomize):
-    env = make(num_envs=12, end_position_threshold=threshold, randomize_landmark=randomize, seed=11)
+@pytest.mark.parametrize("threshold, randomize, solver", [(0.002, True, "xpbd"), (0.005, True, "xpbd"),
+                                                        (0.002, False, "xpbd"), (0.002, True, "vbd")])
+def test_expert_solves_the_paper_configurations(threshold, randomize, solver):
+    env = make(num_envs=12, end_position_threshold=threshold, randomize_landmark=randomize, seed=11,
+               tissue_solver=solver)
     expert = make_expert(env)
     first = torch.full((12,), -1, device=env.device)
     for _ in range(80):

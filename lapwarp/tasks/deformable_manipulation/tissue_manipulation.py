@@ -16,15 +16,22 @@ for a 47 g flap). A landmark is a point of the surface carried barycentrically b
 
 Convergence (measured on the CPU, tests/test_tissue_manipulation.py states it): the equilibrium under the moved patch
 does not depend on the Young's modulus, only gravity's sag does (0.1 mm converged). XPBD at ``physics_substeps`` = 20
-per 0.1 s is softer than the converged material (sag 2.1 mm) and keeps the landmarks within about 1.7 mm of the
-800-substep answer over 15 mm moves along x and then along z, which buckle the flap (about 8 % of the landmarks' 21 mm
-travel; 200 substeps: 1.1 mm); ``physics_substeps=None`` picks the substeps that resolve the material's waves
-(hundreds; see ``World.substeps_for``).
+per 0.1 s is softer than the converged material (sag 2.1 mm): over 15 mm moves along x and then along z, which buckle
+the flap, its landmarks are up to 3.0 mm (mean 1.1 mm) from the converged answer (XPBD at 1,600 substeps; at 800
+within 0.11 mm of it, at 200 within 1.2 mm; the landmarks travel 21 mm); ``physics_substeps=None`` picks the substeps
+that resolve the material's waves (hundreds; see ``World.substeps_for``). ``tissue_solver="vbd"`` solves the tets per
+vertex (kernels/vbd.py; the band's fixed nodes anchor the flap): at the default 20 substeps within 0.41 mm (mean 0.22
+mm) of the converged answer, at 40 within 0.12 mm, and VBD at 400 substeps agrees with XPBD at 1,600 within 0.07 mm.
+The default stays XPBD: the converged flap traces narrower reachable regions at low x than sofa_env's (landmarks 4 and
+7 reach -15.2 and -11.7 mm where sofa_env's reach -19 mm or less; XPBD's soft flap matches its boxes within 3.1 mm),
+our 264 linear tets at nu 0.47 (sofa_env meshes 348) probably lock in bending once converged, and the per-vertex
+solve's GPU speed and the PPO rows were not measured for it. Each solver has its own stored polygons.
 
 Targets are sampled as in sofa_env: uniformly in the landmark's *reachable polygon* (the path the landmark traces
 while the grasper goes around the workspace's border), at least ``minimum_target_distance`` from the landmark. The
 polygons are traced with this physics (``trace_reachable_polygons``; sofa_env ships the ones its scene traced) and
-stored in ``lapwarp/assets/data/tissue_manipulation_reachable.npz``.
+stored in ``lapwarp/assets/data/tissue_manipulation_reachable.npz`` (``..._reachable_vbd.npz`` for the per-vertex
+solve).
 
 Reward features (Table A: the paper's weights -1, +10, -5, 0, 0): the landmark-target distance over world x and z
 (sofa_env's ``distance_calculation_2d``) over the workspace diagonal, reaching the target (success), being stuck (the
@@ -48,7 +55,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Literal
 
 import numpy as np
 import torch
@@ -99,7 +106,11 @@ LANDMARKS = ((0.0131, -0.01, 0.1197), (0.0140, -0.01, 0.1291), (0.0174, -0.01, 0
              (0.0065, -0.01, 0.1201))
 NUM_LANDMARKS = len(LANDMARKS)
 POLYGON_VERTICES = 48
-POLYGON_FILE = Path(__file__).resolve().parents[2] / "assets" / "data" / "tissue_manipulation_reachable.npz"
+#: the reachable polygons traced with each tissue solve (``tissue_solver``): the landmarks' paths differ by a few mm
+POLYGON_FILES = {
+    "xpbd": Path(__file__).resolve().parents[2] / "assets" / "data" / "tissue_manipulation_reachable.npz",
+    "vbd": Path(__file__).resolve().parents[2] / "assets" / "data" / "tissue_manipulation_reachable_vbd.npz",
+}
 TISSUE_COLOR, LIVER_COLOR, GRASPER_COLOR, LANDMARK_COLOR = (0.93, 0.8, 0.25), (0.55, 0.12, 0.1), (0.7, 0.72, 0.75), \
     (0.05, 0.05, 0.05)
 OVERLAY_COLOR = wp.constant(wp.vec3(51.0, 223.0, 255.0))  # sofa_env's turquoise, RGB
@@ -128,6 +139,9 @@ class TissueManipulationConfig(EnvConfig):
             damping 0.1 M + 0.1 K, which lets the flap settle within a step; the equilibrium does not depend on it).
         settle_steps: sofa_zoo's; the scene settles ``max(settle_steps - 1, 1)`` physics steps (sofa_env's count).
         physics_substeps: XPBD substeps per physics step (None: automatic, see the module docstring).
+        tissue_solver: the flap's tet solve (``World.tet_method``): ``xpbd`` (default) or ``vbd`` (per vertex, close to
+            the converged material at the default substeps; see the module docstring); each has its own reachable
+            polygons.
         camera_position / camera_look_at: sofa_zoo's camera, m (vertical FoV 57 degrees, +z up).
         show_target: draw the target over RGB images (sofa_env's overlay; ``deactivate_overlay`` = False).
     """
@@ -154,6 +168,7 @@ class TissueManipulationConfig(EnvConfig):
     damping_rate: NonNegative = 10.0
     settle_steps: Annotated[int, Range(ge=0, le=10_000)] = 10
     physics_substeps: Count(100_000) | None = 20
+    tissue_solver: Literal["xpbd", "vbd"] = "xpbd"
     camera_position: tuple[float, float, float] = (0.0155, -0.2068, 0.1069)
     camera_look_at: tuple[float, float, float] = (0.0155, 0.0, 0.1069)
     show_target: bool = True
@@ -206,9 +221,10 @@ def embed_points(points: np.ndarray, vertices: np.ndarray, tets: np.ndarray) -> 
     return np.asarray(index, dtype=np.int32), np.asarray(weights, dtype=np.float32)
 
 
-def load_reachable_polygons() -> np.ndarray:
-    """The landmarks' reachable polygons ``(9, 48, 2)`` (x, z in m) stored by ``trace_reachable_polygons``."""
-    with np.load(POLYGON_FILE) as data:
+def load_reachable_polygons(tissue_solver: str = "xpbd") -> np.ndarray:
+    """The landmarks' reachable polygons ``(9, 48, 2)`` (x, z in m) stored by ``trace_reachable_polygons`` for the
+    tissue solve ``tissue_solver``."""
+    with np.load(POLYGON_FILES[tissue_solver]) as data:
         return data["polygons"].astype(np.float32)
 
 
@@ -453,6 +469,7 @@ class TissueManipulationEnv(BatchedEnv):
         for k in self.patch:
             builder.add_attachment(self.tissue.particle_start + int(k), body=self.grasper_body, compliance=0.0)
         world = builder.finalize(num_envs=n, device=str(dev), substeps=cfg.physics_substeps, seed=cfg.seed)
+        world.tet_method = cfg.tissue_solver
         # sofa_env settles max(settle_steps - 1, 1) times after every reset; the scene is the same every time, so it
         # settles once here and every episode starts from the settled state
         for _ in range(max(cfg.settle_steps - 1, 1)):
@@ -494,7 +511,7 @@ class TissueManipulationEnv(BatchedEnv):
         return world
 
     def _reachable_polygons(self) -> np.ndarray:
-        return load_reachable_polygons()
+        return load_reachable_polygons(self.cfg.tissue_solver)
 
     def _checked_state(self) -> list[wp.array]:
         return [self.task.grasper, self.task.target]
@@ -682,7 +699,9 @@ if __name__ == "__main__":  # regenerate the stored polygons: python -m lapwarp.
 
     parser = argparse.ArgumentParser(description=trace_reachable_polygons.__doc__)
     parser.add_argument("--device", default="cpu")
+    parser.add_argument("--tissue-solver", default="xpbd", choices=sorted(POLYGON_FILES))
     args = parser.parse_args()
-    POLYGON_FILE.parent.mkdir(parents=True, exist_ok=True)
-    np.savez(POLYGON_FILE, polygons=trace_reachable_polygons(args.device))
-    print(f"wrote {POLYGON_FILE}")
+    path = POLYGON_FILES[args.tissue_solver]
+    path.parent.mkdir(parents=True, exist_ok=True)
+    np.savez(path, polygons=trace_reachable_polygons(args.device, tissue_solver=args.tissue_solver))
+    print(f"wrote {path}")
