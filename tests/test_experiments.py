@@ -45,6 +45,12 @@ def test_run_commands_carry_the_learner_options(tmp_path):
     assert "--fast-pixels" not in cmd and "--critic" not in cmd and "--distributed" in cmd
     assert cmd[1:4] == ["-m", "torch.distributed.run", "--standalone"] and "--device" not in cmd
     assert cmd[cmd.index("--num-envs") + 1] == "8" and cmd[cmd.index("--max-iterations") + 1] == "5"
+    # a row's own training options (PickAndPlace's rate schedules) reach the command and the summary's learner
+    place = {r.name: r for r in experiments.EXPERIMENTS["deformable-state"].rows}["pnp-place-stiff-state"]
+    cmd = experiments.run_command(place, 0, "gpu", paths, None, 1, None, None, 1024, tmp_path)
+    assert cmd[cmd.index("--lr-schedule") + 1] == "linear" and cmd[cmd.index("--learning-rate") + 1] == "3e-4"
+    assert cmd[cmd.index("--max-iterations") + 1] == "250"
+    assert place.learner() == "PPO, MLP actor and critic, --lr-schedule linear --learning-rate 3e-4"
 
 
 def test_every_row_config_is_valid_for_its_task():
@@ -68,6 +74,11 @@ def test_every_row_config_is_valid_for_its_task():
 
             # the values the env gets (after the config's coercion of e.g. "True") are the row's
             assert {k: plain(getattr(cfg, k)) for k in row.config} == {k: plain(v) for k, v in row.config.items()}
+            # and its own training options are ppo.py's (parsed and checked as ppo.py checks them)
+            parser = ppo.build_parser()
+            args = parser.parse_args(["--task", row.task, "--preset", exp.preset,
+                                      "--max-iterations", str(row.iterations), *row.train_args])
+            ppo.training_config(args, parser, "cpu")
 
 
 def test_tiny_cpu_run_writes_progress_results_summary_and_plots(tmp_path, capsys):
