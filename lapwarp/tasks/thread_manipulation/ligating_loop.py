@@ -1004,13 +1004,17 @@ class LigatingLoopExpert(Expert):
     While it closes, the tip keeps the loop's COM on the band's deformed centre, ``push`` toward the fixed base (the
     move ``center_gain`` x that error, its part around the cylinder scaled by ``tangential``), but never closer than
     ``clearance`` to the band's deformed surface (its outer node furthest toward the tip). The over-soft cylinder
-    (module docstring) is squeezed and pulled toward the tip by the shrinking loop: a tip held at a fixed distance
-    from the band's centre (``center_gain`` = 0, the former rule) follows the lifted cylinder out, the loop's COM
-    leaves its hull around index 23 and the encircling flag resets. Once the loop touches the cylinder (index <=
-    ``touch_index``), every ``pause_period``-th step closes nothing, so that the cylinder settles. With discrete
-    actions (one component per step) a tip error of ``move_first`` discrete steps is corrected before the next index,
-    and a spin error under ``spin_deadband`` discrete steps is left alone while the loop closes (default 3 discrete, 0
-    continuous: chasing the squeezed cavity's axis, the spin took about half of the closing phase's actions).
+    (module docstring) is squeezed and pulled toward the tip by the shrinking loop: a tip held at a fixed distance from
+    the band's centre (``center_gain`` = 0, the former rule) follows the lifted cylinder out, the loop's COM leaves its
+    hull around index 23 and the encircling flag resets. For the stiff loop the default ``clearance`` (0.5 mm) is under
+    the shaft's 1 mm radius, so the shaft rests on the band and holds it down like an anvil: at 1.5 mm the shrinking
+    loop lifted the band by up to 12 mm, the tip rose with it, and around index 22 the cylinder snapped sideways out of
+    the loop (its COM left the hull, the flag reset), the same way on every retry. The soft loop keeps 1.5 mm (with 0.5
+    mm it solved 14 instead of 16 of 16 continuous episodes). Once the loop touches the cylinder (index <=
+    ``touch_index``), every ``pause_period``-th step closes nothing, so that the cylinder settles. With discrete actions
+    (one component per step) a tip error of ``move_first`` discrete steps is corrected before the next index, and a spin
+    error under ``spin_deadband`` discrete steps is left alone while the loop closes (default 3 discrete, 0 continuous:
+    chasing the squeezed cavity's axis, the spin took about half of the closing phase's actions).
 
     A loop that loses the encircling flag (``task.encircled``, privileged) while it still winds about the band
     (``recenter``) is opened while the tip re-centres it, until the flag comes back; one that no longer winds about it
@@ -1022,14 +1026,20 @@ class LigatingLoopExpert(Expert):
     First episodes of 16 CPU envs (seed 1, 500 steps), default (encircling) test, stiff / soft small loop:
     continuous 88 / 100 %, discrete 50 / 62 % (the former rule: 25 / 31 % and 38 / 44 %); with the discrete spin dead
     band and 5 mm clamp, discrete stiff 69 % (soft not measured). At 250 steps, seeds 1 and 2: discrete stiff 18 of 32
-    (12 before them), soft 17 of 32 (17), and the successes come 30 to 40 steps sooner."""
+    (12 before them), soft 17 of 32 (17), and the successes come 30 to 40 steps sooner. With the stiff loop's 0.5 mm
+    ``clearance`` (500 steps): continuous stiff 32 and 31 of 32 at seeds 1 and 2 (1.5 mm: 30 and 31), 16 of 16 at 16
+    envs (14); discrete stiff 11 and 10 of 16 at seeds 1 and 2 (11 and 9)."""
 
     def __init__(self, env: LigatingLoopEnv, hover: float = 0.012, depth: float = 0.002, speed: float | None = None,
-                 tolerance: float = 0.002, gain: float | None = None, clearance: float = 0.0015,
+                 tolerance: float = 0.002, gain: float | None = None, clearance: float | None = None,
                  max_step: float | None = None, retry_margin: float = 0.15, center_gain: float | None = None,
                  push: float = 0.001, touch_index: int = 28, pause_period: int = 3, recenter: bool = True,
                  move_first: float = 0.5, tangential: float | None = None, spin_deadband: float | None = None):
         super().__init__(env)
+        # stiff loop: the shaft rests on the band (clearance under its 1 mm radius) and holds the over-soft cylinder
+        # down while the loop closes; 1.5 mm let the loop lift it until it snapped out (see above)
+        if clearance is None:
+            clearance = 0.0005 if env.cfg.loop_stiffness == "stiff" else 0.0015
         # discrete: a larger clamp, so that the component with the largest error moves a whole step each action (a 2
         # mm move split over pan, tilt and depth is often under half a step in each: a no-op, or a stall)
         if max_step is None:
