@@ -900,7 +900,8 @@ def expert_commands(q: wp.array2d(dtype=wp.vec3), ptsd: wp.array2d(dtype=wp.vec4
                     episode_length: wp.array(dtype=wp.int32), num_nodes: int, hover: float, depth: float,
                     speed: float, tolerance: float, gain: float, clearance: float, max_step: float,
                     target_ratio: float, retry_margin: float, center_gain: float, push: float, touch_index: int,
-                    pause_period: int, recenter: int, tangential: float, phase: wp.array(dtype=wp.int32),
+                    pause_period: int, recenter: int, tangential: float, side_band: float,
+                    phase: wp.array(dtype=wp.int32),
                     error_out: wp.array2d(dtype=float)):
     """The scripted instrument (``LigatingLoopExpert``): PTSD errors and the closing command per env."""
     env = wp.tid()
@@ -960,7 +961,12 @@ def expert_commands(q: wp.array2d(dtype=wp.vec3), ptsd: wp.array2d(dtype=wp.vec4
             # follows the squeezed cylinder in instead of pulling it out of the shrinking loop
             shift = (ring - axis * push - com) * center_gain
             side = wp.normalize(wp.cross(axis, out))
-            tip_target = tip + shift - side * (wp.dot(shift, side) * (1.0 - tangential))
+            # the error around the cylinder is scaled by ``tangential``, but its part beyond ``side_band`` is always
+            # corrected: the squeezed cylinder can snap sideways in the closing loop (around index 22-26), leaving
+            # the loop's COM 7-9 mm off its centre, mostly around it; uncorrected, the COM drifts out of the hull
+            lateral = wp.dot(shift, side)
+            excess = wp.sign(lateral) * wp.max(wp.abs(lateral) - side_band * center_gain, 0.0)
+            tip_target = tip + shift - side * ((lateral - excess) * (1.0 - tangential))
             along = wp.dot(tip_target - ring, out)
             floor = surface_extent(q, env, p, start, ring, out) + clearance
             if along < floor:
@@ -1003,7 +1009,8 @@ class LigatingLoopExpert(Expert):
 
     While it closes, the tip keeps the loop's COM on the band's deformed centre, ``push`` toward the fixed base (the
     move ``center_gain`` x that error, its part around the cylinder scaled by ``tangential``), but never closer than
-    ``clearance`` to the band's deformed surface (its outer node furthest toward the tip). The over-soft cylinder
+    ``clearance`` to the band's deformed surface (its outer node furthest toward the tip); the part of the error around
+    the cylinder beyond ``side_band`` is corrected whatever ``tangential`` is (see below). The over-soft cylinder
     (module docstring) is squeezed and pulled toward the tip by the shrinking loop: a tip held at a fixed distance from
     the band's centre (``center_gain`` = 0, the former rule) follows the lifted cylinder out, the loop's COM leaves its
     hull around index 23 and the encircling flag resets. For the stiff loop the default ``clearance`` (0.5 mm) is under
@@ -1015,6 +1022,16 @@ class LigatingLoopExpert(Expert):
     (one component per step) a tip error of ``move_first`` discrete steps is corrected before the next index, and a spin
     error under ``spin_deadband`` discrete steps is left alone while the loop closes (default 3 discrete, 0 continuous:
     chasing the squeezed cavity's axis, the spin took about half of the closing phase's actions).
+
+    With either action type the squeezed cylinder often snaps sideways in the closing loop (stiff loop: around index
+    22-26, the band moves ~7 mm in a few steps) and the loop's COM ends 7-9 mm off the band's centre, mostly around
+    the cylinder from the tip. Continuous (``tangential`` = 1) the tip follows it round and the COM stays in the hull
+    until the loop is closed. Discrete, ``tangential`` was 0 (whole 2 mm steps around the cylinder drove the tip
+    round it), so that error was never corrected, the COM drifted out of the hull, the flag reset and the expert
+    started again from the free end, where the same snap recurred: all 5 failures of 16 discrete stiff episodes
+    (CPU, seed 1). The error around the cylinder beyond ``side_band`` (3 mm, over the 0.5-2 mm of an unsnapped loop) is
+    now corrected in full. The soft loop's snap (index 27-29) moves the COM 8 mm in one or two steps, faster than any
+    tip correction: it still ends 4 of 16 discrete soft episodes, the same way on every retry.
 
     A loop that loses the encircling flag (``task.encircled``, privileged) while it still winds about the band
     (``recenter``) is opened while the tip re-centres it, until the flag comes back; one that no longer winds about it
@@ -1034,7 +1051,8 @@ class LigatingLoopExpert(Expert):
                  tolerance: float = 0.002, gain: float | None = None, clearance: float | None = None,
                  max_step: float | None = None, retry_margin: float = 0.15, center_gain: float | None = None,
                  push: float = 0.001, touch_index: int = 28, pause_period: int = 3, recenter: bool = True,
-                 move_first: float = 0.5, tangential: float | None = None, spin_deadband: float | None = None):
+                 move_first: float = 0.5, tangential: float | None = None, spin_deadband: float | None = None,
+                 side_band: float = 0.003):
         super().__init__(env)
         # stiff loop: the shaft rests on the band (clearance under its 1 mm radius) and holds the over-soft cylinder
         # down while the loop closes; 1.5 mm let the loop lift it until it snapped out (see above)
@@ -1059,12 +1077,14 @@ class LigatingLoopExpert(Expert):
         # loop only along the tip's radius and the axis there
         if tangential is None:
             tangential = 0.0 if env.is_discrete else 1.0
+        # ``side_band``: the error around the cylinder past it (a cylinder snapped sideways in the closing loop) is
+        # corrected in full even with ``tangential`` 0 (it only matters below 1)
         self.hover, self.depth, self.speed, self.tolerance = float(hover), float(depth), float(speed), float(tolerance)
         self.gain, self.clearance, self.max_step = float(gain), float(clearance), float(max_step)
         self.retry_margin = float(retry_margin)
         self.center_gain, self.push, self.touch_index = float(center_gain), float(push), int(touch_index)
         self.pause_period, self.recenter, self.move_first = int(pause_period), int(recenter), float(move_first)
-        self.tangential, self.spin_deadband = float(tangential), float(spin_deadband)
+        self.tangential, self.spin_deadband, self.side_band = float(tangential), float(spin_deadband), float(side_band)
         n, dev = env.num_envs, env.wp_device
         self.phase = wp.zeros(n, dtype=wp.int32, device=dev)
         self.error = wp.zeros((n, 5), dtype=float, device=dev)
@@ -1078,7 +1098,8 @@ class LigatingLoopExpert(Expert):
                                      env.episode_length, env.cfg.num_loop_points, self.hover, self.depth, self.speed,
                                      self.tolerance, self.gain, self.clearance, self.max_step,
                                      env.cfg.target_loop_closed_ratio, self.retry_margin, self.center_gain, self.push,
-                                     self.touch_index, self.pause_period, self.recenter, self.tangential, self.phase],
+                                     self.touch_index, self.pause_period, self.recenter, self.tangential,
+                                     self.side_band, self.phase],
                              outputs=[self.error], device=env.wp_device)
         ideal = wp.to_torch(self.error) / self.step_size
         if env.is_discrete and self.spin_deadband > 0.0:
