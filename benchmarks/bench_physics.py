@@ -200,7 +200,7 @@ def run(scene: str, num_envs: int, device: str, substeps: int, iterations: int, 
         "chain_block_links": world.chain_block_links,
         "chain_families": m.edge_chains.num_families if m.edge_chains is not None else None,
         "tet_solver": ("fused" if world.fused_tets else "colored") if m.tet_count else None,
-        "tet_method": world.tet_method if m.tet_count else None,
+        "tet_method": world.tet_method_in_use if m.tet_count else None,
         "tethers": m.geo_particles is not None,
         "tether_passes": world.tether_passes if m.geo_particles is not None else None,
         "cuda_graph": dev.is_cuda, "steps_timed": steps,
@@ -227,7 +227,7 @@ def main() -> None:
                    help="one run per value: 0 = one thread per chain, B >= 2 = blocks of B links")
     p.add_argument("--tet-solver", nargs="+", default=[None], choices=["auto", "colored", "fused"],
                    help="one run per value (tet scenes; default: the world's own choice)")
-    p.add_argument("--tet-method", nargs="+", default=[None], choices=["xpbd", "vbd"],
+    p.add_argument("--tet-method", nargs="+", default=[None], choices=["auto", "xpbd", "vbd"],
                    help="one run per value (tet scenes; default: the world's own)")
     p.add_argument("--tether-passes", type=int, nargs="+", default=[None],
                    help="passes over each particle's geodesic tethers per projection (tethered scenes; default: the "

@@ -305,14 +305,14 @@ class SceneBuilder:
             damping: linear velocity damping rate, 1/s.
             fixed: bool mask or local indices of pinned vertices.
             tethers: geodesic long-range attachments (Kim et al. 2012; ``lapwarp.kernels.geodesic``): every particle
-                stays within its rest geodesic distance of its nearest *anchor*, a pinned particle or one held by a
-                stiff attachment (a grasp, a held corner), per env. The distances are recomputed on the device when
-                an env's anchors change or a cut removes triangles (the path then goes around the cut; a piece cut
-                off every anchor has no tether and falls). They carry a held sheet's weight to its supports within
-                one sweep, which the edge chains alone do only over many substeps when the load crosses rows and
-                columns (a sheet held at points). Inextensible along those geodesics, so a soft sheet that sags by
-                stretching sags less than its material says (docs/physics.md). Off by default (the chain solver
-                holds a hanging or cut sheet without them).
+                stays within its rest geodesic distance of the nearest *anchor* of every anchor group, an anchor being
+                a pinned particle or one held by a stiff attachment (a grasp, a held corner), per env. The distances
+                are recomputed on the device when an env's anchors change or a cut removes triangles (the path then
+                goes around the cut; a piece cut off every anchor has no tether and falls). They carry a held sheet's
+                weight to its supports within one sweep, which the edge chains alone do only over many substeps when
+                the load crosses rows and columns (a sheet held at points). Inextensible along those geodesics, so a
+                soft sheet that sags by stretching sags less than its material says (docs/physics.md). Off by
+                default (the chain solver holds a hanging or cut sheet without them).
             name: object name.
             cuttable: its triangles get per-env active masks (``lapwarp.cutting``); an edge spring acts while one
                 of its triangles is present, a hinge while both are.

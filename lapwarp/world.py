@@ -37,8 +37,9 @@ from lapwarp.vbd import tet_components, vertex_layout
 # threads per block, 3.08 ms at 256)
 #: the tet sweeps ``World.tet_solver`` may name
 TET_SOLVERS = ("auto", "colored", "fused")
-#: the tet methods ``World.tet_method`` may name: XPBD constraint projection or per-vertex descent (kernels/vbd.py)
-TET_METHODS = ("xpbd", "vbd")
+#: the tet methods ``World.tet_method`` may name: XPBD constraint projection, per-vertex descent (kernels/vbd.py), or
+#: "auto": per vertex where every tet mesh has a pinned particle in every env, else XPBD
+TET_METHODS = ("auto", "xpbd", "vbd")
 #: the largest tet particle window the fused sweep keeps in shared memory (12 B each: 48 KB, the static limit)
 FUSED_TET_MAX_PARTICLES = 4096
 
@@ -134,10 +135,9 @@ class World:
         self.rod_newton_steps = 2
         # Newton steps of each cloth edge-chain solve per sweep (the families' solves follow each other)
         self.chain_newton_steps = 1
-        # passes over a particle's geodesic tethers (one per anchor group, kernels/geodesic.py) per projection: the
-        # groups' projections in sequence partly undo each other where the sheet is taut between two held points;
-        # a second pass costs ~2 % of a held sheet's step (CPU) and takes its worst edge from 1.099 to 1.067
-        # (benchmarks' cloth_pulled_tethers, 20 substeps)
+        # passes over a particle's geodesic tethers (one per anchor group, kernels/geodesic.py), group after group,
+        # where its tethers' balls share no point (anchors pulled apart further than the sheet reaches); otherwise the
+        # particle goes to the closest point of their intersection in one step
         self.tether_passes = 2
         # links per block of the direct chain solves (rods and cloth edge chains): 0 (or 1) = one thread walks each
         # chain (kernels/chains.py); B > 1 = the partitioned solve (kernels/chains_partitioned.py), blocks of B links
@@ -154,7 +154,10 @@ class World:
         # how a sweep solves the tets (TET_METHODS): "xpbd" projects each tet's constraints from zero multipliers
         # every substep (a stiff body carries its load only at h c / l <~ 0.7); "vbd" moves each vertex by a Newton
         # step of the substep's potential (kernels/vbd.py), whose fixed point is the equilibrium at any stiffness
-        self.tet_method = "xpbd"
+        # "auto" (default) = "vbd" where every tet mesh is pinned somewhere (its equilibrium at 10 substeps: a 30 kPa
+        # block within 0.3 % of the converged sag, where XPBD needs ~300), else "xpbd" (the per-vertex solve moves a
+        # free body as a whole only slowly). Tasks name theirs (measured speeds and expert rates depend on it)
+        self.tet_method = "auto"
         self.rng = wp.empty(self.num_envs, dtype=wp.uint32, device=self.device)
         self.unstable = wp.zeros(self.num_envs, dtype=wp.int32, device=self.device)
         self._unstable_now = wp.zeros(self.num_envs, dtype=wp.int32, device=self.device)
@@ -323,13 +326,20 @@ class World:
             self._cmd_key = None  # re-record the step with the force term
         return self.particle_force
 
+    @property
+    def tet_method_in_use(self) -> str:
+        """``tet_method`` with "auto" resolved: "vbd" where every tet mesh has a pinned particle in every env."""
+        if self.tet_method != "auto":
+            return self.tet_method
+        return "vbd" if self.model.tet_count and not self._unanchored_tets else "xpbd"
+
     def substeps_for(self, dt: float) -> int:
         """Substeps of a ``step(dt)``: the fixed count, or automatically 10, and with ``tet_method`` "xpbd"
         ``max(10, ceil(dt / model.max_substep))`` (XPBD tets reach their stiffness only at ``h c / l <~ 0.7``; the
         per-vertex solve has no such bound)."""
         if self.substeps is not None:
             return self.substeps
-        xpbd_tets = self.tet_method == "xpbd" and np.isfinite(self.model.max_substep)
+        xpbd_tets = self.tet_method_in_use == "xpbd" and np.isfinite(self.model.max_substep)
         need = dt / self.model.max_substep if xpbd_tets else 0.0
         return max(self.MIN_AUTO_SUBSTEPS, int(np.ceil(need - 1e-9)))
 
@@ -363,7 +373,7 @@ class World:
             return
         key = (float(dt), self.substeps_for(float(dt)), self.iterations, self.rod_newton_steps, self.chain_newton_steps,
                self.tet_rotation_iterations, self.chain_block_links, self.tet_solver, self.tet_block_threads,
-               self.tet_method,
+               self.tet_method_in_use,
                *(solver.record_key() for solver in self.solvers if hasattr(solver, "record_key")))
         if self._cmd_key != key:
             if self.tet_method not in TET_METHODS:
@@ -477,6 +487,17 @@ class World:
             launch(geodesic.solve_geodesic_tethers, (n, m.geo_particles.shape[0]),
                    [m.geo_particles, s.geo_dist, s.geo_source, s.geo_status, w_eff, self.tether_passes], [s.particle_q])
 
+        if m.attachment_capacity:
+            bq = s.body_q if s.body_q is not None else self._dummy_tf()
+            bqp = self._body_q_prev if self._body_q_prev is not None else bq
+            attachment_args = [s.attach_particle, s.attach_body, s.attach_offset, s.attach_compliance, bqp, bq, blend,
+                               m.particle_inv_mass, inv_dt2]
+            if m.geo_particles is not None:
+                # held points first where their bodies hold them, so that the tethers see their anchors there, not
+                # one substep of gravity below (stiff attachments only: a soft one projected twice per sweep would be
+                # stiffer than its compliance); every attachment again at the end. Only with tethers: elsewhere it
+                # was not needed and cost TissueManipulation 12 % (H100)
+                launch(xpbd.solve_attachments, n, [*attachment_args, 1], [s.particle_q])
         if m.geo_particles is not None:
             solve_tethers()
         if m.edge_chains is None:
@@ -489,7 +510,7 @@ class World:
                     lam.get("tet", self._dummy_v2), tet_map, tet_mask, self.tet_rotation_iterations]
         tet_out = [self._tet_rotation if self.tet_rotation_iterations > 0 else self._no_rotation, s.particle_q]
         off = m.tet_color_offsets
-        if m.tet_count and self.tet_method == "vbd":
+        if m.tet_count and self.tet_method_in_use == "vbd":
             self._record_vbd_sweep(launch, w_eff, inv_dt2, sweep, tet_map, tet_mask, tet_out[0])
         elif m.tet_count and self.fused_tets:
             first, count = self._tet_window
@@ -530,11 +551,7 @@ class World:
             solve_chains(m.rod_chains, m.rod_stretch_rest, m.rod_stretch_compliance, lam.get("rod", self._dummy_f),
                          self._rod_scratch, seg_mask, self.rod_newton_steps, chains.solve_chains)
         if m.attachment_capacity:
-            bq = s.body_q if s.body_q is not None else self._dummy_tf()
-            bqp = self._body_q_prev if self._body_q_prev is not None else bq
-            launch(xpbd.solve_attachments, n,
-                   [s.attach_particle, s.attach_body, s.attach_offset, s.attach_compliance, bqp, bq, blend,
-                    m.particle_inv_mass, inv_dt2], [s.particle_q])
+            launch(xpbd.solve_attachments, n, [*attachment_args, 0], [s.particle_q])
 
     def _prediction_masks(self) -> tuple:
         """``(active, use_active, force, use_force)`` of the prediction (``xpbd.integrate_particles``) and of what

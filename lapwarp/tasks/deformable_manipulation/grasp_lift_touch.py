@@ -831,6 +831,7 @@ class GraspLiftAndTouchEnv(BatchedEnv):
         slot_start = liver.num_anchors + gall.num_anchors
         world = builder.finalize(num_envs=n, device=str(dev), substeps=cfg.physics_substeps, seed=cfg.seed,
                                  attachment_capacity=slot_start + cfg.grasp_slots)
+        world.tet_method = "xpbd"  # organs held by springs, not pinned: the per-vertex solve would not move them
         liver.finalize(world)
         gall.finalize(world)
         self.rig.finalize(world)

@@ -680,6 +680,7 @@ class TissueDissectionEnv(BatchedEnv):
                                                  activation=True, activation_deadzone=cfg.activation_deadzone)],
                                  builder)
         world = builder.finalize(num_envs=n, device=str(dev), substeps=cfg.physics_substeps, seed=cfg.seed)
+        world.tet_method = "xpbd"  # the flap's speed and expert rates were measured with XPBD tets (not "auto")
         self.rig.finalize(world)
         self._force = world.enable_external_forces()
 
