@@ -288,6 +288,17 @@ def _violation(env: int, p: int, y: wp.vec3, groups: int, n_all: int, dist: wp.a
 
 
 @wp.func
+def _onto_ball(x: wp.vec3, b: wp.vec4) -> wp.vec3:
+    """``x`` moved onto ball ``b`` along the line to its centre (unchanged inside it)."""
+    c = _centre(b)
+    d = x - c
+    length = wp.length(d)
+    if length > b[3]:
+        return c + d * (b[3] / length)
+    return x
+
+
+@wp.func
 def _any_perpendicular(u: wp.vec3) -> wp.vec3:
     t = wp.vec3(1.0, 0.0, 0.0)
     if wp.abs(u[0]) > 0.9:
@@ -404,12 +415,8 @@ def solve_geodesic_tethers(
     best = wp.vec4(0.0, 0.0, 0.0, INF)
     for g in range(groups):
         b = _ball(env, p, g, n_all, dist, source, q)
-        if b[3] > 0.0:
-            c = _centre(b)
-            d = x - c
-            length = wp.length(d)
-            if length > b[3]:
-                best = _consider(env, p, x, c + d * (b[3] / length), best, groups, n_all, dist, source, q)
+        if b[3] > 0.0 and wp.length(x - _centre(b)) > b[3]:
+            best = _consider(env, p, x, _onto_ball(x, b), best, groups, n_all, dist, source, q)
     # a feasible projection onto one ball is the answer; otherwise the nearest feasible point on two or three spheres
     # (all of them: a feasible point of one pair can be farther than the answer on a triple of others)
     if best[3] >= 1.0:
@@ -440,12 +447,7 @@ def solve_geodesic_tethers(
         # no common point: share the violation out, group after group
         for _pass in range(passes):
             for g in range(groups):
-                a = source[env, g * n_all + p]
-                if a >= 0 and a != p:
-                    xa = q[env, a]
-                    d = x - xa
-                    length = wp.length(d)
-                    m = dist[env, g * n_all + p]
-                    if length > m:
-                        x = xa + d * (m / length)
+                b = _ball(env, p, g, n_all, dist, source, q)
+                if b[3] >= 0.0:
+                    x = _onto_ball(x, b)
     q[env, p] = x
