@@ -1,5 +1,6 @@
 """``train/fast_pixels.py`` (issue #19): uint8 image storage is exact, the fast encoder computes what rsl-rl's
-``CNNModel`` computes, and ``train/ppo.py`` trains with it, with the privileged state critic and writes a video."""
+``CNNModel`` computes, a shared encoder runs once per batch with the values and gradients of two separate calls, and
+``train/ppo.py`` trains with it, with the privileged state critic and writes a video."""
 
 from __future__ import annotations
 
@@ -66,6 +67,107 @@ def test_fast_model_matches_rsl_rl_cnn_model(rgb_env):
             assert torch.allclose(fast_cuda(uint8_obs.cuda()).cpu(), expected, atol=0.05)
 
 
+def _shared_models(obs):
+    cfg = ppo.use_images(ppo.preset_config("gpu", 3, 1)[0])
+    groups = {"actor": ["image"], "critic": ["image"]}
+    kwargs = {role: {k: v for k, v in cfg[role].items() if k != "class_name"} for role in ("actor", "critic")}
+    torch.manual_seed(0)
+    actor = fast_pixels.FastCNNModel(obs, groups, "actor", 3, autocast_bf16=False, **kwargs["actor"])
+    critic = fast_pixels.FastCNNModel(obs, groups, "critic", 1, autocast_bf16=False, cnns=actor.cnns,
+                                      **kwargs["critic"])
+    calls = []
+    actor.cnns["image"].register_forward_hook(lambda *_: calls.append(1))
+    return actor, critic, calls
+
+
+def test_shared_encoder_runs_once_with_the_values_and_gradients_of_two_calls(rgb_env):
+    obs = fast_pixels.Uint8Images(rgb_env).get_observations().cpu()
+    actor, critic, calls = _shared_models(obs)
+    assert critic.cnns is actor.cnns
+    cache = actor.cnns.latent_cache
+    # actor then critic on one observation (rsl-rl's act and every update mini-batch): one encoder run
+    a, c = actor(obs), critic(obs)
+    assert len(calls) == 1
+    (a.sum() + 3.0 * c.sum()).backward()
+    cached_grads = [p.grad.clone() for p in actor.cnns.parameters()]
+    # the same without the cache: two runs, the same outputs and the same (summed) encoder gradients
+    actor.zero_grad()
+    critic.zero_grad()
+    del actor.cnns.latent_cache
+    a2, c2 = actor(obs), critic(obs)
+    assert len(calls) == 3
+    assert torch.allclose(a, a2) and torch.allclose(c, c2)
+    (a2.sum() + 3.0 * c2.sum()).backward()
+    for g, p in zip(cached_grads, actor.cnns.parameters(), strict=True):
+        assert torch.allclose(g, p.grad, atol=1e-6, rtol=1e-5)
+    actor.cnns.latent_cache = cache
+    # what must recompute: a parameter changed in place between the calls (an optimizer step), another observation
+    # tensor, the same model twice (the critic alone in compute_returns), another grad mode; an entry is taken once
+    def runs(call):
+        n = len(calls)
+        call()
+        return len(calls) - n
+
+    assert runs(lambda: actor(obs)) == 1
+    with torch.no_grad():
+        next(actor.cnns.parameters()).add_(0.01)
+    assert runs(lambda: critic(obs)) == 1  # the actor's entry is stale
+    assert runs(lambda: actor(obs)) == 0  # the critic's is not (either model may come first)
+    assert runs(lambda: critic(obs)) == 1  # taken already
+    assert runs(lambda: actor(obs.clone())) == 1
+    assert runs(lambda: critic(obs)) == 1
+    assert runs(lambda: critic(obs)) == 1
+    with torch.no_grad():
+        assert runs(lambda: actor(obs)) == 1
+    count = len(calls)
+    # inference mode (rsl-rl's rollout): the images are inference tensors without a version counter; one run
+    with torch.inference_mode():
+        fresh = fast_pixels.Uint8Images(rgb_env).get_observations().cpu()
+        actor(fresh), critic(fresh)
+    assert len(calls) == count + 1
+
+
+@pytest.mark.filterwarnings("ignore:optimizer contains a parameter group with duplicate parameters")
+def test_dedupe_optimizer_steps_shared_parameters_once(rgb_env):
+    from itertools import chain
+    from types import SimpleNamespace
+
+    obs = fast_pixels.Uint8Images(rgb_env).get_observations().cpu()
+    actor, critic, _ = _shared_models(obs)
+    alg = SimpleNamespace(optimizer=torch.optim.Adam(chain(actor.parameters(), critic.parameters()), lr=0.01))
+    unique = {id(p) for p in chain(actor.parameters(), critic.parameters())}
+    assert len(alg.optimizer.param_groups[0]["params"]) > len(unique)  # rsl-rl's chain holds the encoder twice
+    fast_pixels.dedupe_optimizer(alg)
+    params = alg.optimizer.param_groups[0]["params"]
+    assert len(params) == len(unique) and alg.optimizer.param_groups[0]["lr"] == 0.01
+    weight = actor.cnns["image"].state_dict()
+    name = next(k for k in weight if k.endswith("weight"))
+    before = weight[name].clone()
+    (actor(obs).sum() + critic(obs).sum()).backward()
+    grad = dict(actor.cnns["image"].named_parameters())[name].grad.clone()
+    alg.optimizer.step()
+    # Adam's first step moves a parameter by lr x g / (|g| + eps): the learning rate where |g| >> eps, once (stepped
+    # twice, as rsl-rl's chained list would, it moves by 2 x lr)
+    moved = (actor.cnns["image"].state_dict()[name] - before).abs()[grad.abs() > 1e-5]
+    assert moved.numel() > 0 and torch.allclose(moved, torch.full_like(moved, 0.01), rtol=1e-3)
+
+
+@pytest.mark.filterwarnings("ignore:optimizer contains a parameter group with duplicate parameters")
+def test_ppo_trains_a_shared_encoder(device, tmp_path, capsys):
+    args = ["--device", device, "--preset", "cpu", "--task", "Reach", "--obs", "rgb", "--fast-pixels",
+            "--shared-encoder", "--set", "image_shape=[48,48]", "max_episode_steps=6", "--num-envs", "4",
+            "--max-iterations", "2", "--eval-envs", "4", "--log-dir", str(tmp_path)]
+    assert ppo.main(args) == 0
+    assert "evaluation on 4 episodes" in capsys.readouterr().out
+    state = torch.load(sorted(tmp_path.rglob("model_*.pt"))[-1], map_location="cpu", weights_only=False)
+    actor_cnn = {k: v for k, v in state["actor_state_dict"].items() if "cnns" in k}
+    critic_cnn = {k: v for k, v in state["critic_state_dict"].items() if "cnns" in k}
+    assert actor_cnn and actor_cnn.keys() == critic_cnn.keys()
+    assert all(torch.equal(actor_cnn[k], critic_cnn[k]) for k in actor_cnn)
+    groups = state["optimizer_state_dict"]["param_groups"]
+    assert len(groups) == 1 and len(groups[0]["params"]) == len(state["optimizer_state_dict"]["state"])
+
+
 def test_ppo_trains_fast_pixels_with_state_critic_and_writes_a_video(device, tmp_path, capsys):
     imageio = pytest.importorskip("imageio.v3")
     pytest.importorskip("imageio_ffmpeg")
@@ -89,6 +191,8 @@ def test_ppo_trains_fast_pixels_with_state_critic_and_writes_a_video(device, tmp
     (["--fast-pixels"], "apply to image observations"),
     (["--obs", "rgbd", "--fast-pixels"], "exact only for --obs rgb"),
     (["--obs", "rgb", "--video", "x.gif"], "--video writes an .mp4"),
+    (["--obs", "rgb", "--shared-encoder"], "--shared-encoder needs --fast-pixels"),
+    (["--obs", "rgb", "--fast-pixels", "--critic", "state", "--shared-encoder"], "--shared-encoder needs"),
 ])
 def test_ppo_rejects_inconsistent_pixel_options(bad, message, capsys):
     with pytest.raises(SystemExit):

@@ -11,11 +11,20 @@ class named in the train config and a VecEnv wrapper), so rsl-rl itself is uncha
   (tensor-core convolutions), taking uint8 or float images; the MLP heads and the distribution stay float32.
 - cuDNN's algorithm search for the convolutions (``cudnn.benchmark``) and TF32 matmuls. Measured (H100, Reach RGB,
   before these two settings were added): 1.40x PPO throughput, 109.8k vs 78.3k env-steps/s; see RESULTS.md.
+- ``--shared-encoder`` (``use_shared_encoder``): one image encoder for the actor and the critic, run once per batch.
+  rsl-rl's own ``share_cnn_encoders`` shares the parameters but still runs the encoder for the actor and again for the
+  critic (forward and backward), and puts the shared parameters into its optimizer twice, so Adam steps them twice
+  per update (twice the encoder's learning rate; torch warns "duplicate parameters"). Here the critic takes the
+  latent the actor has just computed from the same observation tensor (``LatentCache``; the summed loss back-propagates
+  through the encoder once) and the optimizer holds each parameter once (``dedupe_optimizer``). Stable-Baselines3's
+  ``CnnPolicy`` shares its feature extractor the same way by default.
 
 Depth images are not quantised (``Uint8Images`` only converts RGB observations).
 """
 
 from __future__ import annotations
+
+import weakref
 
 import torch
 from rsl_rl.models import CNNModel
@@ -54,23 +63,75 @@ class Uint8Images:
         return self._convert(obs), rewards, dones, extras
 
 
+def _version(tensor: torch.Tensor) -> int:
+    """The tensor's in-place version counter (-1 for an inference tensor, which has none: it cannot be changed in
+    place outside inference mode, and rsl-rl changes no observation between the actor's and the critic's call)."""
+    try:
+        return tensor._version
+    except RuntimeError:
+        return -1
+
+
+class LatentCache:
+    """The last encoder output of a shared encoder, handed from the model that computed it to the other one.
+
+    An entry is taken at most once, and only by the other model, for the same observation tensor (the same object,
+    unchanged in place), the same encoder parameters (unchanged by an optimizer step) and the same grad, inference and
+    autocast modes; anything else recomputes. rsl-rl calls the actor and then the critic on one observation
+    ``TensorDict`` in ``act`` and in every mini-batch of ``update`` (whose summed loss back-propagates once), and
+    the critic alone in ``compute_returns`` (no entry then: the critic took the last one)."""
+
+    def __init__(self):
+        self._entry = None
+
+    @staticmethod
+    def _key(group: str, image: torch.Tensor, encoder: torch.nn.Module) -> tuple:
+        return (group, _version(image), tuple(_version(p) for p in encoder.parameters()), torch.is_grad_enabled(),
+                torch.is_inference_mode_enabled(), torch.is_autocast_enabled(image.device.type))
+
+    def take(self, model: torch.nn.Module, group: str, image: torch.Tensor, encoder: torch.nn.Module):
+        entry = self._entry
+        if entry is None or entry[0] is model or entry[1]() is not image:
+            return None
+        if entry[2] != self._key(group, image, encoder):
+            return None
+        self._entry = None
+        return entry[3]
+
+    def put(self, model: torch.nn.Module, group: str, image: torch.Tensor, encoder: torch.nn.Module,
+            latent: torch.Tensor) -> None:
+        self._entry = (model, weakref.ref(image), self._key(group, image, encoder), latent)
+
+
 class FastCNNModel(CNNModel):
-    """``CNNModel`` with channels-last, bf16-autocast encoders that accept uint8 images (scaled by 1/255)."""
+    """``CNNModel`` with channels-last, bf16-autocast encoders that accept uint8 images (scaled by 1/255). Given
+    another model's ``cnns`` (rsl-rl's ``share_cnn_encoders``), the two models run the shared encoder once per
+    observation (``LatentCache``)."""
 
     def __init__(self, *args, autocast_bf16: bool = True, **kwargs):
         super().__init__(*args, **kwargs)
         self.autocast_bf16 = bool(autocast_bf16)
         self.cnns.to(memory_format=torch.channels_last)
+        if kwargs.get("cnns") is not None:  # the critic given the actor's encoders: both now read one cache
+            self.cnns.latent_cache = LatentCache()
+
+    def _encode(self, group: str, image: torch.Tensor) -> torch.Tensor:
+        x = image.float().mul_(1.0 / 255.0) if image.dtype == torch.uint8 else image.float()
+        x = x.contiguous(memory_format=torch.channels_last)
+        with torch.autocast(device_type=x.device.type, dtype=torch.bfloat16, enabled=self.autocast_bf16 and x.is_cuda):
+            return self.cnns[group](x)
 
     def get_latent(self, obs: TensorDict, masks=None, hidden_state=None) -> torch.Tensor:
+        cache = getattr(self.cnns, "latent_cache", None)
         latents = []
         for group in self.obs_groups_2d:
-            image = obs[group]
-            image = image.float().mul_(1.0 / 255.0) if image.dtype == torch.uint8 else image.float()
-            image = image.contiguous(memory_format=torch.channels_last)
-            with torch.autocast(device_type=image.device.type, dtype=torch.bfloat16,
-                                enabled=self.autocast_bf16 and image.is_cuda):
-                latents.append(self.cnns[group](image))
+            image, encoder = obs[group], self.cnns[group]
+            latent = cache.take(self, group, image, encoder) if cache is not None else None
+            if latent is None:
+                latent = self._encode(group, image)
+                if cache is not None:
+                    cache.put(self, group, image, encoder, latent)
+            latents.append(latent)
         latent_cnn = torch.cat(latents, dim=-1).float()
         if not self.obs_groups:
             return latent_cnn
@@ -87,3 +148,29 @@ def use_fast_pixels(train_cfg: dict) -> dict:
         if train_cfg[role]["class_name"] == "CNNModel":
             train_cfg[role]["class_name"] = FastCNNModel
     return train_cfg
+
+
+def use_shared_encoder(train_cfg: dict) -> dict:
+    """One encoder for the actor and the critic (after ``use_fast_pixels``; the critic must read the images), run
+    once per batch. Call ``dedupe_optimizer`` on the algorithm once the runner has built it."""
+    if train_cfg["critic"]["class_name"] is not FastCNNModel or train_cfg["actor"]["class_name"] is not FastCNNModel:
+        raise ValueError("a shared encoder needs the fast CNN models for both the actor and the critic "
+                         "(--fast-pixels, with the critic reading the images)")
+    train_cfg["algorithm"]["share_cnn_encoders"] = True
+    return train_cfg
+
+
+def dedupe_optimizer(alg) -> None:
+    """Rebuild ``alg.optimizer`` over each parameter once (rsl-rl chains the actor's and the critic's parameters, so
+    shared ones appear twice and the optimizer would step them twice per update)."""
+    old = alg.optimizer
+    seen, params = set(), []
+    for group in old.param_groups:
+        for p in group["params"]:
+            if id(p) not in seen:
+                seen.add(id(p))
+                params.append(p)
+    if len(old.param_groups) != 1:
+        raise ValueError(f"expected one parameter group, got {len(old.param_groups)}")
+    defaults = {k: v for k, v in old.param_groups[0].items() if k != "params"}
+    alg.optimizer = type(old)(params, **defaults)

@@ -45,7 +45,7 @@ from datetime import datetime
 import torch
 import torch.distributed as dist
 import warp as wp
-from fast_pixels import Uint8Images, use_fast_pixels
+from fast_pixels import Uint8Images, dedupe_optimizer, use_fast_pixels, use_shared_encoder
 from rank_setup import (
     DistributedRunner,
     bind_device,
@@ -334,6 +334,9 @@ def build_parser() -> argparse.ArgumentParser:
                              "(state: asymmetric actor-critic)")
     parser.add_argument("--fast-pixels", action="store_true",
                         help="image runs: uint8 rollout storage, channels-last bf16 encoders (train/fast_pixels.py)")
+    parser.add_argument("--shared-encoder", action="store_true",
+                        help="with --fast-pixels: one image encoder for the actor and the critic, run once per "
+                             "batch (train/fast_pixels.py)")
     parser.add_argument("--compile", default=None, metavar="MODE",
                         help="torch.compile mode of the actor and critic (e.g. default, max-autotune-no-cudagraphs)")
     parser.add_argument("--video", default=None, metavar="MP4",
@@ -386,6 +389,10 @@ def training_config(args: argparse.Namespace, parser: argparse.ArgumentParser, d
         parser.error("--critic state and --fast-pixels apply to image observations (--obs rgb ...)")
     if args.fast_pixels and args.obs != "rgb":
         parser.error("--fast-pixels stores uint8 images, exact only for --obs rgb")
+    if args.shared_encoder:
+        if not args.fast_pixels or args.critic != "same":
+            parser.error("--shared-encoder needs --fast-pixels and a critic that reads the images (--critic same)")
+        use_shared_encoder(train_cfg)
     if args.compile:
         train_cfg["torch_compile_mode"] = args.compile
     alg = train_cfg["algorithm"]
@@ -456,6 +463,8 @@ def train(argv: list[str] | None, quiet: contextlib.ExitStack) -> int:
     run_dir = None if args.play or not ranks.is_main else os.path.join(
         args.log_dir, args.task, f"{datetime.now():%Y%m%d-%H%M%S}_{preset}_seed{args.seed}")
     runner = DistributedRunner(env, train_cfg, log_dir=run_dir, device=device)
+    if args.shared_encoder:
+        dedupe_optimizer(runner.alg)  # before a checkpoint's optimizer state is loaded into it
     progress_csv = ProgressCsv(args.progress_csv) if args.progress_csv and ranks.is_main and not args.play else None
     compact_progress(runner, env, args.verbose, ranks.is_main, progress_csv, ranks.world_size)
     checkpoint = args.play or args.resume
