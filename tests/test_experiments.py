@@ -40,6 +40,15 @@ def test_run_commands_carry_the_learner_options(tmp_path):
     assert cmd[cmd.index("--device") + 1] == "cuda:1" and cmd[cmd.index("--obs") + 1] == "rgb"
     assert cmd[cmd.index("--set") + 1:] == ["sphere_radius=0.02", "image_shape=[64,64]"]
     assert asym.learner(True) == "PPO, CNN actor, state critic (asymmetric), fast pixels"
+    # a shared encoder only where the critic reads the images too
+    cmd = experiments.run_command(asym, 0, "gpu", paths, None, 1, None, None, 256, tmp_path, fast_pixels=True,
+                                  shared_encoder=True)
+    assert "--shared-encoder" not in cmd
+    reach = {r.name: r for r in experiments.EXPERIMENTS["spatial-rgb"].rows}["reach-r20-rgb"]
+    cmd = experiments.run_command(reach, 0, "gpu", paths, None, 1, None, None, 256, tmp_path, fast_pixels=True,
+                                  shared_encoder=True)
+    assert cmd.index("--shared-encoder") == cmd.index("--fast-pixels") + 1
+    assert reach.learner(True, True) == "PPO, CNN actor, CNN critic, fast pixels, shared encoder"
     state = experiments.EXPERIMENTS["spatial-state"].rows[0]
     cmd = experiments.run_command(state, 3, "gpu", paths, None, 2, 8, 5, 16, tmp_path, fast_pixels=True)
     assert "--fast-pixels" not in cmd and "--critic" not in cmd and "--distributed" in cmd
@@ -140,5 +149,8 @@ def test_usage_errors(capsys):
     with pytest.raises(SystemExit):
         experiments.main(["spatial-state", "--rows", "reach-nothing"])
     assert "unknown row" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        experiments.main(["spatial-rgb", "--shared-encoder"])
+    assert "--shared-encoder needs --fast-pixels" in capsys.readouterr().err
     assert experiments.main(["--list"]) == 0
     assert "deflect-m5-b2-rgb" in capsys.readouterr().out

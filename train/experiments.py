@@ -61,13 +61,14 @@ class Row:
     # further train/ppo.py options of this row (a learning-rate schedule the row was found to need)
     train_args: tuple[str, ...] = ()
 
-    def learner(self, fast_pixels: bool = False) -> str:
+    def learner(self, fast_pixels: bool = False, shared_encoder: bool = False) -> str:
         """The learner in words (the summary's ``learner`` column)."""
         if self.obs == "state":
             text = "PPO, MLP actor and critic"
         else:
             text = "PPO, CNN actor, " + ("state critic (asymmetric)" if self.critic == "state" else "CNN critic")
             text += ", fast pixels" if fast_pixels else ""
+            text += ", shared encoder" if shared_encoder else ""
         return text + (", " + " ".join(self.train_args) if self.train_args else "")
 
     def config_text(self) -> str:
@@ -234,8 +235,9 @@ def run_paths(out: Path, experiment: str, row: str, seed: int) -> dict[str, Path
 
 def run_command(row: Row, seed: int, preset: str, paths: dict[str, Path], device: str | None, nproc: int,
                 num_envs: int | None, iterations: int | None, eval_envs: int, log_dir: Path,
-                fast_pixels: bool = False) -> list[str]:
-    """The ``train/ppo.py`` command line of one (row, seed)."""
+                fast_pixels: bool = False, shared_encoder: bool = False) -> list[str]:
+    """The ``train/ppo.py`` command line of one (row, seed). ``shared_encoder`` applies with ``fast_pixels`` to the
+    RGB rows whose critic reads the images."""
     launcher = [sys.executable]
     if nproc > 1:
         launcher += ["-m", "torch.distributed.run", "--standalone", f"--nproc_per_node={nproc}"]
@@ -248,6 +250,8 @@ def run_command(row: Row, seed: int, preset: str, paths: dict[str, Path], device
     cmd += list(row.train_args)
     if fast_pixels and row.obs == "rgb":
         cmd.append("--fast-pixels")
+        if shared_encoder and row.critic == "same":
+            cmd.append("--shared-encoder")
     if nproc > 1:
         cmd.append("--distributed")
     elif device:
@@ -261,7 +265,8 @@ def run_command(row: Row, seed: int, preset: str, paths: dict[str, Path], device
 
 def run_all(experiment: Experiment, rows: list[Row], seeds: list[int], out: Path, devices: list[str | None],
             nproc: int, preset: str, num_envs: int | None, iterations: int | None, eval_envs: int,
-            skip_done: bool, log_dir: Path, stream=None, fast_pixels: bool = False) -> list[tuple[Row, int, int]]:
+            skip_done: bool, log_dir: Path, stream=None, fast_pixels: bool = False,
+            shared_encoder: bool = False) -> list[tuple[Row, int, int]]:
     """Run every (row, seed), one run per entry of ``devices`` at a time (name a GPU twice to run two runs on it side by
     side). Returns ``(row, seed, exit status)``."""
     stream = stream or sys.stdout
@@ -280,7 +285,7 @@ def run_all(experiment: Experiment, rows: list[Row], seeds: list[int], out: Path
                 for path in paths.values():
                     path.unlink(missing_ok=True)
                 cmd = run_command(row, seed, preset, paths, device, nproc, num_envs, iterations, eval_envs, log_dir,
-                                  fast_pixels)
+                                  fast_pixels, shared_encoder)
                 log = open(paths["log"], "w")
                 log.write(" ".join(cmd) + "\n")
                 log.flush()
@@ -298,7 +303,8 @@ def run_all(experiment: Experiment, rows: list[Row], seeds: list[int], out: Path
             if status == 0 and paths["json"].is_file():
                 result = json.loads(paths["json"].read_text())
                 result.update(commit=commit, row=row.name, config=row.config_text(),
-                              learner=row.learner(fast_pixels and row.obs == "rgb"))
+                              learner=row.learner(fast_pixels and row.obs == "rgb",
+                                                  "--shared-encoder" in proc.args))
                 paths["json"].write_text(json.dumps(result, indent=1))
                 print(f"finished {row.name} seed {seed}: evaluation success {result['success']:.1%} in "
                       f"{time.time() - started:.0f} s", file=stream, flush=True)
@@ -415,6 +421,8 @@ def main(argv: list[str] | None = None, experiments: dict[str, Experiment] | Non
     parser.add_argument("--iterations", type=int, default=None, help="override every row's iterations")
     parser.add_argument("--eval-envs", type=int, default=256, help="episodes of the final evaluation")
     parser.add_argument("--fast-pixels", action="store_true", help="RGB rows: ppo.py --fast-pixels")
+    parser.add_argument("--shared-encoder", action="store_true",
+                        help="with --fast-pixels, RGB rows whose critic reads the images: ppo.py --shared-encoder")
     parser.add_argument("--out", type=Path, default=DEFAULT_OUT)
     parser.add_argument("--log-dir", type=Path, default=ROOT / "runs" / "experiments",
                         help="rsl-rl's logs and checkpoints")
@@ -436,6 +444,8 @@ def main(argv: list[str] | None = None, experiments: dict[str, Experiment] | Non
     if args.nproc_per_run < 1 or (args.num_envs is not None and args.num_envs < 1) or args.eval_envs < 1 or (
             args.iterations is not None and args.iterations < 1):
         parser.error("--nproc-per-run, --num-envs, --iterations and --eval-envs must be positive")
+    if args.shared_encoder and not args.fast_pixels:
+        parser.error("--shared-encoder needs --fast-pixels")
     if args.nproc_per_run > 1 and args.devices != [None]:
         parser.error("--nproc-per-run uses torchrun's devices (cuda:0..N-1); leave out --devices")
     experiment = experiments[args.experiment]
@@ -447,7 +457,8 @@ def main(argv: list[str] | None = None, experiments: dict[str, Experiment] | Non
     if not args.summarize_only:
         results = run_all(experiment, rows, args.seeds, args.out, args.devices, args.nproc_per_run,
                           args.preset or experiment.preset, args.num_envs, args.iterations, args.eval_envs,
-                          args.skip_done, args.log_dir, fast_pixels=args.fast_pixels)
+                          args.skip_done, args.log_dir, fast_pixels=args.fast_pixels,
+                          shared_encoder=args.shared_encoder)
         failed = [(row.name, seed) for row, seed, status in results if status != 0]
     lines = summarize(experiment, rows, args.out)
     for line in lines:
