@@ -139,6 +139,21 @@ def test_learning_rate_options_override_the_preset():
             ppo.training_config(parser.parse_args(bad), parser, "cpu")
 
 
+def test_update_shape_options_override_the_preset(capsys):
+    parser = ppo.build_parser()
+    args = parser.parse_args(["--preset", "gpu", "--learning-epochs", "3", "--mini-batches", "8"])
+    *_, cfg, _ = ppo.training_config(args, parser, "cpu")
+    assert (cfg["algorithm"]["num_learning_epochs"], cfg["algorithm"]["num_mini_batches"]) == (3, 8)
+    *_, cfg, _ = ppo.training_config(parser.parse_args(["--preset", "gpu"]), parser, "cpu")
+    assert (cfg["algorithm"]["num_learning_epochs"], cfg["algorithm"]["num_mini_batches"]) == (5, 4)
+    for bad, message in ((["--learning-epochs", "0"], "--learning-epochs must be positive"),
+                         (["--mini-batches", "-1"], "--mini-batches must be positive"),
+                         (["--num-envs", "2", "--mini-batches", "65"], "65 mini-batches exceed the rollout's 64")):
+        with pytest.raises(SystemExit):
+            ppo.training_config(parser.parse_args(["--preset", "gpu", *bad]), parser, "cpu")
+        assert message in capsys.readouterr().err
+
+
 class _EndsAtStepTwo:
     """Four envs whose episodes all end at step 2 before the time limit, envs 0 and 3 in success and envs 1 and 2 in
     failure (as RopeCutting's wrong cut or an unstable reset ends one): the env's own success flag tells them apart."""

@@ -353,6 +353,10 @@ def build_parser() -> argparse.ArgumentParser:
                         help="override the preset's learning-rate schedule: adaptive (rsl-rl's KL-adaptive, target "
                              "KL 0.01), fixed, or linear (rate and clip range decay to 0 over --max-iterations, the "
                              "paper preset's schedule)")
+    parser.add_argument("--learning-epochs", type=int, default=None, metavar="N",
+                        help="passes over each rollout per update (default: the preset's; gpu 5)")
+    parser.add_argument("--mini-batches", type=int, default=None, metavar="N",
+                        help="mini-batches per pass (default: the preset's; gpu 4)")
     parser.add_argument("--verbose", action="store_true", help="print rsl-rl's full block per iteration")
     return parser
 
@@ -367,6 +371,16 @@ def training_config(args: argparse.Namespace, parser: argparse.ArgumentParser, d
         parser.error(f"--num-envs, --max-iterations and --eval-envs must be positive, got {num_envs}, {iterations} "
                      f"and {args.eval_envs}")
     train_cfg, env_overrides = preset_config(preset, num_envs, iterations)
+    for option, key, value in (("--learning-epochs", "num_learning_epochs", args.learning_epochs),
+                               ("--mini-batches", "num_mini_batches", args.mini_batches)):
+        if value is not None:
+            if value < 1:
+                parser.error(f"{option} must be positive, got {value}")
+            train_cfg["algorithm"][key] = value
+    rollout = num_envs * train_cfg["num_steps_per_env"]
+    if train_cfg["algorithm"]["num_mini_batches"] > rollout:
+        parser.error(f"{train_cfg['algorithm']['num_mini_batches']} mini-batches exceed the rollout's {rollout} "
+                     f"samples; use fewer --mini-batches or more --num-envs")
     if args.same_global_minibatch:
         if not args.distributed:
             parser.error("--same-global-minibatch applies to --distributed runs")
