@@ -1356,7 +1356,9 @@ class RopeThreadingExpert(Expert):
 
     CPU, first episodes, 32 envs (``benchmarks/expert_success.py``): base discrete 96 / 96 (seeds 0-2, the last
     episode of a seed ending after 112-189 of the 200 steps; before: 0), continuous unchanged (32 / 32 each seed).
-    Discrete two eyes 29 / 32, 26 / 32 and 29 / 32 (seeds 0-2; 25 / 32, 27 / 32 and 27 / 32 before the push on
+    Discrete two eyes 29 / 32, 28 / 32, 28 / 32, 29 / 32 and 27 / 32 (seeds 0-4, the carry to 6 mm past the ring:
+    ``carry_clear``; 29 / 32, 26 / 32, 29 / 32, 28 / 32 and 26 / 32 before, with 8 mm; 25 / 32, 27 / 32 and 27 / 32
+    at seeds 0-2 before the push on
     through the ring, the pull-back 4 mm before a passed ring and the 15 deg jaws; 24 / 32 and 26 / 32 at seeds 0, 1
     before the pull-back past a passed ring and the close from a stalled slide; 21 / 32 each before the uncapped goal
     and the narrower jaws; continuous 27 / 32 and 30 / 32 at seeds 0, 1) and bimanual 28 / 32 and 26 / 32 (26 / 32
@@ -1372,11 +1374,21 @@ class RopeThreadingExpert(Expert):
     steps), the lever and the carry leave little of the 350 steps (most failures time out), and after a carry a
     free end pushed past the second ring beside it may stall: pulled back, the right grasper's spin steps can keep
     swinging the free part's heading from one side to the other (a 2.5 deg step turns it by ~5 deg) and win every
-    step (continuous: the pull stops 4 mm past the first ring, and the end stays put)."""
+    step (continuous: the pull stops 4 mm past the first ring, and the end stays put). There (a short overhang, node
+    10-13, with the eyes ~27 mm apart) the free part can also fold over at the held node: the held segment's heading
+    jumps by ~130 deg and the spin steps follow it round (60-140 spin steps); the target heading (pointed at the ring,
+    clamped to ``carry_angle``) also flips by 80 deg when the held node crosses beside the ring's axis. Tried without
+    gain (CPU, seeds 0-2, 29 / 26 / 29 unchanged): no spin while pulling back after a carry; the heading from the
+    segment behind the held node when the lead is > 90 deg off. Long overhangs (node 27-29) fail on steps: the carry
+    itself (the held node ~55 mm along and ~26 mm down to the passed ring) takes 70-100, and ``max_step`` 1.5 mm
+    (discrete) lost (81 / 96). Bimanual, tried without gain: the left jaws opened no wider than 9 deg when they start
+    narrower (85 / 96 unchanged: few start below 14 deg); the left closing with the node 6 mm along its jaws (the
+    rope wedges, grasped at ~9 deg instead of ~4, but the tip must come ~10 mm further down: 69 / 96). The left
+    grasper's jaw steps, taken last (they gain least), are ~25-60 of the 200 steps (a jaw starting at 30-40 deg)."""
 
     def __init__(self, env: RopeThreadingEnv, approach: float = 0.006, tolerance: float = 0.0015, gain: float = 0.15,
                  spin_gain: float = 0.5, advance: float = 0.001, max_step: float | None = None,
-                 steep_cos: float = 0.64, lower: float = 0.001, carry_clear: float = 0.008,
+                 steep_cos: float = 0.64, lower: float = 0.001, carry_clear: float | None = None,
                  carry_angle: float = 40.0, overhang_slack: float = 0.006, slide_step: float | None = None,
                  open_angle: float | None = None, left_open_angle: float | None = None, regrasp_past: float = 0.012,
                  regrasp_push: float = 0.016,
@@ -1388,7 +1400,11 @@ class RopeThreadingExpert(Expert):
         ep.approach, ep.tolerance, ep.gain = float(approach), float(tolerance), float(gain)
         ep.spin_gain, ep.advance = float(spin_gain), float(advance)
         ep.max_step = float(max_step if max_step is not None else 0.001)
-        ep.steep_cos, ep.lower, ep.carry_clear = float(steep_cos), float(lower), float(carry_clear)
+        # discrete: the held node is carried 6 mm past the passed ring (and pulled back to 3 mm before it), not 8 (4):
+        # the free part then reaches less far past the next ring, and a long overhang's carry is 2 mm shorter (CPU,
+        # two eyes, seeds 0-4: 141 / 160 first episodes solved, 138 / 160 with 8 mm; 5 mm: 85 / 96 at seeds 0-2)
+        ep.steep_cos, ep.lower = float(steep_cos), float(lower)
+        ep.carry_clear = float(carry_clear if carry_clear is not None else (0.006 if env.is_discrete else 0.008))
         ep.carry_angle, ep.overhang_slack = math.radians(carry_angle), float(overhang_slack)
         ep.slide_step = float(slide_step if slide_step is not None else 1.5 * ep.max_step)
         # discrete: the jaw moves 0.5 deg a step and one step is taken per env step: the jaws open no wider than they
