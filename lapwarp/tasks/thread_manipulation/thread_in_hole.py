@@ -56,9 +56,9 @@ Deliberate differences from sofa_env (task-cards §8, §12):
   substeps: 2.3 x; 40: converged; tests/test_thread_in_hole.py). sofa_env solves it implicitly. Under a pushing
   thread the hole still yields more than its material lets it at the default 4 substeps: the free end pressed down
   onto the top face by the grasper displaces it by up to 0.73 mm, against 0.10 mm at 16 substeps and 0.05 mm at 40
-  (CPU; at 2 substeps 3.1 mm, which is why the default is not lower): contact moves the surface nodes at the end of
-  each substep, and one per-vertex sweep per substep restores only part of that before the next push. The thread's
-  hanging shape is converged at 4 (within 6 um of 40 substeps).
+  (CPU; at 2 substeps 3.1 mm, which is why the default is not lower; with the grasper still it does not move at
+  all, so this is the contact's doing; why is not established). The thread's hanging shape is converged at 4
+  (within 6 um of 40 substeps).
 """
 
 from __future__ import annotations
