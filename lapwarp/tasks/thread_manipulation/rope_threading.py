@@ -1381,8 +1381,13 @@ class RopeThreadingExpert(Expert):
     gain (CPU, seeds 0-2, 29 / 26 / 29 unchanged): no spin while pulling back after a carry; the heading from the
     segment behind the held node when the lead is > 90 deg off. Long overhangs (node 27-29) fail on steps: the carry
     itself (the held node ~55 mm along and ~26 mm down to the passed ring) takes 70-100, and ``max_step`` 1.5 mm
-    (discrete) lost (81 / 96). Bimanual, tried without gain: the left jaws opened no wider than 9 deg when they start
-    narrower (85 / 96 unchanged: few start below 14 deg); the left closing with the node 6 mm along its jaws (the
+    (discrete) lost (81 / 96). Also tried: after the carry, steering by the jaws' hinge axis while the held segment
+    is folded over (> 45 deg off it, back within 22.5 deg; the rope beside the held node runs through the passed ring,
+    so a spin bends it against the jaws instead of turning it): 142 / 160 against 141 at seeds 0-4, not kept (no
+    measurable gain for the added state); always steering by the hinge after the first pass lost long overhangs. Left
+    for later: a short overhang (node 10-12) pulled back 3 mm across the passed ring's plane can slip out of it (the
+    eye is lost and threaded again). Bimanual, tried without gain: the left jaws opened no wider than 9 deg when they
+    start narrower (85 / 96 unchanged: few start below 14 deg); the left closing with the node 6 mm along its jaws (the
     rope wedges, grasped at ~9 deg instead of ~4, but the tip must come ~10 mm further down: 69 / 96). The left
     grasper's jaw steps, taken last (they gain least), are ~25-60 of the 200 steps (a jaw starting at 30-40 deg)."""
 
