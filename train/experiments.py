@@ -303,8 +303,7 @@ def run_all(experiment: Experiment, rows: list[Row], seeds: list[int], out: Path
             if status == 0 and paths["json"].is_file():
                 result = json.loads(paths["json"].read_text())
                 result.update(commit=commit, row=row.name, config=row.config_text(),
-                              learner=row.learner(fast_pixels and row.obs == "rgb",
-                                                  "--shared-encoder" in proc.args))
+                              learner=row.learner("--fast-pixels" in proc.args, "--shared-encoder" in proc.args))
                 paths["json"].write_text(json.dumps(result, indent=1))
                 print(f"finished {row.name} seed {seed}: evaluation success {result['success']:.1%} in "
                       f"{time.time() - started:.0f} s", file=stream, flush=True)

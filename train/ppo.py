@@ -377,10 +377,6 @@ def training_config(args: argparse.Namespace, parser: argparse.ArgumentParser, d
             if value < 1:
                 parser.error(f"{option} must be positive, got {value}")
             train_cfg["algorithm"][key] = value
-    rollout = num_envs * train_cfg["num_steps_per_env"]
-    if train_cfg["algorithm"]["num_mini_batches"] > rollout:
-        parser.error(f"{train_cfg['algorithm']['num_mini_batches']} mini-batches exceed the rollout's {rollout} "
-                     f"samples; use fewer --mini-batches or more --num-envs")
     if args.same_global_minibatch:
         if not args.distributed:
             parser.error("--same-global-minibatch applies to --distributed runs")
@@ -388,10 +384,10 @@ def training_config(args: argparse.Namespace, parser: argparse.ArgumentParser, d
         # take the same number of optimiser steps per iteration on N x the data: fewer steps per env-step. N x the
         # mini-batches per rank restores one process's global mini-batch size and steps per env-step.
         train_cfg["algorithm"]["num_mini_batches"] *= world_size
-        rollout = num_envs * train_cfg["num_steps_per_env"]
-        if train_cfg["algorithm"]["num_mini_batches"] > rollout:
-            parser.error(f"--same-global-minibatch: {train_cfg['algorithm']['num_mini_batches']} mini-batches per "
-                         f"rank exceed the rollout's {rollout} samples; use more --num-envs")
+    rollout = num_envs * train_cfg["num_steps_per_env"]
+    if train_cfg["algorithm"]["num_mini_batches"] > rollout:
+        parser.error(f"{train_cfg['algorithm']['num_mini_batches']} mini-batches exceed the rollout's "
+                     f"{rollout} samples; use fewer --mini-batches (or no --same-global-minibatch) or more --num-envs")
     if args.obs != "state":
         env_overrides["observation_type"] = args.obs.upper()
         if args.critic == "state":

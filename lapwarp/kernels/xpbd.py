@@ -19,6 +19,7 @@ on a uniform value, no memory traffic.
 
 import warp as wp
 
+from lapwarp.kernels.geodesic import ANCHOR_MASS_RATIO
 from lapwarp.kernels.geometry import interpolate_transform
 
 wp.set_module_options({"enable_backward": False})
@@ -556,8 +557,8 @@ def fused_tet_kernel(tile_particles: int):
 
 
 # an attachment whose h^2 / alpha exceeds this multiple of its particle's inverse mass holds the particle where its
-# body puts it (geodesic.ANCHOR_MASS_RATIO is the same bound seen from the particle's effective inverse mass)
-STIFF_ATTACHMENT = wp.constant(1.0e3)
+# body puts it: the tethers' anchor bound (geodesic.ANCHOR_MASS_RATIO) seen from the attachment
+STIFF_ATTACHMENT = wp.constant(1.0 / ANCHOR_MASS_RATIO)
 
 
 @wp.kernel
