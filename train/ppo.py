@@ -45,7 +45,7 @@ from datetime import datetime
 import torch
 import torch.distributed as dist
 import warp as wp
-from fast_pixels import Uint8Images, dedupe_optimizer, use_fast_pixels, use_shared_encoder
+from fast_pixels import Uint8Images, use_fast_pixels, use_shared_encoder
 from rank_setup import (
     DistributedRunner,
     bind_device,
@@ -473,8 +473,6 @@ def train(argv: list[str] | None, quiet: contextlib.ExitStack) -> int:
     run_dir = None if args.play or not ranks.is_main else os.path.join(
         args.log_dir, args.task, f"{datetime.now():%Y%m%d-%H%M%S}_{preset}_seed{args.seed}")
     runner = DistributedRunner(env, train_cfg, log_dir=run_dir, device=device)
-    if args.shared_encoder:
-        dedupe_optimizer(runner.alg)  # before a checkpoint's optimizer state is loaded into it
     progress_csv = ProgressCsv(args.progress_csv) if args.progress_csv and ranks.is_main and not args.play else None
     compact_progress(runner, env, args.verbose, ranks.is_main, progress_csv, ranks.world_size)
     checkpoint = args.play or args.resume
