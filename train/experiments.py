@@ -172,10 +172,11 @@ def _dissection_rows() -> list[Row]:
                         "state", 150 if ropes == 5 else 100, None, "text: higher than image (figure only)"))
     for function in ("line", "sine"):
         for randomize in (False, True):
-            # 13k env-steps/s (H100): 30 iterations = 3.9M env-steps, about 5 min
+            # 18-21k env-steps/s (H100 / H200): 60 iterations = 7.9M env-steps, about 7 min (30 iterations reached
+            # 2.8 % on the fixed line)
             paper = (0.6, "text: 60 % randomised (state)") if randomize else (0.95, "text: around 95 % fixed")
             rows.append(Row(f"pc-{function}-{'random' if randomize else 'fixed'}-state", "PrecisionCutting",
-                            {"path_function": function, "randomize_path": randomize}, "state", 30, *paper))
+                            {"path_function": function, "randomize_path": randomize}, "state", 60, *paper))
     for rows_to_cut in (2, 4):
         rows.append(Row(f"td-r{rows_to_cut}-state", "TissueDissection",
                         {"rows_to_cut": rows_to_cut, "show_border_point": False}, "state", 150,
@@ -193,12 +194,13 @@ def _thread_rows() -> list[Row]:
             config = {"bimanual": bimanual,
                       "eye_reset_noise": [0.02, 0.02, 0.0, 15.0] if noise else [0.0, 0.0, 0.0, 0.0]}
             paper = (0.0, "text: bimanual 0 %") if bimanual else (1.0, "text: base learned")
-            # 28.7k env-steps/s (H100, 10 substeps): 40 iterations = 5.2M env-steps, about 3 min
+            # 92k env-steps/s (H100, 10 substeps): 150 iterations = 19.7M env-steps, about 6 min (the base row was
+            # at 55 % and rising after 120)
             rows.append(Row(f"rt-{'bimanual' if bimanual else 'base'}-{'noise' if noise else 'fixed'}-state",
-                            "RopeThreading", config, "state", 40, *paper))
+                            "RopeThreading", config, "state", 150, *paper))
     for stiffness, paper in (("stiff", 0.2), ("soft", 0.0)):
-        # 28.9k env-steps/s (H100); the paper's runs reached < 1e6 env-steps
-        rows.append(Row(f"ll-{stiffness}-state", "LigatingLoop", {"loop_stiffness": stiffness}, "state", 40, paper,
+        # 48k env-steps/s (H100): 100 iterations = 13.1M env-steps, about 6 min; the paper's runs reached < 1e6
+        rows.append(Row(f"ll-{stiffness}-state", "LigatingLoop", {"loop_stiffness": stiffness}, "state", 100, paper,
                         "text: 20 % and 0 % (stiff / soft, presumably)"))
     return rows
 
