@@ -184,6 +184,25 @@ def _dissection_rows() -> list[Row]:
     return rows
 
 
+def _dissection_image_rows() -> list[Row]:
+    """The track's image column (task-cards §13): 64x64 RGB, the same configurations as the state rows where the
+    paper gives an image figure."""
+    image = {"image_shape": [64, 64]}
+    rows = []
+    for ropes, cut, paper in ((5, 1, (0.4, "text: roughly 40 % (image)")), (10, 3, (0.0, "text: 0 % (image)"))):
+        rows.append(Row(f"rc-r{ropes}-c{cut}-rgb", "RopeCutting",
+                        {"num_ropes": ropes, "num_ropes_to_cut": cut, **image}, "rgb", 150 if ropes == 5 else 100,
+                        *paper))
+    for randomize, paper in ((False, (0.95, "text: around 95 % fixed (image)")),
+                             (True, (0.5, "text: 50 % randomised (image)"))):
+        # the env steps at 18-21k env-steps/s (H100 / H200, STATE): 60 iterations, about 7-8 min
+        rows.append(Row(f"pc-line-{'random' if randomize else 'fixed'}-rgb", "PrecisionCutting",
+                        {"path_function": "line", "randomize_path": randomize, **image}, "rgb", 60, *paper))
+    rows.append(Row("td-r2-rgb", "TissueDissection", {"rows_to_cut": 2, "show_border_point": False, **image}, "rgb",
+                    150, 0.6, "text: about 60 % (image, high variance)"))
+    return rows
+
+
 def _thread_rows() -> list[Row]:
     rows = []
     for configuration in ("normal", "flexible", "inverted"):
@@ -213,6 +232,7 @@ EXPERIMENTS: dict[str, Experiment] = {
         [dataclasses.replace(row, name=row.name + "-asym", critic="state") for row in _spatial_rows("rgb")]),
     "deformable-state": Experiment("deformable-state", "Deformable Manipulation track from state", _deformable_rows()),
     "dissection-state": Experiment("dissection-state", "Dissection track from state", _dissection_rows()),
+    "dissection-rgb": Experiment("dissection-rgb", "Dissection track from 64x64 RGB", _dissection_image_rows()),
     "thread-state": Experiment("thread-state", "Thread Manipulation track from state", _thread_rows()),
 }
 
