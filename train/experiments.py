@@ -224,6 +224,24 @@ def _thread_rows() -> list[Row]:
     return rows
 
 
+def _thread_image_rows() -> list[Row]:
+    """The track's image column (task-cards §13): 64x64 RGB; ThreadInHole with and without the camera's reset noise,
+    RopeThreading's base configuration with and without the eye's, LigatingLoop's stiff loop."""
+    image = {"image_shape": [64, 64]}
+    rows = []
+    for noise, paper in ((0.0, (1.0, "text: comparable to state")), (0.02, (0.0, "text: fails with random camera"))):
+        rows.append(Row(f"tih-normal-{'camnoise' if noise else 'fixed'}-rgb", "ThreadInHole",
+                        {"configuration": "normal", "camera_reset_noise": noise, **image}, "rgb", 100, *paper))
+    for noise, paper in ((False, (1.0, "text: comparable to state")),
+                         (True, (0.0, "text: fails with random eye pose"))):
+        config = {"bimanual": False, "eye_reset_noise": [0.02, 0.02, 0.0, 15.0] if noise else [0.0, 0.0, 0.0, 0.0],
+                  **image}
+        rows.append(Row(f"rt-base-{'noise' if noise else 'fixed'}-rgb", "RopeThreading", config, "rgb", 150, *paper))
+    rows.append(Row("ll-stiff-rgb", "LigatingLoop", {"loop_stiffness": "stiff", **image}, "rgb", 100, 0.4,
+                    "text: stiff 40 % (image)"))
+    return rows
+
+
 EXPERIMENTS: dict[str, Experiment] = {
     "spatial-state": Experiment("spatial-state", "Spatial Reasoning track from state", _spatial_rows("state")),
     "spatial-rgb": Experiment("spatial-rgb", "Spatial Reasoning track from 64x64 RGB", _spatial_rows("rgb")),
@@ -234,6 +252,7 @@ EXPERIMENTS: dict[str, Experiment] = {
     "dissection-state": Experiment("dissection-state", "Dissection track from state", _dissection_rows()),
     "dissection-rgb": Experiment("dissection-rgb", "Dissection track from 64x64 RGB", _dissection_image_rows()),
     "thread-state": Experiment("thread-state", "Thread Manipulation track from state", _thread_rows()),
+    "thread-rgb": Experiment("thread-rgb", "Thread Manipulation track from 64x64 RGB", _thread_image_rows()),
 }
 
 
