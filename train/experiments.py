@@ -164,6 +164,29 @@ def _deformable_rows() -> list[Row]:
     return rows
 
 
+def _deformable_image_rows() -> list[Row]:
+    """The track's image column (task-cards §13): 64x64 RGB; TissueManipulation's four configurations, PickAndPlace's
+    Pick (the paper: stiff above soft, no numbers) and GraspLiftAndTouch's full task."""
+    image = {"image_shape": [64, 64]}
+    rows = []
+    tm = {(0.005, False): 1.0, (0.002, False): 1.0, (0.005, True): 0.95, (0.002, True): 0.4}
+    for (threshold, randomize), paper in tm.items():
+        note = "text: fixed landmark ~100 % (image)" if not randomize else (
+            f"text: random landmark {round(threshold * 1000)} mm ~{round(paper * 100)} % (image)")
+        rows.append(Row(f"tm-t{round(threshold * 1000)}-{'random' if randomize else 'fixed'}-rgb", "TissueManipulation",
+                        {"end_position_threshold": threshold, "randomize_landmark": randomize, **image}, "rgb", 150,
+                        paper, note))
+    fixed = ("--lr-schedule", "fixed", "--learning-rate", "3e-4")  # as the state rows (the KL-adaptive rate stalls)
+    for torus in ("soft", "stiff"):
+        config = {"torus": torus, "only_learn_pick": True, "start_grasped": False, "randomize_torus_position": True,
+                  **image}
+        rows.append(Row(f"pnp-pick-{torus}-rgb", "PickAndPlace", config, "rgb", 250, None,
+                        "text: stiff pick above soft pick (no numbers)", train_args=fixed))
+    rows.append(Row("glt-grlito-rgb", "GraspLiftAndTouch", {"start_in_phase": "GRASP", "end_in_phase": "DONE", **image},
+                    "rgb", 150, 0.0, "text: full task not learned (image)"))
+    return rows
+
+
 def _dissection_rows() -> list[Row]:
     rows = []
     for ropes, cut in ((5, 1), (5, 3), (10, 1), (10, 3)):
@@ -249,6 +272,8 @@ EXPERIMENTS: dict[str, Experiment] = {
         "spatial-rgb-asym", "Spatial Reasoning track from 64x64 RGB, image actor with a privileged state critic",
         [dataclasses.replace(row, name=row.name + "-asym", critic="state") for row in _spatial_rows("rgb")]),
     "deformable-state": Experiment("deformable-state", "Deformable Manipulation track from state", _deformable_rows()),
+    "deformable-rgb": Experiment("deformable-rgb", "Deformable Manipulation track from 64x64 RGB",
+                                 _deformable_image_rows()),
     "dissection-state": Experiment("dissection-state", "Dissection track from state", _dissection_rows()),
     "dissection-rgb": Experiment("dissection-rgb", "Dissection track from 64x64 RGB", _dissection_image_rows()),
     "thread-state": Experiment("thread-state", "Thread Manipulation track from state", _thread_rows()),
