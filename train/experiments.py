@@ -244,6 +244,13 @@ def _thread_rows() -> list[Row]:
         # 48k env-steps/s (H100): 100 iterations = 13.1M env-steps, about 6 min; the paper's runs reached < 1e6
         rows.append(Row(f"ll-{stiffness}-state", "LigatingLoop", {"loop_stiffness": stiffness}, "state", 100, paper,
                         "text: 20 % and 0 % (stiff / soft, presumably)"))
+        # the same with sofa_zoo's reward weights (what the paper's runs presumably trained with): closing the loop
+        # round the band pays 6.0 instead of 0.5 per step, more than holding it there (1.0); Table A's weights
+        # taught the policy to hold the loop on the band without closing it (0 %, eleventh session)
+        zoo = {"instrument_shaft_collisions": -0.05, "loop_marking_overlap": 1.0, "loop_closed_around_marking": 6.0}
+        rows.append(Row(f"ll-{stiffness}-zoo-state", "LigatingLoop",
+                        {"loop_stiffness": stiffness, "reward_weights": zoo}, "state", 100, paper,
+                        "text: 20 % and 0 % (stiff / soft, presumably)"))
     return rows
 
 
