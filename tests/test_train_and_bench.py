@@ -154,6 +154,14 @@ def test_update_shape_options_override_the_preset(capsys):
         assert message in capsys.readouterr().err
 
 
+def test_unknown_compile_mode_is_a_usage_error(capsys):
+    parser = ppo.build_parser()
+    assert parser.parse_args(["--compile", "max-autotune-no-cudagraphs"]).compile == "max-autotune-no-cudagraphs"
+    with pytest.raises(SystemExit):
+        parser.parse_args(["--compile", "fastest"])
+    assert "invalid choice: 'fastest'" in capsys.readouterr().err
+
+
 class _EndsAtStepTwo:
     """Four envs whose episodes all end at step 2 before the time limit, envs 0 and 3 in success and envs 1 and 2 in
     failure (as RopeCutting's wrong cut or an unstable reset ends one): the env's own success flag tells them apart."""

@@ -303,6 +303,10 @@ def main(argv: list[str] | None = None) -> int:
         return train(argv, quiet)
 
 
+#: torch.compile's modes (torch >= 2.1); an unknown one failed deep inside rsl-rl's compile call
+COMPILE_MODES = ("default", "reduce-overhead", "max-autotune", "max-autotune-no-cudagraphs")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--task", default="Reach", choices=lapwarp.list_tasks())
@@ -337,8 +341,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--shared-encoder", action="store_true",
                         help="with --fast-pixels: one image encoder for the actor and the critic, run once per "
                              "batch (train/fast_pixels.py)")
-    parser.add_argument("--compile", default=None, metavar="MODE",
-                        help="torch.compile mode of the actor and critic (e.g. default, max-autotune-no-cudagraphs)")
+    parser.add_argument("--compile", default=None, choices=COMPILE_MODES,
+                        help="torch.compile mode of the actor and critic")
     parser.add_argument("--video", default=None, metavar="MP4",
                         help="after training or --play: an MP4 of one episode of the deterministic policy, a grid of "
                              "--video-envs envs at 256x256 with each step's success and return")
