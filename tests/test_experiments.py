@@ -149,6 +149,10 @@ def test_usage_errors(capsys):
     with pytest.raises(SystemExit):
         experiments.main(["spatial-state", "--rows", "reach-nothing"])
     assert "unknown row" in capsys.readouterr().err
+    for seeds in (["-1"], ["0", "0"]):
+        with pytest.raises(SystemExit):
+            experiments.main(["spatial-state", "--seeds", *seeds])
+        assert "--seeds must be distinct non-negative integers" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         experiments.main(["spatial-rgb", "--shared-encoder"])
     assert "--shared-encoder needs --fast-pixels" in capsys.readouterr().err

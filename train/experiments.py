@@ -516,6 +516,10 @@ def main(argv: list[str] | None = None, experiments: dict[str, Experiment] | Non
     if args.nproc_per_run < 1 or (args.num_envs is not None and args.num_envs < 1) or args.eval_envs < 1 or (
             args.iterations is not None and args.iterations < 1):
         parser.error("--nproc-per-run, --num-envs, --iterations and --eval-envs must be positive")
+    if any(seed < 0 for seed in args.seeds) or len(set(args.seeds)) != len(args.seeds):
+        # a negative one reached ppo.py as an option ("--seed -1") and every run failed; a repeated one would
+        # overwrite its own files
+        parser.error(f"--seeds must be distinct non-negative integers, got {args.seeds}")
     if args.shared_encoder and not args.fast_pixels:
         parser.error("--shared-encoder needs --fast-pixels")
     if args.nproc_per_run > 1 and args.devices != [None]:
