@@ -57,7 +57,8 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--task", required=True, choices=lapwarp.list_tasks())
     parser.add_argument("--config", nargs="*", action="append", default=None, metavar="KEY=VALUE")
-    parser.add_argument("--action-types", nargs="+", default=["CONTINUOUS", "DISCRETE"])
+    parser.add_argument("--action-types", nargs="+", type=str.upper, choices=["CONTINUOUS", "DISCRETE"],
+                        default=["CONTINUOUS", "DISCRETE"])
     parser.add_argument("--num-envs", type=int, default=256)
     parser.add_argument("--episodes", type=int, default=256)
     parser.add_argument("--max-steps", type=int, default=2000)
@@ -70,10 +71,20 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", default=None,
                         help="append one JSON line per result to this file (as bench_physics.py and soak.py do)")
     args = parser.parse_args(argv)
+    if min(args.num_envs, args.episodes, args.max_steps) < 1:
+        parser.error(f"--num-envs, --episodes and --max-steps must be positive, got {args.num_envs}, "
+                     f"{args.episodes} and {args.max_steps}")
     if args.first_episodes:
         args.episodes = args.num_envs
     wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)
-    configs = [parse_overrides(c) for c in (args.config or [[]])]
+    try:  # every configuration before the first run takes device time
+        configs = [parse_overrides(c) for c in (args.config or [[]])]
+        for overrides in configs:
+            for action_type in args.action_types:
+                lapwarp.check_config(args.task, action_type=action_type, seed=args.seed, invalid_actions="zero",
+                                     **overrides)
+    except ValueError as exc:
+        parser.error(str(exc))
     records = []
     for overrides in configs:
         for action_type in args.action_types:

@@ -133,7 +133,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--num-envs", type=int, default=4096)
     parser.add_argument("--env-steps", type=float, default=1e8, help="env steps per (task, action type)")
     parser.add_argument("--tasks", nargs="*", default=None, help="default: every registered task")
-    parser.add_argument("--action-types", nargs="*", default=["CONTINUOUS", "DISCRETE"])
+    parser.add_argument("--action-types", nargs="*", type=str.upper, choices=["CONTINUOUS", "DISCRETE"],
+                        default=["CONTINUOUS", "DISCRETE"])
     parser.add_argument("--determinism", type=int, default=0, metavar="K",
                         help="also compare two same-seed runs over K steps")
     parser.add_argument("--seed", type=int, default=0)
@@ -142,9 +143,17 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     tasks = args.tasks or lapwarp.list_tasks()
     unknown = sorted(set(tasks) - set(lapwarp.list_tasks()))
-    if unknown or args.num_envs < 1 or args.env_steps < 1:
-        parser.error(f"unknown tasks {unknown}" if unknown else "--num-envs and --env-steps must be positive")
-    overrides = parse_overrides(args.set)
+    if unknown or args.num_envs < 1 or args.env_steps < 1 or args.determinism < 0:
+        parser.error(f"unknown tasks {unknown}" if unknown else
+                     "--num-envs and --env-steps must be positive and --determinism non-negative")
+    try:  # every configuration before the first run takes device time
+        overrides = parse_overrides(args.set)
+        for task in tasks:
+            for action_type in args.action_types:
+                lapwarp.check_config(task, action_type=action_type, invalid_actions="zero", seed=args.seed,
+                                     **overrides)
+    except ValueError as exc:
+        parser.error(str(exc))
     quiet_warp()
     failures = 0
     for task in tasks:

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 __version__ = "0.1.0"
 
-from lapwarp.registry import list_tasks, make  # noqa: E402
+from lapwarp.registry import check_config, list_tasks, make  # noqa: E402
 
 
 def _register_gymnasium() -> None:
@@ -34,4 +34,4 @@ def __getattr__(name: str):
     raise AttributeError(f"module 'lapwarp' has no attribute {name!r}")
 
 
-__all__ = ["SceneBuilder", "__version__", "list_tasks", "make"]
+__all__ = ["SceneBuilder", "__version__", "check_config", "list_tasks", "make"]

@@ -5,6 +5,8 @@ from __future__ import annotations
 import importlib
 from typing import Any
 
+from lapwarp.config import build_config
+
 # name -> "module:EnvClass"; the module is imported lazily so ``import lapwarp`` stays light.
 _TASKS: dict[str, str] = {
     "Reach": "lapwarp.tasks.spatial.reach:ReachEnv",
@@ -33,6 +35,15 @@ def task_class(name: str) -> type:
         raise ValueError(f"unknown task {name!r}; available tasks: {list_tasks()}")
     module_name, class_name = _TASKS[name].split(":")
     return getattr(importlib.import_module(module_name), class_name)
+
+
+def check_config(name: str, **overrides: Any):
+    """The config ``make(name, **overrides)`` would build, validated without building the env (scripts that run many
+    configurations check them all before the first one takes device time). Raises ``ValueError`` as ``make`` does."""
+    env_class = task_class(name)
+    cfg = build_config(env_class.config_class, overrides)
+    cfg.validate(env_class.rewards.names, env_class.supported_observations)
+    return cfg
 
 
 def make(name: str, num_envs: int = 1, device: str = "cpu", **overrides: Any):

@@ -14,6 +14,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 import bench_env  # noqa: E402
 import bench_fused  # noqa: E402
+import expert_success  # noqa: E402
 import ppo  # noqa: E402
 import soak  # noqa: E402
 
@@ -113,6 +114,42 @@ def test_soak_counts_faults_and_checks_determinism(device, tmp_path, capsys):
         assert r["contact_systems"] and r["memory_bytes_end"] > 0
     determinism = [r for r in lines if "determinism_steps" in r]
     assert determinism and all(r["max_abs_observation_difference"] == 0.0 for r in determinism)  # CPU: bit-exact
+
+
+@pytest.mark.parametrize("script, args, message", [
+    (soak, ["--tasks", "Reach", "--action-types", "SIDEWAYS"], "invalid choice: 'SIDEWAYS'"),
+    (soak, ["--tasks", "Reach", "--determinism", "-1"], "--determinism non-negative"),
+    (soak, ["--tasks", "DeflectSpheres", "--set", "num_spheres=1"], "exceeds num_spheres=1"),
+    (expert_success, ["--task", "Reach", "--episodes", "0"], "must be positive, got 256, 0 and 2000"),
+    (expert_success, ["--task", "Reach", "--max-steps", "0"], "must be positive"),
+    (expert_success, ["--task", "Reach", "--action-types", "BAR"], "invalid choice: 'BAR'"),
+    (expert_success, ["--task", "DeflectSpheres", "--config", "num_spheres=5", "--config", "num_spheres=1"],
+     "exceeds num_spheres=1"),
+])
+def test_benchmark_scripts_refuse_bad_input_before_any_run(script, args, message, capsys, monkeypatch):
+    """A bad configuration anywhere in the list is a usage error before the first env is built (on the GPU the first
+    configurations would otherwise run for minutes before the last one fails)."""
+    import lapwarp
+
+    def no_env(*_, **__):
+        raise AssertionError("an env was built before the arguments were checked")
+
+    monkeypatch.setattr(lapwarp, "make", no_env)
+    with pytest.raises(SystemExit):
+        script.main(["--device", "cpu", *args])
+    assert message in capsys.readouterr().err
+
+
+def test_check_config_validates_without_building():
+    import lapwarp
+
+    cfg = lapwarp.check_config("DeflectSpheres", num_spheres=3, num_deflect_to_win=2)
+    assert (cfg.num_spheres, cfg.num_deflect_to_win) == (3, 2)
+    for bad in ({"num_spheres": 1}, {"no_such_key": 1}, {"action_type": "SIDEWAYS"}):
+        with pytest.raises(ValueError):
+            lapwarp.check_config("DeflectSpheres", **bad)
+    with pytest.raises(ValueError, match="unknown task"):
+        lapwarp.check_config("NoSuchTask")
 
 
 def test_progress_line_names_faults():
