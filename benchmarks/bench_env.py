@@ -23,7 +23,7 @@ import torch
 import warp as wp
 
 import lapwarp
-from lapwarp.cli import parse_overrides
+from lapwarp.cli import parse_overrides, positive_float, positive_int
 from lapwarp.experts import make_expert
 
 
@@ -87,12 +87,12 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--task", default="Reach", choices=lapwarp.list_tasks())
     parser.add_argument("--device", default="cuda:0" if torch.cuda.is_available() else "cpu")
-    parser.add_argument("--num-envs", type=int, nargs="+", default=[1, 16, 256, 4096, 16384, 65536])
-    parser.add_argument("--seconds", type=float, default=2.0, help="timed seconds per point")
+    parser.add_argument("--num-envs", type=positive_int, nargs="+", default=[1, 16, 256, 4096, 16384, 65536])
+    parser.add_argument("--seconds", type=positive_float, default=2.0, help="timed seconds per point")
     parser.add_argument("--invalid-actions", choices=["zero", "raise"], default="zero")
     parser.add_argument("--both-nan-modes", action="store_true", help="also time invalid_actions='raise'")
     parser.add_argument("--obs", choices=["STATE", "RGB", "RGBD", "DEPTH"], default="STATE")
-    parser.add_argument("--image-size", type=int, default=64, help="square image side for image observations")
+    parser.add_argument("--image-size", type=positive_int, default=64, help="square image side for image observations")
     parser.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
                         help="extra config overrides, values parsed as JSON (e.g. sphere_radius=0.02)")
     parser.add_argument("--policy", choices=["random", "expert"], default="random",
@@ -107,7 +107,12 @@ def main(argv: list[str] | None = None) -> int:
     overrides = {"observation_type": args.obs}
     if args.obs != "STATE":
         overrides["image_shape"] = (args.image_size, args.image_size)
-    overrides.update(parse_overrides(args.set))
+    try:  # every point's configuration before the first one is timed
+        overrides.update(parse_overrides(args.set))
+        for mode in modes:
+            lapwarp.check_config(args.task, invalid_actions=mode, **overrides)
+    except ValueError as exc:
+        parser.error(str(exc))
     results = []
     print(f"{'task':<10} {'num_envs':>9} {'nan mode':>8} {'env-steps/s':>14} {'step ms':>9}")
     for n in args.num_envs:

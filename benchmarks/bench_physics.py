@@ -43,6 +43,7 @@ import warp as wp
 
 from lapwarp.assets import box_tets, cloth_grid
 from lapwarp.builder import SceneBuilder
+from lapwarp.cli import non_negative_int, positive_int
 
 DT = 0.1  # simulated seconds per env step
 
@@ -217,10 +218,11 @@ def run(scene: str, num_envs: int, device: str, substeps: int, iterations: int, 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--device", default="cuda:0")
-    p.add_argument("--num-envs", type=int, nargs="+", default=[4096])
+    p.add_argument("--num-envs", type=positive_int, nargs="+", default=[4096])
     p.add_argument("--scene", nargs="+", default=["cloth", "cloth_free", "tet", "rod"], choices=[*SCENES, "all"])
-    p.add_argument("--substeps", type=int, nargs="+", default=[20], help="one run per value; 0 = automatic")
-    p.add_argument("--iterations", type=int, nargs="+", default=[1], help="one run per value")
+    p.add_argument("--substeps", type=non_negative_int, nargs="+", default=[20],
+                   help="one run per value; 0 = automatic")
+    p.add_argument("--iterations", type=positive_int, nargs="+", default=[1], help="one run per value")
     p.add_argument("--edge-solver", nargs="+", default=["chains"], choices=["chains", "colored"])
     p.add_argument("--newton-steps", type=int, default=None, help="Newton steps per cloth chain solve")
     p.add_argument("--chain-block-links", type=int, nargs="+", default=[0],
@@ -232,8 +234,8 @@ def main() -> None:
     p.add_argument("--tether-passes", type=int, nargs="+", default=[None],
                    help="passes over each particle's geodesic tethers per projection (tethered scenes; default: the "
                         "World's)")
-    p.add_argument("--steps", type=int, default=30, help="timed env steps")
-    p.add_argument("--settle-steps", type=int, default=30, help="untimed env steps before timing")
+    p.add_argument("--steps", type=positive_int, default=30, help="timed env steps")
+    p.add_argument("--settle-steps", type=non_negative_int, default=30, help="untimed env steps before timing")
     p.add_argument("--out", default=None, help="append one JSON line per run to this file")
     args = p.parse_args()
 

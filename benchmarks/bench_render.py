@@ -39,6 +39,7 @@ import warp as wp
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from lapwarp.cli import non_negative_int, positive_int  # noqa: E402
 from lapwarp.render import Renderer, cloth_grid_faces, look_at  # noqa: E402
 
 wp.set_module_options({"enable_backward": False})
@@ -191,8 +192,8 @@ def time_step(step, device, warmup: int, iters: int) -> tuple[float, bool]:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--device", default=None, help="Warp device (default: cuda:0 if available, else cpu)")
-    parser.add_argument("--num-envs", type=int, nargs="+", default=[1024, 4096, 16384])
-    parser.add_argument("--res", type=int, default=64, help="square image resolution")
+    parser.add_argument("--num-envs", type=positive_int, nargs="+", default=[1024, 4096, 16384])
+    parser.add_argument("--res", type=positive_int, default=64, help="square image resolution")
     parser.add_argument("--scenes", nargs="+", default=list(SCENES), choices=list(SCENES))
     parser.add_argument("--methods", nargs="+", default=["raster", "raycast"], choices=["raster", "raycast"])
     parser.add_argument(
@@ -202,8 +203,8 @@ def main() -> None:
     )
     parser.add_argument("--sphere-radius", type=float, default=0.02, help="rigid scene sphere radius (m)")
     parser.add_argument("--quad-split", type=int, default=None, help="raster_split of the ground quad (default auto)")
-    parser.add_argument("--iters", type=int, default=None, help="timed steps (default 50 on CUDA, 2 on CPU)")
-    parser.add_argument("--warmup", type=int, default=3)
+    parser.add_argument("--iters", type=positive_int, default=None, help="timed steps (default 50 on CUDA, 2 on CPU)")
+    parser.add_argument("--warmup", type=non_negative_int, default=3)
     parser.add_argument("--out", type=Path, default=None, help="write results as JSON here")
     args = parser.parse_args()
 

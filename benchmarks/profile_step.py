@@ -19,7 +19,7 @@ import torch
 import warp as wp
 
 import lapwarp
-from lapwarp.cli import parse_overrides
+from lapwarp.cli import parse_overrides, positive_int
 from lapwarp.experts import make_expert
 
 
@@ -27,17 +27,20 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--task", default="RopeCutting", choices=lapwarp.list_tasks())
     parser.add_argument("--device", default="cuda:0")
-    parser.add_argument("--num-envs", type=int, default=4096)
-    parser.add_argument("--steps", type=int, default=5)
+    parser.add_argument("--num-envs", type=positive_int, default=4096)
+    parser.add_argument("--steps", type=positive_int, default=5)
     parser.add_argument("--policy", choices=["random", "expert"], default="expert")
     parser.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="config overrides (JSON values)")
-    parser.add_argument("--top", type=int, default=25, help="kernels printed")
+    parser.add_argument("--top", type=positive_int, default=25, help="kernels printed")
     parser.add_argument("--out", default=None)
     args = parser.parse_args(argv)
     wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)
-    overrides = parse_overrides(args.set)
-    env = lapwarp.make(args.task, num_envs=args.num_envs, device=args.device, use_cuda_graph=False,
-                       invalid_actions="zero", **overrides)
+    try:
+        overrides = {"invalid_actions": "zero", **parse_overrides(args.set)}  # no host sync unless asked for
+        lapwarp.check_config(args.task, **overrides)
+    except ValueError as exc:
+        parser.error(str(exc))
+    env = lapwarp.make(args.task, num_envs=args.num_envs, device=args.device, use_cuda_graph=False, **overrides)
     if args.policy == "expert":
         expert = make_expert(env)
     else:

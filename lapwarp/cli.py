@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import importlib.util
 import json
+import math
 import sys
 import time
 from pathlib import Path
@@ -135,23 +136,28 @@ def default_device() -> str:
     return "cuda:0" if torch.cuda.is_available() else "cpu"
 
 
-def _positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {value}")
-    return value
+def positive_int(text: str) -> int:
+    """``argparse`` type of counts (envs, steps, iterations): an integer >= 1."""
+    return _bounded(text, int, "a positive integer", lambda v: v >= 1)
 
 
-def _non_negative_int(text: str) -> int:
+def non_negative_int(text: str) -> int:
+    """``argparse`` type of counts that may be zero: an integer >= 0."""
+    return _bounded(text, int, "a non-negative integer", lambda v: v >= 0)
+
+
+def positive_float(text: str) -> float:
+    """``argparse`` type of durations and budgets: a finite number > 0 (``1e7`` is accepted)."""
+    return _bounded(text, float, "a positive number", lambda v: math.isfinite(v) and v > 0)
+
+
+def _bounded(text: str, kind: type, what: str, accept) -> Any:
     try:
-        value = int(text)
+        value = kind(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a non-negative integer, got {text!r}") from None
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"expected a non-negative integer, got {value}")
+        raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}") from None
+    if not accept(value):
+        raise argparse.ArgumentTypeError(f"expected {what}, got {value}")
     return value
 
 
@@ -399,8 +405,8 @@ def build_parser() -> argparse.ArgumentParser:
     run = sub.add_parser("run", help="run a random or expert policy on a batch of envs",
                          description="Run a policy on a batch of envs and print a summary table.")
     run.add_argument("task", help="task name (see 'lapwarp list')")
-    run.add_argument("--num-envs", type=_positive_int, default=16, help="parallel envs (default 16)")
-    run.add_argument("--steps", type=_non_negative_int, default=200, help="env steps to run (default 200)")
+    run.add_argument("--num-envs", type=positive_int, default=16, help="parallel envs (default 16)")
+    run.add_argument("--steps", type=non_negative_int, default=200, help="env steps to run (default 200)")
     run.add_argument("--policy", choices=["random", "expert"], default="random",
                      help="uniform random actions on the device, or the task's scripted expert (default random)")
     run.add_argument("--obs", type=str.lower, choices=["state", "rgb", "rgbd", "depth"], default="state",
@@ -408,7 +414,7 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--device", default=None, help="Warp/torch device, cpu or cuda:N (default: cuda:0 if torch "
                                                     "sees a GPU, else cpu)")
     run.add_argument("--seed", type=int, default=0, help="seed of the env RNG and the random policy (default 0)")
-    run.add_argument("--image-size", type=_positive_int, default=None,
+    run.add_argument("--image-size", type=positive_int, default=None,
                      help="square image side in pixels for image observations (default: the task's), for "
                           f"--save-images (default 128) and the tiles of --video (default {VIDEO_SIZE})")
     run.add_argument("--save-images", metavar="PNG", default=None,
@@ -421,7 +427,7 @@ def build_parser() -> argparse.ArgumentParser:
                      help="record an MP4 video, one frame per step: the first --video-envs envs tiled, labelled with "
                           "their running return and a green border on success (needs pip install "
                           "\"lapwarp[video]\"; renders every env each step, so keep --num-envs small)")
-    run.add_argument("--video-envs", type=_positive_int, default=VIDEO_ENVS, metavar="N",
+    run.add_argument("--video-envs", type=positive_int, default=VIDEO_ENVS, metavar="N",
                      help=f"envs tiled in each --video frame (the first ones; default {VIDEO_ENVS})")
     run.add_argument("--mkdir", action="store_true",
                      help="create missing folders of the --usd, --save-images and --video paths (otherwise an error "

@@ -16,6 +16,7 @@ import bench_env  # noqa: E402
 import bench_fused  # noqa: E402
 import expert_success  # noqa: E402
 import ppo  # noqa: E402
+import profile_step  # noqa: E402
 import soak  # noqa: E402
 
 
@@ -125,6 +126,13 @@ def test_soak_counts_faults_and_checks_determinism(device, tmp_path, capsys):
     (expert_success, ["--task", "Reach", "--action-types", "BAR"], "invalid choice: 'BAR'"),
     (expert_success, ["--task", "DeflectSpheres", "--config", "num_spheres=5", "--config", "num_spheres=1"],
      "exceeds num_spheres=1"),
+    (bench_env, ["--task", "Reach", "--seconds", "-1"], "expected a positive number, got -1.0"),
+    (bench_env, ["--task", "Reach", "--num-envs", "4", "0"], "expected a positive integer, got 0"),
+    (bench_env, ["--task", "Reach", "--set", "sphere_radus=0.01"], "unknown config key(s) ['sphere_radus']"),
+    (profile_step, ["--task", "Reach", "--steps", "0"], "expected a positive integer, got 0"),
+    (profile_step, ["--task", "Reach", "--set", "invalid_actions=maybe"], "invalid_actions"),
+    (soak, ["--tasks", "Reach", "--set", "seed=3"], "--set cannot set ['seed']"),
+    (expert_success, ["--task", "Reach", "--config", "action_type=DISCRETE"], "--config cannot set ['action_type']"),
 ])
 def test_benchmark_scripts_refuse_bad_input_before_any_run(script, args, message, capsys, monkeypatch):
     """A bad configuration anywhere in the list is a usage error before the first env is built (on the GPU the first
