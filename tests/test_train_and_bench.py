@@ -199,6 +199,18 @@ def test_update_shape_options_override_the_preset(capsys):
         assert message in capsys.readouterr().err
 
 
+def test_unloadable_checkpoint_and_unwritable_log_dir_are_usage_errors(tmp_path, capsys):
+    not_a_checkpoint = tmp_path / "notes.pt"
+    not_a_checkpoint.write_text("not a checkpoint")
+    base = ["--device", "cpu", "--preset", "cpu", "--task", "Reach", "--num-envs", "2", "--eval-envs", "2"]
+    with pytest.raises(SystemExit):
+        ppo.main([*base, "--play", str(not_a_checkpoint)])
+    assert "does not load into this run's models (UnpicklingError" in capsys.readouterr().err
+    with pytest.raises(SystemExit):  # a folder below a file cannot be made
+        ppo.main([*base, "--max-iterations", "1", "--log-dir", str(not_a_checkpoint / "runs")])
+    assert f"--log-dir {str(not_a_checkpoint / 'runs')!r}" in capsys.readouterr().err
+
+
 def test_unknown_compile_mode_is_a_usage_error(capsys):
     parser = ppo.build_parser()
     assert parser.parse_args(["--compile", "max-autotune-no-cudagraphs"]).compile == "max-autotune-no-cudagraphs"

@@ -37,6 +37,7 @@ import csv
 import io
 import json
 import os
+import pickle
 import statistics
 import sys
 import time
@@ -462,6 +463,13 @@ def train(argv: list[str] | None, quiet: contextlib.ExitStack) -> int:
     for option, path in (("--play", args.play), ("--resume", args.resume)):
         if path and not os.path.isfile(path):
             parser.error(f"{option} {path!r} is not a file")
+    if ranks.is_main and not args.play:
+        try:  # before the env is built: training must not end in an unwritable log folder
+            os.makedirs(args.log_dir, exist_ok=True)
+            if not os.access(args.log_dir, os.W_OK | os.X_OK):
+                raise PermissionError(f"{args.log_dir!r} is not writable")
+        except OSError as exc:
+            parser.error(f"--log-dir {args.log_dir!r}: {exc}")
     if not ranks.is_main:
         quiet.enter_context(contextlib.redirect_stdout(io.StringIO()))
     if ranks.distributed:
@@ -481,7 +489,13 @@ def train(argv: list[str] | None, quiet: contextlib.ExitStack) -> int:
     compact_progress(runner, env, args.verbose, ranks.is_main, progress_csv, ranks.world_size)
     checkpoint = args.play or args.resume
     if checkpoint:
-        runner.load(checkpoint, map_location=device)
+        try:
+            runner.load(checkpoint, map_location=device)
+        except (pickle.UnpicklingError, EOFError, KeyError, RuntimeError, ValueError) as exc:
+            # not a checkpoint, or one of other models (another task, observation or network)
+            option = "--play" if args.play else "--resume"
+            parser.error(f"{option} {checkpoint!r} does not load into this run's models "
+                         f"({type(exc).__name__}: {' '.join(str(exc).split())[:300]})")
         if ranks.is_main:
             print(f"loaded {checkpoint}")
         if args.resume and args.learning_rate is not None:
