@@ -22,7 +22,7 @@ import torch
 import warp as wp
 
 import lapwarp
-from lapwarp.cli import parse_overrides
+from lapwarp.cli import parse_overrides, with_fixed
 from lapwarp.experts import make_expert
 
 
@@ -80,12 +80,9 @@ def main(argv: list[str] | None = None) -> int:
     try:  # every configuration before the first run takes device time
         configs = [parse_overrides(c) for c in (args.config or [[]])]
         for overrides in configs:
-            own = sorted(set(overrides) & {"action_type", "invalid_actions", "seed"})
-            if own:
-                raise ValueError(f"--config cannot set {own}: use --action-types and --seed")
             for action_type in args.action_types:
-                lapwarp.check_config(args.task, action_type=action_type, seed=args.seed, invalid_actions="zero",
-                                     **overrides)
+                lapwarp.check_config(args.task, **with_fixed(overrides, "--config", action_type=action_type,
+                                                             seed=args.seed, invalid_actions="zero"))
     except ValueError as exc:
         parser.error(str(exc))
     records = []

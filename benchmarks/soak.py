@@ -28,7 +28,7 @@ import time
 import torch
 
 import lapwarp
-from lapwarp.cli import parse_overrides, quiet_warp
+from lapwarp.cli import parse_overrides, quiet_warp, with_fixed
 
 POOL = 16  # pre-drawn action batches, cycled
 
@@ -148,14 +148,10 @@ def main(argv: list[str] | None = None) -> int:
                      "--num-envs and --env-steps must be positive and --determinism non-negative")
     try:  # every configuration before the first run takes device time
         overrides = parse_overrides(args.set)
-        own = sorted(set(overrides) & {"action_type", "invalid_actions", "seed"})
-        if own:
-            raise ValueError(f"--set cannot set {own}: the soak sets them (--action-types, --seed; invalid actions "
-                             "are zeroed on the device)")
         for task in tasks:
             for action_type in args.action_types:
-                lapwarp.check_config(task, action_type=action_type, invalid_actions="zero", seed=args.seed,
-                                     **overrides)
+                lapwarp.check_config(task, **with_fixed(overrides, "--set", action_type=action_type,
+                                                        invalid_actions="zero", seed=args.seed))
     except ValueError as exc:
         parser.error(str(exc))
     quiet_warp()

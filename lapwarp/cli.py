@@ -130,6 +130,15 @@ def parse_overrides(items: list[str]) -> dict[str, Any]:
     return overrides
 
 
+def with_fixed(overrides: dict[str, Any], option: str, **fixed: Any) -> dict[str, Any]:
+    """``overrides`` plus the settings a script sets itself (``fixed``); a ``ValueError`` naming ``option`` if the
+    overrides name one of them (passed to ``make`` beside them they were a ``TypeError``)."""
+    clash = sorted(set(overrides) & set(fixed))
+    if clash:
+        raise ValueError(f"{option} cannot set {clash}: the script sets them itself")
+    return {**overrides, **fixed}
+
+
 def default_device() -> str:
     import torch
 

@@ -211,6 +211,13 @@ def test_unloadable_checkpoint_and_unwritable_log_dir_are_usage_errors(tmp_path,
     assert f"--log-dir {str(not_a_checkpoint / 'runs')!r}" in capsys.readouterr().err
 
 
+def test_seed_is_set_by_its_option_not_by_set(capsys):
+    with pytest.raises(SystemExit):
+        ppo.main(["--device", "cpu", "--preset", "cpu", "--task", "Reach", "--num-envs", "2", "--max-iterations", "1",
+                  "--set", "seed=3"])
+    assert "--set cannot set ['seed']" in capsys.readouterr().err
+
+
 def test_unknown_compile_mode_is_a_usage_error(capsys):
     parser = ppo.build_parser()
     assert parser.parse_args(["--compile", "max-autotune-no-cudagraphs"]).compile == "max-autotune-no-cudagraphs"

@@ -226,6 +226,10 @@ def _dissection_image_rows() -> list[Row]:
     return rows
 
 
+# RopeThreading's randomised eye (x, y, z in m, angle in deg), the paper's "random eye pose"
+RT_EYE_NOISE = [0.02, 0.02, 0.0, 15.0]
+
+
 def _thread_rows() -> list[Row]:
     rows = []
     for configuration in ("normal", "flexible", "inverted"):
@@ -234,7 +238,7 @@ def _thread_rows() -> list[Row]:
     for bimanual in (False, True):
         for noise in (False, True):
             config = {"bimanual": bimanual,
-                      "eye_reset_noise": [0.02, 0.02, 0.0, 15.0] if noise else [0.0, 0.0, 0.0, 0.0]}
+                      "eye_reset_noise": RT_EYE_NOISE if noise else [0.0, 0.0, 0.0, 0.0]}
             paper = (0.0, "text: bimanual 0 %") if bimanual else (1.0, "text: base learned")
             # 92k env-steps/s (H100, 10 substeps): 150 iterations = 19.7M env-steps, about 6 min (the base row was
             # at 55 % and rising after 120)
@@ -264,7 +268,7 @@ def _thread_image_rows() -> list[Row]:
                         {"configuration": "normal", "camera_reset_noise": noise, **image}, "rgb", 100, *paper))
     for noise, paper in ((False, (1.0, "text: comparable to state")),
                          (True, (0.0, "text: fails with random eye pose"))):
-        config = {"bimanual": False, "eye_reset_noise": [0.02, 0.02, 0.0, 15.0] if noise else [0.0, 0.0, 0.0, 0.0],
+        config = {"bimanual": False, "eye_reset_noise": RT_EYE_NOISE if noise else [0.0, 0.0, 0.0, 0.0],
                   **image}
         rows.append(Row(f"rt-base-{'noise' if noise else 'fixed'}-rgb", "RopeThreading", config, "rgb", 150, *paper))
     rows.append(Row("ll-stiff-rgb", "LigatingLoop", {"loop_stiffness": "stiff", **image}, "rgb", 100, 0.4,

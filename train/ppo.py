@@ -61,6 +61,7 @@ from rsl_rl.algorithms import PPO
 from rsl_rl.runners import OnPolicyRunner
 
 import lapwarp
+from lapwarp.cli import with_fixed
 
 
 class LinearSchedulePPO(PPO):
@@ -477,7 +478,8 @@ def train(argv: list[str] | None, quiet: contextlib.ExitStack) -> int:
         init_process_group(ranks)
     torch.manual_seed(ranks.seed)
     try:  # bad config values end as one usage line, not a traceback
-        env = lapwarp.make(args.task, num_envs=num_envs, device=device, seed=ranks.seed, **env_overrides)
+        env = lapwarp.make(args.task, num_envs=num_envs, device=device,
+                           **with_fixed(env_overrides, "--set", seed=ranks.seed))  # --seed sets it
     except ValueError as exc:
         parser.error(str(exc))
     if args.fast_pixels:
