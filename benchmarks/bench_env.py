@@ -23,7 +23,7 @@ import torch
 import warp as wp
 
 import lapwarp
-from lapwarp.cli import parse_overrides, positive_float, positive_int
+from lapwarp.cli import non_negative_int, parse_overrides, positive_float, positive_int
 from lapwarp.experts import make_expert
 
 
@@ -39,10 +39,16 @@ def sync(device: str) -> None:
 
 
 def bench_one(task: str, num_envs: int, device: str, seconds: float, invalid_actions: str, overrides: dict,
-              policy: str = "random", tet_solver: str | None = None) -> dict:
-    env = lapwarp.make(task, num_envs=num_envs, device=device, invalid_actions=invalid_actions, **overrides)
+              policy: str = "random", tet_solver: str | None = None, cuda_graph: bool = True,
+              surface_refit_interval: int | None = None) -> dict:
+    env = lapwarp.make(task, num_envs=num_envs, device=device, invalid_actions=invalid_actions,
+                       use_cuda_graph=cuda_graph, **overrides)
     if tet_solver is not None:
         env.world.tet_solver = tet_solver  # before the first step records (and the env captures) the launches
+    if surface_refit_interval is not None:
+        for solver in env.world.solvers:
+            if hasattr(solver, "surface_refit_interval"):
+                solver.surface_refit_interval = surface_refit_interval
     gen = torch.Generator(device=env.device).manual_seed(0)
     if policy == "expert":
         # The scripted expert acts on the live state every step (its own device work is timed too): this is the
@@ -77,6 +83,8 @@ def bench_one(task: str, num_envs: int, device: str, seconds: float, invalid_act
         "time_step": env.cfg.time_step,
         "observation_type": env.cfg.observation_type, "cuda_graph": env._use_cuda_graph,
         "resolution": list(env.cfg.image_shape) if env.uses_images else None,
+        "surface_refit_interval": next((s.surface_refit_interval for s in env.world.solvers
+                                        if hasattr(s, "surface_refit_interval")), None),
         "tet_solver": ("fused" if env.world.fused_tets else "colored") if env.world.model.tet_count else None,
     }
     env.close()
@@ -99,6 +107,11 @@ def main(argv: list[str] | None = None) -> int:
                         help="random actions from a pre-drawn pool, or the scripted expert (timed with the step)")
     parser.add_argument("--tet-solver", choices=["auto", "colored", "fused"], default=None,
                         help="the world's tet sweep (default: the world's own choice)")
+    parser.add_argument("--surface-refit-interval", type=non_negative_int, default=None,
+                        help="substeps between refits of deforming contact surfaces' BVHs (0: once per world step; "
+                             "default: the contact system's own)")
+    parser.add_argument("--no-graph", action="store_true",
+                        help="launch the step's kernels one by one instead of replaying a CUDA graph")
     parser.add_argument("--out", default=None, help="JSON output path")
     args = parser.parse_args(argv)
 
@@ -117,7 +130,8 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{'task':<10} {'num_envs':>9} {'nan mode':>8} {'env-steps/s':>14} {'step ms':>9}")
     for n in args.num_envs:
         for mode in modes:
-            r = bench_one(args.task, n, args.device, args.seconds, mode, overrides, args.policy, args.tet_solver)
+            r = bench_one(args.task, n, args.device, args.seconds, mode, overrides, args.policy, args.tet_solver,
+                          cuda_graph=not args.no_graph, surface_refit_interval=args.surface_refit_interval)
             results.append(r)
             print(f"{r['task']:<10} {n:>9} {mode:>8} {r['env_steps_per_s']:>14,.0f} {r['step_ms']:>9.3f}", flush=True)
     report = {"benchmark": "env_step", "regime": f"env step only, {args.policy} actions", "device": args.device,

@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import collections
 import json
+import time
 
 import torch
 import warp as wp
@@ -31,6 +32,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--steps", type=positive_int, default=5)
     parser.add_argument("--policy", choices=["random", "expert"], default="expert")
     parser.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="config overrides (JSON values)")
+    parser.add_argument("--warmup", type=positive_int, default=3, help="untimed steps first (state develops)")
+    parser.add_argument("--timing", choices=["kernel", "all"], default="kernel",
+                        help="kernels only, or kernels, memcpys and memsets")
     parser.add_argument("--top", type=positive_int, default=25, help="kernels printed")
     parser.add_argument("--out", default=None)
     args = parser.parse_args(argv)
@@ -53,12 +57,16 @@ def main(argv: list[str] | None = None) -> int:
             return torch.randint(0, 2 * env.action_dim + 1, (env.num_envs,), device=env.device, generator=gen)
         return torch.rand(env.num_envs, env.num_actions, device=env.device, generator=gen) * 2 - 1
 
-    for _ in range(3):
+    for _ in range(args.warmup):
         env.step(action())
     actions = [action() for _ in range(args.steps)]  # expert actions drawn outside the timed region
-    with wp.ScopedTimer("profile", cuda_filter=wp.TIMING_KERNEL, print=False, synchronize=True) as timer:
+    cuda_filter = wp.TIMING_KERNEL if args.timing == "kernel" else wp.TIMING_ALL
+    wp.synchronize_device(env.wp_device)
+    start = time.perf_counter()
+    with wp.ScopedTimer("profile", cuda_filter=cuda_filter, print=False, synchronize=True) as timer:
         for a in actions:
             env.step(a)
+    wall_ms = 1e3 * (time.perf_counter() - start) / args.steps
     per_kernel = collections.defaultdict(lambda: [0, 0.0])
     for r in timer.timing_results:
         per_kernel[r.name][0] += 1
@@ -67,13 +75,14 @@ def main(argv: list[str] | None = None) -> int:
                   key=lambda row: -row[2])
     total = sum(row[2] for row in rows)
     print(f"{args.task}, {args.num_envs} envs: {total:.3f} ms kernel time per env step, "
-          f"{sum(row[1] for row in rows):.0f} launches")
+          f"{sum(row[1] for row in rows):.0f} launches; {wall_ms:.3f} ms wall per step (no graph, profiled)")
     for name, launches, ms in rows[: args.top]:
         print(f"  {ms:8.3f} ms {100 * ms / total:5.1f}%  {launches:6.0f} x  {name}")
     if args.out:
         with open(args.out, "w") as f:
             json.dump({"task": args.task, "num_envs": args.num_envs, "steps": args.steps, "policy": args.policy,
-                       "overrides": overrides, "kernel_ms_per_step": total,
+                       "overrides": overrides, "kernel_ms_per_step": total, "warmup": args.warmup,
+                       "timing": args.timing, "profiled_wall_ms_per_step": wall_ms,
                        "device_name": torch.cuda.get_device_name(torch.device(args.device)),
                        "kernels": [{"name": n, "launches_per_step": k, "ms_per_step": t} for n, k, t in rows]},
                       f, indent=2)

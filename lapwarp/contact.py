@@ -144,6 +144,12 @@ class ContactSystem:
         # read when the World records a step (record_key)
         self.triangle_sweep = "fused"
         self.triangle_block_threads = 32
+        # deforming surfaces: refit their BVH every surface_refit_interval substeps (0: once per world.step, at its
+        # first sweep). In between, queries grow by how far the surface's vertices moved since the refit (``drift``,
+        # measured every sweep), so the stale bounds still cover every triangle the query can touch, and each
+        # candidate is then tested against its own current bounds: the same contacts as a refit every sweep. A refit
+        # of every env's surface BVH costs far more than the drift pass (LigatingLoop: 30 % of its step).
+        self.surface_refit_interval = 0
         self.shapes: list[Shape] = []
         self.groups: list[ParticleGroup] = []
         self.self_sets: list[dict] = []
@@ -495,11 +501,13 @@ class ContactSystem:
             # the launch covers only them, not every contact particle (LigatingLoop: ~50 loop nodes, not 800)
             cand = np.nonzero((pair[sidx, np.asarray(cp_groups, dtype=np.int64)] >= 0)
                               & ~((cp_all >= owner[0]) & (cp_all < owner[1])))[0] if len(cp_all) else []
+            drift = wp.zeros(n, dtype=float, device=dev)  # per env: how far the vertices moved since the refit
             self._surfaces.append(dict(mesh=mesh, verts=arr(verts.astype(np.int32), wp.int32),
+                                       snapshot=wp.zeros((n, len(verts)), dtype=wp.vec3, device=dev), drift=drift,
                                        candidates=arr(np.asarray(cand, dtype=np.int32), wp.int32), surface=make_struct(
                 ck.ContactSurface, shape=sidx, mesh=mesh.id, tris=arr(t.astype(np.int32), wp.vec3i),
                 owner_start=int(owner[0]), owner_end=int(owner[1]), closed=int(sh.surface["closed"]),
-                face_col=face_col, face_active=face_mask)))
+                face_col=face_col, face_active=face_mask, drift=drift)))
         if self._surfaces:
             self.surf_delta = wp.zeros((n, P, 3), dtype=wp.int64, device=dev)  # fixed point, see the kernel
             self.surf_count = wp.zeros((n, P), dtype=wp.int32, device=dev)
@@ -591,7 +599,18 @@ class ContactSystem:
         """The settings the recorded launches depend on (the World records a step again when they change)."""
         if self.triangle_sweep not in self.TRIANGLE_SWEEPS:
             raise ValueError(f"triangle_sweep must be one of {self.TRIANGLE_SWEEPS}, got {self.triangle_sweep!r}")
-        return (self.triangle_sweep, int(self.triangle_block_threads))
+        if int(self.surface_refit_interval) < 0:
+            raise ValueError(f"surface_refit_interval must be >= 0 (0: once per world.step), "
+                             f"got {self.surface_refit_interval!r}")
+        return (self.triangle_sweep, int(self.triangle_block_threads), int(self.surface_refit_interval))
+
+    def _refits_surfaces(self, sweep) -> bool:
+        """Whether this sweep refits the surfaces' BVHs (always the step's first sweep: bodies and resets move
+        the surfaces between steps)."""
+        k = int(self.surface_refit_interval)
+        if sweep.first:
+            return True
+        return k > 0 and sweep.iteration == 0 and sweep.substep % k == 0
 
     def record_sweep(self, world, launch, sweep) -> None:
         """Record the contact projections of one sweep (called by the World while it records a step)."""
@@ -623,10 +642,16 @@ class ContactSystem:
             for c in range(len(off) - 1):
                 launch(ck.collide_triangles, (n, off[c + 1] - off[c]),
                        [self._triangles, off[c], shapes, motion, self._tool_axes, solve, ignore, masks], [q, reports])
+        refit = self._refits_surfaces(sweep)
         for sf in self._surfaces:
-            launch(sf["mesh"].refit)  # BVH bounds of the surface as it is now (after this sweep's constraints)
             if len(sf["candidates"]) == 0:
-                continue
+                continue  # nothing queries this surface's BVH
+            verts, snap, drift = sf["verts"], sf["snapshot"], sf["drift"]
+            if refit:
+                launch(sf["mesh"].refit)  # BVH bounds of the surface as it is now (after this sweep's constraints)
+                launch(ck.surface_snapshot, (n, verts.shape[0]), [verts, q], [snap, drift])
+            else:
+                launch(ck.surface_drift, (n, verts.shape[0]), [verts, q, snap], [drift])
             launch(ck.collide_surface, (n, len(sf["candidates"])),
                    [self._particles, sf["candidates"], sf["surface"], shapes, solve, masks, report, self.report_margin],
                    [q, self.surf_delta, self.surf_count, reports])

@@ -356,6 +356,39 @@ def test_bead_rests_on_deforming_tissue_surface_per_env(device):
     assert list(cs.counts()[:, 0]) == [1, 1]
 
 
+@pytest.mark.parametrize("interval", [0, 4])
+def test_stale_surface_bvh_finds_the_same_contacts(device, interval):
+    """A free tet block (2 x 2 x 1 cm) thrown at 0.1 m/s into 9 beads (r = 0.5 mm, at rest, no gravity) 2 mm above
+    its top face, 10 substeps per 0.05 s step: the surface moves 0.5 mm per substep, 5 mm per step. Refitting its BVH
+    once per step (``surface_refit_interval`` 0) or every fourth substep, with queries grown by the measured drift,
+    gives exactly the trajectories of a refit before every sweep (interval 1): the same candidate triangles, the same
+    contacts."""
+    v, t = box_tets((0.02, 0.02, 0.01), (2, 2, 1), origin=(-0.01, -0.01, 0.0))
+    beads0 = np.array([[x, y, 0.012] for x in (-0.006, 0.0, 0.006) for y in (-0.006, 0.0, 0.006)])
+    out = []
+    for k in (1, interval):
+        b = SceneBuilder(gravity=(0.0, 0.0, 0.0))
+        blk = b.add_tet_mesh(v, t, density=1000.0, youngs_modulus=1e5, poisson_ratio=0.3)
+        beads = b.add_particles(beads0, mass=1.0e-4)
+        w = b.finalize(num_envs=2, device=device, substeps=10)
+        qd = w.state.particle_qd.numpy()
+        qd[:, blk.particles, 2] = 0.1
+        qd[1, blk.particles, 0] = 0.03  # env 1 also slides sideways
+        w.state.particle_qd.assign(qd)
+        cs = ContactSystem(w)
+        cs.add_particle_group(beads, radius=5.0e-4, name="beads")
+        cs.add_surface(blk, thickness=0.0, name="block")
+        cs.surface_refit_interval = k
+        cs.finalize()
+        for _ in range(3):
+            w.step(0.05)
+        out.append((w.positions(), cs._surfaces[0]["drift"].numpy()))
+    (ref, _), (x, drift) = out
+    assert drift.min() > 4.0e-4  # the stale bounds were off by over 0.4 mm when last queried
+    assert np.array_equal(ref, x)
+    assert x[:, beads.particle_start:, 2].min() > 0.02  # every bead was pushed up by the surface (it started at 12 mm)
+
+
 def test_cell_list_matches_brute_force(device):
     """One step of 300 random particles (r = 1 mm, many overlapping) per env in a 2 cm box: the per-env cell list
     finds exactly the pairs of the brute force (same contact count, positions equal to 1e-6 m; the order of the

@@ -110,6 +110,7 @@ class ContactSurface:
     closed: int
     face_col: wp.array(dtype=wp.int32)  # column of each triangle in face_active; empty: not cuttable
     face_active: wp.array2d(dtype=wp.int32)
+    drift: wp.array(dtype=float)  # per env: the most any surface vertex moved since the BVH's refit (m)
 
 
 @wp.struct
@@ -694,9 +695,10 @@ def collide_surface(
     reports: ContactReports,
 ):
     # Particles of one object against the deforming triangles of another in the same env. The grouped mesh
-    # holds every env's triangles over the flat view of state.particle_q (group = env), refit just before
-    # this launch; the query starts at this env's subtree so envs never see each other although all of them
-    # sit at the origin. Two-way: the triangle's share of the correction goes to surf_delta (averaged later).
+    # holds every env's triangles over the flat view of state.particle_q (group = env), refit at most a few sweeps
+    # before this launch (see the query below); the query starts at this env's subtree so envs never see each
+    # other although all of them sit at the origin. Two-way: the triangle's share of the correction goes to
+    # surf_delta (averaged later).
     # ``candidates``: the contact particles whose group pairs with this surface, minus its own vertices.
     env, k0 = wp.tid()
     k = candidates[k0]
@@ -721,8 +723,14 @@ def collide_surface(
     # swept query (the particle's path during this substep): a particle that crossed a surface within one
     # substep still finds the triangle it crossed; the side / inside test below then pushes it back
     xs = start_position(solve, env, i)
-    query = wp.bvh_query_sphere(wp.mesh_get_bvh(mesh), (x + xs) * 0.5, wp.length(x - xs) * 0.5 + reach + report_margin,
-                                root)
+    # The BVH's bounds may be some sweeps old (ContactSystem.surface_refit_interval): the query grows by how far
+    # the vertices moved since, so it reaches every triangle whose current bounds meet the sphere, and each
+    # candidate is kept only if its current bounds do (the BVH's own sphere-box test, intersect_sphere_aabb): the
+    # candidates do not depend on how stale the bounds are, nor on how many triangles share a BVH leaf.
+    centre = (x + xs) * 0.5
+    radius = wp.length(x - xs) * 0.5 + reach + report_margin
+    radius_sq = radius * radius
+    query = wp.bvh_query_sphere(wp.mesh_get_bvh(mesh), centre, radius + surface.drift[env], root)
     face = int(0)
     best = int(-1)
     best_d = float(1.0e30)
@@ -736,8 +744,18 @@ def collide_surface(
             if surface.face_active[env, surface.face_col[f]] == 0:
                 continue
         t = tris[f]
-        bw = closest_point_triangle(x, q[env, t[0]], q[env, t[1]], q[env, t[2]])
-        d = wp.length(x - (q[env, t[0]] * bw[0] + q[env, t[1]] * bw[1] + q[env, t[2]] * bw[2]))
+        ta = q[env, t[0]]
+        tb = q[env, t[1]]
+        tc = q[env, t[2]]
+        lo = wp.min(wp.min(ta, tb), tc)
+        hi = wp.max(wp.max(ta, tb), tc)
+        gx = wp.max(wp.max(lo[0] - centre[0], centre[0] - hi[0]), 0.0)
+        gy = wp.max(wp.max(lo[1] - centre[1], centre[1] - hi[1]), 0.0)
+        gz = wp.max(wp.max(lo[2] - centre[2], centre[2] - hi[2]), 0.0)
+        if gx * gx + gy * gy + gz * gz > radius_sq:
+            continue
+        bw = closest_point_triangle(x, ta, tb, tc)
+        d = wp.length(x - (ta * bw[0] + tb * bw[1] + tc * bw[2]))
         if d < best_d:
             best_d = d
             best = f
@@ -804,6 +822,28 @@ def collide_surface(
                 wp.atomic_add(surf_delta, env, t[j], axis, wp.int64(wp.round(share[axis] * SURFACE_DELTA_SCALE)))
             wp.atomic_add(surf_count, env, t[j], 1)
     wp.atomic_add(reports.report_force, env, pair, pen / (w + wt) * solve.force_scale)
+
+
+@wp.kernel
+def surface_snapshot(verts: wp.array(dtype=wp.int32), q: wp.array2d(dtype=wp.vec3), snapshot: wp.array2d(dtype=wp.vec3),
+                     drift: wp.array(dtype=float)):
+    """The surface's vertices where its BVH was just refit (``drift`` measures from here); no drift yet."""
+    env, k = wp.tid()
+    snapshot[env, k] = q[env, verts[k]]
+    if k == 0:
+        drift[env] = 0.0
+
+
+@wp.kernel
+def surface_drift(verts: wp.array(dtype=wp.int32), q: wp.array2d(dtype=wp.vec3), snapshot: wp.array2d(dtype=wp.vec3),
+                  drift: wp.array(dtype=float)):
+    """Per env, the most any surface vertex moved since the refit: how much the BVH's bounds may be off. The
+    drift only grows between refits (a vertex that moved and came back still counts its farthest excursion seen,
+    which stays a valid bound)."""
+    env, k = wp.tid()
+    d = wp.length(q[env, verts[k]] - snapshot[env, k])
+    if d > drift[env]:  # read first: most vertices moved less than the env's drift so far, no atomic needed
+        wp.atomic_max(drift, env, d)
 
 
 @wp.kernel
