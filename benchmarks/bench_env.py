@@ -40,15 +40,16 @@ def sync(device: str) -> None:
 
 def bench_one(task: str, num_envs: int, device: str, seconds: float, invalid_actions: str, overrides: dict,
               policy: str = "random", tet_solver: str | None = None, cuda_graph: bool = True,
-              surface_refit_interval: int | None = None) -> dict:
+              surface_refit_interval: int | None = None, triangle_sweep: str | None = None) -> dict:
     env = lapwarp.make(task, num_envs=num_envs, device=device, invalid_actions=invalid_actions,
                        use_cuda_graph=cuda_graph, **overrides)
     if tet_solver is not None:
         env.world.tet_solver = tet_solver  # before the first step records (and the env captures) the launches
-    if surface_refit_interval is not None:
-        for solver in env.world.solvers:
-            if hasattr(solver, "surface_refit_interval"):
-                solver.surface_refit_interval = surface_refit_interval
+    for solver in env.world.solvers:  # contact settings, before the first step records the launches
+        if surface_refit_interval is not None and hasattr(solver, "surface_refit_interval"):
+            solver.surface_refit_interval = surface_refit_interval
+        if triangle_sweep is not None and hasattr(solver, "triangle_sweep"):
+            solver.triangle_sweep = triangle_sweep
     gen = torch.Generator(device=env.device).manual_seed(0)
     if policy == "expert":
         # The scripted expert acts on the live state every step (its own device work is timed too): this is the
@@ -83,6 +84,7 @@ def bench_one(task: str, num_envs: int, device: str, seconds: float, invalid_act
         "time_step": env.cfg.time_step,
         "observation_type": env.cfg.observation_type, "cuda_graph": env._use_cuda_graph,
         "resolution": list(env.cfg.image_shape) if env.uses_images else None,
+        "triangle_sweep": next((s.triangle_sweep for s in env.world.solvers if hasattr(s, "triangle_sweep")), None),
         "surface_refit_interval": next((s.surface_refit_interval for s in env.world.solvers
                                         if hasattr(s, "surface_refit_interval")), None),
         "tet_solver": ("fused" if env.world.fused_tets else "colored") if env.world.model.tet_count else None,
@@ -110,6 +112,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--surface-refit-interval", type=non_negative_int, default=None,
                         help="substeps between refits of deforming contact surfaces' BVHs (0: once per world step; "
                              "default: the contact system's own)")
+    parser.add_argument("--triangle-sweep", choices=["colored", "fused"], default=None,
+                        help="the contact system's triangle sweep (default: its own)")
     parser.add_argument("--no-graph", action="store_true",
                         help="launch the step's kernels one by one instead of replaying a CUDA graph")
     parser.add_argument("--out", default=None, help="JSON output path")
@@ -131,7 +135,8 @@ def main(argv: list[str] | None = None) -> int:
     for n in args.num_envs:
         for mode in modes:
             r = bench_one(args.task, n, args.device, args.seconds, mode, overrides, args.policy, args.tet_solver,
-                          cuda_graph=not args.no_graph, surface_refit_interval=args.surface_refit_interval)
+                          cuda_graph=not args.no_graph, surface_refit_interval=args.surface_refit_interval,
+                          triangle_sweep=args.triangle_sweep)
             results.append(r)
             print(f"{r['task']:<10} {n:>9} {mode:>8} {r['env_steps_per_s']:>14,.0f} {r['step_ms']:>9.3f}", flush=True)
     report = {"benchmark": "env_step", "regime": f"env step only, {args.policy} actions", "device": args.device,

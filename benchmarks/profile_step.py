@@ -35,6 +35,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--warmup", type=positive_int, default=3, help="untimed steps first (state develops)")
     parser.add_argument("--timing", choices=["kernel", "all"], default="kernel",
                         help="kernels only, or kernels, memcpys and memsets")
+    parser.add_argument("--triangle-sweep", choices=["colored", "fused"], default=None,
+                        help="the contact system's triangle sweep (default: its own)")
     parser.add_argument("--top", type=positive_int, default=25, help="kernels printed")
     parser.add_argument("--out", default=None)
     args = parser.parse_args(argv)
@@ -45,6 +47,10 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError as exc:
         parser.error(str(exc))
     env = lapwarp.make(args.task, num_envs=args.num_envs, device=args.device, use_cuda_graph=False, **overrides)
+    if args.triangle_sweep is not None:
+        for solver in env.world.solvers:  # before the first step records the launches
+            if hasattr(solver, "triangle_sweep"):
+                solver.triangle_sweep = args.triangle_sweep
     if args.policy == "expert":
         expert = make_expert(env)
     else:
