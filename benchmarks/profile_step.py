@@ -37,8 +37,6 @@ def main(argv: list[str] | None = None) -> int:
                         help="kernels only, or kernels, memcpys and memsets")
     parser.add_argument("--triangle-sweep", choices=["colored", "fused"], default=None,
                         help="the contact system's triangle sweep (default: its own)")
-    parser.add_argument("--chain-solver", choices=["serial", "pcr"], default=None,
-                        help="the world's direct chain solve (pcr: also instead of the partitioned solve)")
     parser.add_argument("--top", type=positive_int, default=25, help="kernels printed")
     parser.add_argument("--out", default=None)
     args = parser.parse_args(argv)
@@ -49,10 +47,6 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError as exc:
         parser.error(str(exc))
     env = lapwarp.make(args.task, num_envs=args.num_envs, device=args.device, use_cuda_graph=False, **overrides)
-    if args.chain_solver is not None:
-        env.world.chain_solver = args.chain_solver
-        if args.chain_solver == "pcr":
-            env.world.chain_block_links = 0
     if args.triangle_sweep is not None:
         for solver in env.world.solvers:  # before the first step records the launches
             if hasattr(solver, "triangle_sweep"):
