@@ -40,16 +40,11 @@ def sync(device: str) -> None:
 
 def bench_one(task: str, num_envs: int, device: str, seconds: float, invalid_actions: str, overrides: dict,
               policy: str = "random", tet_solver: str | None = None, cuda_graph: bool = True,
-              surface_refit_interval: int | None = None, triangle_sweep: str | None = None,
-              chain_solver: str | None = None) -> dict:
+              surface_refit_interval: int | None = None, triangle_sweep: str | None = None) -> dict:
     env = lapwarp.make(task, num_envs=num_envs, device=device, invalid_actions=invalid_actions,
                        use_cuda_graph=cuda_graph, **overrides)
     if tet_solver is not None:
         env.world.tet_solver = tet_solver  # before the first step records (and the env captures) the launches
-    if chain_solver is not None:
-        env.world.chain_solver = chain_solver
-        if chain_solver == "pcr":
-            env.world.chain_block_links = 0  # PCR replaces the one-thread-per-chain solve, not the partitioned one
     for solver in env.world.solvers:  # contact settings, before the first step records the launches
         if surface_refit_interval is not None and hasattr(solver, "surface_refit_interval"):
             solver.surface_refit_interval = surface_refit_interval
@@ -92,7 +87,6 @@ def bench_one(task: str, num_envs: int, device: str, seconds: float, invalid_act
         "triangle_sweep": next((s.triangle_sweep for s in env.world.solvers if hasattr(s, "triangle_sweep")), None),
         "surface_refit_interval": next((s.surface_refit_interval for s in env.world.solvers
                                         if hasattr(s, "surface_refit_interval")), None),
-        "chain_solver": env.world.chain_solver, "chain_block_links": env.world.chain_block_links,
         "tet_solver": ("fused" if env.world.fused_tets else "colored") if env.world.model.tet_count else None,
     }
     env.close()
@@ -120,9 +114,6 @@ def main(argv: list[str] | None = None) -> int:
                              "default: the contact system's own)")
     parser.add_argument("--triangle-sweep", choices=["colored", "fused"], default=None,
                         help="the contact system's triangle sweep (default: its own)")
-    parser.add_argument("--chain-solver", choices=["serial", "pcr"], default=None,
-                        help="the world's direct chain solve (pcr: also one block per chain instead of the partitioned "
-                             "solve; default: the task's own)")
     parser.add_argument("--no-graph", action="store_true",
                         help="launch the step's kernels one by one instead of replaying a CUDA graph")
     parser.add_argument("--out", default=None, help="JSON output path")
@@ -145,7 +136,7 @@ def main(argv: list[str] | None = None) -> int:
         for mode in modes:
             r = bench_one(args.task, n, args.device, args.seconds, mode, overrides, args.policy, args.tet_solver,
                           cuda_graph=not args.no_graph, surface_refit_interval=args.surface_refit_interval,
-                          triangle_sweep=args.triangle_sweep, chain_solver=args.chain_solver)
+                          triangle_sweep=args.triangle_sweep)
             results.append(r)
             print(f"{r['task']:<10} {n:>9} {mode:>8} {r['env_steps_per_s']:>14,.0f} {r['step_ms']:>9.3f}", flush=True)
     report = {"benchmark": "env_step", "regime": f"env step only, {args.policy} actions", "device": args.device,

@@ -11,8 +11,6 @@ keep 256. On the CPU the block size is ignored.
 
 from __future__ import annotations
 
-import contextlib
-
 import numpy as np
 import warp as wp
 
@@ -36,17 +34,3 @@ def launch(kernel, dim, inputs=(), outputs=(), device=None, block_dim: int | Non
     if block_dim is None and dev.is_cuda:
         block_dim = block_dim_for(dim, dev.sm_count)
     return wp.launch(kernel, dim=dim, inputs=inputs, outputs=outputs, device=dev, block_dim=block_dim, **kwargs)
-
-
-@contextlib.contextmanager
-def cpu_blocks():
-    """Launches created inside run their blocks' lanes as Warp's cooperative CPU fibers
-    (``wp.config.enable_cpu_blocks``, experimental in Warp 1.19; otherwise a CPU block has one lane): for kernels
-    whose lanes exchange data through shared memory and cannot run one lane per block (``kernels/chains_pcr.py``).
-    The setting is read when a launch is created, so a recorded launch keeps it."""
-    previous = wp.config.enable_cpu_blocks
-    wp.config.enable_cpu_blocks = True
-    try:
-        yield
-    finally:
-        wp.config.enable_cpu_blocks = previous

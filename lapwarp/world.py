@@ -28,7 +28,7 @@ import warp as wp
 
 from lapwarp import launching
 from lapwarp.config import check_seed, rng_seed32
-from lapwarp.kernels import chains, chains_partitioned, chains_pcr, geodesic, world_kernels
+from lapwarp.kernels import chains, chains_partitioned, geodesic, world_kernels
 from lapwarp.model import Control, Model, State
 from lapwarp.vbd import tet_components, vertex_layout
 
@@ -40,8 +40,6 @@ TET_SOLVERS = ("auto", "colored", "fused")
 #: the tet methods ``World.tet_method`` may name: XPBD constraint projection, per-vertex descent (kernels/vbd.py), or
 #: "auto": per vertex where every tet mesh has a pinned particle in every env, else XPBD
 TET_METHODS = ("auto", "xpbd", "vbd")
-#: the one-thread-per-chain solves ``world.chain_solver`` may name (see World.__init__)
-CHAIN_SOLVERS = ("serial", "pcr")
 #: the largest tet particle window the fused sweep keeps in shared memory (12 B each: 48 KB, the static limit)
 FUSED_TET_MAX_PARTICLES = 4096
 
@@ -145,11 +143,6 @@ class World:
         # chain (kernels/chains.py); B > 1 = the partitioned solve (kernels/chains_partitioned.py), blocks of B links
         # side by side plus a serial pass over the m / B separators, for few long chains (a rope per env on the GPU)
         self.chain_block_links = 0
-        # the one-thread-per-chain solve (chain_block_links <= 1): "serial" = a thread walks each chain (Thomas);
-        # "pcr" = a block of 32 / 64 / 128 threads per chain, parallel cyclic reduction (kernels/chains_pcr.py), for
-        # families of open chains of up to 127 links (others stay serial): few short chains per env leave a serial
-        # launch latency-bound (RopeCutting's five ropes)
-        self.chain_solver = "serial"
         # tets' rotation: warm-started extraction iterations per projection (0 = SVD polar decomposition)
         self.tet_rotation_iterations = 2
         # tet sweep (TET_SOLVERS): "colored" = one launch per graph colour; "fused" = one launch per sweep, a thread
@@ -249,16 +242,6 @@ class World:
         return (*(wp.zeros((n, links), dtype=float, device=dev) for _ in range(4)),
                 wp.zeros((n, nodes), dtype=float, device=dev), wp.zeros((n, nodes), dtype=wp.vec3, device=dev),
                 wp.zeros((n, nodes), dtype=wp.vec3, device=dev))
-
-    def _pcr_lanes(self, cs) -> list[int]:
-        """Per family of ``cs``: the PCR block size for its chains, 0 where it must stay serial (a loop, or a chain
-        too long for the largest block)."""
-        closed = cs.closed.numpy() != 0
-        out = []
-        for first, count, _, _ in cs.families:
-            fam = slice(first, first + count)
-            out.append(0 if closed[fam].any() else chains_pcr.pcr_lanes_for(int(cs.lengths[fam].max())))
-        return out
 
     def _chain_partition(self, chains, scratch: tuple) -> tuple[list, object]:
         """Block layout and scratch of the partitioned solve of a chain set at ``chain_block_links`` (allocated on
@@ -389,8 +372,7 @@ class World:
         if self.model.particle_count == 0:
             return
         key = (float(dt), self.substeps_for(float(dt)), self.iterations, self.rod_newton_steps, self.chain_newton_steps,
-               self.tet_rotation_iterations, self.chain_block_links, self.chain_solver, self.tet_solver,
-               self.tet_block_threads,
+               self.tet_rotation_iterations, self.chain_block_links, self.tet_solver, self.tet_block_threads,
                self.tet_method_in_use,
                *(solver.record_key() for solver in self.solvers if hasattr(solver, "record_key")))
         if self._cmd_key != key:
@@ -401,8 +383,6 @@ class World:
                 raise ValueError(f"world.tet_method 'vbd' moves a stiff body as a whole only slowly, so it takes only "
                                  f"tet meshes with a pinned particle in every env; the mesh of particles "
                                  f"{first}..{last} has none: use 'xpbd' (docs/physics.md)")
-            if self.chain_solver not in CHAIN_SOLVERS:
-                raise ValueError(f"world.chain_solver must be one of {CHAIN_SOLVERS}, got {self.chain_solver!r}")
             if self.tet_solver not in TET_SOLVERS:
                 raise ValueError(f"world.tet_solver must be one of {TET_SOLVERS}, got {self.tet_solver!r}")
             if self.tet_solver == "fused" and self._tet_window[1] > FUSED_TET_MAX_PARTICLES:
@@ -497,15 +477,7 @@ class World:
                     chains_partitioned.record_family(launch, n, fam, blocks, sc, s.particle_q)
                 return
             # one launch per family of chains that share no node (Gauss-Seidel across families)
-            pcr = self._pcr_lanes(cs) if self.chain_solver == "pcr" else [0] * cs.num_families
-            for (first, count, link_base, node_base), lanes in zip(cs.families, pcr, strict=True):
-                if lanes:
-                    with launching.cpu_blocks():  # the lanes of a chain's block cooperate, on the CPU too
-                        launch(chains_pcr.pcr_chain_kernel(lanes), (n, count, lanes),
-                               [first, count, link_base, node_base, cs.edge_count, cs.node, cs.constraint, rest,
-                                compliance, w_eff, inv_dt2, use_lam, newton_steps, lam_arr, mask], [s.particle_q],
-                               block_dim=lanes)
-                    continue
+            for first, count, link_base, node_base in cs.families:
                 launch(kernel, (n, count),
                        [first, count, link_base, node_base, cs.edge_count, cs.closed, cs.node, cs.constraint, rest,
                         compliance, w_eff, inv_dt2, use_lam, newton_steps, lam_arr, *scratch, mask],
