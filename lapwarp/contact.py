@@ -651,7 +651,8 @@ class ContactSystem:
                 launch(sf["mesh"].refit)  # BVH bounds of the surface as it is now (after this sweep's constraints)
                 launch(ck.surface_snapshot, (n, verts.shape[0]), [verts, q], [snap, drift])
             else:
-                launch(ck.surface_drift, (n, verts.shape[0]), [verts, q, snap], [drift])
+                lanes = 64 if self.device.is_cuda else 1  # a block per env (one lane per block on the CPU)
+                launch(ck.surface_drift, (n, lanes), [verts, q, snap], [drift], block_dim=lanes)
             launch(ck.collide_surface, (n, len(sf["candidates"])),
                    [self._particles, sf["candidates"], sf["surface"], shapes, solve, masks, report, self.report_margin],
                    [q, self.surf_delta, self.surf_count, reports])
