@@ -389,6 +389,22 @@ def test_stale_surface_bvh_finds_the_same_contacts(device, interval):
     assert x[:, beads.particle_start:, 2].min() > 0.02  # every bead was pushed up by the surface (it started at 12 mm)
 
 
+def test_negative_surface_refit_interval_is_rejected(device):
+    """``surface_refit_interval`` below 0 is a clear error when the step is recorded, not a silent every-sweep refit."""
+    v, t = box_tets((0.02, 0.02, 0.01), (2, 2, 1), origin=(-0.01, -0.01, 0.0))
+    b = SceneBuilder()
+    blk = b.add_tet_mesh(v, t, density=1000.0, youngs_modulus=1e5, poisson_ratio=0.3)
+    bead = b.add_particles(np.array([[0.0, 0.0, 0.02]]), mass=1.0e-4)
+    w = b.finalize(num_envs=1, device=device, substeps=2)
+    cs = ContactSystem(w)
+    cs.add_particle_group(bead, radius=5.0e-4)
+    cs.add_surface(blk)
+    cs.surface_refit_interval = -1
+    cs.finalize()
+    with pytest.raises(ValueError, match="surface_refit_interval"):
+        w.step(0.01)
+
+
 def test_cell_list_matches_brute_force(device):
     """One step of 300 random particles (r = 1 mm, many overlapping) per env in a 2 cm box: the per-env cell list
     finds exactly the pairs of the brute force (same contact count, positions equal to 1e-6 m; the order of the
