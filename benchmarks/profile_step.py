@@ -80,6 +80,8 @@ def main(argv: list[str] | None = None) -> int:
     rows = sorted(((name, n / args.steps, ms / args.steps) for name, (n, ms) in per_kernel.items()),
                   key=lambda row: -row[2])
     total = sum(row[2] for row in rows)
+    if not env.wp_device.is_cuda:
+        print("note: Warp records kernel times only on CUDA devices; on the CPU only the wall time is measured")
     print(f"{args.task}, {args.num_envs} envs: {total:.3f} ms kernel time per env step, "
           f"{sum(row[1] for row in rows):.0f} launches; {wall_ms:.3f} ms wall per step (no graph, profiled)")
     for name, launches, ms in rows[: args.top]:
@@ -89,7 +91,8 @@ def main(argv: list[str] | None = None) -> int:
             json.dump({"task": args.task, "num_envs": args.num_envs, "steps": args.steps, "policy": args.policy,
                        "overrides": overrides, "kernel_ms_per_step": total, "warmup": args.warmup,
                        "timing": args.timing, "profiled_wall_ms_per_step": wall_ms,
-                       "device_name": torch.cuda.get_device_name(torch.device(args.device)),
+                       "device_name": (torch.cuda.get_device_name(torch.device(args.device))
+                                       if env.wp_device.is_cuda else "cpu"),
                        "kernels": [{"name": n, "launches_per_step": k, "ms_per_step": t} for n, k, t in rows]},
                       f, indent=2)
     env.close()

@@ -78,6 +78,26 @@ def test_bench_env_writes_json(device, tmp_path):
     assert all(r["env_steps_per_s"] > 0 for r in report["results"])
 
 
+def test_bench_env_applies_and_records_the_contact_settings(device, tmp_path):
+    """``--surface-refit-interval``, ``--triangle-sweep`` and ``--no-graph`` reach the env's contact system and
+    world before the first step and are written with the result."""
+    out = tmp_path / "bench.json"
+    assert bench_env.main(["--device", device, "--task", "ThreadInHole", "--num-envs", "1", "--seconds", "0.05",
+                           "--surface-refit-interval", "3", "--triangle-sweep", "colored", "--no-graph",
+                           "--out", str(out)]) == 0
+    (r,) = json.loads(out.read_text())["results"]
+    assert r["surface_refit_interval"] == 3 and r["triangle_sweep"] == "colored" and r["cuda_graph"] is False
+    assert r["env_steps_per_s"] > 0
+
+
+def test_profile_step_records_warmup_timing_and_wall(device, tmp_path):
+    out = tmp_path / "profile.json"
+    assert profile_step.main(["--device", device, "--task", "Reach", "--num-envs", "2", "--steps", "2", "--warmup",
+                              "1", "--timing", "all", "--policy", "random", "--out", str(out)]) == 0
+    report = json.loads(out.read_text())
+    assert report["warmup"] == 1 and report["timing"] == "all" and report["profiled_wall_ms_per_step"] > 0
+
+
 def test_bench_fused_compares_each_sweep_of_a_task(device, tmp_path):
     """``bench_fused.py`` times the per-colour and the fused tet and triangle sweeps of a task (one JSON line each)."""
     out = tmp_path / "fused.jsonl"
@@ -130,6 +150,10 @@ def test_soak_counts_faults_and_checks_determinism(device, tmp_path, capsys):
     (bench_env, ["--task", "Reach", "--num-envs", "4", "0"], "expected a positive integer, got 0"),
     (bench_env, ["--task", "Reach", "--set", "sphere_radus=0.01"], "unknown config key(s) ['sphere_radus']"),
     (profile_step, ["--task", "Reach", "--steps", "0"], "expected a positive integer, got 0"),
+    (profile_step, ["--task", "Reach", "--warmup", "0"], "expected a positive integer, got 0"),
+    (profile_step, ["--task", "Reach", "--timing", "some"], "invalid choice: 'some'"),
+    (bench_env, ["--task", "Reach", "--surface-refit-interval", "-1"], "expected a non-negative integer, got -1"),
+    (bench_env, ["--task", "Reach", "--triangle-sweep", "shared"], "invalid choice: 'shared'"),
     (profile_step, ["--task", "Reach", "--set", "invalid_actions=maybe"], "invalid_actions"),
     (soak, ["--tasks", "Reach", "--set", "seed=3"], "--set cannot set ['seed']"),
     (expert_success, ["--task", "Reach", "--config", "action_type=DISCRETE"], "--config cannot set ['action_type']"),
