@@ -38,6 +38,21 @@ def sync(device: str) -> None:
         torch.cuda.synchronize(torch.device(device))
 
 
+def contact_systems(env) -> list:
+    """The env's contact systems (the World's solvers that have contact settings)."""
+    return [solver for solver in env.world.solvers if hasattr(solver, "triangle_sweep")]
+
+
+def apply_contact_settings(env, surface_refit_interval: int | None = None, triangle_sweep: str | None = None) -> None:
+    """Set the contact systems' refit interval and triangle sweep (None: keep theirs), before the first step records
+    the launches (and the env captures them)."""
+    for contact in contact_systems(env):
+        if surface_refit_interval is not None:
+            contact.surface_refit_interval = surface_refit_interval
+        if triangle_sweep is not None:
+            contact.triangle_sweep = triangle_sweep
+
+
 def bench_one(task: str, num_envs: int, device: str, seconds: float, invalid_actions: str, overrides: dict,
               policy: str = "random", tet_solver: str | None = None, cuda_graph: bool = True,
               surface_refit_interval: int | None = None, triangle_sweep: str | None = None) -> dict:
@@ -45,11 +60,7 @@ def bench_one(task: str, num_envs: int, device: str, seconds: float, invalid_act
                        use_cuda_graph=cuda_graph, **overrides)
     if tet_solver is not None:
         env.world.tet_solver = tet_solver  # before the first step records (and the env captures) the launches
-    for solver in env.world.solvers:  # contact settings, before the first step records the launches
-        if surface_refit_interval is not None and hasattr(solver, "surface_refit_interval"):
-            solver.surface_refit_interval = surface_refit_interval
-        if triangle_sweep is not None and hasattr(solver, "triangle_sweep"):
-            solver.triangle_sweep = triangle_sweep
+    apply_contact_settings(env, surface_refit_interval, triangle_sweep)
     gen = torch.Generator(device=env.device).manual_seed(0)
     if policy == "expert":
         # The scripted expert acts on the live state every step (its own device work is timed too): this is the
@@ -84,9 +95,8 @@ def bench_one(task: str, num_envs: int, device: str, seconds: float, invalid_act
         "time_step": env.cfg.time_step,
         "observation_type": env.cfg.observation_type, "cuda_graph": env._use_cuda_graph,
         "resolution": list(env.cfg.image_shape) if env.uses_images else None,
-        "triangle_sweep": next((s.triangle_sweep for s in env.world.solvers if hasattr(s, "triangle_sweep")), None),
-        "surface_refit_interval": next((s.surface_refit_interval for s in env.world.solvers
-                                        if hasattr(s, "surface_refit_interval")), None),
+        "triangle_sweep": next((c.triangle_sweep for c in contact_systems(env)), None),
+        "surface_refit_interval": next((c.surface_refit_interval for c in contact_systems(env)), None),
         "tet_solver": ("fused" if env.world.fused_tets else "colored") if env.world.model.tet_count else None,
     }
     env.close()

@@ -18,6 +18,7 @@ import time
 
 import torch
 import warp as wp
+from bench_env import apply_contact_settings
 
 import lapwarp
 from lapwarp.cli import parse_overrides, positive_int
@@ -47,10 +48,7 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError as exc:
         parser.error(str(exc))
     env = lapwarp.make(args.task, num_envs=args.num_envs, device=args.device, use_cuda_graph=False, **overrides)
-    if args.triangle_sweep is not None:
-        for solver in env.world.solvers:  # before the first step records the launches
-            if hasattr(solver, "triangle_sweep"):
-                solver.triangle_sweep = args.triangle_sweep
+    apply_contact_settings(env, triangle_sweep=args.triangle_sweep)
     if args.policy == "expert":
         expert = make_expert(env)
     else:
