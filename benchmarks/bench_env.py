@@ -43,24 +43,28 @@ def contact_systems(env) -> list:
     return [solver for solver in env.world.solvers if hasattr(solver, "triangle_sweep")]
 
 
-def apply_contact_settings(env, surface_refit_interval: int | None = None, triangle_sweep: str | None = None) -> None:
-    """Set the contact systems' refit interval and triangle sweep (None: keep theirs), before the first step records
-    the launches (and the env captures them)."""
+def apply_contact_settings(env, surface_refit_interval: int | None = None, triangle_sweep: str | None = None,
+                           triangle_block_threads: int | None = None) -> None:
+    """Set the contact systems' refit interval, triangle sweep and the fused sweep's threads per env block (None: keep
+    theirs), before the first step records the launches (and the env captures them)."""
     for contact in contact_systems(env):
         if surface_refit_interval is not None:
             contact.surface_refit_interval = surface_refit_interval
         if triangle_sweep is not None:
             contact.triangle_sweep = triangle_sweep
+        if triangle_block_threads is not None:
+            contact.triangle_block_threads = triangle_block_threads
 
 
 def bench_one(task: str, num_envs: int, device: str, seconds: float, invalid_actions: str, overrides: dict,
               policy: str = "random", tet_solver: str | None = None, cuda_graph: bool = True,
-              surface_refit_interval: int | None = None, triangle_sweep: str | None = None) -> dict:
+              surface_refit_interval: int | None = None, triangle_sweep: str | None = None,
+              triangle_block_threads: int | None = None) -> dict:
     env = lapwarp.make(task, num_envs=num_envs, device=device, invalid_actions=invalid_actions,
                        use_cuda_graph=cuda_graph, **overrides)
     if tet_solver is not None:
         env.world.tet_solver = tet_solver  # before the first step records (and the env captures) the launches
-    apply_contact_settings(env, surface_refit_interval, triangle_sweep)
+    apply_contact_settings(env, surface_refit_interval, triangle_sweep, triangle_block_threads)
     gen = torch.Generator(device=env.device).manual_seed(0)
     if policy == "expert":
         # The scripted expert acts on the live state every step (its own device work is timed too): this is the
@@ -97,6 +101,7 @@ def bench_one(task: str, num_envs: int, device: str, seconds: float, invalid_act
         "resolution": list(env.cfg.image_shape) if env.uses_images else None,
         "triangle_sweep": next((c.triangle_sweep for c in contact_systems(env)), None),
         "surface_refit_interval": next((c.surface_refit_interval for c in contact_systems(env)), None),
+        "triangle_block_threads": next((c.triangle_block_threads for c in contact_systems(env)), None),
         "tet_solver": ("fused" if env.world.fused_tets else "colored") if env.world.model.tet_count else None,
     }
     env.close()
@@ -124,6 +129,8 @@ def main(argv: list[str] | None = None) -> int:
                              "default: the contact system's own)")
     parser.add_argument("--triangle-sweep", choices=["colored", "fused"], default=None,
                         help="the contact system's triangle sweep (default: its own)")
+    parser.add_argument("--triangle-block-threads", type=positive_int, default=None,
+                        help="threads per env block of the fused triangle sweep (default: the contact system's own)")
     parser.add_argument("--no-graph", action="store_true",
                         help="launch the step's kernels one by one instead of replaying a CUDA graph")
     parser.add_argument("--out", default=None, help="JSON output path")
@@ -146,7 +153,7 @@ def main(argv: list[str] | None = None) -> int:
         for mode in modes:
             r = bench_one(args.task, n, args.device, args.seconds, mode, overrides, args.policy, args.tet_solver,
                           cuda_graph=not args.no_graph, surface_refit_interval=args.surface_refit_interval,
-                          triangle_sweep=args.triangle_sweep)
+                          triangle_sweep=args.triangle_sweep, triangle_block_threads=args.triangle_block_threads)
             results.append(r)
             print(f"{r['task']:<10} {n:>9} {mode:>8} {r['env_steps_per_s']:>14,.0f} {r['step_ms']:>9.3f}", flush=True)
     report = {"benchmark": "env_step", "regime": f"env step only, {args.policy} actions", "device": args.device,

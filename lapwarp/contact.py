@@ -464,6 +464,8 @@ class ContactSystem:
             S = max(len(self.shapes), 1)
             self._tool_axes = make_struct(ck.ToolAxes, c0=wp.zeros((n, S), dtype=wp.vec3, device=dev),
                                           c1=wp.zeros((n, S), dtype=wp.vec3, device=dev),
+                                          tf0=wp.zeros((n, S), dtype=wp.transform, device=dev),
+                                          back=wp.zeros((n, S), dtype=wp.transform, device=dev),
                                           lo=wp.zeros(n, dtype=wp.vec3, device=dev),
                                           hi=wp.zeros(n, dtype=wp.vec3, device=dev))
             self._tri_pad = float(np.concatenate(trad).max())
@@ -636,12 +638,12 @@ class ContactSystem:
         if len(off) > 1 and self.triangle_sweep == "fused":
             threads = self.triangle_block_threads if self.device.is_cuda else 1  # one lane per block on the CPU
             launch(ck.collide_triangle_colors, (n, threads),
-                   [self._triangles, self._tri_color_table, shapes, motion, self._tool_axes, solve, ignore, masks],
+                   [self._triangles, self._tri_color_table, shapes, self._tool_axes, solve, ignore, masks],
                    [q, reports], block_dim=threads)
         elif len(off) > 1:
             for c in range(len(off) - 1):
                 launch(ck.collide_triangles, (n, off[c + 1] - off[c]),
-                       [self._triangles, off[c], shapes, motion, self._tool_axes, solve, ignore, masks], [q, reports])
+                       [self._triangles, off[c], shapes, self._tool_axes, solve, ignore, masks], [q, reports])
         refit = self._refits_surfaces(sweep)
         for sf in self._surfaces:
             if len(sf["candidates"]) == 0:

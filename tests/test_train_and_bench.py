@@ -79,14 +79,15 @@ def test_bench_env_writes_json(device, tmp_path):
 
 
 def test_bench_env_applies_and_records_the_contact_settings(device, tmp_path):
-    """``--surface-refit-interval``, ``--triangle-sweep`` and ``--no-graph`` reach the env's contact system and
-    world before the first step and are written with the result."""
+    """``--surface-refit-interval``, ``--triangle-sweep``, ``--triangle-block-threads`` and ``--no-graph`` reach the
+    env's contact system and world before the first step and are written with the result."""
     out = tmp_path / "bench.json"
     assert bench_env.main(["--device", device, "--task", "ThreadInHole", "--num-envs", "1", "--seconds", "0.05",
                            "--surface-refit-interval", "3", "--triangle-sweep", "colored", "--no-graph",
-                           "--out", str(out)]) == 0
+                           "--triangle-block-threads", "16", "--out", str(out)]) == 0
     (r,) = json.loads(out.read_text())["results"]
     assert r["surface_refit_interval"] == 3 and r["triangle_sweep"] == "colored" and r["cuda_graph"] is False
+    assert r["triangle_block_threads"] == 16
     assert r["env_steps_per_s"] > 0
 
 

@@ -512,6 +512,11 @@ class ToolAxes:
 
     c0: wp.array2d(dtype=wp.vec3)
     c1: wp.array2d(dtype=wp.vec3)
+    # a triangle touching a tool needs the tool's pose at the substep start (tf0: which side the tool came from) and
+    # its motion over the substep (back = tf0 * tf^-1 maps a point on the tool to where it was, for friction);
+    # blending the body poses per triangle and shape, as before, cost more than the contact itself
+    tf0: wp.array2d(dtype=wp.transform)
+    back: wp.array2d(dtype=wp.transform)
     lo: wp.array(dtype=wp.vec3)
     hi: wp.array(dtype=wp.vec3)
 
@@ -529,6 +534,9 @@ def compute_tool_axes(shapes: ShapeTable, motion: BodyMotion, pad: float, axes: 
         b = shape_axis_end(shapes, s, tf, 1.0)
         axes.c0[env, s] = a
         axes.c1[env, s] = b
+        tf0 = shape_pose(shapes, s, env, motion, motion.blend_prev)
+        axes.tf0[env, s] = tf0
+        axes.back[env, s] = wp.transform_multiply(tf0, wp.transform_inverse(tf))
         r = wp.vec3(shapes.params[s][0] + shapes.thickness[s])
         lo = wp.min(lo, wp.min(a, b) - r)
         hi = wp.max(hi, wp.max(a, b) + r)
@@ -542,7 +550,6 @@ def collide_triangle(
     k: int,
     triangles: ContactTriangles,
     shapes: ShapeTable,
-    motion: BodyMotion,
     axes: ToolAxes,
     solve: ParticleSolve,
     ignore: IgnoreMask,
@@ -552,25 +559,11 @@ def collide_triangle(
 ):
     """Triangle ``k`` of env ``env`` against the env's tools (capsules), over its interior: a tool resting on a
     triangle's interior is seen even where no vertex is near it, so a capsule moving ~its radius per substep cannot
-    slip between the vertices of a tensioned sheet (vertex-only contact let it through at 1 mm per substep)."""
-    if masks.tri_col.shape[0] > 0:
-        # cuttable objects: tri_col >= 0 is a cloth triangle (tri_active), <= -2 the tet face -2 - tri_col
-        # (tet_face_active: only faces on the current surface collide), -1 always collides
-        tc = masks.tri_col[k]
-        if tc >= 0:
-            if masks.tri_active[env, tc] == 0:
-                return
-        elif tc <= -2:
-            if masks.tet_face_active[env, -2 - tc] == 0:
-                return
+    slip between the vertices of a tensioned sheet (vertex-only contact let it through at 1 mm per substep).
+    The tests run cheapest-first: nearly every triangle is far from every tool, and the env's box test needs only
+    the nodes and their positions, so the cut masks and inverse masses are read only for triangles near a tool
+    (the colours of a fused sweep run one after another, so each dependent load here is paid in series)."""
     tri = triangles.nodes[k]
-    pe = env % solve.inv_mass.shape[0]
-    w0 = solve.inv_mass[pe, tri[0]]
-    w1 = solve.inv_mass[pe, tri[1]]
-    w2 = solve.inv_mass[pe, tri[2]]
-    if w0 + w1 + w2 == 0.0:
-        return
-    g = triangles.group[k]
     x0 = q[env, tri[0]]
     x1 = q[env, tri[1]]
     x2 = q[env, tri[2]]
@@ -581,6 +574,23 @@ def collide_triangle(
     hi = axes.hi[env]
     if tmax[0] < lo[0] or tmax[1] < lo[1] or tmax[2] < lo[2] or tmin[0] > hi[0] or tmin[1] > hi[1] or tmin[2] > hi[2]:
         return
+    if masks.tri_col.shape[0] > 0:
+        # cuttable objects: tri_col >= 0 is a cloth triangle (tri_active), <= -2 the tet face -2 - tri_col
+        # (tet_face_active: only faces on the current surface collide), -1 always collides
+        tc = masks.tri_col[k]
+        if tc >= 0:
+            if masks.tri_active[env, tc] == 0:
+                return
+        elif tc <= -2:
+            if masks.tet_face_active[env, -2 - tc] == 0:
+                return
+    pe = env % solve.inv_mass.shape[0]
+    w0 = solve.inv_mass[pe, tri[0]]
+    w1 = solve.inv_mass[pe, tri[1]]
+    w2 = solve.inv_mass[pe, tri[2]]
+    if w0 + w1 + w2 == 0.0:
+        return
+    g = triangles.group[k]
     ignore_bits = ignored_bodies(ignore, env, tri[0]) | ignored_bodies(ignore, env, tri[1])
     ignore_bits = ignore_bits | ignored_bodies(ignore, env, tri[2])
     for s in range(shapes.kind.shape[0]):
@@ -603,24 +613,22 @@ def collide_triangle(
         bw = wp.vec3(cl[1], cl[2], cl[3])
         p = x0 * bw[0] + x1 * bw[1] + x2 * bw[2]
         c = c0 * (1.0 - cl[0]) + c1 * cl[0]
-        fn = safe_normalize(wp.cross(x1 - x0, x2 - x0), wp.vec3(0.0, 0.0, 1.0))
-        # axis touching the triangle: push to the side the tool came from (its centre at the substep start)
-        tf = shape_pose(shapes, s, env, motion, motion.blend)
-        tf0 = shape_pose(shapes, s, env, motion, motion.blend_prev)
-        side = wp.dot(p - wp.transform_get_translation(tf0), fn)
-        if side < 0.0:
-            fn = -fn
-        n = safe_normalize(p - c, fn)
         pen = triangles.radius[k] + shapes.params[s][0] + shapes.thickness[s] - wp.length(p - c)
         if pen <= 0.0:
             continue
+        fn = safe_normalize(wp.cross(x1 - x0, x2 - x0), wp.vec3(0.0, 0.0, 1.0))
+        # axis touching the triangle: push to the side the tool came from (its centre at the substep start)
+        side = wp.dot(p - wp.transform_get_translation(axes.tf0[env, s]), fn)
+        if side < 0.0:
+            fn = -fn
+        n = safe_normalize(p - c, fn)
         wsum = bw[0] * bw[0] * w0 + bw[1] * bw[1] * w1 + bw[2] * bw[2] * w2
         if wsum <= 0.0:
             continue
         # friction on the relative motion of the contact point during this substep
         p0 = start_position(solve, env, tri[0]) * bw[0] + start_position(solve, env, tri[1]) * bw[1]
         p0 = p0 + start_position(solve, env, tri[2]) * bw[2]
-        c_0 = wp.transform_point(tf0, wp.transform_point(wp.transform_inverse(tf), c))
+        c_0 = wp.transform_point(axes.back[env, s], c)
         rel = (p + n * pen - p0) - (c - c_0)
         dp = n * pen + friction_correction(rel, n, pen, shapes.mu[s])
         x0 = x0 + dp * node_share(bw[0], w0, wsum)
@@ -637,7 +645,6 @@ def collide_triangles(
     triangles: ContactTriangles,
     start: int,
     shapes: ShapeTable,
-    motion: BodyMotion,
     axes: ToolAxes,
     solve: ParticleSolve,
     ignore: IgnoreMask,
@@ -647,7 +654,7 @@ def collide_triangles(
 ):
     """One colour of triangles (a colour shares no vertex), one thread per (env, triangle)."""
     env, k0 = wp.tid()
-    collide_triangle(env, start + k0, triangles, shapes, motion, axes, solve, ignore, masks, q, reports)
+    collide_triangle(env, start + k0, triangles, shapes, axes, solve, ignore, masks, q, reports)
 
 
 @wp.kernel
@@ -655,7 +662,6 @@ def collide_triangle_colors(
     triangles: ContactTriangles,
     color_offsets: wp.array(dtype=wp.int32),
     shapes: ShapeTable,
-    motion: BodyMotion,
     axes: ToolAxes,
     solve: ParticleSolve,
     ignore: IgnoreMask,
@@ -674,7 +680,7 @@ def collide_triangle_colors(
         end = color_offsets[c + 1]
         for base in range(color_offsets[c], end, lanes):
             if base + lane < end:
-                collide_triangle(env, base + lane, triangles, shapes, motion, axes, solve, ignore, masks, q, reports)
+                collide_triangle(env, base + lane, triangles, shapes, axes, solve, ignore, masks, q, reports)
         # nothing written: a barrier, so the next colour reads the positions this one moved
         wp.tile_scatter_masked(barrier, 0, 0, False)
 
