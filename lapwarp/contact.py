@@ -622,7 +622,10 @@ class ContactSystem:
         report = 1 if sweep.last else 0
         shapes, motion, solve = self.shape_table, self.body_motion(world, sweep), self._particle_solve(world, sweep)
         ignore, masks, reports = self.ignore, self._cut_masks, self.reports
-        if len(self.shapes):
+        off = self.tri_color_offsets
+        if len(off) > 1:  # the triangle passes' tool axes with the shape poses
+            launch(ck.pose_shapes_and_tools, n, [shapes, motion, self._tri_pad], [self._shape_poses, self._tool_axes])
+        elif len(self.shapes):
             launch(ck.pose_shapes, (n, len(self.shapes)), [shapes, motion], [self._shape_poses])
         if len(self.cp_particle):
             launch(ck.collide_particles, (n, len(self.cp_particle)),
@@ -633,8 +636,6 @@ class ContactSystem:
             launch(ck.collide_segments, (n, off[c + 1] - off[c]),
                    [self._segments, off[c], shapes, motion, self._shape_poses, solve, ignore, masks], [q, reports])
         off = self.tri_color_offsets
-        if len(off) > 1:
-            launch(ck.compute_tool_axes, n, [shapes, motion, self._tri_pad], [self._tool_axes])
         if len(off) > 1 and self.triangle_sweep == "fused":
             threads = self.triangle_block_threads if self.device.is_cuda else 1  # one lane per block on the CPU
             launch(ck.collide_triangle_colors, (n, threads),

@@ -522,14 +522,18 @@ class ToolAxes:
 
 
 @wp.kernel
-def compute_tool_axes(shapes: ShapeTable, motion: BodyMotion, pad: float, axes: ToolAxes):
+def pose_shapes_and_tools(shapes: ShapeTable, motion: BodyMotion, pad: float, poses: ShapePoses, axes: ToolAxes):
+    """``pose_shapes`` and the tool axes of the triangle passes in one launch per env (a system with contact
+    triangles): both are a few transforms per env, nearly all launch cost when apart."""
     env = wp.tid()
     lo = wp.vec3(1.0e30)
     hi = wp.vec3(-1.0e30)
     for s in range(shapes.kind.shape[0]):
+        tf = shape_pose(shapes, s, env, motion, motion.blend)
+        poses.tf[env, s] = tf
+        poses.tf_inv[env, s] = wp.transform_inverse(tf)
         if shapes.kind[s] > SHAPE_CAPSULE:
             continue
-        tf = shape_pose(shapes, s, env, motion, motion.blend)
         a = shape_axis_end(shapes, s, tf, -1.0)
         b = shape_axis_end(shapes, s, tf, 1.0)
         axes.c0[env, s] = a
