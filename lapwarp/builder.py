@@ -42,11 +42,13 @@ def _per_env(value, name: str) -> np.ndarray:
     return a
 
 
-def color_graph(elements: np.ndarray) -> tuple[np.ndarray, list[int]]:
+def color_graph(elements: np.ndarray, max_size: int | None = None) -> tuple[np.ndarray, list[int]]:
     """Greedy graph colouring of constraints that share nodes.
 
     Args:
         elements: ``(m, k)`` node indices of each constraint (negative entries are ignored).
+        max_size: most constraints per colour (None: no limit). A sweep that takes each colour in chunks of a thread
+            block's lanes runs one chunk per colour when the colours fit the block.
 
     Returns:
         ``(order, offsets)``: a permutation that sorts constraints by colour and the host list of colour
@@ -56,16 +58,23 @@ def color_graph(elements: np.ndarray) -> tuple[np.ndarray, list[int]]:
     m = len(elements)
     if m == 0:
         return np.zeros(0, dtype=np.int64), [0]
+    if max_size is not None and max_size < 1:
+        raise ValueError(f"max_size must be >= 1 or None, got {max_size!r}")
     used: dict[int, int] = {}
     colors = np.empty(m, dtype=np.int64)
+    size: dict[int, int] = {}
+    full = 0  # bit mask of the colours holding max_size constraints
     for c, nodes in enumerate(elements.tolist()):
-        mask = 0
+        mask = full
         for v in nodes:
             if v >= 0:
                 mask |= used.get(v, 0)
         col = ((~mask) & (mask + 1)).bit_length() - 1  # lowest free colour
         colors[c] = col
         bit = 1 << col
+        size[col] = size.get(col, 0) + 1
+        if max_size is not None and size[col] == max_size:
+            full |= bit
         for v in nodes:
             if v >= 0:
                 used[v] = used.get(v, 0) | bit

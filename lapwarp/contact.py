@@ -456,6 +456,16 @@ class ContactSystem:
         if tris:
             tri_all = np.concatenate(tris)
             order, self.tri_color_offsets = color_graph(tri_all)
+            lanes = int(self.triangle_block_threads)
+            if max(np.diff(self.tri_color_offsets)) > lanes:
+                # the fused sweep takes a colour in chunks of its block's lanes, one colour after another: where
+                # colours no larger than the block come without an extra colour, every colour is one chunk
+                # (TissueDissection: 46 colours either way, 49 chunks of 32 lanes uncapped, 46 capped). More
+                # colours would mean more stages in series (a 40x40 cloth: 10 colours become 97) and another
+                # Gauss-Seidel order. A block size set after finalize keeps these colours.
+                capped, capped_offsets = color_graph(tri_all, max_size=lanes)
+                if len(capped_offsets) == len(self.tri_color_offsets):
+                    order, self.tri_color_offsets = capped, capped_offsets
             self.tri_nodes = arr(tri_all[order].astype(np.int32), wp.vec3i)
             self.tri_group = arr(np.concatenate(tgrp)[order].astype(np.int32), wp.int32)
             self.tri_radius = arr(np.concatenate(trad)[order].astype(np.float32), float)

@@ -14,7 +14,7 @@ import trimesh
 import warp as wp
 
 from lapwarp.assets import box_tets, cloth_grid
-from lapwarp.builder import SceneBuilder
+from lapwarp.builder import SceneBuilder, color_graph
 from lapwarp.chains import chain_families, straight_chains
 from lapwarp.cutting import CuttingSystem
 
@@ -261,3 +261,26 @@ def test_per_env_materials_set_at_reset(device):
     np.testing.assert_allclose(world.positions(obj), world2.positions(obj2), rtol=1e-4, atol=1e-7)
     with pytest.raises(ValueError, match="per_env_materials"):
         world2.set_materials(obj2, mask, stiffness_scale=stiffness)
+
+
+@pytest.mark.parametrize("max_size", [None, 32, 5])
+def test_color_graph_colours_share_no_node_and_respect_max_size(max_size):
+    """Every colour of a tet mesh's faces (interior ones too: up to ~36 faces meet at a node) shares no node, every
+    face gets exactly one colour, and no colour holds more than ``max_size`` faces."""
+    _, tets = box_tets((0.06, 0.04, 0.02), (6, 4, 2))
+    faces = np.unique(np.sort(np.concatenate([tets[:, [0, 1, 2]], tets[:, [0, 1, 3]], tets[:, [0, 2, 3]],
+                                              tets[:, [1, 2, 3]]]), axis=1), axis=0)
+    order, offsets = color_graph(faces, max_size)
+    assert sorted(order.tolist()) == list(range(len(faces))) and offsets[-1] == len(faces)
+    sizes = np.diff(offsets)
+    assert sizes.min() > 0
+    if max_size is not None:
+        assert sizes.max() <= max_size
+    for c in range(len(sizes)):
+        nodes = faces[order[offsets[c]:offsets[c + 1]]].ravel()
+        assert len(np.unique(nodes)) == len(nodes), f"colour {c} shares a node"
+
+
+def test_color_graph_rejects_a_max_size_below_one():
+    with pytest.raises(ValueError, match="max_size"):
+        color_graph(np.array([[0, 1, 2]]), 0)
