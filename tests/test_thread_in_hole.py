@@ -391,6 +391,25 @@ def test_hole_sag_with_xpbd_at_default_substeps_is_far_too_soft():
 
 
 # ---------------------------------------------------------------------------- contact
+def end_above_the_wall(env: ThreadInHoleEnv, radius: float = 0.008) -> dict[str, np.ndarray]:
+    """Bring env 0's thread end 5 mm above the wall's top face at ``radius`` (30 steps of a 0.3-gain servo, then 10
+    still steps); the state there, checked clear of the wall."""
+    r_in, r_out, height = CONFIGURATIONS["normal"]["hole"][:3]
+    above = np.array([radius, 0.0, height + 0.005])
+    for _ in range(30):
+        s = state(env)
+        move = 0.3 * (above - s["thread"][0, -1])
+        move *= min(1.0, 0.003 / np.linalg.norm(move))
+        move_tip(env, s["tip"][:, :3] + move)
+    for _ in range(10):
+        env.step(zeros(env))
+    s0 = state(env)
+    end = s0["thread"][0, -1]
+    assert np.linalg.norm(end[:2] - above[:2]) < 2e-3 and abs(end[2] - above[2]) < 2e-3, end
+    assert wall_depth(s0["thread"][0], r_in, r_out, height).max() < -2e-3  # clear of the wall before the descent
+    return s0
+
+
 def test_thread_does_not_enter_the_wall():
     """Normal configuration, 1 env, seed 1. The grasper brings the thread's free end 5 mm above the wall's top face
     at radius 8 mm (between r_in 5 and r_out 25 mm; 30 steps of a 0.3-gain servo, then 10 still steps), then
@@ -404,20 +423,8 @@ def test_thread_does_not_enter_the_wall():
     rim, r = 25.9 mm, z = 28.7 mm, where rigid carrying would put it at z = 23.7 mm inside the wall)."""
     r_in, r_out, height = CONFIGURATIONS["normal"]["hole"][:3]
     env = make()
-    s = state(env)
-    node0 = in_tip_frame(s["tip"][0], s["thread"][0, 0])
-    above = np.array([0.008, 0.0, height + 0.005])
-    for _ in range(30):
-        s = state(env)
-        move = 0.3 * (above - s["thread"][0, -1])
-        move *= min(1.0, 0.003 / np.linalg.norm(move))
-        move_tip(env, s["tip"][:, :3] + move)
-    for _ in range(10):
-        env.step(zeros(env))
-    s0 = state(env)
-    end = s0["thread"][0, -1]
-    assert np.linalg.norm(end[:2] - above[:2]) < 2e-3 and abs(end[2] - above[2]) < 2e-3, end
-    assert wall_depth(s0["thread"][0], r_in, r_out, height).max() < -2e-3  # clear of the wall before the descent
+    node0 = in_tip_frame(state(env)["tip"][0], state(env)["thread"][0, 0])
+    s0 = end_above_the_wall(env)
 
     worst_depth, worst_inside, worst_gap, worst_grip = -1.0, 0.0, 1.0, 0.0
     for k in range(22):
@@ -433,6 +440,42 @@ def test_thread_does_not_enter_the_wall():
     assert worst_depth <= 1e-3, worst_depth
     assert worst_inside == 0.0, worst_inside
     assert worst_gap >= 1e-3, worst_gap
+    assert worst_grip < 1e-3, worst_grip
+
+
+def test_thread_does_not_tunnel_into_the_wall_at_full_speed():
+    """Normal configuration, 1 env, seed 1, the thread end 5 mm above the middle of the wall's top face (radius 15 mm,
+    10 mm from either rim), then 12 steps at the maximum instrument speed towards a tip 30 mm lower: pan, tilt and
+    depth bang-bang (+-1: 2 deg, 2 deg, 2 mm a step), so the grasper drives the thread into the wall as fast as an
+    agent can. Control: the thread carried rigidly with the tip would put a node deep inside the wall's rest material
+    (asserted > 5 mm; measured 8.5 mm of the annulus' 10 mm half-width). Result: the same episode throughout; after
+    every step no thread node is inside the hole's deformed closed surface (winding number) nor more than 1 mm inside
+    the wall's rest material (measured: none inside, max -0.1 mm), and the grasp holds (first node within 1 mm of the
+    jaw in the tip frame). The thread bends and its end slides outward over the frictionless top face and down the
+    outside of the wall (at the end r = 36 mm, z = 17 mm)."""
+    r_in, r_out, height = CONFIGURATIONS["normal"]["hole"][:3]
+    env = make()
+    node0 = in_tip_frame(state(env)["tip"][0], state(env)["thread"][0, 0])
+    s0 = end_above_the_wall(env, radius=0.015)
+    target = wp.array((s0["tip"][:, :3] - np.array([0.0, 0.0, 0.03])).astype(np.float32), dtype=wp.vec3,
+                      device=env.wp_device)
+    error = wp.zeros((1, 4), dtype=float, device=env.wp_device)
+    worst_inside, worst_depth, worst_grip, rigid = 0.0, -1.0, 0.0, -1.0
+    for _ in range(12):
+        wp.launch(ptsd_towards, dim=1, inputs=[env.rig.ptsd, env.rig.rcm, target], outputs=[error],
+                  device=env.wp_device)
+        _, _, done, _ = env.step(torch.tensor(np.sign(error.numpy()), dtype=torch.float32, device=env.device))
+        assert not bool(done[0])  # the same episode throughout
+        s = state(env)
+        depth, _ = hole_clearance(env, s["hole"][0], s["thread"][0])
+        worst_inside = max(worst_inside, depth)
+        worst_depth = max(worst_depth, float(wall_depth(s["thread"][0], r_in, r_out, height).max()))
+        worst_grip = max(worst_grip, float(np.linalg.norm(in_tip_frame(s["tip"][0], s["thread"][0, 0]) - node0)))
+        moved = carried(s0["tip"][0], s["tip"][0], s0["thread"][0])
+        rigid = max(rigid, float(wall_depth(moved, r_in, r_out, height).max()))
+    assert rigid > 5e-3, rigid
+    assert worst_inside == 0.0, worst_inside
+    assert worst_depth <= 1e-3, worst_depth
     assert worst_grip < 1e-3, worst_grip
 
 
