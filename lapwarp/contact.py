@@ -611,6 +611,9 @@ class ContactSystem:
         """The settings the recorded launches depend on (the World records a step again when they change)."""
         if self.triangle_sweep not in self.TRIANGLE_SWEEPS:
             raise ValueError(f"triangle_sweep must be one of {self.TRIANGLE_SWEEPS}, got {self.triangle_sweep!r}")
+        if not 1 <= int(self.triangle_block_threads) <= 1024:
+            raise ValueError(f"triangle_block_threads must be in [1, 1024] (threads of one env's block), "
+                             f"got {self.triangle_block_threads!r}")
         if int(self.surface_refit_interval) < 0:
             raise ValueError(f"surface_refit_interval must be >= 0 (0: once per world.step), "
                              f"got {self.surface_refit_interval!r}")

@@ -96,7 +96,7 @@ def _seg_seg_dist(p, q, c0, c1):
 
 
 def _push_capsule(device, speed, segments=True, kind="rod", substeps=10, triangles=True, triangle_sweep="fused",
-                  positions=None):
+                  positions=None, triangle_block_threads=None):
     """A capsule (r = 1 mm, axis along y) on body 0 moves along +z at ``speed`` through a free, weightless rod
     (r = 0.5 mm, 5 mm node spacing) or cloth (1 mm spacing) lying across its path.
 
@@ -123,6 +123,8 @@ def _push_capsule(device, speed, segments=True, kind="rod", substeps=10, triangl
     cs.add_capsule(rc, hh, body=body)  # axis along world y after the body rotation: crosses the rod
     cs.finalize()
     cs.triangle_sweep = triangle_sweep
+    if triangle_block_threads is not None:
+        cs.triangle_block_threads = triangle_block_threads
     dt = 0.1
     pose = w.state.body_q.numpy()
     gap = np.inf
@@ -190,6 +192,13 @@ def test_fused_triangle_sweep_matches_one_launch_per_colour(device):
 def test_unknown_triangle_sweep_is_rejected(device):
     with pytest.raises(ValueError, match="colored.*fused"):
         _push_capsule(device, 0.1, kind="cloth", triangle_sweep="jacobi")
+
+
+@pytest.mark.parametrize("threads", [0, -32, 2048])
+def test_triangle_block_threads_outside_a_block_is_rejected(device, threads):
+    """The fused sweep's threads per env block are checked when the step is recorded, not left to the launch."""
+    with pytest.raises(ValueError, match="triangle_block_threads"):
+        _push_capsule(device, 0.1, kind="cloth", triangle_block_threads=threads)
 
 
 def test_cloth_tunnelling_detected_with_vertex_only_contact(device):
