@@ -255,6 +255,13 @@ def _thread_rows() -> list[Row]:
         rows.append(Row(f"ll-{stiffness}-zoo-state", "LigatingLoop",
                         {"loop_stiffness": stiffness, "reward_weights": zoo}, "state", 100, paper,
                         "text: 20 % and 0 % (stiff / soft, presumably)"))
+        # Success ends the episode, and holding the loop partly closed round the band pays every step: the
+        # zoo-weights run above earned 2.36 per step at its end (1,182 per 500-step episode, 0 % success), worth
+        # ~236 under the gpu preset's gamma 0.99 against the 100 that success pays once, so not succeeding was the
+        # better policy. With a success bonus of 1,000 succeeding pays more than holding (not measured yet).
+        rows.append(Row(f"ll-{stiffness}-zoo-bonus-state", "LigatingLoop",
+                        {"loop_stiffness": stiffness, "reward_weights": {**zoo, "successful_task": 1000.0}}, "state",
+                        100, paper, "text: 20 % and 0 % (stiff / soft, presumably)"))
     return rows
 
 
