@@ -635,8 +635,8 @@ class ContactSystem:
         report = 1 if sweep.last else 0
         shapes, motion, solve = self.shape_table, self.body_motion(world, sweep), self._particle_solve(world, sweep)
         ignore, masks, reports = self.ignore, self._cut_masks, self.reports
-        off = self.tri_color_offsets
-        if len(off) > 1:  # the triangle passes' tool axes with the shape poses
+        has_triangles = len(self.tri_color_offsets) > 1
+        if has_triangles:  # the triangle passes' tool axes with the shape poses
             launch(ck.pose_shapes_and_tools, n, [shapes, motion, self._tri_pad], [self._shape_poses, self._tool_axes])
         elif len(self.shapes):
             launch(ck.pose_shapes, (n, len(self.shapes)), [shapes, motion], [self._shape_poses])
@@ -649,12 +649,12 @@ class ContactSystem:
             launch(ck.collide_segments, (n, off[c + 1] - off[c]),
                    [self._segments, off[c], shapes, motion, self._shape_poses, solve, ignore, masks], [q, reports])
         off = self.tri_color_offsets
-        if len(off) > 1 and self.triangle_sweep == "fused":
+        if has_triangles and self.triangle_sweep == "fused":
             threads = self.triangle_block_threads if self.device.is_cuda else 1  # one lane per block on the CPU
             launch(ck.collide_triangle_colors, (n, threads),
                    [self._triangles, self._tri_color_table, shapes, self._tool_axes, solve, ignore, masks],
                    [q, reports], block_dim=threads)
-        elif len(off) > 1:
+        elif has_triangles:
             for c in range(len(off) - 1):
                 launch(ck.collide_triangles, (n, off[c + 1] - off[c]),
                        [self._triangles, off[c], shapes, self._tool_axes, solve, ignore, masks], [q, reports])
