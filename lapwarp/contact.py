@@ -28,6 +28,7 @@ import warp as wp
 from lapwarp import launching
 from lapwarp.kernels import contact as ck
 from lapwarp.kernels.geometry import BodyMotion
+from lapwarp.launching import make_struct
 
 # particle-particle sets with at least this many members per env use the per-env cell list (measured on CPU,
 # see docs/contact.md: brute force costs M^2 pair tests, the cell list ~27 buckets + a scan per sweep)
@@ -47,15 +48,6 @@ def _transform(tf) -> wp.transform:
     if len(v) == 7:
         return wp.transform(wp.vec3(*v[:3]), wp.quat(*v[3:]))
     raise ValueError(f"transform must be (px, py, pz) or (px, py, pz, qx, qy, qz, qw), got {len(v)} values")
-
-
-def make_struct(cls, **fields):
-    """An instance of the ``wp.struct`` ``cls`` with ``fields`` set (kernel bundles are built once on the host and
-    never changed afterwards: a recorded launch reads the struct it was recorded with)."""
-    out = cls()
-    for name, value in fields.items():
-        setattr(out, name, value)
-    return out
 
 
 @dataclass

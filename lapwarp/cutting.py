@@ -25,9 +25,9 @@ Outputs (device arrays, valid after ``cut()``):
   its connective tissue); ``component (N, M)``: the piece (its smallest element) of each element, -1 = removed.
 
 Removal rule: an element goes when its centroid lies within ``tool_radius[k] + carving_distance`` of tool
-capsule ``k`` (segment ``tool_a`` -> ``tool_b``) while the env's ``tool_active`` is set. Connectivity (union-find,
-one thread per env, only for envs where something was cut or that were reset) joins tets across shared faces,
-triangles across shared edges, consecutive rod segments, plus links added with :meth:`add_links`.
+capsule ``k`` (segment ``tool_a`` -> ``tool_b``) while the env's ``tool_active`` is set. Connectivity (union-find
+over the lanes of a thread block per env, only for envs where something was cut or that were reset) joins tets across
+shared faces, triangles across shared edges, consecutive rod segments, plus links added with :meth:`add_links`.
 """
 
 from __future__ import annotations
@@ -37,6 +37,7 @@ import warp as wp
 
 from lapwarp import launching
 from lapwarp.kernels import cutting as ck
+from lapwarp.launching import make_struct
 
 __all__ = ["CuttingSystem", "cut_surface"]
 
@@ -84,6 +85,9 @@ class CuttingSystem:
         if not 1 <= num_labels <= 32:
             raise ValueError("num_labels must be in 1..32")
         self.world = world
+        # lanes of the per-env block of the cut-and-recount launch (CUDA): a changed env's phases stride its
+        # elements over them; an unchanged env's block leaves at once
+        self.block_threads = 128
         self.carving_distance = float(carving_distance)
         self.num_tools = int(num_tools)
         self.num_labels = int(num_labels)
@@ -184,16 +188,31 @@ class CuttingSystem:
         self.active_count = wp.zeros((N, L), dtype=wp.int32, device=dev)
         self.cut_ratio = wp.zeros((N, L), dtype=float, device=dev)
         self.label_links = wp.zeros((N, L * L), dtype=wp.int32, device=dev)
-        s = w.state
-        self._masks = tuple(a if a is not None else w._dummy_mask for a in (s.tet_active, s.tri_active,
-                                                                              s.segment_active))
-        m = w.model
-        if s.hinge_active is not None:
-            self._hinge_map = (m.hinge_tris, s.hinge_active)
-        else:  # no hinges: an empty table and mask
-            self._hinge_map = (wp.zeros(1, dtype=wp.vec2i, device=dev), wp.zeros((1, 0), dtype=wp.int32, device=dev))
+        s, m = w.state, w.model
+        none = wp.zeros((1, 0), dtype=wp.int32, device=dev)  # a mask this World does not carry: nothing to write
+        no_pairs = wp.zeros(0, dtype=wp.vec2i, device=dev)
+
+        def mask(a):
+            return a if a is not None else none
+
+        self._elements = make_struct(ck.CutElements, nodes=self._nodes, kind=self._kind, col=self._col,
+                                     label=self._label, obj=self._obj, pairs=self._pairs, label_total=self._label_total)
+        self._tools = make_struct(ck.CutTools, a=self.tool_a, b=self.tool_b, radius=self.tool_radius,
+                                  active=self.tool_active, carving_distance=self.carving_distance)
+        self._mask_state = make_struct(
+            ck.CutMaskState, tet_active=mask(s.tet_active), tri_active=mask(s.tri_active),
+            segment_active=mask(s.segment_active), tet_face_active=mask(s.tet_face_active),
+            edge_active=mask(s.edge_active), hinge_active=mask(s.hinge_active), particle_active=s.particle_active,
+            tet_face_neighbor=m.tet_face_neighbor if m.tet_face_neighbor is not None else wp.zeros(0, dtype=wp.int32,
+                                                                                                  device=dev),
+            edge_tris=m.edge_tris if s.edge_active is not None else no_pairs,
+            hinge_tris=m.hinge_tris if s.hinge_active is not None else no_pairs)
+        self._counters = make_struct(ck.CutCounters, removed=self.removed, cut_happened=self.cut_happened,
+                                     cut_dirty=s.cut_dirty, component=self.component, root_bits=self._root_bits,
+                                     num_components=self.num_components, active_count=self.active_count,
+                                     label_links=self.label_links, cut_ratio=self.cut_ratio)
         self._finalized = True
-        self._update()  # initial connectivity / counters (cut_dirty starts at 1)
+        self._launch(do_cut=0)  # initial connectivity / counters (cut_dirty starts at 1)
         return self
 
     # ------------------------------------------------------------------------------------------------
@@ -218,49 +237,21 @@ class CuttingSystem:
 
     def cut(self) -> None:
         """Remove elements touched by active tools, then refresh surfaces, connectivity and counters of the envs
-        that changed (or were reset). Device launches only: capturable."""
-        w, dev = self.world, self.world.device
-        self.removed.zero_()
-        self.cut_happened.zero_()
-        launching.launch(ck.cut_elements, dim=(w.num_envs, self.num_elements),
-                         inputs=[self._nodes, self._kind, self._col, self._label, w.state.particle_q, self.tool_a,
-                                 self.tool_b, self.tool_radius, self.tool_active, self.carving_distance],
-                         outputs=[*self._masks, self.removed, self.cut_happened, w.state.cut_dirty], device=dev)
-        self._update()
+        that changed (or were reset). One device launch: capturable."""
+        self._launch(do_cut=1)
 
-    def _update(self) -> None:
-        w, m, s, dev = self.world, self.world.model, self.world.state, self.world.device
-        if s.tet_face_active is not None:
-            launching.launch(ck.tet_surface, dim=(w.num_envs, 4 * m.tet_count),
-                             inputs=[s.cut_dirty, s.tet_active, m.tet_face_neighbor], outputs=[s.tet_face_active],
-                             device=dev)
-        if s.edge_active is not None:
-            launching.launch(ck.cloth_constraint_masks, dim=(w.num_envs, max(m.edge_count, m.hinge_count)),
-                             inputs=[s.cut_dirty, m.edge_tris, self._hinge_map[0], s.tri_active],
-                             outputs=[s.edge_active, self._hinge_map[1]], device=dev)
-        N, M, P = w.num_envs, self.num_elements, self._pairs.shape[0]
-        masks = self._masks
-        for live_only in (0, 1):  # clear, then mark the particles of live elements
-            launching.launch(ck.particles_set_activity, dim=(N, M),
-                             inputs=[self._nodes, self._kind, self._col, *masks, s.cut_dirty, live_only, live_only],
-                             outputs=[s.particle_active], device=dev)
-        launching.launch(ck.conn_init, dim=(N, M), inputs=[self._kind, self._col, *masks, s.cut_dirty],
-                         outputs=[self.component, self._root_bits, self.num_components, self.active_count,
-                                  self.label_links], device=dev)
-        if P:
-            launching.launch(ck.conn_hook, dim=(N, P), inputs=[self._pairs, s.cut_dirty], outputs=[self.component],
-                             device=dev)
-        launching.launch(ck.conn_count, dim=(N, M), inputs=[self._label, self._obj, s.cut_dirty],
-                         outputs=[self.component, self._root_bits, self.num_components, self.active_count], device=dev)
-        launching.launch(ck.conn_links, dim=(N, M), inputs=[s.cut_dirty, self._root_bits], outputs=[self.label_links],
-                         device=dev)
-        launching.launch(ck.conn_finish, dim=N, inputs=[self._label_total, self.active_count, s.cut_dirty],
-                         outputs=[self.cut_ratio], device=dev)
+    def _launch(self, do_cut: int) -> None:
+        # a thread block per env (ck.cut_and_recount); one lane per block on the CPU
+        w = self.world
+        lanes = self.block_threads if w.device.is_cuda else 1
+        launching.launch(ck.cut_and_recount, dim=(w.num_envs, lanes),
+                         inputs=[self._elements, self._tools, w.state.particle_q, int(do_cut)],
+                         outputs=[self._mask_state, self._counters], device=w.device, block_dim=lanes)
 
     def refresh(self) -> None:
         """Recompute surfaces / connectivity / counters of envs restored by ``world.reset`` (cut_dirty = 1)
         without cutting; ``cut()`` does this too."""
-        self._update()
+        self._launch(do_cut=0)
 
     # host helpers (sync) ------------------------------------------------------------------------------
     def labels_connected(self, label_a: int, label_b: int) -> np.ndarray:

@@ -23,9 +23,9 @@ import numpy as np
 import warp as wp
 
 from lapwarp import launching
-from lapwarp.contact import make_struct
 from lapwarp.kernels import grasping as gk
 from lapwarp.kernels.contact import IgnoreMask
+from lapwarp.launching import make_struct
 
 
 class GraspSystem:

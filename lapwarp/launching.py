@@ -1,5 +1,6 @@
 """Kernel launches sized to the GPU: every lapwarp launch goes through :func:`launch` (or, inside the World's recorded
-step, :func:`block_dim_for`), which picks the threads per block from the grid's size.
+step, :func:`block_dim_for`), which picks the threads per block from the grid's size; :func:`make_struct` builds the
+``wp.struct`` bundles that launches take.
 
 Warp launches 256 threads per block unless told otherwise. Most of lapwarp's kernels run one thread per env, per
 rope or per instrument, i.e. 4,096 to 20,000 threads at a typical batch size: 16 to 80 blocks of 256 on an H100 with
@@ -34,3 +35,12 @@ def launch(kernel, dim, inputs=(), outputs=(), device=None, block_dim: int | Non
     if block_dim is None and dev.is_cuda:
         block_dim = block_dim_for(dim, dev.sm_count)
     return wp.launch(kernel, dim=dim, inputs=inputs, outputs=outputs, device=dev, block_dim=block_dim, **kwargs)
+
+
+def make_struct(cls, **fields):
+    """An instance of the ``wp.struct`` ``cls`` with ``fields`` set (kernel bundles are built once on the host and
+    never changed afterwards: a recorded launch reads the struct it was recorded with)."""
+    out = cls()
+    for name, value in fields.items():
+        setattr(out, name, value)
+    return out

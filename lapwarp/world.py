@@ -314,6 +314,8 @@ class World:
 
     #: fewest automatic substeps (cloth edge chains and rods converge from here at 0.1 s steps)
     MIN_AUTO_SUBSTEPS = 10
+    #: threads per env that copy the rows of reset / saved envs (CUDA; one on the CPU)
+    ROW_COPY_LANES = 128
 
     def enable_external_forces(self) -> wp.array:
         """Allocate (once) and return ``particle_force``, a ``(num_envs, particles)`` ``wp.vec3`` array of external
@@ -417,8 +419,10 @@ class World:
         inv_dt2 = 1.0 / (h * h)
         if self._w_eff is not None:
             # attachments change only between steps (grasping updates them after the last sweep)
-            launch(world_kernels.attachment_inverse_masses, (n, m.particle_count),
-                   [m.particle_inv_mass, s.attach_particle, s.attach_compliance, inv_dt2], [self._w_eff])
+            lanes = 64 if dev.is_cuda else 1  # a block per env (world_kernels.attachment_inverse_masses)
+            launch(world_kernels.attachment_inverse_masses, (n, lanes),
+                   [m.particle_inv_mass, s.attach_particle, s.attach_compliance, inv_dt2], [self._w_eff],
+                   block_dim=lanes)
         if m.geo_particles is not None:
             self._record_geodesic_refresh(launch)
         iters = max(1, self.iterations)
@@ -648,17 +652,19 @@ class World:
         if width == 0:
             return
         body_prev = self._body_q_prev if self._body_q_prev is not None else self._dummy_tf()
-        launching.launch(world_kernels.copy_state_rows, dim=(self.num_envs, width),
+        lanes = self.ROW_COPY_LANES if self.device.is_cuda else 1
+        launching.launch(world_kernels.copy_state_rows, dim=(self.num_envs, lanes),
                          inputs=[env_mask, start if restore else live, live if restore else start, body_prev,
-                                 int(restore and self._body_q_prev is not None)], device=self.device)
+                                 int(restore and self._body_q_prev is not None), width, lanes], device=self.device)
 
     def _copy_tet_rotations(self, env_mask: wp.array, restore: bool) -> None:
         if self._start_tet_rotation is None:
             return
         src, dst = ((self._start_tet_rotation, self._tet_rotation) if restore
                     else (self._tet_rotation, self._start_tet_rotation))
-        launching.launch(world_kernels.copy_masked_2d, dim=src.shape, inputs=[env_mask, src], outputs=[dst],
-                         device=self.device)
+        lanes = self.ROW_COPY_LANES if self.device.is_cuda else 1
+        launching.launch(world_kernels.copy_masked_2d, dim=(self.num_envs, lanes), inputs=[env_mask, src, lanes],
+                         outputs=[dst], device=self.device)
 
     def _restore(self, env_mask: wp.array) -> None:
         self._copy_rows(env_mask, self._start_state, self.state, restore=True)

@@ -189,3 +189,28 @@ def test_attachment_follows_kinematic_body(device):
     x = world.positions()
     assert np.allclose(x[0, 0], [0.1, 0.0, 0.0], atol=1e-6)
     assert np.allclose(x[1, 0], [0.0, 0.15, 0.0], atol=1e-6)
+
+
+def test_attached_particles_inverse_mass_closed_form(device):
+    # The deformables' solves see a particle held by attachments of compliances alpha_s with the inverse mass
+    # 1 / (1 / w + sum_s h^2 / alpha_s) (0 with a stiff one); free and fixed particles keep theirs, and a freed slot
+    # (-1, a released grasp) counts for nothing. Two slots on one particle, a stiff slot, a fixed particle held.
+    b = SceneBuilder(gravity=(0.0, 0.0, -G))
+    b.add_particles([[0.01 * i, 0.0, 0.0] for i in range(5)], mass=0.01, fixed=[4])
+    b.add_attachment(0, -1, compliance=1e-6)
+    b.add_attachment(0, -1, compliance=4e-6)
+    b.add_attachment(1, -1, compliance=0.0)
+    b.add_attachment(2, -1, compliance=1e-5)
+    b.add_attachment(4, -1, compliance=1e-6)
+    world = b.finalize(3, device, substeps=5, attachment_capacity=8)
+    slots = world.state.attach_particle.numpy()
+    slots[2, 3] = -1  # env 2 released particle 2
+    world.state.attach_particle.assign(slots)
+    world.step(0.01)
+    h, w = 0.01 / 5, 1.0 / 0.01
+    expect = np.full((3, 5), w)
+    expect[:, 0] = 1.0 / (1.0 / w + h * h / 1e-6 + h * h / 4e-6)
+    expect[:, 1] = 0.0
+    expect[:2, 2] = 1.0 / (1.0 / w + h * h / 1e-5)
+    expect[:, 4] = 0.0
+    np.testing.assert_allclose(world._w_eff.numpy(), expect, rtol=1e-5)

@@ -94,40 +94,86 @@ def scissors_closing(
 
 
 # ----------------------------------------------------------------------------------------------------
+# bundles: one cut-and-recount launch reads them (built by CuttingSystem; a recorded launch keeps its struct)
+# ----------------------------------------------------------------------------------------------------
+
+
+@wp.struct
+class CutElements:
+    """The system's cuttable elements (flat over its objects), their adjacency pairs and the label totals."""
+
+    nodes: wp.array(dtype=wp.vec4i)  # up to four particles, -1 padded
+    kind: wp.array(dtype=wp.int32)  # KIND_TET / KIND_TRI / KIND_SEG: which State mask holds the element
+    col: wp.array(dtype=wp.int32)  # its column in that mask
+    label: wp.array(dtype=wp.int32)
+    obj: wp.array(dtype=wp.int32)
+    pairs: wp.array(dtype=wp.vec2i)  # adjacent elements (union-find links)
+    label_total: wp.array(dtype=wp.int32)  # elements per label before any cut
+
+
+@wp.struct
+class CutTools:
+    """Tool capsules per env (env frame) and whether each env's tool cuts."""
+
+    a: wp.array2d(dtype=wp.vec3)
+    b: wp.array2d(dtype=wp.vec3)
+    radius: wp.array(dtype=float)
+    active: wp.array(dtype=wp.int32)
+    carving_distance: float
+
+
+@wp.struct
+class CutMaskState:
+    """The State masks a cut writes: element masks, the derived surface / constraint / particle masks."""
+
+    tet_active: wp.array2d(dtype=wp.int32)
+    tri_active: wp.array2d(dtype=wp.int32)
+    segment_active: wp.array2d(dtype=wp.int32)
+    tet_face_active: wp.array2d(dtype=wp.int32)  # (N, 4T), or (1, 0) without tets
+    edge_active: wp.array2d(dtype=wp.int32)  # (N, E), or (1, 0) without cuttable cloth
+    hinge_active: wp.array2d(dtype=wp.int32)  # (N, H), or (1, 0)
+    particle_active: wp.array2d(dtype=wp.int32)
+    tet_face_neighbor: wp.array(dtype=wp.int32)  # model topology the surfaces are derived from
+    edge_tris: wp.array(dtype=wp.vec2i)
+    hinge_tris: wp.array(dtype=wp.vec2i)
+
+
+@wp.struct
+class CutCounters:
+    """Per-env outputs of a cut and the flag that the env's elements changed."""
+
+    removed: wp.array2d(dtype=wp.int32)  # (N, L) elements removed by this cut
+    cut_happened: wp.array(dtype=wp.int32)
+    cut_dirty: wp.array2d(dtype=wp.int32)  # (N, 1) State: recount this env (a cut or a reset changed it)
+    component: wp.array2d(dtype=wp.int32)  # (N, M) union-find parent, then the piece's smallest element; -1 removed
+    root_bits: wp.array2d(dtype=wp.int32)  # (N, M) labels present in the piece rooted at the element
+    num_components: wp.array2d(dtype=wp.int32)  # (N, objects)
+    active_count: wp.array2d(dtype=wp.int32)  # (N, L)
+    label_links: wp.array2d(dtype=wp.int32)  # (N, L * L)
+    cut_ratio: wp.array2d(dtype=float)  # (N, L)
+
+
+# ----------------------------------------------------------------------------------------------------
 # removal
 # ----------------------------------------------------------------------------------------------------
 
 
-@wp.kernel
-def cut_elements(
-    elem_nodes: wp.array(dtype=wp.vec4i),
-    elem_kind: wp.array(dtype=wp.int32),
-    elem_col: wp.array(dtype=wp.int32),
-    elem_label: wp.array(dtype=wp.int32),
-    q: wp.array2d(dtype=wp.vec3),
-    tool_a: wp.array2d(dtype=wp.vec3),
-    tool_b: wp.array2d(dtype=wp.vec3),
-    tool_radius: wp.array(dtype=float),
-    tool_active: wp.array(dtype=wp.int32),
-    carving_distance: float,
-    tet_active: wp.array2d(dtype=wp.int32),
-    tri_active: wp.array2d(dtype=wp.int32),
-    segment_active: wp.array2d(dtype=wp.int32),
-    removed: wp.array2d(dtype=wp.int32),
-    cut_happened: wp.array(dtype=wp.int32),
-    cut_dirty: wp.array2d(dtype=wp.int32),
-):
-    """Remove every live element within ``radius + carving_distance`` of a tool capsule: tets and triangles by their
-    centroid, rod segments by their closest point (SOFA carves line models along their length; a rope's 5 mm
+@wp.func
+def element_alive_in(env: int, e: int, el: CutElements, ms: CutMaskState):
+    return element_alive(env, el.kind[e], el.col[e], ms.tet_active, ms.tri_active, ms.segment_active)
+
+
+@wp.func
+def cut_element(env: int, e: int, el: CutElements, tools: CutTools, q: wp.array2d(dtype=wp.vec3), ms: CutMaskState,
+                out: CutCounters):
+    """Remove element ``e`` if it lies within ``radius + carving_distance`` of a tool capsule: tets and triangles by
+    their centroid, rod segments by their closest point (SOFA carves line models along their length; a rope's 5 mm
     segments would otherwise need the tool at their midpoint, where contact may never let it go)."""
-    env, e = wp.tid()
-    if tool_active[env] == 0:
-        return  # most envs most steps: one load and out
-    kind = elem_kind[e]
-    col = elem_col[e]
-    if element_alive(env, kind, col, tet_active, tri_active, segment_active) == 0:
+    kind = el.kind[e]
+    col = el.col[e]
+    if element_alive(env, kind, col, ms.tet_active, ms.tri_active, ms.segment_active) == 0:
         return
-    nd = elem_nodes[e]
+    nd = el.nodes[e]
     c = q[env, nd[0]] + q[env, nd[1]]
     cnt = float(2.0)
     if nd[2] >= 0:
@@ -138,122 +184,83 @@ def cut_elements(
         cnt = 4.0
     c = c / cnt
     hit = int(0)
-    for k in range(tool_a.shape[1]):
+    for k in range(tools.a.shape[1]):
         d = float(0.0)
         if kind == KIND_SEG:
             a = q[env, nd[0]]
             b = q[env, nd[1]]
-            ta = tool_a[env, k]
-            tb = tool_b[env, k]
+            ta = tools.a[env, k]
+            tb = tools.b[env, k]
             st = closest_segment_segment(a, b, ta, tb)
             d = wp.length((a + (b - a) * st[0]) - (ta + (tb - ta) * st[1]))
         else:
-            d = point_segment_distance(c, tool_a[env, k], tool_b[env, k])
-        if d <= tool_radius[k] + carving_distance:
+            d = point_segment_distance(c, tools.a[env, k], tools.b[env, k])
+        if d <= tools.radius[k] + tools.carving_distance:
             hit = 1
     if hit == 0:
         return
-    element_kill(env, kind, col, tet_active, tri_active, segment_active)
-    wp.atomic_add(removed, env, elem_label[e], 1)
+    element_kill(env, kind, col, ms.tet_active, ms.tri_active, ms.segment_active)
+    wp.atomic_add(out.removed, env, el.label[e], 1)
     # benign races: every writer stores the same 1
-    cut_happened[env] = 1
-    cut_dirty[env, 0] = 1
+    out.cut_happened[env] = 1
+    out.cut_dirty[env, 0] = 1
 
 
 # ----------------------------------------------------------------------------------------------------
-# surfaces
+# surfaces and derived masks
 # ----------------------------------------------------------------------------------------------------
 
 
-@wp.kernel
-def tet_surface(
-    cut_dirty: wp.array2d(dtype=wp.int32),
-    tet_active: wp.array2d(dtype=wp.int32),
-    face_neighbor: wp.array(dtype=wp.int32),
-    face_active_out: wp.array2d(dtype=wp.int32),
-):
+@wp.func
+def tet_face_surface(env: int, f: int, ms: CutMaskState):
     """Face 4 t + k is on the surface iff tet t is present and the tet across it is absent (or none)."""
-    env, f = wp.tid()
-    if cut_dirty[env, 0] == 0:
-        return
     on = int(0)
-    if tet_active[env, f / 4] != 0:
-        nb = face_neighbor[f]
+    if ms.tet_active[env, f / 4] != 0:
+        nb = ms.tet_face_neighbor[f]
         on = 1
         if nb >= 0:
-            if tet_active[env, nb] != 0:
+            if ms.tet_active[env, nb] != 0:
                 on = 0
-    face_active_out[env, f] = on
+    ms.tet_face_active[env, f] = on
 
 
-@wp.kernel
-def cloth_constraint_masks(
-    cut_dirty: wp.array2d(dtype=wp.int32),
-    edge_tris: wp.array(dtype=wp.vec2i),
-    hinge_tris: wp.array(dtype=wp.vec2i),
-    tri_active: wp.array2d(dtype=wp.int32),
-    edge_active: wp.array2d(dtype=wp.int32),
-    hinge_active: wp.array2d(dtype=wp.int32),
-):
-    """Edge and hinge masks of the envs whose triangles changed: an edge lives while one of its triangles does (a
-    spring with no triangle, -1 -1, always), a hinge while both do. Once per cut, so the constraint kernels of every
-    substep read one mask value instead of two triangle masks."""
-    env, c = wp.tid()
-    if cut_dirty[env, 0] == 0:
-        return
-    if c < edge_active.shape[1]:
-        et = edge_tris[c]
-        alive = int(1)
-        if et[0] >= 0 or et[1] >= 0:
-            alive = 0
-            if et[0] >= 0:
-                alive = tri_active[env, et[0]]
-            if et[1] >= 0 and alive == 0:
-                alive = tri_active[env, et[1]]
-        edge_active[env, c] = alive
-    if c < hinge_active.shape[1]:
-        ht = hinge_tris[c]
-        hinge_active[env, c] = wp.where(tri_active[env, ht[0]] != 0 and tri_active[env, ht[1]] != 0, 1, 0)
+@wp.func
+def edge_mask(env: int, c: int, ms: CutMaskState):
+    """An edge lives while one of its triangles does (a spring with no triangle, -1 -1, always): the constraint
+    kernels of every substep then read one mask value instead of two triangle masks."""
+    et = ms.edge_tris[c]
+    alive = int(1)
+    if et[0] >= 0 or et[1] >= 0:
+        alive = 0
+        if et[0] >= 0:
+            alive = ms.tri_active[env, et[0]]
+        if et[1] >= 0 and alive == 0:
+            alive = ms.tri_active[env, et[1]]
+    ms.edge_active[env, c] = alive
 
 
-@wp.kernel
-def particles_set_activity(
-    elem_nodes: wp.array(dtype=wp.vec4i),
-    elem_kind: wp.array(dtype=wp.int32),
-    elem_col: wp.array(dtype=wp.int32),
-    tet_active: wp.array2d(dtype=wp.int32),
-    tri_active: wp.array2d(dtype=wp.int32),
-    segment_active: wp.array2d(dtype=wp.int32),
-    cut_dirty: wp.array2d(dtype=wp.int32),
-    live_only: int,
-    value: int,
-    particle_active: wp.array2d(dtype=wp.int32),
-):
-    """Write ``value`` to the particles of the cuttable elements (of the live ones only with ``live_only``).
+@wp.func
+def hinge_mask(env: int, c: int, ms: CutMaskState):
+    """A hinge lives while both of its triangles do."""
+    ht = ms.hinge_tris[c]
+    ms.hinge_active[env, c] = wp.where(ms.tri_active[env, ht[0]] != 0 and ms.tri_active[env, ht[1]] != 0, 1, 0)
 
-    Launched twice in order: clear every element's particles (live_only 0, value 0), then mark the particles of
-    live elements (live_only 1, value 1), so a particle is active while one of its elements is. Races are benign:
-    within a launch every writer stores the same value.
-    """
-    env, e = wp.tid()
-    if cut_dirty[env, 0] == 0:
-        return
-    if live_only != 0:
-        if element_alive(env, elem_kind[e], elem_col[e], tet_active, tri_active, segment_active) == 0:
-            return
-    nd = elem_nodes[e]
+
+@wp.func
+def set_element_particles(env: int, e: int, el: CutElements, ms: CutMaskState, value: int):
+    nd = el.nodes[e]
     for j in range(4):
         if nd[j] >= 0:
-            particle_active[env, nd[j]] = value
+            ms.particle_active[env, nd[j]] = value
 
 
 # ----------------------------------------------------------------------------------------------------
-# connectivity: concurrent union-find over (env, element) / (env, pair) threads, only for envs whose elements
-# changed (cut_dirty). Five launches: init, hook (CAS), compress + count, label links, per-env tail.
+# connectivity: concurrent union-find over the lanes of an env's block, only for envs whose elements changed
+# (cut_dirty). Phases, a block barrier between them: init, hook (CAS), compress + count, label links, tail.
 # Invariant: component[env, x] <= x for every live x (a root is only ever hooked under a smaller element and
 # path halving only moves a pointer to an ancestor), so every tree's root is its smallest element and any value
 # read for a parent, even a stale one, is an ancestor. Hence the result equals the sequential union-find's.
-# The flattening launch (conn_count) must not path-halve: there each slot is written by its own thread only.
+# The flattening phase (conn_count) must not path-halve: there each slot is written by its own lane only.
 # ----------------------------------------------------------------------------------------------------
 
 
@@ -273,8 +280,8 @@ def uf_find(parent: wp.array2d(dtype=wp.int32), env: int, x: int):
 
 @wp.func
 def uf_find_readonly(parent: wp.array2d(dtype=wp.int32), env: int, x: int):
-    # no path halving: used while every thread flattens its own slot, so that slot has exactly one writer
-    # (a halving store from another thread could overwrite a flattened root with an intermediate ancestor)
+    # no path halving: used while every lane flattens its own slots, so a slot has exactly one writer
+    # (a halving store from another lane could overwrite a flattened root with an intermediate ancestor)
     r = x
     p = parent[env, r]
     while p != r:
@@ -283,49 +290,30 @@ def uf_find_readonly(parent: wp.array2d(dtype=wp.int32), env: int, x: int):
     return r
 
 
-@wp.kernel
-def conn_init(
-    elem_kind: wp.array(dtype=wp.int32),
-    elem_col: wp.array(dtype=wp.int32),
-    tet_active: wp.array2d(dtype=wp.int32),
-    tri_active: wp.array2d(dtype=wp.int32),
-    segment_active: wp.array2d(dtype=wp.int32),
-    cut_dirty: wp.array2d(dtype=wp.int32),
-    component: wp.array2d(dtype=wp.int32),
-    root_bits: wp.array2d(dtype=wp.int32),
-    num_components: wp.array2d(dtype=wp.int32),
-    active_count: wp.array2d(dtype=wp.int32),
-    label_links: wp.array2d(dtype=wp.int32),
-):
-    """Every live element its own component, removed ones -1; thread 0 of the env clears the counters."""
-    env, e = wp.tid()
-    if cut_dirty[env, 0] == 0:
-        return
-    if element_alive(env, elem_kind[e], elem_col[e], tet_active, tri_active, segment_active) != 0:
-        component[env, e] = e
+@wp.func
+def conn_init(env: int, e: int, el: CutElements, ms: CutMaskState, out: CutCounters):
+    """Every live element its own component, removed ones -1."""
+    if element_alive_in(env, e, el, ms) != 0:
+        out.component[env, e] = e
     else:
-        component[env, e] = -1
-    root_bits[env, e] = 0
-    if e == 0:
-        for o in range(num_components.shape[1]):
-            num_components[env, o] = 0
-        for la in range(active_count.shape[1]):
-            active_count[env, la] = 0
-        for k in range(label_links.shape[1]):
-            label_links[env, k] = 0
+        out.component[env, e] = -1
+    out.root_bits[env, e] = 0
 
 
-@wp.kernel
-def conn_hook(
-    pairs: wp.array(dtype=wp.vec2i),
-    cut_dirty: wp.array2d(dtype=wp.int32),
-    component: wp.array2d(dtype=wp.int32),
-):
+@wp.func
+def clear_counters(env: int, out: CutCounters):
+    for o in range(out.num_components.shape[1]):
+        out.num_components[env, o] = 0
+    for la in range(out.active_count.shape[1]):
+        out.active_count[env, la] = 0
+    for k in range(out.label_links.shape[1]):
+        out.label_links[env, k] = 0
+
+
+@wp.func
+def conn_hook(env: int, p: int, el: CutElements, component: wp.array2d(dtype=wp.int32)):
     """Union the two live elements of pair ``p``: hook the larger root under the smaller one with a CAS."""
-    env, p = wp.tid()
-    if cut_dirty[env, 0] == 0:
-        return
-    ab = pairs[p]
+    ab = el.pairs[p]
     if component[env, ab[0]] < 0 or component[env, ab[1]] < 0:
         return
     ra = uf_find(component, env, ab[0])
@@ -344,69 +332,112 @@ def conn_hook(
             rb = nh
 
 
-@wp.kernel
-def conn_count(
-    elem_label: wp.array(dtype=wp.int32),
-    elem_obj: wp.array(dtype=wp.int32),
-    cut_dirty: wp.array2d(dtype=wp.int32),
-    component: wp.array2d(dtype=wp.int32),
-    root_bits: wp.array2d(dtype=wp.int32),
-    num_components: wp.array2d(dtype=wp.int32),
-    active_count: wp.array2d(dtype=wp.int32),
-):
-    """Flatten every live element to its root and count elements per label, labels per root, roots per object."""
-    env, e = wp.tid()
-    if cut_dirty[env, 0] == 0:
+@wp.func
+def conn_count(env: int, e: int, el: CutElements, out: CutCounters):
+    """Flatten a live element to its root and count elements per label, labels per root, roots per object."""
+    if out.component[env, e] < 0:
         return
-    if component[env, e] < 0:
-        return
-    r = uf_find_readonly(component, env, e)
-    component[env, e] = r
-    lab = elem_label[e]
-    wp.atomic_add(active_count, env, lab, 1)
-    wp.atomic_or(root_bits, env, r, 1 << lab)
+    r = uf_find_readonly(out.component, env, e)
+    out.component[env, e] = r
+    lab = el.label[e]
+    wp.atomic_add(out.active_count, env, lab, 1)
+    wp.atomic_or(out.root_bits, env, r, 1 << lab)
     if r == e:
-        wp.atomic_add(num_components, env, elem_obj[e], 1)
+        wp.atomic_add(out.num_components, env, el.obj[e], 1)
 
 
-@wp.kernel
-def conn_links(
-    cut_dirty: wp.array2d(dtype=wp.int32),
-    root_bits: wp.array2d(dtype=wp.int32),
-    label_links: wp.array2d(dtype=wp.int32),
-):
+@wp.func
+def conn_links(env: int, e: int, out: CutCounters):
     """label_links[la * L + lb] = 1 where one piece holds live elements of both labels (benign races: all store 1)."""
-    env, e = wp.tid()
-    if cut_dirty[env, 0] == 0:
-        return
-    bits = root_bits[env, e]
+    bits = out.root_bits[env, e]
     if bits == 0:
         return
     L = int(0)
-    while L * L < label_links.shape[1]:
+    while L * L < out.label_links.shape[1]:
         L += 1
     for la in range(L):
         if (bits >> la) & 1 != 0:
             for lb in range(L):
                 if (bits >> lb) & 1 != 0:
-                    label_links[env, la * L + lb] = 1
+                    out.label_links[env, la * L + lb] = 1
+
+
+@wp.func
+def conn_finish(env: int, el: CutElements, out: CutCounters):
+    """Cut ratio per label; clears ``cut_dirty`` (the last write of the update)."""
+    for la in range(el.label_total.shape[0]):
+        tot = el.label_total[la]
+        ratio = float(0.0)
+        if tot > 0:
+            ratio = 1.0 - float(out.active_count[env, la]) / float(tot)
+        out.cut_ratio[env, la] = ratio
+    out.cut_dirty[env, 0] = 0
+
+
+# ----------------------------------------------------------------------------------------------------
+# the launch
+# ----------------------------------------------------------------------------------------------------
 
 
 @wp.kernel
-def conn_finish(
-    label_total: wp.array(dtype=wp.int32),
-    active_count: wp.array2d(dtype=wp.int32),
-    cut_dirty: wp.array2d(dtype=wp.int32),
-    cut_ratio: wp.array2d(dtype=float),
+def cut_and_recount(
+    el: CutElements,
+    tools: CutTools,
+    q: wp.array2d(dtype=wp.vec3),
+    do_cut: int,
+    ms: CutMaskState,
+    out: CutCounters,
 ):
-    """Cut ratio per label; clears ``cut_dirty`` (last launch of the update)."""
-    env = wp.tid()
-    if cut_dirty[env, 0] == 0:
+    """A cut and the recount of the envs it changed (or that a reset restored), in one launch of a thread block per
+    env with block barriers between the phases: (cut) removal; surfaces, edge / hinge masks, particle clear and
+    union-find init; particle marks of live elements and hooking; flatten and count; label links; ratios.
+
+    Nearly every env on nearly every step has neither an active tool nor a changed element, and its block leaves
+    after two loads; one launch of ``(env, element)`` threads per phase (eight of them) cost TissueDissection ~1.8
+    ms per env step at 4,096 envs for almost no work. ``do_cut`` 0 recounts only (after a reset). On the CPU a
+    block has one lane: every phase in element order.
+    """
+    env, lane = wp.tid()
+    lanes = wp.block_dim()
+    barrier = wp.tile_zeros(shape=1, dtype=int, storage="shared")
+    active = int(0)
+    if do_cut != 0:
+        active = tools.active[env]
+        if lane == 0:  # this cut's outputs; only the removal phase below writes them again
+            for la in range(out.removed.shape[1]):
+                out.removed[env, la] = 0
+            out.cut_happened[env] = 0
+    M = el.kind.shape[0]
+    if active != 0:  # uniform over the block
+        wp.tile_scatter_masked(barrier, 0, 0, False)  # a block barrier (nothing written): removed is cleared
+        for e in range(lane, M, lanes):
+            cut_element(env, e, el, tools, q, ms, out)
+        wp.tile_scatter_masked(barrier, 0, 0, False)
+    if out.cut_dirty[env, 0] == 0:  # read by every lane after the barrier: uniform over the block
         return
-    for la in range(label_total.shape[0]):
-        tot = label_total[la]
-        ratio = float(0.0)
-        if tot > 0:
-            ratio = 1.0 - float(active_count[env, la]) / float(tot)
-        cut_ratio[env, la] = ratio
-    cut_dirty[env, 0] = 0
+    for f in range(lane, ms.tet_face_active.shape[1], lanes):
+        tet_face_surface(env, f, ms)
+    for c in range(lane, ms.edge_active.shape[1], lanes):
+        edge_mask(env, c, ms)
+    for c in range(lane, ms.hinge_active.shape[1], lanes):
+        hinge_mask(env, c, ms)
+    for e in range(lane, M, lanes):
+        set_element_particles(env, e, el, ms, 0)  # clear, then (next phase) mark the particles of live elements
+        conn_init(env, e, el, ms, out)
+    if lane == 0:
+        clear_counters(env, out)
+    wp.tile_scatter_masked(barrier, 0, 0, False)
+    for e in range(lane, M, lanes):
+        if element_alive_in(env, e, el, ms) != 0:
+            set_element_particles(env, e, el, ms, 1)  # a particle is active while one of its elements is
+    for p in range(lane, el.pairs.shape[0], lanes):
+        conn_hook(env, p, el, out.component)
+    wp.tile_scatter_masked(barrier, 0, 0, False)
+    for e in range(lane, M, lanes):
+        conn_count(env, e, el, out)
+    wp.tile_scatter_masked(barrier, 0, 0, False)
+    for e in range(lane, M, lanes):
+        conn_links(env, e, out)
+    wp.tile_scatter_masked(barrier, 0, 0, False)
+    if lane == 0:
+        conn_finish(env, el, out)
