@@ -214,3 +214,52 @@ def test_attached_particles_inverse_mass_closed_form(device):
     expect[:2, 2] = 1.0 / (1.0 / w + h * h / 1e-5)
     expect[:, 4] = 0.0
     np.testing.assert_allclose(world._w_eff.numpy(), expect, rtol=1e-5)
+
+
+def test_attachment_slots_pull_in_slot_order(device):
+    # One thread per (env, slot); slots that share a particle pull it in slot order, each from where the one before
+    # left it, as a serial walk over the slots does (reference below, float64). Random slots with repeated particles,
+    # free slots (-1), a fixed particle, stiff, soft and (for the stiff-only pass) too soft compliances, world and
+    # body targets; both passes.
+    from lapwarp.kernels import xpbd
+
+    rng = np.random.default_rng(3)
+    N, P, S, B = 3, 6, 9, 2
+    slots = rng.integers(-1, 4, size=(N, S)).astype(np.int32)  # particles 0..3 held, often several times
+    body = rng.integers(-1, B, size=(N, S)).astype(np.int32)
+    offset = rng.normal(size=(N, S, 3)).astype(np.float32) * 0.05
+    compliance = np.where(rng.random((N, S)) < 0.3, 0.0, 10.0 ** rng.uniform(-7, -1, (N, S))).astype(np.float32)
+    inv_mass = np.full((1, P), 50.0, dtype=np.float32)
+    inv_mass[0, 2] = 0.0  # fixed: its slots do nothing
+    q0 = rng.normal(size=(N, P, 3)).astype(np.float32) * 0.05
+    poses = np.zeros((N, B, 7), dtype=np.float32)
+    poses[..., :3] = rng.normal(size=(N, B, 3)) * 0.05
+    quat = rng.normal(size=(N, B, 4))
+    poses[..., 3:] = quat / np.linalg.norm(quat, axis=-1, keepdims=True)
+    h2 = 1.0 / (1e-3 * 1e-3)
+
+    def arr(x, dtype):
+        return wp.array(x, dtype=dtype, device=device)
+
+    for stiff_only in (0, 1):
+        q = arr(q0, wp.vec3)
+        bq = arr(poses, wp.transform)
+        wp.launch(xpbd.solve_attachments, dim=(N, S),
+                  inputs=[arr(slots, wp.int32), arr(body, wp.int32), arr(offset, wp.vec3), arr(compliance, float),
+                          bq, bq, 1.0, arr(inv_mass, float), h2, stiff_only], outputs=[q], device=device)
+        expect = q0.astype(np.float64)
+        for env in range(N):
+            for s in range(S):
+                i = slots[env, s]
+                w = float(inv_mass[0, i]) if i >= 0 else 0.0
+                if i < 0 or w == 0.0:
+                    continue
+                target = np.asarray(offset[env, s], np.float64)
+                if body[env, s] >= 0:
+                    tf = wp.transform(wp.vec3(*poses[env, body[env, s], :3]), wp.quat(*poses[env, body[env, s], 3:]))
+                    target = np.asarray(wp.transform_point(tf, wp.vec3(*offset[env, s])), np.float64)
+                alpha = float(compliance[env, s]) * h2
+                if stiff_only == 0 or alpha * float(xpbd.STIFF_ATTACHMENT) <= w:
+                    expect[env, i] += (target - expect[env, i]) * (w / (w + alpha))
+        assert np.abs(expect - q0).max() > 1e-3  # the slots moved their particles
+        np.testing.assert_allclose(q.numpy(), expect, atol=1e-6)
