@@ -501,7 +501,7 @@ class World:
                 # one substep of gravity below (stiff attachments only: a soft one projected twice per sweep would be
                 # stiffer than its compliance); every attachment again at the end. Only with tethers: elsewhere it
                 # was not needed and cost TissueManipulation 12 % (H100)
-                launch(xpbd.solve_attachments, (n, m.attachment_capacity), [*attachment_args, 1], [s.particle_q])
+                launch(xpbd.solve_attachments, n, [*attachment_args, 1], [s.particle_q])
         if m.geo_particles is not None:
             solve_tethers()
         if m.edge_chains is None:
@@ -555,7 +555,7 @@ class World:
             solve_chains(m.rod_chains, m.rod_stretch_rest, m.rod_stretch_compliance, lam.get("rod", self._dummy_f),
                          self._rod_scratch, seg_mask, self.rod_newton_steps, chains.solve_chains)
         if m.attachment_capacity:
-            launch(xpbd.solve_attachments, (n, m.attachment_capacity), [*attachment_args, 0], [s.particle_q])
+            launch(xpbd.solve_attachments, n, [*attachment_args, 0], [s.particle_q])
 
     def _prediction_masks(self) -> tuple:
         """``(active, use_active, force, use_force)`` of the prediction (``xpbd.integrate_particles``) and of what

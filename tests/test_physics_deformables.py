@@ -217,10 +217,9 @@ def test_attached_particles_inverse_mass_closed_form(device):
 
 
 def test_attachment_slots_pull_in_slot_order(device):
-    # One thread per (env, slot); slots that share a particle pull it in slot order, each from where the one before
-    # left it, as a serial walk over the slots does (reference below, float64). Random slots with repeated particles,
-    # free slots (-1), a fixed particle, stiff, soft and (for the stiff-only pass) too soft compliances, world and
-    # body targets; both passes.
+    # Slots that share a particle pull it in slot order, each from where the one before left it (reference below,
+    # float64). Random slots with repeated particles, free slots (-1), a fixed particle, stiff, soft and (for the
+    # stiff-only pass) too soft compliances, world and body targets; both passes.
     from lapwarp.kernels import xpbd
 
     rng = np.random.default_rng(3)
@@ -244,7 +243,7 @@ def test_attachment_slots_pull_in_slot_order(device):
     for stiff_only in (0, 1):
         q = arr(q0, wp.vec3)
         bq = arr(poses, wp.transform)
-        wp.launch(xpbd.solve_attachments, dim=(N, S),
+        wp.launch(xpbd.solve_attachments, dim=N,
                   inputs=[arr(slots, wp.int32), arr(body, wp.int32), arr(offset, wp.vec3), arr(compliance, float),
                           bq, bq, 1.0, arr(inv_mass, float), h2, stiff_only], outputs=[q], device=device)
         expect = q0.astype(np.float64)
