@@ -240,10 +240,10 @@ def _thread_rows() -> list[Row]:
             config = {"bimanual": bimanual,
                       "eye_reset_noise": RT_EYE_NOISE if noise else [0.0, 0.0, 0.0, 0.0]}
             paper = (0.0, "text: bimanual 0 %") if bimanual else (1.0, "text: base learned")
-            # 92k env-steps/s (H100, 10 substeps): 150 iterations = 19.7M env-steps, about 6 min (the base row was
-            # at 55 % and rising after 120)
+            # ~76k env-steps/s training (H100): 250 iterations = 32.8M env-steps in 445 s; the base row reached
+            # 96.5 % there (nineteenth session) and 66 % after 120
             rows.append(Row(f"rt-{'bimanual' if bimanual else 'base'}-{'noise' if noise else 'fixed'}-state",
-                            "RopeThreading", config, "state", 150, *paper))
+                            "RopeThreading", config, "state", 250, *paper))
     for stiffness, paper in (("stiff", 0.2), ("soft", 0.0)):
         # 48k env-steps/s (H100): 100 iterations = 13.1M env-steps, about 6 min; the paper's runs reached < 1e6
         rows.append(Row(f"ll-{stiffness}-state", "LigatingLoop", {"loop_stiffness": stiffness}, "state", 100, paper,
