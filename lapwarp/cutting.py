@@ -243,7 +243,12 @@ class CuttingSystem:
     def _launch(self, do_cut: int) -> None:
         # a thread block per env (ck.cut_and_recount); one lane per block on the CPU
         w = self.world
-        lanes = self.block_threads if w.device.is_cuda else 1
+        if isinstance(self.block_threads, bool) or not isinstance(self.block_threads, int | np.integer) \
+                or not 1 <= self.block_threads <= 1024:
+            # 0 lanes would run nothing and leave every mask and counter as it was, silently
+            raise ValueError(f"block_threads must be an int in [1, 1024] (lanes of one env's block), "
+                             f"got {self.block_threads!r}")
+        lanes = int(self.block_threads) if w.device.is_cuda else 1
         launching.launch(ck.cut_and_recount, dim=(w.num_envs, lanes),
                          inputs=[self._elements, self._tools, w.state.particle_q, int(do_cut)],
                          outputs=[self._mask_state, self._counters], device=w.device, block_dim=lanes)

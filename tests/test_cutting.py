@@ -213,6 +213,20 @@ def test_not_cuttable_rejected(device):
         CuttingSystem(world)
 
 
+@pytest.mark.parametrize("lanes", [0, -1, 1025, 2.5, True])
+def test_block_threads_outside_a_block_is_rejected(device, lanes):
+    # zero lanes would launch nothing and leave masks and counters silently stale
+    b = SceneBuilder()
+    v, t = cloth_grid(3, 3, 0.01, 0.01)
+    cloth = b.add_cloth(v, t, cuttable=True)
+    world = b.finalize(1, device)
+    cut = CuttingSystem(world)
+    cut.add_object(cloth)
+    cut.block_threads = lanes
+    with pytest.raises(ValueError, match="block_threads"):
+        cut.finalize()
+
+
 def test_connectivity_matches_sequential_union_find(device):
     """Random removals in a cloth + a tet slab + a rope with 3 labels: the concurrent union-find gives exactly the
     sequential result (component = smallest element of the piece, counts, label links)."""
