@@ -166,17 +166,20 @@ def reference_features(env: LigatingLoopEnv, cavity: np.ndarray, loop: np.ndarra
     overlap = touched / max(len(tris), 1)
     ratio = float(closed_ratio(a))
     encircles = float(2 * loop_encloses(cavity, loop[:a], rings) > ANGULAR)  # around the tube, not in its bore
-    around = ratio * overlap * inside * tip_outside * (encircles if cfg.require_encircling else 1.0)
+    gate = inside * tip_outside * (encircles if cfg.require_encircling else 1.0)
+    around = ratio * overlap * gate
     return dict(distance=min(np.linalg.norm(band - com) / DIAGONAL, 1.0), in_cavity=inside, tip_outside=tip_outside,
                 encircles=encircles,
                 overlap=overlap, around=around, thin_air=ratio * (1.0 - inside),
+                on_marking=ratio * gate if touched else 0.0,
                 success=float(around > 0 and overlap > cfg.target_loop_overlap_ratio
                               and ratio > cfg.target_loop_closed_ratio))
 
 
 COLUMNS = dict(distance=F.DISTANCE_LOOP_TO_MARKING_CENTER, in_cavity=F.LOOP_CENTER_IN_CAVITY,
                tip_outside=F.INSTRUMENT_NOT_IN_CAVITY, overlap=F.LOOP_MARKING_OVERLAP,
-               around=F.LOOP_CLOSED_AROUND_MARKING, thin_air=F.LOOP_CLOSED_IN_THIN_AIR, success=F.SUCCESSFUL_TASK)
+               around=F.LOOP_CLOSED_AROUND_MARKING, thin_air=F.LOOP_CLOSED_IN_THIN_AIR,
+               on_marking=F.LOOP_CLOSED_ON_MARKING, success=F.SUCCESSFUL_TASK)
 
 
 def features_now(env: LigatingLoopEnv) -> np.ndarray:
@@ -242,8 +245,8 @@ def test_scene_matches_sofa_env(env):
     assert list(weights) == list(env.rewards.names) == [
         "distance_loop_to_marking_center", "delta_distance_loop_to_marking_center", "loop_center_in_cavity",
         "instrument_not_in_cavity", "instrument_shaft_collisions", "loop_marking_overlap",
-        "loop_closed_around_marking", "loop_closed_in_thin_air", "successful_task"]
-    assert list(weights.values()) == [-0.05, -100.0, 0.0, 0.0, 0.0, 0.8, 0.5, -0.1, 100.0]
+        "loop_closed_around_marking", "loop_closed_in_thin_air", "loop_closed_on_marking", "successful_task"]
+    assert list(weights.values()) == [-0.05, -100.0, 0.0, 0.0, 0.0, 0.8, 0.5, -0.1, 0.0, 100.0]
 
 
 # ---------------------------------------------------------------------------- closing mechanism
@@ -429,6 +432,8 @@ def test_features_on_hand_made_states(device):
     assert refs[0]["in_cavity"] == 1.0 and refs[0]["tip_outside"] == 1.0 and 0.1 < refs[0]["overlap"] < 1.0
     assert refs[0]["encircles"] == 1.0
     assert refs[0]["success"] == 1.0 and refs[0]["around"] == pytest.approx(39.0 / 44.0 * refs[0]["overlap"])
+    assert refs[0]["on_marking"] == pytest.approx(39.0 / 44.0)  # the closed ratio, not scaled by the overlap
+    assert refs[1]["on_marking"] == 0.0 and refs[2]["on_marking"] == 0.0  # tip inside; not wound round the band
     assert refs[1]["tip_outside"] == 0.0 and refs[1]["thin_air"] == pytest.approx(29.0 / 44.0)
     assert refs[2]["in_cavity"] == 1.0 and refs[2]["tip_outside"] == 1.0 and refs[2]["overlap"] > 0.1
     assert refs[2]["encircles"] == 0.0 and refs[2]["around"] == 0.0 and refs[2]["success"] == 0.0

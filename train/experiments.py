@@ -262,6 +262,15 @@ def _thread_rows() -> list[Row]:
         rows.append(Row(f"ll-{stiffness}-zoo-bonus-state", "LigatingLoop",
                         {"loop_stiffness": stiffness, "reward_weights": {**zoo, "successful_task": 1000.0}}, "state",
                         100, paper, "text: 20 % and 0 % (stiff / soft, presumably)"))
+        # That bonus was never paid (0 %, nineteenth session): along the expert's successful episodes closed-around
+        # (ratio x overlap) peaks at ~0.5 half closed and falls to ~0.25 at success, so every step of closing past
+        # half lowers the reward. lapwarp's closed-on-marking feature (the ratio while the loop touches and has
+        # encircled the band) grows with the closure instead; holding at 0.79 is then worth ~500 under gamma 0.99,
+        # less than the 1,000 of success
+        closure = {**zoo, "loop_closed_around_marking": 0.0, "loop_closed_on_marking": 6.0, "successful_task": 1000.0}
+        rows.append(Row(f"ll-{stiffness}-closure-state", "LigatingLoop",
+                        {"loop_stiffness": stiffness, "reward_weights": closure}, "state", 100, paper,
+                        "text: 20 % and 0 % (stiff / soft, presumably)"))
     return rows
 
 

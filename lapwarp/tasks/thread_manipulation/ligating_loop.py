@@ -26,7 +26,9 @@ tip outside it; shaft contacts with the cavity; the overlap (the fraction of the
 triangles within ``touch_distance`` of a loop sphere); closed ratio x overlap x in-cavity x tip-outside x encircles
 ("closed around the marking"; encircles: the closed loop has wound about the cavity's axis at the band since its
 centre entered the cavity, see below);
-closed ratio x (1 - in-cavity) ("closed in thin air"); success (closed around > 0, overlap >
+closed ratio x (1 - in-cavity) ("closed in thin air"); lapwarp's "closed on the marking" (closed around without the
+overlap factor, while a band triangle is touched; weight 0 unless set: the shaping of experiment rows, since closed
+around peaks with the loop half closed and falls as it tightens to success); success (closed around > 0, overlap >
 ``target_loop_overlap_ratio``, ratio > ``target_loop_closed_ratio``) ends the episode.
 
 Reset (sofa_env's with ``randomize_loop_state``): closedness c ~ U[0, 1] gives the active index
@@ -116,6 +118,10 @@ REWARDS = RewardSpec(
     Feature("loop_marking_overlap", 0.8),  # sofa_zoo: 1.0
     Feature("loop_closed_around_marking", 0.5),  # sofa_zoo: 6.0
     Feature("loop_closed_in_thin_air", -0.1),
+    # lapwarp's, not the paper's (weight 0: Table A's reward is unchanged): the closed ratio while the loop touches
+    # the band and has encircled it; closed-around (ratio x overlap) peaks half closed and falls towards success
+    # (a tight loop touches the band along one line), this one grows with the closure until success
+    Feature("loop_closed_on_marking", 0.0),
     Feature("successful_task", 100.0),
 )
 F = REWARDS.F
@@ -492,7 +498,8 @@ def eval_ligating_loop(q: wp.array2d(dtype=wp.vec3), pose: wp.array2d(dtype=wp.t
             pair = contacts.pair_index[s, cavity_group]
             if pair >= 0:
                 collisions += contacts.report_count[env, pair]
-    around = ratio * overlap * float(in_cavity * tip_outside * wp.where(p.require_encircling != 0, encircles, 1))
+    gate = float(in_cavity * tip_outside * wp.where(p.require_encircling != 0, encircles, 1))
+    around = ratio * overlap * gate
     features_out[env, F.DISTANCE_LOOP_TO_MARKING_CENTER] = over_diagonal(wp.length(band - com), p.bounds.inv_diagonal)
     features_out[env, F.LOOP_CENTER_IN_CAVITY] = float(in_cavity)
     features_out[env, F.INSTRUMENT_NOT_IN_CAVITY] = float(tip_outside)
@@ -500,6 +507,7 @@ def eval_ligating_loop(q: wp.array2d(dtype=wp.vec3), pose: wp.array2d(dtype=wp.t
     features_out[env, F.LOOP_MARKING_OVERLAP] = overlap
     features_out[env, F.LOOP_CLOSED_AROUND_MARKING] = around
     features_out[env, F.LOOP_CLOSED_IN_THIN_AIR] = ratio * float(1 - in_cavity)
+    features_out[env, F.LOOP_CLOSED_ON_MARKING] = wp.where(touched > 0, ratio * gate, 0.0)
     done = float(0.0)
     if around > 0.0 and overlap > p.target_overlap and ratio > p.target_ratio:
         done = 1.0
