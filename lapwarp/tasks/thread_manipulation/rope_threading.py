@@ -1398,7 +1398,10 @@ class RopeThreadingExpert(Expert):
     gain there (seed 1, 26 / 32 before): ``tolerance`` 2.0 or 2.5 mm (25), ``steep_cos`` 0.55 (24), ``regrasp_past``
     8 or 16 mm (26, 23), ``regrasp_hover`` 5 or 10 mm (seed 0, 28 / 32 unchanged: the left's depth steps only move
     from after the pass to before). Two eyes, tried without gain (seed 0, 29 / 32 before): the right grasper's
-    heading error below 3 deg left alone while threading (28), the approach's centring at 0.3 (26)."""
+    heading error below 3 deg left alone while threading (28), the approach's centring at 0.3 (26). Bimanual at 256
+    envs (seed 0, 216 / 256 first episodes; 6 of 7 failures in a 64-env sample started with the left jaw at 28-36 deg,
+    whose closing alone takes 50-65 steps): the left grasper taking the node 10, 13 or 18 mm along its jaws instead
+    of 15 (nearer the hinge the jaws meet the rope at a wider angle): 199, 211, 213 / 256."""
 
     def __init__(self, env: RopeThreadingEnv, approach: float = 0.006, tolerance: float | None = None,
                  gain: float = 0.15, spin_gain: float = 0.5, advance: float = 0.001, max_step: float | None = None,
