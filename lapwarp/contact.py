@@ -642,7 +642,7 @@ class ContactSystem:
                    [self._segments, off[c], shapes, motion, self._shape_poses, solve, ignore, masks], [q, reports])
         off = self.tri_color_offsets
         if has_triangles and self.triangle_sweep == "fused":
-            threads = self.triangle_block_threads if self.device.is_cuda else 1  # one lane per block on the CPU
+            threads = launching.block_lanes(self.device, self.triangle_block_threads)
             launch(ck.collide_triangle_colors, (n, threads),
                    [self._triangles, self._tri_color_table, shapes, self._tool_axes, solve, ignore, masks],
                    [q, reports], block_dim=threads)
@@ -659,7 +659,7 @@ class ContactSystem:
                 launch(sf["mesh"].refit)  # BVH bounds of the surface as it is now (after this sweep's constraints)
                 launch(ck.surface_snapshot, (n, verts.shape[0]), [verts, q], [snap, drift])
             else:
-                lanes = 64 if self.device.is_cuda else 1  # a block per env (one lane per block on the CPU)
+                lanes = launching.block_lanes(self.device, 64)  # a block per env (ck.surface_drift)
                 launch(ck.surface_drift, (n, lanes), [verts, q, snap], [drift], block_dim=lanes)
             launch(ck.collide_surface, (n, len(sf["candidates"])),
                    [self._particles, sf["candidates"], sf["surface"], shapes, solve, masks, report, self.report_margin],

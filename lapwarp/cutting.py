@@ -248,7 +248,7 @@ class CuttingSystem:
             # 0 lanes would run nothing and leave every mask and counter as it was, silently
             raise ValueError(f"block_threads must be an int in [1, 1024] (lanes of one env's block), "
                              f"got {self.block_threads!r}")
-        lanes = int(self.block_threads) if w.device.is_cuda else 1
+        lanes = launching.block_lanes(w.device, self.block_threads)
         launching.launch(ck.cut_and_recount, dim=(w.num_envs, lanes),
                          inputs=[self._elements, self._tools, w.state.particle_q, int(do_cut)],
                          outputs=[self._mask_state, self._counters], device=w.device, block_dim=lanes)

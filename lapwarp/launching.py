@@ -28,6 +28,13 @@ def block_dim_for(dim, sm_count: int, cap: int = 256) -> int:
     return block
 
 
+def block_lanes(device, lanes: int) -> int:
+    """Threads of a thread-block-per-env launch (launch ``(num_envs, lanes)`` with ``block_dim=lanes``): ``lanes`` on
+    CUDA, one on the CPU, where Warp runs a tiled block as a single lane (the block's loops then take every element
+    in order and its barriers are no-ops)."""
+    return int(lanes) if wp.get_device(device).is_cuda else 1
+
+
 def launch(kernel, dim, inputs=(), outputs=(), device=None, block_dim: int | None = None, **kwargs):
     """``wp.launch`` with the block size from :func:`block_dim_for` on CUDA devices (an explicit ``block_dim`` wins);
     other keyword arguments are passed through."""

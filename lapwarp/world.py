@@ -419,7 +419,7 @@ class World:
         inv_dt2 = 1.0 / (h * h)
         if self._w_eff is not None:
             # attachments change only between steps (grasping updates them after the last sweep)
-            lanes = 64 if dev.is_cuda else 1  # a block per env (world_kernels.attachment_inverse_masses)
+            lanes = launching.block_lanes(dev, 64)  # a block per env (world_kernels.attachment_inverse_masses)
             launch(world_kernels.attachment_inverse_masses, (n, lanes),
                    [m.particle_inv_mass, s.attach_particle, s.attach_compliance, inv_dt2], [self._w_eff],
                    block_dim=lanes)
@@ -519,7 +519,7 @@ class World:
         elif m.tet_count and self.fused_tets:
             first, count = self._tet_window
             # on the CPU a tiled block has one lane (Warp's CPU tile semantics): the same sweep, in order
-            threads = self.tet_block_threads if self.device.is_cuda else 1
+            threads = launching.block_lanes(self.device, self.tet_block_threads)
             launch(xpbd.fused_tet_kernel(count), (n, threads), [self._tet_color_offsets, first, *tet_args], tet_out,
                    block_dim=threads)
         else:
@@ -581,7 +581,7 @@ class World:
                   self._q_pred, inv_dt2, tet_map, tet_mask, self.tet_rotation_iterations]
         if self.fused_tets:
             first, count = self._tet_window
-            threads = self.tet_block_threads if dev.is_cuda else 1
+            threads = launching.block_lanes(dev, self.tet_block_threads)
             launch(vbd.fused_vertex_kernel(count), (n, threads), [offsets_dev, first, *common],
                    [rotation, s.particle_q], block_dim=threads)
         else:
@@ -652,7 +652,7 @@ class World:
         if width == 0:
             return
         body_prev = self._body_q_prev if self._body_q_prev is not None else self._dummy_tf()
-        lanes = self.ROW_COPY_LANES if self.device.is_cuda else 1
+        lanes = launching.block_lanes(self.device, self.ROW_COPY_LANES)
         launching.launch(world_kernels.copy_state_rows, dim=(self.num_envs, lanes),
                          inputs=[env_mask, start if restore else live, live if restore else start, body_prev,
                                  int(restore and self._body_q_prev is not None), width, lanes], device=self.device)
@@ -662,7 +662,7 @@ class World:
             return
         src, dst = ((self._start_tet_rotation, self._tet_rotation) if restore
                     else (self._tet_rotation, self._start_tet_rotation))
-        lanes = self.ROW_COPY_LANES if self.device.is_cuda else 1
+        lanes = launching.block_lanes(self.device, self.ROW_COPY_LANES)
         launching.launch(world_kernels.copy_masked_2d, dim=(self.num_envs, lanes), inputs=[env_mask, src, lanes],
                          outputs=[dst], device=self.device)
 

@@ -784,7 +784,7 @@ class LigatingLoopEnv(BatchedEnv):
 
     def _compute_features(self, env_mask: wp.array, features_out: wp.array2d) -> None:
         s, rig = self.world.state, self.rig
-        lanes = EVAL_LANES if self.wp_device.is_cuda else 1  # Warp's CPU tiles run one lane per block
+        lanes = launching.block_lanes(self.wp_device, EVAL_LANES)
         wp.launch(eval_ligating_loop, dim=(self.num_envs, lanes),
                   inputs=[s.particle_q, rig.pose, self._rig_contacts, self.cavity_group, self.params, self.task,
                           self.cfg.num_loop_points], outputs=[features_out], device=self.wp_device, block_dim=lanes)
