@@ -224,6 +224,21 @@ def test_update_shape_options_override_the_preset(capsys):
         assert message in capsys.readouterr().err
 
 
+def test_init_noise_std_sets_the_actor_distribution(capsys):
+    parser = ppo.build_parser()
+    for extra in ([], ["--obs", "rgb"]):
+        *_, cfg, _ = ppo.training_config(parser.parse_args(["--preset", "gpu", "--init-noise-std", "0.4", *extra]),
+                                         parser, "cpu")
+        assert cfg["actor"]["distribution_cfg"] == {"class_name": "GaussianDistribution", "init_std": 0.4,
+                                                    "std_type": "log"}
+    *_, cfg, _ = ppo.training_config(parser.parse_args(["--preset", "gpu"]), parser, "cpu")
+    assert cfg["actor"]["distribution_cfg"]["init_std"] == 1.0
+    for bad in ("0", "-1", "nan", "11"):
+        with pytest.raises(SystemExit):
+            ppo.training_config(parser.parse_args(["--preset", "gpu", "--init-noise-std", bad]), parser, "cpu")
+        assert "--init-noise-std must be in (0, 10]" in capsys.readouterr().err
+
+
 def test_unloadable_checkpoint_and_unwritable_log_dir_are_usage_errors(tmp_path, capsys):
     not_a_checkpoint = tmp_path / "notes.pt"
     not_a_checkpoint.write_text("not a checkpoint")

@@ -363,6 +363,9 @@ def build_parser() -> argparse.ArgumentParser:
                         help="passes over each rollout per update (default: the preset's; gpu 5)")
     parser.add_argument("--mini-batches", type=int, default=None, metavar="N",
                         help="mini-batches per pass (default: the preset's; gpu 4)")
+    parser.add_argument("--init-noise-std", type=float, default=None, metavar="STD",
+                        help="the actor's initial action standard deviation (default 1.0; image presets too): "
+                             "smaller for tasks whose reward needs precise placement (LigatingLoop)")
     parser.add_argument("--verbose", action="store_true", help="print rsl-rl's full block per iteration")
     return parser
 
@@ -423,6 +426,10 @@ def training_config(args: argparse.Namespace, parser: argparse.ArgumentParser, d
         if not 0.0 < args.learning_rate <= 1.0:  # NaN fails the comparison too
             parser.error(f"--learning-rate must be in (0, 1], got {args.learning_rate}")
         alg["learning_rate"] = args.learning_rate
+    if args.init_noise_std is not None:
+        if not 0.0 < args.init_noise_std <= 10.0:  # NaN fails the comparison too
+            parser.error(f"--init-noise-std must be in (0, 10], got {args.init_noise_std}")
+        train_cfg["actor"].setdefault("distribution_cfg", {}).update(init_std=args.init_noise_std)
     if args.video is not None:
         if not args.video.endswith(".mp4") or args.video_envs < 1:
             parser.error(f"--video writes an .mp4 file of --video-envs >= 1 envs, got {args.video!r}, "
