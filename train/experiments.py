@@ -31,6 +31,7 @@ import os
 import statistics
 import subprocess
 import sys
+import textwrap
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -485,7 +486,8 @@ def plot_rows(experiment: Experiment, rows: list[Row], out: Path) -> list[Path]:
             ax.grid(alpha=0.3)
         axes[0].set_ylabel("training success")
         axes[1].legend(fontsize=7, loc="lower right")
-        fig.suptitle(f"{row.name}: {row.task} {row.obs} {row.config_text()}", fontsize=9)
+        # long configurations (reward weights) wrap instead of running off the figure
+        fig.suptitle(textwrap.fill(f"{row.name}: {row.task} {row.obs} {row.config_text()}", 120), fontsize=9)
         fig.tight_layout()
         path = out / experiment.name / f"{row.name}.png"
         fig.savefig(path, dpi=110)
