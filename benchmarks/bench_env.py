@@ -3,6 +3,10 @@
     python benchmarks/bench_env.py --task Reach --device cuda:0 --num-envs 1 64 1024 16384 65536 --out reach.json
 
 ``--policy expert`` times the task's scripted expert with each step (the regime where instruments cut and grasp).
+``--policy replay`` times the same regime without the expert: the expert's actions are recorded first (untimed, in
+one env), then replayed into a fresh env of the same seed, which the deterministic step takes through the same states
+(exactly on the CPU; on CUDA up to float atomics' order); timing stops at the end of the recording
+(``--replay-steps``).
 
 Regime: env step only (physics + observations + rewards + dones + masked auto-resets, the whole
 ``env.step`` as rsl-rl calls it, including the returned clones and log tensors); no policy. Actions are
@@ -56,20 +60,41 @@ def apply_contact_settings(env, surface_refit_interval: int | None = None, trian
             contact.triangle_block_threads = triangle_block_threads
 
 
+def record_expert_actions(env, steps: int) -> list[torch.Tensor]:
+    """The scripted expert's actions over ``steps`` steps of ``env`` (which they advance), one tensor per step."""
+    expert = make_expert(env)
+    actions = []
+    for _ in range(steps):
+        actions.append(expert().clone())
+        env.step(actions[-1])
+    return actions
+
+
 def bench_one(task: str, num_envs: int, device: str, seconds: float, invalid_actions: str, overrides: dict,
               policy: str = "random", tet_solver: str | None = None, cuda_graph: bool = True,
               surface_refit_interval: int | None = None, triangle_sweep: str | None = None,
-              triangle_block_threads: int | None = None) -> dict:
-    env = lapwarp.make(task, num_envs=num_envs, device=device, invalid_actions=invalid_actions,
-                       use_cuda_graph=cuda_graph, **overrides)
-    if tet_solver is not None:
-        env.world.tet_solver = tet_solver  # before the first step records (and the env captures) the launches
-    apply_contact_settings(env, surface_refit_interval, triangle_sweep, triangle_block_threads)
+              triangle_block_threads: int | None = None, replay_steps: int = 600) -> dict:
+    def make_env():
+        env = lapwarp.make(task, num_envs=num_envs, device=device, invalid_actions=invalid_actions,
+                           use_cuda_graph=cuda_graph, **overrides)
+        if tet_solver is not None:
+            env.world.tet_solver = tet_solver  # before the first step records (and the env captures) the launches
+        apply_contact_settings(env, surface_refit_interval, triangle_sweep, triangle_block_threads)
+        return env
+
+    env = make_env()
     gen = torch.Generator(device=env.device).manual_seed(0)
+    recorded = None
+    if policy == "replay":
+        recorded = record_expert_actions(env, replay_steps)
+        env.close()
+        env = make_env()  # same config and seed: the replayed actions take it through the expert's states
     if policy == "expert":
         # The scripted expert acts on the live state every step (its own device work is timed too): this is the
         # regime where instruments really cut, grasp and touch, and where cut envs are reset.
         expert = make_expert(env)
+        pool = None
+    elif policy == "replay":
         pool = None
     elif env.is_discrete:
         pool = [torch.randint(0, 2 * env.action_dim + 1, (num_envs,), device=env.device, generator=gen)
@@ -78,16 +103,23 @@ def bench_one(task: str, num_envs: int, device: str, seconds: float, invalid_act
         pool = [torch.rand(num_envs, env.num_actions, device=env.device, generator=gen) * 2 - 1 for _ in range(8)]
 
     def action(i: int):
+        if recorded is not None:
+            return recorded[i]
         return expert() if pool is None else pool[i % 8]
-    for i in range(5):  # compile kernels, capture the CUDA graph, warm caches
+    warmup = 5
+    for i in range(warmup):  # compile kernels, capture the CUDA graph, warm caches
         env.step(action(i))
     sync(env.device)
+    # a replay ends with its recording: steps past it would no longer follow the expert's states
+    available = len(recorded) - warmup if recorded is not None else None
     steps, elapsed = 0, 0.0
     batch = 10
     start = time.perf_counter()
-    while elapsed < seconds:
+    while elapsed < seconds and (available is None or steps < available):
+        if available is not None:
+            batch = min(batch, available - steps)
         for i in range(batch):
-            env.step(action(steps + i))
+            env.step(action(warmup + steps + i))
         steps += batch
         sync(env.device)
         elapsed = time.perf_counter() - start
@@ -95,7 +127,8 @@ def bench_one(task: str, num_envs: int, device: str, seconds: float, invalid_act
     result = {
         "task": task, "num_envs": num_envs, "env_steps": steps * num_envs, "seconds": elapsed,
         "env_steps_per_s": steps * num_envs / elapsed, "step_ms": 1e3 * elapsed / steps,
-        "invalid_actions": invalid_actions, "policy": policy, "frame_skip": env.cfg.frame_skip,
+        "invalid_actions": invalid_actions, "policy": policy,
+        "replay_steps": len(recorded) if recorded is not None else None, "frame_skip": env.cfg.frame_skip,
         "time_step": env.cfg.time_step,
         "observation_type": env.cfg.observation_type, "cuda_graph": env._use_cuda_graph,
         "resolution": list(env.cfg.image_shape) if env.uses_images else None,
@@ -120,8 +153,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--image-size", type=positive_int, default=64, help="square image side for image observations")
     parser.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
                         help="extra config overrides, values parsed as JSON (e.g. sphere_radius=0.02)")
-    parser.add_argument("--policy", choices=["random", "expert"], default="random",
-                        help="random actions from a pre-drawn pool, or the scripted expert (timed with the step)")
+    parser.add_argument("--policy", choices=["random", "expert", "replay"], default="random",
+                        help="random actions from a pre-drawn pool, the scripted expert (timed with the step), or the "
+                             "expert's recorded actions replayed (the expert's regime, the step alone timed)")
+    parser.add_argument("--replay-steps", type=positive_int, default=600,
+                        help="--policy replay: expert steps recorded (timing stops after them, 5 warm-up steps first)")
     parser.add_argument("--tet-solver", choices=["auto", "colored", "fused"], default=None,
                         help="the world's tet sweep (default: the world's own choice)")
     parser.add_argument("--surface-refit-interval", type=non_negative_int, default=None,
@@ -137,6 +173,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
 
     wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)  # no per-module load lines
+    if args.policy == "replay" and args.replay_steps <= 5:
+        parser.error(f"--replay-steps must exceed the 5 warm-up steps, got {args.replay_steps}")
     modes = ["zero", "raise"] if args.both_nan_modes else [args.invalid_actions]
     overrides = {"observation_type": args.obs}
     if args.obs != "STATE":
@@ -153,10 +191,12 @@ def main(argv: list[str] | None = None) -> int:
         for mode in modes:
             r = bench_one(args.task, n, args.device, args.seconds, mode, overrides, args.policy, args.tet_solver,
                           cuda_graph=not args.no_graph, surface_refit_interval=args.surface_refit_interval,
-                          triangle_sweep=args.triangle_sweep, triangle_block_threads=args.triangle_block_threads)
+                          triangle_sweep=args.triangle_sweep, triangle_block_threads=args.triangle_block_threads,
+                          replay_steps=args.replay_steps)
             results.append(r)
             print(f"{r['task']:<10} {n:>9} {mode:>8} {r['env_steps_per_s']:>14,.0f} {r['step_ms']:>9.3f}", flush=True)
-    report = {"benchmark": "env_step", "regime": f"env step only, {args.policy} actions", "device": args.device,
+    regime = "the expert's recorded actions replayed" if args.policy == "replay" else f"{args.policy} actions"
+    report = {"benchmark": "env_step", "regime": f"env step only, {regime}", "device": args.device,
               "device_name": device_name(args.device), "warp": wp.__version__, "torch": torch.__version__,
               "results": results}
     if args.out:

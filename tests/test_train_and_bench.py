@@ -6,7 +6,10 @@ import json
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
+
+import lapwarp
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "train"))
@@ -89,6 +92,41 @@ def test_bench_env_applies_and_records_the_contact_settings(device, tmp_path):
     assert r["surface_refit_interval"] == 3 and r["triangle_sweep"] == "colored" and r["cuda_graph"] is False
     assert r["triangle_block_threads"] == 16
     assert r["env_steps_per_s"] > 0
+
+
+def test_bench_env_replayed_expert_actions_reproduce_the_expert_run(device):
+    """``--policy replay`` times the expert's regime without the expert: its recorded actions must take a fresh env
+    of the same seed through the same states, cuts included (RopeCutting: the expert cuts ropes and the cut envs
+    reset). Exact on the CPU (one thread, no atomics' order)."""
+    kwargs = dict(num_envs=2, device=device, seed=3, use_cuda_graph=False)
+    expert_env = lapwarp.make("RopeCutting", **kwargs)
+    actions = bench_env.record_expert_actions(expert_env, 50)  # cuts at steps 7, 13, 21, 30, 48
+    replay_env = lapwarp.make("RopeCutting", **kwargs)
+    cuts = 0
+    for a in actions:
+        replay_env.step(a)
+        cuts += int(replay_env.cutting.cut_happened.numpy().sum())
+    tol = 0.0 if device == "cpu" else 1e-4
+    for name in ("particle_q", "particle_qd"):
+        expected = getattr(expert_env.world.state, name).numpy()
+        assert np.abs(getattr(replay_env.world.state, name).numpy() - expected).max() <= tol, name
+    for name in ("removed", "component"):
+        assert np.array_equal(getattr(replay_env.cutting, name).numpy(), getattr(expert_env.cutting, name).numpy())
+    assert cuts >= 3, "the replay cut (almost) nothing: the test would show little"
+
+
+def test_bench_env_replay_writes_json_and_checks_its_length(device, tmp_path, capsys):
+    out = tmp_path / "bench.json"
+    assert bench_env.main(["--device", device, "--task", "Reach", "--num-envs", "2", "--seconds", "10",
+                           "--policy", "replay", "--replay-steps", "12", "--out", str(out)]) == 0
+    report = json.loads(out.read_text())
+    (r,) = report["results"]
+    # timing stops with the recording: 12 recorded steps, 5 of them warm-up
+    assert r["policy"] == "replay" and r["replay_steps"] == 12 and r["env_steps"] == 7 * 2
+    assert report["regime"] == "env step only, the expert's recorded actions replayed"
+    with pytest.raises(SystemExit):
+        bench_env.main(["--device", device, "--task", "Reach", "--policy", "replay", "--replay-steps", "5"])
+    assert "--replay-steps must exceed the 5 warm-up steps, got 5" in capsys.readouterr().err
 
 
 def test_profile_step_records_warmup_timing_and_wall(device, tmp_path):
