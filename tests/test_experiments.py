@@ -157,4 +157,8 @@ def test_usage_errors(capsys):
         experiments.main(["spatial-rgb", "--shared-encoder"])
     assert "--shared-encoder needs --fast-pixels" in capsys.readouterr().err
     assert experiments.main(["--list"]) == 0
-    assert "deflect-m5-b2-rgb" in capsys.readouterr().out
+    listing = capsys.readouterr().out
+    assert "deflect-m5-b2-rgb" in listing
+    # a row's own ppo.py options are listed with it
+    (line,) = [row for row in listing.splitlines() if row.strip().startswith("ll-stiff-closure-n05-i2-state ")]
+    assert line.endswith("[ppo.py --init-noise-std 0.5]") and "index_steps_per_action=2" in line

@@ -540,7 +540,10 @@ def main(argv: list[str] | None = None, experiments: dict[str, Experiment] | Non
             for row in exp.rows:
                 paper = "-" if row.paper_success is None else f"{row.paper_success:.0%}"
                 critic = "  [state critic]" if row.critic == "state" else ""
-                print(f"  {row.name:24s} {row.task:16s} {row.obs:5s} paper {paper:>5s}  {row.config_text()}{critic}")
+                # the row's own ppo.py options (a schedule, the initial noise) define it as much as its config
+                extra = f"  [ppo.py {' '.join(row.train_args)}]" if row.train_args else ""
+                print(f"  {row.name:24s} {row.task:16s} {row.obs:5s} paper {paper:>5s}  {row.config_text()}{critic}"
+                      f"{extra}")
         return 0
     if args.experiment not in experiments:
         parser.error(f"choose an experiment: {sorted(experiments)} (or --list)")
