@@ -335,3 +335,35 @@ class _EndsAtStepTwo:
 def test_evaluation_counts_failed_episodes_as_failures():
     success, mean_return = ppo.evaluate(_EndsAtStepTwo(), lambda obs: obs)
     assert (success, mean_return) == (0.5, 2.0)
+
+
+def test_trace_policy_writes_actions_features_and_forced_components(device, tmp_path, capsys):
+    """``train/trace_policy.py`` rolls a checkpoint out in the env its training run built and writes one CSV row per
+    (step, traced env); a forced component holds its value from ``--force-from`` on and not before."""
+    import csv
+
+    import trace_policy
+
+    base = ["--task", "Reach", "--device", device, "--preset", "cpu", "--num-envs", "4", "--eval-envs", "2"]
+    assert ppo.main([*base, "--max-iterations", "1", "--log-dir", str(tmp_path)]) == 0
+    (checkpoint,) = tmp_path.glob("Reach/*/model_0.pt")
+    out = tmp_path / "trace.csv"
+    capsys.readouterr()
+    assert trace_policy.main([str(checkpoint), "--task", "Reach", "--preset", "cpu", "--device", device, "--envs",
+                              "3", "--trace-envs", "2", "--steps", "6", "--force", "1=0.75", "--force-from", "2",
+                              "--out", str(out)]) == 0
+    assert "Reach, 3 envs x 6 steps (deterministic, forced [(1, 0.75)] from step 2)" in capsys.readouterr().out
+    rows = list(csv.DictReader(out.open()))
+    env = lapwarp.make("Reach", num_envs=1, device=device)
+    assert [(int(r["step"]), int(r["env"])) for r in rows] == [(s, e) for s in range(6) for e in range(2)]
+    assert set(env.reward_features) <= set(rows[0]) and {"action_0", "action_2", "reward", "done"} <= set(rows[0])
+    forced = [float(r["action_1"]) for r in rows]
+    assert all(v == 0.75 for v in forced[4:]) and not any(v == 0.75 for v in forced[:4])
+    for bad, message in ((["--force", "7=1.0"], "outside the 3 action components"),
+                         (["--force", "1=nan"], "expected COMPONENT=VALUE"),
+                         (["--envs", "2", "--trace-envs", "3"], "--trace-envs 3 exceeds --envs 2"),
+                         (["--set", "seed=4"], "the env's seed is --seed")):
+        with pytest.raises(SystemExit):
+            trace_policy.main([str(checkpoint), "--task", "Reach", "--preset", "cpu", "--device", device, *bad,
+                               "--out", str(out)])
+        assert message in capsys.readouterr().err
