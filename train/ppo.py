@@ -447,6 +447,17 @@ def training_config(args: argparse.Namespace, parser: argparse.ArgumentParser, d
     return preset, num_envs, iterations, train_cfg, env_overrides
 
 
+def load_checkpoint(runner: OnPolicyRunner, path: str, device: str, parser: argparse.ArgumentParser,
+                    option: str) -> None:
+    """Load ``path`` into ``runner``'s models; a file that is not a checkpoint, or one of other models (another task,
+    observation or network), is a usage error naming ``option``."""
+    try:
+        runner.load(path, map_location=device)
+    except (pickle.UnpicklingError, EOFError, KeyError, RuntimeError, ValueError) as exc:
+        parser.error(f"{option} {path!r} does not load into this run's models "
+                     f"({type(exc).__name__}: {' '.join(str(exc).split())[:300]})")
+
+
 def train(argv: list[str] | None, quiet: contextlib.ExitStack) -> int:
     """Parse, set up this rank (device, seed, process group), train, then on rank 0 evaluate, report and record."""
     parser = build_parser()
@@ -498,13 +509,7 @@ def train(argv: list[str] | None, quiet: contextlib.ExitStack) -> int:
     compact_progress(runner, env, args.verbose, ranks.is_main, progress_csv, ranks.world_size)
     checkpoint = args.play or args.resume
     if checkpoint:
-        try:
-            runner.load(checkpoint, map_location=device)
-        except (pickle.UnpicklingError, EOFError, KeyError, RuntimeError, ValueError) as exc:
-            # not a checkpoint, or one of other models (another task, observation or network)
-            option = "--play" if args.play else "--resume"
-            parser.error(f"{option} {checkpoint!r} does not load into this run's models "
-                         f"({type(exc).__name__}: {' '.join(str(exc).split())[:300]})")
+        load_checkpoint(runner, checkpoint, device, parser, "--play" if args.play else "--resume")
         if ranks.is_main:
             print(f"loaded {checkpoint}")
         if args.resume and args.learning_rate is not None:

@@ -28,6 +28,7 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import ppo  # noqa: E402
 
 import lapwarp  # noqa: E402
+from lapwarp.cli import positive_int  # noqa: E402
 
 
 def parse_force(text: str) -> tuple[int, float]:
@@ -42,19 +43,12 @@ def parse_force(text: str) -> tuple[int, float]:
     return component, forced
 
 
-def positive(text: str) -> int:
-    value = int(text)
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {value}")
-    return value
-
-
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("checkpoint", help="an rsl-rl checkpoint written by train/ppo.py")
-    parser.add_argument("--envs", type=positive, default=16, help="envs rolled out (default 16)")
-    parser.add_argument("--steps", type=positive, default=None, help="steps (default: the task's episode length)")
-    parser.add_argument("--trace-envs", type=positive, default=None,
+    parser.add_argument("--envs", type=positive_int, default=16, help="envs rolled out (default 16)")
+    parser.add_argument("--steps", type=positive_int, default=None, help="steps (default: the task's episode length)")
+    parser.add_argument("--trace-envs", type=positive_int, default=None,
                         help="the first N envs are written to the CSV (default: all)")
     parser.add_argument("--force", type=parse_force, action="append", default=[], metavar="K=V",
                         help="override continuous action component K with V (repeatable)")
@@ -85,16 +79,15 @@ def main(argv: list[str] | None = None) -> int:
         env = lapwarp.make(train_args.task, num_envs=args.envs, device=device, seed=args.seed, **overrides)
     except ValueError as exc:
         parser.error(str(exc))
+    if train_args.fast_pixels:
+        env = ppo.Uint8Images(env)  # the image group as the run's models were trained on it
     if args.force and env.is_discrete:
         parser.error("--force overrides components of continuous actions; this env's actions are discrete")
     for component, _ in args.force:
         if component >= env.num_actions:
             parser.error(f"--force component {component} is outside the {env.num_actions} action components")
     runner = ppo.DistributedRunner(env, train_cfg, log_dir=None, device=device)
-    try:
-        runner.load(args.checkpoint, map_location=device)
-    except (RuntimeError, KeyError, ValueError, EOFError) as exc:
-        parser.error(f"{args.checkpoint!r} does not load into this task's models ({type(exc).__name__})")
+    ppo.load_checkpoint(runner, args.checkpoint, device, parser, "checkpoint")
     policy = runner.get_inference_policy(device=device)
 
     steps = args.steps or env.max_episode_length
