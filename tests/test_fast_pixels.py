@@ -67,6 +67,87 @@ def test_fast_model_matches_rsl_rl_cnn_model(rgb_env):
             assert torch.allclose(fast_cuda(uint8_obs.cuda()).cpu(), expected, atol=0.05)
 
 
+@pytest.mark.parametrize("size, kernel, stride", [((64, 64), 8, 4), ((50, 47), 8, 4), ((8, 8), 8, 4),
+                                                  ((13, 16), 4, 2), ((12, 9), (6, 3), (3, 3))])
+def test_space_to_depth_conv_is_the_strided_convolution(size, kernel, stride):
+    torch.manual_seed(1)
+    conv = torch.nn.Conv2d(3, 5, kernel, stride)
+    stem = fast_pixels.SpaceToDepthConv(conv)
+    assert stem.weight is conv.weight and stem.bias is conv.bias and list(stem.state_dict()) == ["weight", "bias"]
+    pixels = torch.randint(0, 256, (2, 3, *size), dtype=torch.uint8)
+    # uint8 pixels are scaled by 1/255 (through the weight); float images are taken as they are
+    expected = conv(pixels.float() / 255.0)
+    with torch.no_grad():
+        images = torch.rand(2, 3, *size)
+        assert torch.allclose(stem(images), conv(images), atol=1e-5)
+    got = stem(pixels)
+    assert got.shape == expected.shape and got.dtype == torch.float32
+    assert torch.allclose(got, expected, atol=1e-5)
+    # the same gradients for the shared weight and bias
+    grad_out = torch.randn(expected.shape)
+    wb = torch.autograd.grad((expected * grad_out).sum(), (conv.weight, conv.bias))
+    got_wb = torch.autograd.grad((got * grad_out).sum(), (conv.weight, conv.bias))
+    for reference, value in zip(wb, got_wb, strict=True):
+        assert torch.allclose(reference, value, atol=1e-4, rtol=1e-4)
+    # channels-last parameters (FastCNNModel's memory order) change nothing
+    stem.to(memory_format=torch.channels_last)
+    assert torch.allclose(stem(pixels), expected, atol=1e-5)
+
+
+def test_space_to_depth_conv_refuses_what_it_cannot_compute():
+    for conv in (torch.nn.Conv2d(3, 4, 3, 1), torch.nn.Conv2d(3, 4, 8, 4, padding=1), torch.nn.Conv2d(3, 4, 7, 4),
+                 torch.nn.Conv2d(3, 4, 8, 4, dilation=2), torch.nn.Conv2d(4, 4, 8, 4, groups=2)):
+        assert not fast_pixels.SpaceToDepthConv.applies_to(conv)
+        with pytest.raises(ValueError, match="not a space-to-depth"):
+            fast_pixels.SpaceToDepthConv(conv)
+    with pytest.raises(ValueError, match="smaller than the 8x8 kernel"):
+        fast_pixels.SpaceToDepthConv(torch.nn.Conv2d(3, 4, 8, 4))(torch.zeros(1, 3, 7, 9))
+
+
+def test_fast_model_first_conv_option_keeps_rsl_rl_parameters(rgb_env):
+    from rsl_rl.models import CNNModel
+
+    obs = rgb_env.get_observations()
+    cfg = ppo.use_images(ppo.preset_config("gpu", 3, 1)[0])["actor"]
+    kwargs = {k: v for k, v in cfg.items() if k != "class_name"}
+    groups = {"actor": ["image"], "critic": ["image"]}
+    reference = CNNModel(obs, groups, "actor", 3, **kwargs)
+    blocks = fast_pixels.FastCNNModel(obs, groups, "actor", 3, autocast_bf16=False, **kwargs)
+    direct = fast_pixels.FastCNNModel(obs, groups, "actor", 3, autocast_bf16=False, space_to_depth=False, **kwargs)
+    assert isinstance(blocks.cnns["image"][0], fast_pixels.SpaceToDepthConv)
+    assert type(direct.cnns["image"][0]) is torch.nn.Conv2d
+    shapes = {k: v.shape for k, v in reference.state_dict().items()}
+    for model in (blocks, direct):  # checkpoints load either way
+        assert {k: v.shape for k, v in model.state_dict().items()} == shapes
+    direct.load_state_dict(blocks.state_dict())
+    uint8_obs = fast_pixels.Uint8Images(rgb_env).get_observations().cpu()
+    with torch.no_grad():
+        assert torch.allclose(blocks(uint8_obs), direct(uint8_obs), atol=1e-5)
+    cfg_fast = fast_pixels.use_fast_pixels(ppo.use_images(ppo.preset_config("gpu", 3, 1)[0]), space_to_depth=False)
+    assert cfg_fast["actor"]["space_to_depth"] is False and cfg_fast["actor"]["class_name"] is fast_pixels.FastCNNModel
+
+
+def test_shared_encoder_models_run_under_torch_compile(rgb_env):
+    """``--compile``: torch.compile traced into the latent cache's version counters and failed on the rollout's
+    inference tensors (H100); the cache's bookkeeping now runs outside the compiled graph. The eager backend traces
+    with TorchDynamo as the real one does, without a C++ compiler."""
+    obs = fast_pixels.Uint8Images(rgb_env).get_observations().cpu()
+    actor, critic, calls = _shared_models(obs)
+    with torch.no_grad():
+        expected = actor(obs), critic(obs)
+    compiled_actor, compiled_critic = (torch.compile(m, backend="eager") for m in (actor, critic))
+    with torch.inference_mode():
+        fresh = fast_pixels.Uint8Images(rgb_env).get_observations().cpu()
+        n = len(calls)
+        got = compiled_actor(fresh), compiled_critic(fresh)
+        assert len(calls) == n + 1  # still one encoder run for the two models
+    for e, g in zip(expected, got, strict=True):
+        assert torch.allclose(e, g, atol=1e-5)
+    a, c = compiled_actor(obs), compiled_critic(obs)  # and with gradients (the update's mini-batches)
+    (a.sum() + c.sum()).backward()
+    assert all(p.grad is not None for p in actor.cnns.parameters())
+
+
 def _shared_models(obs, train_shared_encoder=False):
     cfg = ppo.use_images(ppo.preset_config("gpu", 3, 1)[0])
     groups = {"actor": ["image"], "critic": ["image"]}
@@ -201,6 +282,7 @@ def test_ppo_trains_fast_pixels_with_state_critic_and_writes_a_video(device, tmp
     (["--obs", "rgb", "--video", "x.gif"], "--video writes an .mp4"),
     (["--obs", "rgb", "--shared-encoder"], "--shared-encoder needs --fast-pixels"),
     (["--obs", "rgb", "--fast-pixels", "--critic", "state", "--shared-encoder"], "--shared-encoder needs"),
+    (["--obs", "rgb", "--first-conv", "direct"], "--first-conv applies to the --fast-pixels"),
 ])
 def test_ppo_rejects_inconsistent_pixel_options(bad, message, capsys):
     with pytest.raises(SystemExit):

@@ -19,6 +19,7 @@ import bench_env  # noqa: E402
 import bench_fused  # noqa: E402
 import expert_success  # noqa: E402
 import ppo  # noqa: E402
+import profile_learner  # noqa: E402
 import profile_step  # noqa: E402
 import soak  # noqa: E402
 
@@ -135,6 +136,40 @@ def test_profile_step_records_warmup_timing_and_wall(device, tmp_path):
                               "1", "--timing", "all", "--policy", "random", "--out", str(out)]) == 0
     report = json.loads(out.read_text())
     assert report["warmup"] == 1 and report["timing"] == "all" and report["profiled_wall_ms_per_step"] > 0
+
+
+def test_profile_learner_splits_iterations_and_lists_operators(device, tmp_path, capsys):
+    out = tmp_path / "learner.json"
+    assert profile_learner.main(["--warmup", "1", "--iterations", "2", "--profile-iterations", "1", "--top", "5",
+                                 "--out", str(out), "--", "--device", device, "--task", "Reach", "--preset", "cpu",
+                                 "--num-envs", "4"]) == 0
+    report = json.loads(out.read_text())
+    assert report["num_envs"] == 4 and report["steps_per_env"] == 32 and report["iterations"] == 2
+    assert report["rollout_s_per_it"] > 0 and report["update_s_per_it"] > 0 and 0 < report["update_share"] < 1
+    # the rollout holds 32 env steps and 32 actions: each is timed within it
+    assert 32 * (report["env_step_ms"] + report["act_ms"]) / 1e3 < report["rollout_s_per_it"]
+    assert report["env_steps_per_s"] > 0 and 0 < len(report["top_operators"]) <= 5
+    # the profiled iteration: one update, 32 env steps and actions
+    assert report["ranges_ms"]["update"]["calls"] == 1 and report["ranges_ms"]["env.step"]["calls"] == 32
+    assert "env-steps/s" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--profile-iterations", "-1", "--", "--task", "Reach"], "--profile-iterations must be >= 0, got -1"),
+    (["--iterations", "0", "--", "--task", "Reach"], "expected a positive integer, got 0"),
+    (["--", "--task", "Reach", "--play", "model.pt"], "trains from scratch in one process"),
+    (["--", "--task", "Reach", "--obs", "state", "--fast-pixels"], "apply to image observations"),
+])
+def test_profile_learner_refuses_bad_input_before_any_run(args, message, capsys, monkeypatch):
+    import lapwarp
+
+    def no_env(*_, **__):
+        raise AssertionError("an env was built before the arguments were checked")
+
+    monkeypatch.setattr(lapwarp, "make", no_env)
+    with pytest.raises(SystemExit):
+        profile_learner.main(args)
+    assert message in capsys.readouterr().err
 
 
 def test_bench_fused_compares_each_sweep_of_a_task(device, tmp_path):

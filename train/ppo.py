@@ -343,6 +343,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--shared-encoder", action="store_true",
                         help="with --fast-pixels: one image encoder for the actor and the critic, run once per "
                              "batch (train/fast_pixels.py)")
+    parser.add_argument("--first-conv", choices=["space-to-depth", "direct"], default="space-to-depth",
+                        help="with --fast-pixels: the encoders' strided first convolution computed over pixel blocks "
+                             "(space-to-depth, the same function, tensor-core friendly) or as is (direct)")
     parser.add_argument("--compile", default=None, choices=COMPILE_MODES,
                         help="torch.compile mode of the actor and critic")
     parser.add_argument("--video", default=None, metavar="MP4",
@@ -403,9 +406,11 @@ def training_config(args: argparse.Namespace, parser: argparse.ArgumentParser, d
             env_overrides["privileged_critic"] = True
         use_images(train_cfg, privileged_critic=args.critic == "state")
         if args.fast_pixels:
-            use_fast_pixels(train_cfg)
+            use_fast_pixels(train_cfg, space_to_depth=args.first_conv == "space-to-depth")
     elif args.critic != "same" or args.fast_pixels:
         parser.error("--critic state and --fast-pixels apply to image observations (--obs rgb ...)")
+    if args.first_conv != "space-to-depth" and not args.fast_pixels:
+        parser.error("--first-conv applies to the --fast-pixels encoders")
     if args.fast_pixels and args.obs != "rgb":
         parser.error("--fast-pixels stores uint8 images, exact only for --obs rgb")
     if args.shared_encoder:
