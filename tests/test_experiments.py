@@ -13,6 +13,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "train"))
 
 import experiments  # noqa: E402
+import ppo  # noqa: E402
 
 TINY = {"tiny": experiments.Experiment("tiny", "one Reach row", [
     experiments.Row("reach", "Reach", {"sphere_radius": 0.008, "randomize_start": True}, "state", 2, 1.0, "solved"),
@@ -49,6 +50,9 @@ def test_run_commands_carry_the_learner_options(tmp_path):
                                   shared_encoder=True)
     assert cmd.index("--shared-encoder") == cmd.index("--fast-pixels") + 1
     assert reach.learner(True, True) == "PPO, CNN actor, CNN critic, fast pixels, shared encoder"
+    cmd = experiments.run_command(reach, 0, "gpu", paths, None, 1, None, None, 256, tmp_path, compile_mode="default")
+    assert cmd[cmd.index("--compile") + 1] == "default" and "--fast-pixels" not in cmd
+    assert experiments.COMPILE_MODES == ppo.COMPILE_MODES
     state = experiments.EXPERIMENTS["spatial-state"].rows[0]
     cmd = experiments.run_command(state, 3, "gpu", paths, None, 2, 8, 5, 16, tmp_path, fast_pixels=True)
     assert "--fast-pixels" not in cmd and "--critic" not in cmd and "--distributed" in cmd
@@ -156,6 +160,9 @@ def test_usage_errors(capsys):
     with pytest.raises(SystemExit):
         experiments.main(["spatial-rgb", "--shared-encoder"])
     assert "--shared-encoder needs --fast-pixels" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        experiments.main(["spatial-rgb", "--compile", "fastest"])
+    assert "invalid choice: 'fastest'" in capsys.readouterr().err
     assert experiments.main(["--list"]) == 0
     listing = capsys.readouterr().out
     assert "deflect-m5-b2-rgb" in listing

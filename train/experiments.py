@@ -39,6 +39,9 @@ from typing import Any
 
 ROOT = Path(__file__).resolve().parents[1]
 PPO_SCRIPT = ROOT / "train" / "ppo.py"
+#: ``ppo.py --compile``'s modes (ppo.COMPILE_MODES; not imported: this runner stays free of torch and Warp, and a test
+#: keeps the two equal)
+COMPILE_MODES = ("default", "reduce-overhead", "max-autotune", "max-autotune-no-cudagraphs")
 DEFAULT_OUT = ROOT / "benchmarks" / "results" / "learning"
 
 SUMMARY_COLUMNS = ["row", "task", "config", "obs", "learner", "seeds", "env_steps", "success_mean", "success_std",
@@ -339,9 +342,9 @@ def run_paths(out: Path, experiment: str, row: str, seed: int) -> dict[str, Path
 
 def run_command(row: Row, seed: int, preset: str, paths: dict[str, Path], device: str | None, nproc: int,
                 num_envs: int | None, iterations: int | None, eval_envs: int, log_dir: Path,
-                fast_pixels: bool = False, shared_encoder: bool = False) -> list[str]:
+                fast_pixels: bool = False, shared_encoder: bool = False, compile_mode: str | None = None) -> list[str]:
     """The ``train/ppo.py`` command line of one (row, seed). ``shared_encoder`` applies with ``fast_pixels`` to the
-    RGB rows whose critic reads the images."""
+    RGB rows whose critic reads the images; ``compile_mode`` (torch.compile) to every row."""
     launcher = [sys.executable]
     if nproc > 1:
         launcher += ["-m", "torch.distributed.run", "--standalone", f"--nproc_per_node={nproc}"]
@@ -356,6 +359,8 @@ def run_command(row: Row, seed: int, preset: str, paths: dict[str, Path], device
         cmd.append("--fast-pixels")
         if shared_encoder and row.critic == "same":
             cmd.append("--shared-encoder")
+    if compile_mode:
+        cmd += ["--compile", compile_mode]
     if nproc > 1:
         cmd.append("--distributed")
     elif device:
@@ -370,7 +375,7 @@ def run_command(row: Row, seed: int, preset: str, paths: dict[str, Path], device
 def run_all(experiment: Experiment, rows: list[Row], seeds: list[int], out: Path, devices: list[str | None],
             nproc: int, preset: str, num_envs: int | None, iterations: int | None, eval_envs: int,
             skip_done: bool, log_dir: Path, stream=None, fast_pixels: bool = False,
-            shared_encoder: bool = False) -> list[tuple[Row, int, int]]:
+            shared_encoder: bool = False, compile_mode: str | None = None) -> list[tuple[Row, int, int]]:
     """Run every (row, seed), one run per entry of ``devices`` at a time (name a GPU twice to run two runs on it side by
     side). Returns ``(row, seed, exit status)``."""
     stream = stream or sys.stdout
@@ -389,7 +394,7 @@ def run_all(experiment: Experiment, rows: list[Row], seeds: list[int], out: Path
                 for path in paths.values():
                     path.unlink(missing_ok=True)
                 cmd = run_command(row, seed, preset, paths, device, nproc, num_envs, iterations, eval_envs, log_dir,
-                                  fast_pixels, shared_encoder)
+                                  fast_pixels, shared_encoder, compile_mode)
                 log = open(paths["log"], "w")
                 log.write(" ".join(cmd) + "\n")
                 log.flush()
@@ -527,6 +532,8 @@ def main(argv: list[str] | None = None, experiments: dict[str, Experiment] | Non
     parser.add_argument("--fast-pixels", action="store_true", help="RGB rows: ppo.py --fast-pixels")
     parser.add_argument("--shared-encoder", action="store_true",
                         help="with --fast-pixels, RGB rows whose critic reads the images: ppo.py --shared-encoder")
+    parser.add_argument("--compile", default=None, choices=COMPILE_MODES,
+                        help="every run: ppo.py --compile MODE (torch.compile of the actor and critic)")
     parser.add_argument("--out", type=Path, default=DEFAULT_OUT)
     parser.add_argument("--log-dir", type=Path, default=ROOT / "runs" / "experiments",
                         help="rsl-rl's logs and checkpoints")
@@ -569,7 +576,7 @@ def main(argv: list[str] | None = None, experiments: dict[str, Experiment] | Non
         results = run_all(experiment, rows, args.seeds, args.out, args.devices, args.nproc_per_run,
                           args.preset or experiment.preset, args.num_envs, args.iterations, args.eval_envs,
                           args.skip_done, args.log_dir, fast_pixels=args.fast_pixels,
-                          shared_encoder=args.shared_encoder)
+                          shared_encoder=args.shared_encoder, compile_mode=args.compile)
         failed = [(row.name, seed) for row, seed, status in results if status != 0]
     lines = summarize(experiment, rows, args.out)
     for line in lines:
