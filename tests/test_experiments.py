@@ -30,6 +30,11 @@ def test_rows_state_the_paper_configuration_in_set_syntax():
     spatial = {r.name: r for r in experiments.EXPERIMENTS["spatial-rgb"].rows}
     # the paper's text: ~30 % for one sphere / one instrument, ~2 % for five spheres / two instruments from pixels
     assert spatial["deflect-m1-b1-rgb"].paper_success == 0.3 and spatial["deflect-m5-b2-rgb"].paper_success == 0.02
+    # the same two with the paper's 4 stacked frames
+    for name in ("deflect-m1-b1", "deflect-m5-b2"):
+        stacked, single = spatial[f"{name}-fs4-rgb"], spatial[f"{name}-rgb"]
+        assert stacked.config == {**single.config, "frame_stack": 4}
+        assert stacked.paper_success == single.paper_success
     assert len(experiments.EXPERIMENTS["spatial-state"].rows) == 9  # Reach, 6 x DeflectSpheres, 2 x SearchForPoint
 
 

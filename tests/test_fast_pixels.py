@@ -257,6 +257,17 @@ def test_ppo_trains_a_shared_encoder(device, tmp_path, capsys):
     assert len(groups) == 1 and len(groups[0]["params"]) == len(state["optimizer_state_dict"]["state"])
 
 
+def test_ppo_trains_fast_pixels_on_stacked_frames(device, tmp_path, capsys):
+    """The paper's 4 stacked frames: 12 uint8 channels through the block convolution."""
+    args = ["--device", device, "--preset", "cpu", "--task", "Reach", "--obs", "rgb", "--fast-pixels",
+            "--shared-encoder", "--set", "image_shape=[48,48]", "frame_stack=4", "max_episode_steps=6",
+            "--num-envs", "4", "--max-iterations", "2", "--eval-envs", "4", "--log-dir", str(tmp_path)]
+    assert ppo.main(args) == 0
+    assert "evaluation on 4 episodes" in capsys.readouterr().out
+    state = torch.load(sorted(tmp_path.rglob("model_*.pt"))[-1], map_location="cpu", weights_only=False)
+    assert state["actor_state_dict"]["cnns.image.0.weight"].shape == (32, 12, 8, 8)
+
+
 def test_ppo_trains_fast_pixels_with_state_critic_and_writes_a_video(device, tmp_path, capsys):
     imageio = pytest.importorskip("imageio.v3")
     pytest.importorskip("imageio_ffmpeg")
