@@ -27,7 +27,7 @@ import torch
 import warp as wp
 
 import lapwarp
-from lapwarp.cli import non_negative_int, parse_overrides, positive_float, positive_int
+from lapwarp.cli import default_device, non_negative_int, parse_overrides, positive_float, positive_int
 from lapwarp.experts import make_expert
 
 
@@ -144,7 +144,7 @@ def bench_one(task: str, num_envs: int, device: str, seconds: float, invalid_act
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--task", default="Reach", choices=lapwarp.list_tasks())
-    parser.add_argument("--device", default="cuda:0" if torch.cuda.is_available() else "cpu")
+    parser.add_argument("--device", default=default_device())
     parser.add_argument("--num-envs", type=positive_int, nargs="+", default=[1, 16, 256, 4096, 16384, 65536])
     parser.add_argument("--seconds", type=positive_float, default=2.0, help="timed seconds per point")
     parser.add_argument("--invalid-actions", choices=["zero", "raise"], default="zero")

@@ -25,7 +25,7 @@ import warp as wp
 from bench_env import device_name, sync
 
 import lapwarp
-from lapwarp.cli import parse_overrides
+from lapwarp.cli import default_device, parse_overrides
 from lapwarp.experts import make_expert
 
 
@@ -74,7 +74,7 @@ def bench_task(task: str, num_envs: int, device: str, repeats: int, expert_steps
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--tasks", nargs="+", default=["RopeCutting"])
-    parser.add_argument("--device", default="cuda:0" if torch.cuda.is_available() else "cpu")
+    parser.add_argument("--device", default=default_device())
     parser.add_argument("--num-envs", type=int, default=4096)
     parser.add_argument("--repeats", type=int, default=10)
     parser.add_argument("--expert-steps", type=int, default=40, help="expert steps before each timed cut reset")

@@ -22,7 +22,7 @@ import torch
 import warp as wp
 
 import lapwarp
-from lapwarp.cli import parse_overrides, with_fixed
+from lapwarp.cli import default_device, parse_overrides, with_fixed
 from lapwarp.experts import make_expert
 
 
@@ -62,7 +62,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--num-envs", type=int, default=256)
     parser.add_argument("--episodes", type=int, default=256)
     parser.add_argument("--max-steps", type=int, default=2000)
-    parser.add_argument("--device", default="cuda:0" if torch.cuda.is_available() else "cpu")
+    parser.add_argument("--device", default=default_device())
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--first-episodes", action="store_true", default=True,
                         help="count only each env's first episode (the default; unbiased when episode lengths differ)")

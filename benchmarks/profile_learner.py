@@ -28,11 +28,9 @@ import torch
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "train"))
 
 import ppo  # noqa: E402  (train/ is not a package)
-from fast_pixels import Uint8Images  # noqa: E402
 from rank_setup import DistributedRunner  # noqa: E402
 
-import lapwarp  # noqa: E402
-from lapwarp.cli import positive_int  # noqa: E402
+from lapwarp.cli import default_device, positive_int  # noqa: E402
 
 
 class Timed:
@@ -62,16 +60,11 @@ def build(ppo_argv: list[str]):
     args = parser.parse_args(ppo_argv)
     if args.play or args.resume or args.distributed:
         parser.error("the profiler trains from scratch in one process (no --play, --resume or --distributed)")
-    device = args.device or ("cuda:0" if torch.cuda.is_available() else "cpu")
+    device = args.device or default_device()
     preset, num_envs, _, train_cfg, overrides = ppo.training_config(args, parser, device)
     train_cfg["seed"] = args.seed
     torch.manual_seed(args.seed)
-    try:
-        env = lapwarp.make(args.task, num_envs=num_envs, device=device, **{**overrides, "seed": args.seed})
-    except ValueError as exc:
-        parser.error(str(exc))
-    if args.fast_pixels:
-        env = Uint8Images(env)
+    env = ppo.make_run_env(parser, args.task, num_envs, device, overrides, args.seed, args.fast_pixels)
     runner = DistributedRunner(env, train_cfg, log_dir=None, device=device)
     return args, device, preset, num_envs, train_cfg, env, runner
 

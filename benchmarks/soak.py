@@ -28,7 +28,7 @@ import time
 import torch
 
 import lapwarp
-from lapwarp.cli import parse_overrides, quiet_warp, with_fixed
+from lapwarp.cli import default_device, parse_overrides, quiet_warp, with_fixed
 
 POOL = 16  # pre-drawn action batches, cycled
 
@@ -129,7 +129,7 @@ def device_label(device: str) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--device", default="cuda:0" if torch.cuda.is_available() else "cpu")
+    parser.add_argument("--device", default=default_device())
     parser.add_argument("--num-envs", type=int, default=4096)
     parser.add_argument("--env-steps", type=float, default=1e8, help="env steps per (task, action type)")
     parser.add_argument("--tasks", nargs="*", default=None, help="default: every registered task")

@@ -61,7 +61,7 @@ from rsl_rl.algorithms import PPO
 from rsl_rl.runners import OnPolicyRunner
 
 import lapwarp
-from lapwarp.cli import with_fixed
+from lapwarp.cli import default_device, with_fixed
 
 
 class LinearSchedulePPO(PPO):
@@ -452,6 +452,17 @@ def training_config(args: argparse.Namespace, parser: argparse.ArgumentParser, d
     return preset, num_envs, iterations, train_cfg, env_overrides
 
 
+def make_run_env(parser: argparse.ArgumentParser, task: str, num_envs: int, device: str, overrides: dict, seed: int,
+                 fast_pixels: bool):
+    """The env a run trains or plays on: ``lapwarp.make`` with the run's overrides and its seed (a bad config value,
+    or a ``--set`` of the seed, is a usage error), its image group handed over as uint8 with ``--fast-pixels``."""
+    try:  # bad config values end as one usage line, not a traceback
+        env = lapwarp.make(task, num_envs=num_envs, device=device, **with_fixed(overrides, "--set", seed=seed))
+    except ValueError as exc:
+        parser.error(str(exc))
+    return Uint8Images(env) if fast_pixels else env
+
+
 def load_checkpoint(runner: OnPolicyRunner, path: str, device: str, parser: argparse.ArgumentParser,
                     option: str) -> None:
     """Load ``path`` into ``runner``'s models; a file that is not a checkpoint, or one of other models (another task,
@@ -479,7 +490,7 @@ def train(argv: list[str] | None, quiet: contextlib.ExitStack) -> int:
         except ValueError as exc:
             parser.error(str(exc))
     else:
-        ranks = single_process_settings(args.seed, args.device or ("cuda:0" if torch.cuda.is_available() else "cpu"))
+        ranks = single_process_settings(args.seed, args.device or default_device())
     device = ranks.device
     preset, num_envs, iterations, train_cfg, env_overrides = training_config(args, parser, device, ranks.world_size)
     train_cfg["seed"] = ranks.seed
@@ -500,13 +511,7 @@ def train(argv: list[str] | None, quiet: contextlib.ExitStack) -> int:
         bind_device(device)  # before Warp or NCCL touch any GPU
         init_process_group(ranks)
     torch.manual_seed(ranks.seed)
-    try:  # bad config values end as one usage line, not a traceback
-        env = lapwarp.make(args.task, num_envs=num_envs, device=device,
-                           **with_fixed(env_overrides, "--set", seed=ranks.seed))  # --seed sets it
-    except ValueError as exc:
-        parser.error(str(exc))
-    if args.fast_pixels:
-        env = Uint8Images(env)
+    env = make_run_env(parser, args.task, num_envs, device, env_overrides, ranks.seed, args.fast_pixels)
     run_dir = None if args.play or not ranks.is_main else os.path.join(
         args.log_dir, args.task, f"{datetime.now():%Y%m%d-%H%M%S}_{preset}_seed{args.seed}")
     runner = DistributedRunner(env, train_cfg, log_dir=run_dir, device=device)

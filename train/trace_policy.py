@@ -27,8 +27,7 @@ import torch
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import ppo  # noqa: E402
 
-import lapwarp  # noqa: E402
-from lapwarp.cli import positive_int  # noqa: E402
+from lapwarp.cli import default_device, positive_int  # noqa: E402
 
 
 def parse_force(text: str) -> tuple[int, float]:
@@ -63,7 +62,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args, rest = parser.parse_known_args(argv)
-    device = args.device or ("cuda:0" if torch.cuda.is_available() else "cpu")
+    device = args.device or default_device()
     if not os.path.isfile(args.checkpoint):
         parser.error(f"checkpoint {args.checkpoint!r} is not a file")
     if args.trace_envs is not None and args.trace_envs > args.envs:
@@ -75,12 +74,8 @@ def main(argv: list[str] | None = None) -> int:
     _, _, _, train_cfg, overrides = ppo.training_config(train_args, train_parser, device)
     if "seed" in overrides:
         parser.error("the env's seed is --seed, not --set seed=...")
-    try:
-        env = lapwarp.make(train_args.task, num_envs=args.envs, device=device, seed=args.seed, **overrides)
-    except ValueError as exc:
-        parser.error(str(exc))
-    if train_args.fast_pixels:
-        env = ppo.Uint8Images(env)  # the image group as the run's models were trained on it
+    # the image group as the run's models were trained on it
+    env = ppo.make_run_env(parser, train_args.task, args.envs, device, overrides, args.seed, train_args.fast_pixels)
     if args.force and env.is_discrete:
         parser.error("--force overrides components of continuous actions; this env's actions are discrete")
     for component, _ in args.force:
