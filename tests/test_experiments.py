@@ -36,6 +36,16 @@ def test_rows_state_the_paper_configuration_in_set_syntax():
         assert stacked.config == {**single.config, "frame_stack": 4}
         assert stacked.paper_success == single.paper_success
     assert len(experiments.EXPERIMENTS["spatial-state"].rows) == 9  # Reach, 6 x DeflectSpheres, 2 x SearchForPoint
+    state = {r.name: r for r in experiments.EXPERIMENTS["spatial-state"].rows}
+    assert state["search-active-state"].train_args == ("--obs-normalization",)
+    assert state["search-camera-state"].train_args == ()
+    # the asymmetric table: every single-frame image row with the state critic, DeflectSpheres 4x longer
+    asym = {r.name: r for r in experiments.EXPERIMENTS["spatial-rgb-asym"].rows}
+    assert sorted(asym) == sorted(f"{name}-asym" for name, r in spatial.items() if "frame_stack" not in r.config)
+    for name, row in asym.items():
+        single = spatial[name.removesuffix("-asym")]
+        assert row.critic == "state" and row.config == single.config
+        assert row.iterations == (600 if row.task == "DeflectSpheres" else single.iterations)
 
 
 def test_run_commands_carry_the_learner_options(tmp_path):

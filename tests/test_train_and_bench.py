@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
 import lapwarp
 
@@ -311,6 +312,31 @@ def test_init_noise_std_sets_the_actor_distribution(capsys):
             ppo.training_config(parser.parse_args(["--preset", "gpu", "--init-noise-std", bad]), parser, "cpu")
         assert "--init-noise-std must be in (0, 10]" in capsys.readouterr().err
 
+
+
+def test_obs_normalization_normalises_the_state_models(tmp_path, capsys):
+    parser = ppo.build_parser()
+    *_, cfg, _ = ppo.training_config(parser.parse_args(["--preset", "gpu", "--obs-normalization"]), parser, "cpu")
+    assert cfg["actor"]["obs_normalization"] and cfg["critic"]["obs_normalization"]
+    *_, cfg, _ = ppo.training_config(parser.parse_args(["--preset", "gpu"]), parser, "cpu")
+    assert not cfg["actor"]["obs_normalization"] and not cfg["critic"]["obs_normalization"]
+    # an image run: only its state critic reads a vector to normalise
+    *_, cfg, _ = ppo.training_config(parser.parse_args(["--preset", "gpu", "--obs", "rgb", "--critic", "state",
+                                                        "--obs-normalization"]), parser, "cpu")
+    assert cfg["critic"]["obs_normalization"] and "obs_normalization" not in cfg["actor"].get("cnn_cfg", {})
+    assert cfg["actor"]["class_name"] == "CNNModel" and not cfg["actor"]["obs_normalization"]
+    with pytest.raises(SystemExit):
+        ppo.training_config(parser.parse_args(["--preset", "gpu", "--obs", "rgb", "--obs-normalization"]), parser,
+                            "cpu")
+    assert "--obs-normalization applies to state observations" in capsys.readouterr().err
+    # a run's checkpoint carries the running statistics of the observations it saw
+    assert ppo.main(["--task", "Reach", "--device", "cpu", "--preset", "cpu", "--num-envs", "8", "--max-iterations",
+                     "1", "--eval-envs", "4", "--log-dir", str(tmp_path), "--obs-normalization"]) == 0
+    checkpoint = torch.load(sorted(tmp_path.glob("Reach/*/model_*.pt"))[-1], weights_only=False)
+    for model in ("actor_state_dict", "critic_state_dict"):
+        stats = checkpoint[model]
+        assert int(stats["obs_normalizer.count"]) == 8 * 32  # one rollout: 8 envs x 32 steps
+        assert torch.all(stats["obs_normalizer._std"] > 0) and torch.any(stats["obs_normalizer._mean"] != 0)
 
 def test_unloadable_checkpoint_and_unwritable_log_dir_are_usage_errors(tmp_path, capsys):
     not_a_checkpoint = tmp_path / "notes.pt"

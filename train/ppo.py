@@ -369,6 +369,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--init-noise-std", type=float, default=None, metavar="STD",
                         help="the actor's initial action standard deviation (default 1.0; image presets too): "
                              "smaller for tasks whose reward needs precise placement (LigatingLoop)")
+    parser.add_argument("--obs-normalization", action="store_true",
+                        help="normalise the state observations of the MLP models (actor and critic, or an image run's "
+                             "state critic) by running mean and standard deviation (rsl-rl's empirical "
+                             "normalisation): for tasks whose success needs millimetres out of observations in metres")
     parser.add_argument("--verbose", action="store_true", help="print rsl-rl's full block per iteration")
     return parser
 
@@ -435,6 +439,12 @@ def training_config(args: argparse.Namespace, parser: argparse.ArgumentParser, d
         if not 0.0 < args.init_noise_std <= 10.0:  # NaN fails the comparison too
             parser.error(f"--init-noise-std must be in (0, 10], got {args.init_noise_std}")
         train_cfg["actor"].setdefault("distribution_cfg", {}).update(init_std=args.init_noise_std)
+    if args.obs_normalization:
+        state_models = [train_cfg[role] for role in ("actor", "critic") if train_cfg[role]["class_name"] == "MLPModel"]
+        if not state_models:
+            parser.error("--obs-normalization applies to state observations (--obs state, or --critic state)")
+        for model in state_models:
+            model["obs_normalization"] = True
     if args.video is not None:
         if not args.video.endswith(".mp4") or args.video_envs < 1:
             parser.error(f"--video writes an .mp4 file of --video-envs >= 1 envs, got {args.video!r}, "
