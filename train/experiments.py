@@ -133,7 +133,7 @@ def _spatial_rows(obs: str) -> list[Row]:
         config = {"active_vision": active}
         if image:
             config["image_shape"] = [64, 64]
-        # From raw state (metres) the hook's deterministic policy settled a few mm outside the 5 mm touch tolerance:
+        # From raw state (metres) the hook's deterministic policy stopped short of the 5 mm touch tolerance:
         # 60.8 % over 3 seeds while its sampled actions dithered in (94.9 %); normalised observations: 100 % (CPU
         # study, twenty-second session)
         args = ("--obs-normalization",) if active and not image else ()
