@@ -184,3 +184,12 @@ def test_usage_errors(capsys):
     # a row's own ppo.py options are listed with it
     (line,) = [row for row in listing.splitlines() if row.strip().startswith("ll-stiff-closure-n05-i2-state ")]
     assert line.endswith("[ppo.py --init-noise-std 0.5]") and "index_steps_per_action=2" in line
+
+
+def test_commit_outside_a_checkout_comes_from_the_environment(tmp_path, monkeypatch):
+    monkeypatch.setattr(experiments, "ROOT", tmp_path)  # a copy of the tree without .git
+    monkeypatch.setenv("GIT_CEILING_DIRECTORIES", str(tmp_path.parent))
+    monkeypatch.delenv("LAPWARP_COMMIT", raising=False)
+    assert experiments.git_commit() == "unknown"
+    monkeypatch.setenv("LAPWARP_COMMIT", "abc1234")
+    assert experiments.git_commit() == "abc1234"

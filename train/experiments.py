@@ -374,7 +374,8 @@ EXPERIMENTS: dict[str, Experiment] = {
 
 # ------------------------------------------------------------------------------------------------ running
 def git_commit() -> str:
-    """Short commit of the source tree, with ``-dirty`` when tracked files differ from it."""
+    """Short commit of the source tree, with ``-dirty`` when tracked files differ from it; outside a git checkout (a
+    copy of the tree on a GPU machine) the ``LAPWARP_COMMIT`` environment variable, else ``unknown``."""
     try:
         commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True,
                                 check=True).stdout.strip()
@@ -382,7 +383,7 @@ def git_commit() -> str:
                                capture_output=True, text=True, check=True).stdout.strip()
         return commit + ("-dirty" if dirty else "")
     except (OSError, subprocess.CalledProcessError):
-        return "unknown"
+        return os.environ.get("LAPWARP_COMMIT") or "unknown"
 
 
 def run_paths(out: Path, experiment: str, row: str, seed: int) -> dict[str, Path]:
