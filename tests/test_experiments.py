@@ -193,3 +193,41 @@ def test_commit_outside_a_checkout_comes_from_the_environment(tmp_path, monkeypa
     assert experiments.git_commit() == "unknown"
     monkeypatch.setenv("LAPWARP_COMMIT", "abc1234")
     assert experiments.git_commit() == "abc1234"
+
+
+def test_queue_runs_rows_of_several_experiments_in_its_order(tmp_path, capsys):
+    two = {**TINY, "tiny2": experiments.Experiment("tiny2", "another", [
+        experiments.Row("reach-big", "Reach", {"sphere_radius": 0.02}, "state", 1, 1.0, "solved")])}
+    queue = tmp_path / "jobs.txt"
+    queue.write_text("# experiment row seeds\ntiny2 reach-big 1   # the second experiment first\n\ntiny reach 0\n")
+    out = tmp_path / "learning"
+    args = ["--queue", str(queue), "--preset", "cpu", "--num-envs", "4", "--eval-envs", "4", "--out", str(out),
+            "--log-dir", str(tmp_path / "runs"), "--devices", "cpu", "--no-plots"]
+    assert experiments.main(args, two) == 0
+    text = capsys.readouterr().out
+    assert text.index("started reach-big seed 1") < text.index("started reach seed 0")
+    assert sorted(p.relative_to(out).as_posix() for p in out.glob("*/*/*.json")) == [
+        "tiny/reach/seed0.json", "tiny2/reach-big/seed1.json"]
+    for name, row, iterations in (("tiny", "reach", 2), ("tiny2", "reach-big", 1)):
+        with open(out / name / "summary.csv", newline="") as f:
+            (line,) = list(csv.DictReader(f))
+        assert line["row"] == row and int(line["env_steps"]) == 4 * 32 * iterations  # each row its own iterations
+
+    # usage: every line is checked before anything runs, and named in the error
+    for content, message in (("tiny reach\n", "jobs.txt:1: expected EXPERIMENT ROW SEED"),
+                             ("tiny reach 0\nnope reach 0\n", "jobs.txt:2: unknown experiment 'nope'"),
+                             ("tiny reach-x 0\n", "jobs.txt:1: unknown row(s) ['reach-x']"),
+                             ("tiny reach -1\n", "jobs.txt:1: seeds are non-negative integers, got '-1'"),
+                             ("tiny reach 0\ntiny reach 1 0\n", "jobs.txt:2: tiny reach 0 is queued twice"),
+                             ("# nothing\n", "queues no run")):
+        queue.write_text(content)
+        with pytest.raises(SystemExit):
+            experiments.main(args, two)
+        assert message in capsys.readouterr().err
+    for extra in (["tiny"], ["--seeds", "0"], ["--rows", "reach"], ["--summarize-only"]):
+        with pytest.raises(SystemExit):
+            experiments.main([*extra, *args], two)
+        assert "--queue names the experiments, rows and seeds itself" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        experiments.main(["--queue", str(tmp_path / "missing.txt")], two)
+    assert "missing.txt" in capsys.readouterr().err

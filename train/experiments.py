@@ -4,6 +4,7 @@
     python train/experiments.py spatial-state --seeds 0 1 2                # one GPU, runs one after another
     python train/experiments.py spatial-rgb --seeds 0 1 2 --devices cuda:0 cuda:1   # one run per GPU at a time
     python train/experiments.py spatial-state --rows reach-state --summarize-only   # re-read the files, re-plot
+    python train/experiments.py --queue jobs.txt --devices cuda:0 cuda:1 cuda:2 cuda:3  # (experiment, row, seeds)
 
 An experiment is a list of rows; a row is one configuration of the paper's learning results (task, the config values
 that define it, observation type, iterations, the paper's final success). Each (row, seed) is one
@@ -423,38 +424,39 @@ def run_command(row: Row, seed: int, preset: str, paths: dict[str, Path], device
     return cmd
 
 
-def run_all(experiment: Experiment, rows: list[Row], seeds: list[int], out: Path, devices: list[str | None],
-            nproc: int, preset: str, num_envs: int | None, iterations: int | None, eval_envs: int,
-            skip_done: bool, log_dir: Path, stream=None, fast_pixels: bool = False,
-            shared_encoder: bool = False, compile_mode: str | None = None) -> list[tuple[Row, int, int]]:
-    """Run every (row, seed), one run per entry of ``devices`` at a time (name a GPU twice to run two runs on it side by
-    side). Returns ``(row, seed, exit status)``."""
+def run_jobs(jobs: list[tuple[Experiment, Row, int]], out: Path, devices: list[str | None], nproc: int,
+             preset: str | None, num_envs: int | None, iterations: int | None, eval_envs: int, skip_done: bool,
+             log_dir: Path, stream=None, fast_pixels: bool = False, shared_encoder: bool = False,
+             compile_mode: str | None = None) -> list[tuple[Experiment, Row, int, int]]:
+    """Run every (experiment, row, seed) in order, one run per entry of ``devices`` at a time (name a GPU twice to run
+    two runs on it side by side); ``preset`` None: each experiment's own. Returns ``(experiment, row, seed, exit
+    status)``."""
     stream = stream or sys.stdout
     commit = git_commit()
-    queue = [(row, seed) for row in rows for seed in seeds]
+    queue = list(jobs)
     if skip_done:
-        queue = [(r, s) for r, s in queue if not run_paths(out, experiment.name, r.name, s)["json"].is_file()]
+        queue = [(e, r, s) for e, r, s in queue if not run_paths(out, e.name, r.name, s)["json"].is_file()]
     running: dict[int, tuple] = {}  # slot (index into devices; a device may be named more than once) -> run
     results = []
     while queue or running:
         for slot, device in enumerate(devices):
             if slot not in running and queue:
-                row, seed = queue.pop(0)
+                experiment, row, seed = queue.pop(0)
                 paths = run_paths(out, experiment.name, row.name, seed)
                 paths["csv"].parent.mkdir(parents=True, exist_ok=True)
                 for path in paths.values():
                     path.unlink(missing_ok=True)
-                cmd = run_command(row, seed, preset, paths, device, nproc, num_envs, iterations, eval_envs, log_dir,
-                                  fast_pixels, shared_encoder, compile_mode)
+                cmd = run_command(row, seed, preset or experiment.preset, paths, device, nproc, num_envs, iterations,
+                                  eval_envs, log_dir, fast_pixels, shared_encoder, compile_mode)
                 log = open(paths["log"], "w")
                 log.write(" ".join(cmd) + "\n")
                 log.flush()
                 env = dict(os.environ, PYTHONUNBUFFERED="1")
                 proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, cwd=ROOT, env=env)
-                running[slot] = (proc, row, seed, paths, log, time.time())
+                running[slot] = (proc, experiment, row, seed, paths, log, time.time())
                 print(f"started {row.name} seed {seed} on {device or 'the default device'}", file=stream, flush=True)
         time.sleep(0.2)
-        for slot, (proc, row, seed, paths, log, started) in list(running.items()):
+        for slot, (proc, experiment, row, seed, paths, log, started) in list(running.items()):
             status = proc.poll()
             if status is None:
                 continue
@@ -469,8 +471,39 @@ def run_all(experiment: Experiment, rows: list[Row], seeds: list[int], out: Path
                       f"{time.time() - started:.0f} s", file=stream, flush=True)
             else:
                 print(f"FAILED {row.name} seed {seed} (exit {status}); see {paths['log']}", file=stream, flush=True)
-            results.append((row, seed, status))
+            results.append((experiment, row, seed, status))
     return results
+
+
+def read_queue(path: Path, experiments: dict[str, Experiment]) -> list[tuple[Experiment, Row, int]]:
+    """The jobs of a queue file: one ``EXPERIMENT ROW SEED [SEED ...]`` per line, run in the file's order (``#``
+    starts a comment). Raises ValueError naming the line of an unknown experiment or row, or a bad seed."""
+    jobs, seen = [], set()
+    for number, text in enumerate(path.read_text().splitlines(), 1):
+        fields = text.split("#", 1)[0].split()
+        if not fields:
+            continue
+        where = f"{path}:{number}"
+        if len(fields) < 3:
+            raise ValueError(f"{where}: expected EXPERIMENT ROW SEED [SEED ...], got {text.strip()!r}")
+        if fields[0] not in experiments:
+            raise ValueError(f"{where}: unknown experiment {fields[0]!r}; choose from {sorted(experiments)}")
+        experiment = experiments[fields[0]]
+        try:
+            row = select_rows(experiment, [fields[1]])[0]
+        except ValueError as exc:
+            raise ValueError(f"{where}: {exc}") from None
+        for text_seed in fields[2:]:
+            if not text_seed.isdigit():
+                raise ValueError(f"{where}: seeds are non-negative integers, got {text_seed!r}")
+            job = (experiment.name, row.name, int(text_seed))
+            if job in seen:  # it would overwrite its own files
+                raise ValueError(f"{where}: {' '.join(map(str, job))} is queued twice")
+            seen.add(job)
+            jobs.append((experiment, row, int(text_seed)))
+    if not jobs:
+        raise ValueError(f"{path} queues no run")
+    return jobs
 
 
 # ------------------------------------------------------------------------------------------------ summary
@@ -564,13 +597,32 @@ def select_rows(experiment: Experiment, names: list[str] | None) -> list[Row]:
     return [known[n] for n in names]
 
 
+def summarize_and_plot(experiment: Experiment, rows: list[Row], out: Path, plots: bool) -> None:
+    """Write the experiment's summary.csv (and plots), printing a line per row."""
+    for line in summarize(experiment, rows, out):
+        paper = "" if line["paper_success"] == "" else f" (paper {line['paper_success']:.0%})"
+        print(f"{line['row']:24s} success {line['success_mean']:.1%} +- {line['success_std']:.1%} over seeds "
+              f"{line['seeds']}, {line['wall_s_per_run']:.0f} s per run{paper}")
+    print(f"summary: {out / experiment.name / 'summary.csv'}")
+    if plots:
+        try:
+            written = plot_rows(experiment, rows, out)
+            print(f"plots: {len(written)} PNG files in {out / experiment.name}")
+        except ImportError as exc:
+            print(f"no plots: {exc}", file=sys.stderr)
+
+
 def main(argv: list[str] | None = None, experiments: dict[str, Experiment] | None = None) -> int:
     experiments = EXPERIMENTS if experiments is None else experiments
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("experiment", nargs="?", help=f"one of {sorted(experiments)}")
     parser.add_argument("--list", action="store_true", help="list the experiments and their rows")
     parser.add_argument("--rows", nargs="+", default=None, help="only these rows (default: all)")
-    parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
+    parser.add_argument("--seeds", nargs="+", type=int, default=None, help="default: 0 1 2")
+    parser.add_argument("--queue", type=Path, default=None, metavar="FILE",
+                        help="run the (experiment, row, seeds) of FILE's lines (EXPERIMENT ROW SEED [SEED ...]) in "
+                             "its order over --devices, instead of one experiment's rows x seeds; then summarise "
+                             "every experiment it named")
     parser.add_argument("--devices", nargs="+", default=[None],
                         help="run one (row, seed) per entry at a time, e.g. cuda:0 cuda:1, or cuda:0 cuda:0 for two "
                              "runs side by side on one GPU (default: one run at a time on ppo.py's device)")
@@ -604,8 +656,13 @@ def main(argv: list[str] | None = None, experiments: dict[str, Experiment] | Non
                 print(f"  {row.name:24s} {row.task:16s} {row.obs:5s} paper {paper:>5s}  {row.config_text()}{critic}"
                       f"{extra}")
         return 0
-    if args.experiment not in experiments:
+    if args.queue is not None:
+        if args.experiment is not None or args.rows is not None or args.seeds is not None or args.summarize_only:
+            parser.error("--queue names the experiments, rows and seeds itself (leave out EXPERIMENT, --rows, "
+                         "--seeds and --summarize-only)")
+    elif args.experiment not in experiments:
         parser.error(f"choose an experiment: {sorted(experiments)} (or --list)")
+    args.seeds = [0, 1, 2] if args.seeds is None else args.seeds
     if args.nproc_per_run < 1 or (args.num_envs is not None and args.num_envs < 1) or args.eval_envs < 1 or (
             args.iterations is not None and args.iterations < 1):
         parser.error("--nproc-per-run, --num-envs, --iterations and --eval-envs must be positive")
@@ -617,30 +674,24 @@ def main(argv: list[str] | None = None, experiments: dict[str, Experiment] | Non
         parser.error("--shared-encoder needs --fast-pixels")
     if args.nproc_per_run > 1 and args.devices != [None]:
         parser.error("--nproc-per-run uses torchrun's devices (cuda:0..N-1); leave out --devices")
-    experiment = experiments[args.experiment]
     try:
-        rows = select_rows(experiment, args.rows)
-    except ValueError as exc:
+        if args.queue is not None:
+            jobs = read_queue(args.queue, experiments)
+        else:
+            experiment = experiments[args.experiment]
+            jobs = [(experiment, row, seed) for row in select_rows(experiment, args.rows) for seed in args.seeds]
+    except (OSError, ValueError) as exc:
         parser.error(str(exc))
     failed = []
     if not args.summarize_only:
-        results = run_all(experiment, rows, args.seeds, args.out, args.devices, args.nproc_per_run,
-                          args.preset or experiment.preset, args.num_envs, args.iterations, args.eval_envs,
-                          args.skip_done, args.log_dir, fast_pixels=args.fast_pixels,
-                          shared_encoder=args.shared_encoder, compile_mode=args.compile)
-        failed = [(row.name, seed) for row, seed, status in results if status != 0]
-    lines = summarize(experiment, rows, args.out)
-    for line in lines:
-        paper = "" if line["paper_success"] == "" else f" (paper {line['paper_success']:.0%})"
-        print(f"{line['row']:24s} success {line['success_mean']:.1%} +- {line['success_std']:.1%} over seeds "
-              f"{line['seeds']}, {line['wall_s_per_run']:.0f} s per run{paper}")
-    print(f"summary: {args.out / experiment.name / 'summary.csv'}")
-    if not args.no_plots:
-        try:
-            plots = plot_rows(experiment, rows, args.out)
-            print(f"plots: {len(plots)} PNG files in {args.out / experiment.name}")
-        except ImportError as exc:
-            print(f"no plots: {exc}", file=sys.stderr)
+        results = run_jobs(jobs, args.out, args.devices, args.nproc_per_run, args.preset, args.num_envs,
+                           args.iterations, args.eval_envs, args.skip_done, args.log_dir,
+                           fast_pixels=args.fast_pixels, shared_encoder=args.shared_encoder, compile_mode=args.compile)
+        failed = [(exp.name, row.name, seed) for exp, row, seed, status in results if status != 0]
+    # the summary of each experiment run covers all its rows that have results, not only those of this command
+    # (a summary of the rows of one --rows run used to replace the whole table)
+    for name in dict.fromkeys(experiment.name for experiment, _, _ in jobs):
+        summarize_and_plot(experiments[name], list(experiments[name].rows), args.out, not args.no_plots)
     if failed:
         print(f"failed runs: {failed}", file=sys.stderr)
         return 1
