@@ -358,11 +358,14 @@ def _normalization_study_rows() -> list[Row]:
     """State rows whose deterministic evaluation trails their sampled actions or the paper, retrained with normalised
     observations (``ppo.py --obs-normalization``), which took active-vision SearchForPoint from 44.5 to 100 % in a
     CPU study (twenty-second session): ThreadInHole flexible (93.0 %, sampled 99.6 %), RopeThreading base (94.8 %;
-    paper 100 %), LigatingLoop stiff (42.6 %, sampled 72.8 %). Whether it should become the presets' default."""
-    thread = {row.name: row for row in _thread_rows()}
-    return [dataclasses.replace(thread[name], name=name.removesuffix("-state") + "-norm-state",
-                                train_args=(*thread[name].train_args, "--obs-normalization"))
-            for name in ("tih-flexible-state", "rt-base-fixed-state", "ll-stiff-closure-n05-i2-state")]
+    paper 100 %), LigatingLoop stiff (42.6 %, sampled 72.8 %); and the two Dissection tasks PPO has not learned yet
+    (TissueDissection 0 % after 119 iterations, PrecisionCutting's fixed line 2.8 % after 30). Whether it should
+    become the presets' default."""
+    rows = {row.name: row for row in _thread_rows() + _dissection_rows()}
+    return [dataclasses.replace(rows[name], name=name.removesuffix("-state") + "-norm-state",
+                                train_args=(*rows[name].train_args, "--obs-normalization"))
+            for name in ("tih-flexible-state", "rt-base-fixed-state", "ll-stiff-closure-n05-i2-state", "td-r2-state",
+                         "pc-line-fixed-state")]
 
 EXPERIMENTS: dict[str, Experiment] = {
     "spatial-state": Experiment("spatial-state", "Spatial Reasoning track from state", _spatial_rows("state")),
