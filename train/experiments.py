@@ -327,6 +327,13 @@ def _asymmetric_rows(rows: list[Row]) -> list[Row]:
                                 iterations=600 if row.task == "DeflectSpheres" else row.iterations)
             for row in rows if "frame_stack" not in row.config]
 
+
+def _with_obs_normalization(row: Row, name: str, **changes: Any) -> Row:
+    """``row`` renamed (and otherwise ``changes``d), trained with ``ppo.py --obs-normalization`` besides its own
+    options."""
+    return dataclasses.replace(row, name=name, train_args=(*row.train_args, "--obs-normalization"), **changes)
+
+
 def _deflect_pixel_study_rows() -> list[Row]:
     """Why DeflectSpheres from pixels plateaus (not rows of the paper's table): 1 sphere to deflect with 1 instrument
     on the 5-sphere board reached 60.5 % from one 64x64 frame in 150 iterations (training success flat at ~0.68 from
@@ -336,22 +343,21 @@ def _deflect_pixel_study_rows() -> list[Row]:
     Then combinations of what helped."""
     base = {row.name: row for row in _spatial_rows("rgb")}
     m1, m5 = base["deflect-m1-b1-rgb"], base["deflect-m5-b2-fs4-rgb"]
+    rgb128 = {**m1.config, "image_shape": [128, 128]}
     return [dataclasses.replace(m1, name="deflect-m1-b1-rgb-i600", iterations=600),
             dataclasses.replace(base["deflect-m1-b1-fs4-rgb"], name="deflect-m1-b1-fs4-rgb-i600", iterations=600),
             dataclasses.replace(m1, name="deflect-m1-b1-rgb-asym-i600", iterations=600, critic="state"),
-            dataclasses.replace(m1, name="deflect-m1-b1-rgb128-i300", iterations=300,
-                                config={**m1.config, "image_shape": [128, 128]}),
+            dataclasses.replace(m1, name="deflect-m1-b1-rgb128-i300", iterations=300, config=rgb128),
             dataclasses.replace(m5, name="deflect-m5-b2-fs4-rgb-i600", iterations=600),
             # the two that helped (state critic: 89.1 %, 128x128: 84.4 %) together, ~10 min on an H200; and the
             # hardest configuration with the state critic for 1,200 iterations (157M env-steps, ~10 min)
             dataclasses.replace(m1, name="deflect-m1-b1-rgb128-asym-i400", iterations=400, critic="state",
-                                config={**m1.config, "image_shape": [128, 128]}),
+                                config=rgb128),
             dataclasses.replace(base["deflect-m5-b2-rgb"], name="deflect-m5-b2-rgb-asym-i1200", iterations=1200,
                                 critic="state"),
             # the state critic reading normalised observations (what took active-vision SearchForPoint's state
             # policy from 60.8 to 100 %)
-            dataclasses.replace(m1, name="deflect-m1-b1-rgb-asym-norm-i600", iterations=600, critic="state",
-                                train_args=("--obs-normalization",))]
+            _with_obs_normalization(m1, "deflect-m1-b1-rgb-asym-norm-i600", iterations=600, critic="state")]
 
 
 def _normalization_study_rows() -> list[Row]:
@@ -362,10 +368,10 @@ def _normalization_study_rows() -> list[Row]:
     (TissueDissection 0 % after 119 iterations, PrecisionCutting's fixed line 2.8 % after 30). Whether it should
     become the presets' default."""
     rows = {row.name: row for row in _thread_rows() + _dissection_rows()}
-    return [dataclasses.replace(rows[name], name=name.removesuffix("-state") + "-norm-state",
-                                train_args=(*rows[name].train_args, "--obs-normalization"))
+    return [_with_obs_normalization(rows[name], name.removesuffix("-state") + "-norm-state")
             for name in ("tih-flexible-state", "rt-base-fixed-state", "ll-stiff-closure-n05-i2-state", "td-r2-state",
                          "pc-line-fixed-state")]
+
 
 EXPERIMENTS: dict[str, Experiment] = {
     "spatial-state": Experiment("spatial-state", "Spatial Reasoning track from state", _spatial_rows("state")),
