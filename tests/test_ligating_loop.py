@@ -245,8 +245,9 @@ def test_scene_matches_sofa_env(env):
     assert list(weights) == list(env.rewards.names) == [
         "distance_loop_to_marking_center", "delta_distance_loop_to_marking_center", "loop_center_in_cavity",
         "instrument_not_in_cavity", "instrument_shaft_collisions", "loop_marking_overlap",
-        "loop_closed_around_marking", "loop_closed_in_thin_air", "loop_closed_on_marking", "successful_task"]
-    assert list(weights.values()) == [-0.05, -100.0, 0.0, 0.0, 0.0, 0.8, 0.5, -0.1, 0.0, 100.0]
+        "loop_closed_around_marking", "loop_closed_in_thin_air", "loop_closed_on_marking",
+        "delta_loop_closed_on_marking", "successful_task"]
+    assert list(weights.values()) == [-0.05, -100.0, 0.0, 0.0, 0.0, 0.8, 0.5, -0.1, 0.0, 0.0, 100.0]
 
 
 # ---------------------------------------------------------------------------- closing mechanism
