@@ -126,6 +126,10 @@ def test_tiny_cpu_run_writes_progress_results_summary_and_plots(tmp_path, capsys
         assert result["seed"] == seed and result["env_steps"] == 256 and result["device"] == "cpu"
         assert result["row"] == "reach" and result["config"] == "sphere_radius=0.008 randomize_start=True"
         assert 0.0 <= result["success"] <= 1.0 and 0.0 <= result["sampled_success"] <= 1.0 and result["commit"]
+        for key in ("evaluation", "sampled_evaluation"):  # how the episodes ended, as ppo.evaluate counts them
+            ended = result[key]
+            assert ended["episodes"] == result["eval_episodes"]
+            assert ended["timeouts"] + ended["terminations"] == round((1 - ended["success"]) * ended["episodes"])
     with open(out / "tiny" / "summary.csv", newline="") as f:
         reader = csv.DictReader(f)
         summary = list(reader)
@@ -231,3 +235,12 @@ def test_queue_runs_rows_of_several_experiments_in_its_order(tmp_path, capsys):
     with pytest.raises(SystemExit):
         experiments.main(["--queue", str(tmp_path / "missing.txt")], two)
     assert "missing.txt" in capsys.readouterr().err
+
+
+def test_failure_text_summarises_how_episodes_failed():
+    assert experiments.failure_text(None) == ""
+    assert experiments.failure_text({"timeouts": 0, "terminations": 0, "stalled": 0}) == ""
+    assert experiments.failure_text({"timeouts": 20, "terminations": 3, "stalled": 12}) == (
+        "; failures: 20 at the time limit, 3 ended early, 12 of the failures stalled")
+    assert experiments.failure_text({"timeouts": 1, "terminations": 0, "stalled": None}) == (
+        "; failures: 1 at the time limit, 0 ended early")

@@ -367,35 +367,67 @@ def test_unknown_compile_mode_is_a_usage_error(capsys):
 
 class _EndsAtStepTwo:
     """Four envs whose episodes all end at step 2 before the time limit, envs 0 and 3 in success and envs 1 and 2 in
-    failure (as RopeCutting's wrong cut or an unstable reset ends one): the env's own success flag tells them apart."""
+    failure (as RopeCutting's wrong cut or an unstable reset ends one): the env's own success flag tells them apart.
+    With ``end_steps`` / ``time_outs`` / ``success`` per env the episodes end when and as these say."""
 
-    num_envs, device, max_episode_length = 4, "cpu", 10
+    device = "cpu"
 
-    def __init__(self):
+    def __init__(self, end_steps=(2, 2, 2, 2), time_outs=(False,) * 4, success=(1, 0, 0, 1), max_episode_length=10):
         import warp as wp
 
-        self.last_episode_success = wp.zeros(4, dtype=wp.int32, device="cpu")
+        self.num_envs, self.max_episode_length = len(end_steps), max_episode_length
+        self.end_steps, self.time_outs, self.success = end_steps, time_outs, success
+        self.last_episode_success = wp.zeros(self.num_envs, dtype=wp.int32, device="cpu")
         self.steps = 0
 
     def reset(self):
         import torch
 
         self.steps = 0
-        return torch.zeros(4, 1), {}
+        return torch.zeros(self.num_envs, 1), {}
 
     def step(self, actions):
         import torch
 
         self.steps += 1
-        done = torch.full((4,), self.steps == 2)
-        if self.steps == 2:
-            self.last_episode_success.assign([1, 0, 0, 1])
-        return torch.zeros(4, 1), torch.ones(4), done, {"time_outs": torch.zeros(4, dtype=torch.bool)}
+        done = torch.tensor([self.steps == end for end in self.end_steps])
+        self.last_episode_success.assign([s if self.steps == end else 0
+                                          for s, end in zip(self.success, self.end_steps, strict=True)])
+        return (torch.full((self.num_envs, 1), float(self.steps)), torch.ones(self.num_envs), done,
+                {"time_outs": done & torch.tensor(self.time_outs)})
 
 
 def test_evaluation_counts_failed_episodes_as_failures():
-    success, mean_return = ppo.evaluate(_EndsAtStepTwo(), lambda obs: obs)
+    evaluation = ppo.evaluate(_EndsAtStepTwo(), lambda obs: obs * 0.0)
+    success, mean_return = evaluation
     assert (success, mean_return) == (0.5, 2.0)
+    # the two failures ended early (no time-out) with zero actions throughout: both stalled; successes took 2 steps
+    assert (evaluation.episodes, evaluation.timeouts, evaluation.terminations, evaluation.stalled,
+            evaluation.success_steps) == (4, 0, 2, 2, 2.0)
+
+
+def test_evaluation_tells_time_outs_and_stalled_policies_apart():
+    """Env 0 succeeds at step 30, envs 1-3 reach the time limit (40) and env 4 ends early in failure at 25. The policy
+    moves (|a| = 0.5) until its stop step, then holds still (|a| = 0.01): env 1 stops at 35 (5 still steps of the
+    last 20: window mean 0.3775, moving), env 2 at 10 (30 still steps: stalled), env 3 never; env 4 stops at 2
+    (stalled at its end). The stall window is ``STALL_WINDOW`` = 20 steps, the threshold 0.05."""
+    import torch
+
+    env = _EndsAtStepTwo(end_steps=(30, 40, 40, 40, 25), time_outs=(False, True, True, True, False),
+                         success=(1, 0, 0, 0, 0), max_episode_length=40)
+    stop = torch.tensor([1000.0, 35.0, 10.0, 1000.0, 2.0])
+
+    def policy(obs):  # obs = the step count so far: move until the env's stop step, then hold still
+        moving = obs[:, 0] < stop
+        return torch.where(moving, 0.5, 0.01)[:, None].expand(-1, 2) * torch.tensor([1.0, -1.0])
+
+    evaluation = ppo.evaluate(env, policy)
+    assert evaluation.success == pytest.approx(0.2)
+    assert (evaluation.timeouts, evaluation.terminations, evaluation.stalled, evaluation.success_steps) == (
+        3, 1, 2, 30.0)
+    assert "4 of 5 failed: 3 at the time limit, 1 ended early, 2 with their actions died away" in evaluation.summary()
+    # discrete actions (indices) have no magnitude to die away: no stall count
+    assert ppo.evaluate(_EndsAtStepTwo(), lambda obs: obs[:, 0].long()).stalled is None
 
 
 def test_trace_policy_writes_actions_features_and_forced_components(device, tmp_path, capsys):

@@ -13,7 +13,8 @@ side on several GPUs (``--devices``). Files, under ``--out`` (``benchmarks/resul
 
     <experiment>/<row>/seed<k>.csv    per iteration: env_steps, wall_s, success (training), mean_return, reward/<term>
     <experiment>/<row>/seed<k>.json   final: evaluation success (deterministic policy; ``sampled_success`` with
-                                      actions sampled as in training), env-steps, times, device
+                                      actions sampled as in training), how the failed episodes ended
+                                      (``evaluation``, ``sampled_evaluation``), env-steps, times, device
     <experiment>/<row>/seed<k>.log    the run's console output
     <experiment>/summary.csv          one line per row (columns ``SUMMARY_COLUMNS``)
     <experiment>/<row>.png            success against env-steps and against wall time, the paper's value dashed
@@ -524,12 +525,25 @@ def run_jobs(jobs: list[tuple[Experiment, Row, int]], out: Path, devices: list[s
                 result.update(commit=commit, row=row.name, config=row.config_text(),
                               learner=row.learner("--fast-pixels" in proc.args, "--shared-encoder" in proc.args))
                 paths["json"].write_text(json.dumps(result, indent=1))
-                print(f"finished {row.name} seed {seed}: evaluation success {result['success']:.1%} in "
-                      f"{time.time() - started:.0f} s", file=stream, flush=True)
+                sampled = result.get("sampled_success")
+                sampled = "" if sampled is None else f" (sampled {sampled:.1%})"
+                print(f"finished {row.name} seed {seed}: evaluation success {result['success']:.1%}{sampled} in "
+                      f"{time.time() - started:.0f} s{failure_text(result.get('evaluation'))}", file=stream,
+                      flush=True)
             else:
                 print(f"FAILED {row.name} seed {seed} (exit {status}); see {paths['log']}", file=stream, flush=True)
             results.append((experiment, row, seed, status))
     return results
+
+
+def failure_text(evaluation: dict | None) -> str:
+    """``"; failures: 20 at the time limit, 3 ended early, 12 of the failures stalled"`` from a result's
+    ``evaluation`` (ppo.py's ``Evaluation`` as a dict; empty for results written before it existed or without
+    failures)."""
+    if not evaluation or not evaluation["timeouts"] + evaluation["terminations"]:
+        return ""
+    stalled = "" if evaluation.get("stalled") is None else f", {evaluation['stalled']} of the failures stalled"
+    return f"; failures: {evaluation['timeouts']} at the time limit, {evaluation['terminations']} ended early{stalled}"
 
 
 def read_queue(path: Path, experiments: dict[str, Experiment]) -> list[tuple[Experiment, Row, int]]:

@@ -34,6 +34,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import csv
+import dataclasses
 import io
 import json
 import os
@@ -151,31 +152,87 @@ def preset_config(name: str, num_envs: int, max_iterations: int) -> tuple[dict, 
 PRESET_DEFAULTS = {"paper": (8, 1000), "gpu": (4096, 150), "cpu": (256, 80)}
 
 
+@dataclasses.dataclass
+class Evaluation:
+    """One evaluation: every env's first episode.
+
+    ``success`` and ``mean_return`` are the headline figures; the rest say how the other episodes failed:
+    ``timeouts`` ended at the time limit, ``terminations`` ended early without success (a failure feature, a wrong
+    cut, an unstable reset), and ``stalled`` counts the failed episodes whose actions had died away, the mean
+    ``|action|`` (clipped to [-1, 1], over components) below ``STALL_THRESHOLD`` over their last ``STALL_WINDOW``
+    steps: a deterministic policy sitting at a fixed point short of the goal, which sampled actions' noise can
+    leave (None where the actions are not continuous vectors). ``success_steps``: the successful episodes' mean
+    length (None without one)."""
+
+    success: float
+    mean_return: float
+    episodes: int
+    timeouts: int
+    terminations: int
+    stalled: int | None
+    success_steps: float | None
+
+    def __iter__(self):  # ``success, mean_return = evaluate(...)``
+        return iter((self.success, self.mean_return))
+
+    def summary(self) -> str:
+        failed = self.timeouts + self.terminations
+        stalled = "" if self.stalled is None else f", {self.stalled} with their actions died away"
+        steps = "" if self.success_steps is None else f"; successes took {self.success_steps:.0f} steps on average"
+        return (f"{failed} of {self.episodes} failed: {self.timeouts} at the time limit, {self.terminations} ended "
+                f"early{stalled}{steps}")
+
+
+#: the stall test of ``evaluate``: mean |action| below this over an episode's last ``STALL_WINDOW`` steps
+STALL_THRESHOLD, STALL_WINDOW = 0.05, 20
+
+
 @torch.inference_mode()
-def evaluate(env, policy, max_steps: int | None = None) -> tuple[float, float]:
-    """Run ``policy`` (the deterministic one, or one that samples) until every env finished one episode: (success
-    rate, mean return).
+def evaluate(env, policy, max_steps: int | None = None) -> Evaluation:
+    """Run ``policy`` (the deterministic one, or one that samples) until every env finished one episode.
 
     An episode succeeded when the env says so (``last_episode_success``), not merely because it ended before its
     time limit: failures (RopeCutting's wrong cut, GraspLiftAndTouch's and TissueManipulation's failure features)
-    and unstable resets also terminate an episode."""
+    and unstable resets also terminate an episode. Every env starts at the reset together, so step ``t`` is each
+    unfinished env's episode step and one ring buffer of the last ``STALL_WINDOW`` steps' mean |action| serves all."""
     last_success = wp.to_torch(env.last_episode_success)
     obs, _ = env.reset()
-    finished = torch.zeros(env.num_envs, dtype=torch.bool, device=env.device)
+    n, device = env.num_envs, env.device
+    finished = torch.zeros(n, dtype=torch.bool, device=device)
     success = torch.zeros_like(finished)
-    returns = torch.zeros(env.num_envs, device=env.device)
-    running = torch.zeros(env.num_envs, device=env.device)
-    for _ in range(max_steps or env.max_episode_length):
-        obs, reward, done, extras = env.step(policy(obs))
+    timeout = torch.zeros_like(finished)
+    stalled = torch.zeros_like(finished)
+    continuous = True
+    returns = torch.zeros(n, device=device)
+    running = torch.zeros(n, device=device)
+    length = torch.zeros(n, device=device)
+    recent = torch.zeros(n, STALL_WINDOW, device=device)
+    for t in range(max_steps or env.max_episode_length):
+        actions = policy(obs)
+        continuous = continuous and torch.is_tensor(actions) and actions.is_floating_point() and actions.dim() == 2
+        if continuous:
+            recent[:, t % STALL_WINDOW] = actions.detach().clamp(-1.0, 1.0).abs().mean(dim=1)
+        obs, reward, done, extras = env.step(actions)
         running += reward
         new = done & ~finished
-        success |= new & (last_success != 0)
+        won = new & (last_success != 0)
+        success |= won
+        timeout |= new & ~won & extras["time_outs"].to(device=device, dtype=torch.bool)
+        if continuous:
+            window_mean = recent.sum(dim=1) / min(t + 1, STALL_WINDOW)
+            stalled |= new & ~won & (window_mean < STALL_THRESHOLD)
+        length = torch.where(new, torch.full_like(length, t + 1), length)
         returns = torch.where(new, running, returns)
         running = torch.where(done, torch.zeros_like(running), running)
         finished |= done
         if bool(finished.all()):
             break
-    return success.float().mean().item(), returns.mean().item()
+    failed = finished & ~success
+    return Evaluation(
+        success=success.float().mean().item(), mean_return=returns.mean().item(), episodes=n,
+        timeouts=int(timeout.sum()), terminations=int((failed & ~timeout).sum()),
+        stalled=int(stalled.sum()) if continuous else None,
+        success_steps=length[success].mean().item() if bool(success.any()) else None)
 
 
 #: ``extras["log"]`` keys of faults the one-line progress shows when they occur in an iteration.
@@ -568,22 +625,27 @@ def train(argv: list[str] | None, quiet: contextlib.ExitStack) -> int:
     policy = runner.get_inference_policy(device=device)
     eval_env = lapwarp.make(args.task, num_envs=args.eval_envs, device=device, seed=args.seed + 12345,
                             **env_overrides)
-    success, mean_return = evaluate(eval_env, policy)
+    deterministic = evaluate(eval_env, policy)
+    success, mean_return = deterministic
     # the paper's success rates are its training rollouts', i.e. of actions sampled from the policy's distribution:
     # the same policy evaluated that way on fresh first episodes is the like-for-like figure (the deterministic one,
     # the policy's mean action, is the headline; it can be lower where noise gets a policy unstuck)
-    sampled_success, sampled_return = evaluate(eval_env, lambda obs: policy(obs, stochastic_output=True))
+    sampled = evaluate(eval_env, lambda obs: policy(obs, stochastic_output=True))
+    sampled_success, sampled_return = sampled
     if args.result_json:
         write_result(args.result_json, task=args.task, obs=args.obs, preset=preset, settings=env_overrides,
                      seed=args.seed, num_envs_per_rank=num_envs, world_size=ranks.world_size, iterations=iterations,
                      env_steps=int(total_steps), train_s=round(train_seconds, 3), wall_s=round(time.time() - start, 3),
                      eval_episodes=args.eval_envs, success=success, mean_return=mean_return,
                      sampled_success=sampled_success, sampled_mean_return=sampled_return,
+                     evaluation=dataclasses.asdict(deterministic), sampled_evaluation=dataclasses.asdict(sampled),
                      device=device_name(device), checkpoint=args.play)
     print(f"evaluation on {args.eval_envs} episodes: success rate {success:.1%}, mean return {mean_return:.2f} "
           f"(wall time {time.time() - start:.1f} s{throughput})", flush=True)
+    print(f"  {deterministic.summary()}", flush=True)
     print(f"sampled actions (as in training rollouts), {args.eval_envs} episodes: success rate {sampled_success:.1%}, "
           f"mean return {sampled_return:.2f}", flush=True)
+    print(f"  {sampled.summary()}", flush=True)
     if args.video:
         from lapwarp.video import record_video
 
