@@ -622,6 +622,33 @@ def test_expert_closes_the_loop_with_discrete_actions(device):
     assert success.sum() >= 7, success
 
 
+def test_delta_closure_shaping_pays_the_net_closure_on_the_band(device):
+    """``delta_loop_closed_on_marking`` (the per-step change of closed-on-marking, potential-based shaping) sums over
+    an episode to its final value minus its first: with every other weight 0 but success's 1,000 and the delta's 100,
+    each of the expert's successful first episodes (two closing indices per action; measured: success in 59-65
+    steps) returns 1,000 + 100 x the closed ratio on the band at success, i.e. in (1,000 + 100 x 0.8, 1,100] by the
+    success test (ratio > 0.8), and the same for every env (same closing schedule from the open loop's 0). Holding a
+    partly closed loop would earn nothing."""
+    weights = dict.fromkeys(REWARDS.names, 0.0)
+    weights.update(delta_loop_closed_on_marking=100.0, successful_task=1000.0)
+    env = make(device, 4, seed=3, index_steps_per_action=2, reward_weights=weights)
+    expert = make_expert(env)
+    counted = np.zeros(env.num_envs, bool)
+    success = np.zeros(env.num_envs, bool)
+    returns = np.zeros(env.num_envs)
+    env.reset()
+    for _ in range(150):
+        _, reward, done, _ = env.step(expert())
+        returns += np.where(counted, 0.0, reward.cpu().numpy())
+        done = done.bool().cpu().numpy() & ~counted
+        success |= done & (env.last_episode_success.numpy() > 0)
+        counted |= done
+        if counted.all():
+            break
+    assert success.all(), success
+    assert np.all((returns > 1000.0 + 100.0 * env.cfg.target_loop_closed_ratio) & (returns <= 1100.0 + 1e-3)), returns
+
+
 def test_loop_shape_converged_at_default_substeps(device):
     """The heavy, thin loop's settled shapes (the bank, every 10th active index) at the default 20 substeps lie within
     1.5 mm of the shapes at 80 substeps (measured 0.8 mm for the stiff loop; XPBD's answer converges with substeps);
