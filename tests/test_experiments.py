@@ -244,3 +244,38 @@ def test_failure_text_summarises_how_episodes_failed():
         "; failures: 20 at the time limit, 3 ended early, 12 of the failures stalled")
     assert experiments.failure_text({"timeouts": 1, "terminations": 0, "stalled": None}) == (
         "; failures: 1 at the time limit, 0 ended early")
+
+
+def test_deadline_skips_runs_that_cannot_finish_in_time(tmp_path):
+    """``--deadline``: a run expected (from the row's earlier results) to outlast the time left is not started but
+    reported with status None, and is no failure; a row without results starts while time is left (not exercised
+    here: it would train). The estimate is the mean ``wall_s`` over the row's results in every directory given."""
+    exp = TINY["tiny"]
+    for base, wall in ((tmp_path / "a", 100.0), (tmp_path / "b", 300.0)):
+        row_dir = base / "tiny" / "reach"
+        row_dir.mkdir(parents=True)
+        (row_dir / "seed0.json").write_text(json.dumps({"wall_s": wall, "success": 1.0}))
+    jobs = [(exp, exp.rows[0], 1), (exp, exp.rows[0], 2)]
+    estimates = experiments.wall_estimates(jobs, [tmp_path / "a", tmp_path / "b", tmp_path / "missing"])
+    assert estimates == {("tiny", "reach"): 200.0}
+    lines = []
+
+    class Stream:
+        def write(self, text):
+            lines.append(text)
+
+        def flush(self):
+            pass
+
+    out = tmp_path / "out"
+    results = experiments.run_jobs(jobs, out, [None], 1, "cpu", 2, 1, 2, False, tmp_path / "logs", stream=Stream(),
+                                   deadline=150.0, estimates=estimates)
+    assert [(row.name, seed, status) for _, row, seed, status in results] == [("reach", 1, None), ("reach", 2, None)]
+    assert "not started reach seed 1: expected 200 s, 150 s left before the deadline" in "".join(lines)
+    assert not (out / "tiny").exists()  # nothing was started
+
+
+def test_deadline_must_be_positive(capsys):
+    with pytest.raises(SystemExit):
+        experiments.main(["tiny", "--deadline", "nan"], TINY)
+    assert "--deadline must be a positive number of seconds" in capsys.readouterr().err

@@ -486,21 +486,58 @@ def run_command(row: Row, seed: int, preset: str, paths: dict[str, Path], device
     return cmd
 
 
+def wall_estimates(jobs: list[tuple[Experiment, Row, int]], result_dirs: list[Path]) -> dict[tuple[str, str], float]:
+    """Expected wall seconds per (experiment, row) of ``jobs``: the mean ``wall_s`` of the row's results already in
+    ``result_dirs`` (e.g. ``--out`` and the committed ``benchmarks/results/learning``); rows without one are left
+    out."""
+    estimates = {}
+    for experiment, row, _ in jobs:
+        walls = [json.loads(path.read_text()).get("wall_s") for base in result_dirs
+                 for path in sorted((base / experiment.name / row.name).glob("seed*.json"))]
+        walls = [w for w in walls if isinstance(w, (int, float))]
+        if walls:
+            estimates[experiment.name, row.name] = sum(walls) / len(walls)
+    return estimates
+
+
 def run_jobs(jobs: list[tuple[Experiment, Row, int]], out: Path, devices: list[str | None], nproc: int,
              preset: str | None, num_envs: int | None, iterations: int | None, eval_envs: int, skip_done: bool,
              log_dir: Path, stream=None, fast_pixels: bool = False, shared_encoder: bool = False,
-             compile_mode: str | None = None) -> list[tuple[Experiment, Row, int, int]]:
+             compile_mode: str | None = None, deadline: float | None = None,
+             estimates: dict[tuple[str, str], float] | None = None) -> list[tuple[Experiment, Row, int, int | None]]:
     """Run every (experiment, row, seed) in order, one run per entry of ``devices`` at a time (name a GPU twice to run
     two runs on it side by side); ``preset`` None: each experiment's own. Returns ``(experiment, row, seed, exit
-    status)``."""
+    status)``, status None for a run not started.
+
+    With ``deadline`` (seconds from the call; a leased machine's remaining time) a free device takes the first queued
+    run expected to finish by then: ``estimates[experiment, row]`` seconds (``wall_estimates``), a run without an
+    estimate while the deadline has not passed. A run that cannot finish in time is dropped and reported (time only
+    moves on), so shorter runs behind it still use the device instead of a run cut off at the end."""
     stream = stream or sys.stdout
     commit = git_commit()
     queue = list(jobs)
     if skip_done:
         queue = [(e, r, s) for e, r, s in queue if not run_paths(out, e.name, r.name, s)["json"].is_file()]
+    estimates = estimates or {}
+    begin = time.time()
     running: dict[int, tuple] = {}  # slot (index into devices; a device may be named more than once) -> run
     results = []
+
+    def drop_late() -> None:
+        if deadline is None:
+            return
+        left = deadline - (time.time() - begin)
+        for job in list(queue):
+            experiment, row, seed = job
+            expected = estimates.get((experiment.name, row.name), 0.0)
+            if expected > left or left <= 0.0:
+                queue.remove(job)
+                results.append((experiment, row, seed, None))
+                print(f"not started {row.name} seed {seed}: expected {expected:.0f} s, {max(left, 0.0):.0f} s left "
+                      "before the deadline", file=stream, flush=True)
+
     while queue or running:
+        drop_late()
         for slot, device in enumerate(devices):
             if slot not in running and queue:
                 experiment, row, seed = queue.pop(0)
@@ -716,6 +753,10 @@ def main(argv: list[str] | None = None, experiments: dict[str, Experiment] | Non
     parser.add_argument("--log-dir", type=Path, default=ROOT / "runs" / "experiments",
                         help="rsl-rl's logs and checkpoints")
     parser.add_argument("--skip-done", action="store_true", help="keep (row, seed) runs that already have a result")
+    parser.add_argument("--deadline", type=float, default=None, metavar="SECONDS",
+                        help="start only runs expected to end within SECONDS of the start (a lease's time left): "
+                             "expected = the mean wall time of the row's results in --out and "
+                             "benchmarks/results/learning; runs that cannot fit are reported and skipped")
     parser.add_argument("--summarize-only", action="store_true", help="only rewrite summary.csv and the plots")
     parser.add_argument("--no-plots", action="store_true")
     args = parser.parse_args(argv)
@@ -741,6 +782,8 @@ def main(argv: list[str] | None = None, experiments: dict[str, Experiment] | Non
     if args.nproc_per_run < 1 or (args.num_envs is not None and args.num_envs < 1) or args.eval_envs < 1 or (
             args.iterations is not None and args.iterations < 1):
         parser.error("--nproc-per-run, --num-envs, --iterations and --eval-envs must be positive")
+    if args.deadline is not None and not args.deadline > 0.0:  # NaN fails the comparison too
+        parser.error(f"--deadline must be a positive number of seconds, got {args.deadline}")
     if any(seed < 0 for seed in args.seeds) or len(set(args.seeds)) != len(args.seeds):
         # a negative one reached ppo.py as an option ("--seed -1") and every run failed; a repeated one would
         # overwrite its own files
@@ -759,10 +802,12 @@ def main(argv: list[str] | None = None, experiments: dict[str, Experiment] | Non
         parser.error(str(exc))
     failed = []
     if not args.summarize_only:
+        estimates = wall_estimates(jobs, list(dict.fromkeys([args.out, DEFAULT_OUT])))
         results = run_jobs(jobs, args.out, args.devices, args.nproc_per_run, args.preset, args.num_envs,
                            args.iterations, args.eval_envs, args.skip_done, args.log_dir,
-                           fast_pixels=args.fast_pixels, shared_encoder=args.shared_encoder, compile_mode=args.compile)
-        failed = [(exp.name, row.name, seed) for exp, row, seed, status in results if status != 0]
+                           fast_pixels=args.fast_pixels, shared_encoder=args.shared_encoder, compile_mode=args.compile,
+                           deadline=args.deadline, estimates=estimates)
+        failed = [(exp.name, row.name, seed) for exp, row, seed, status in results if status not in (0, None)]
     # the summary of each experiment run covers all its rows that have results, not only those of this command
     # (a summary of the rows of one --rows run used to replace the whole table)
     for name in dict.fromkeys(experiment.name for experiment, _, _ in jobs):
