@@ -254,10 +254,16 @@ def test_deadline_skips_runs_that_cannot_finish_in_time(tmp_path):
     for base, wall in ((tmp_path / "a", 100.0), (tmp_path / "b", 300.0)):
         row_dir = base / "tiny" / "reach"
         row_dir.mkdir(parents=True)
-        (row_dir / "seed0.json").write_text(json.dumps({"wall_s": wall, "success": 1.0}))
+        (row_dir / "seed0.json").write_text(json.dumps({"wall_s": wall, "success": 1.0, "task": "Reach",
+                                                        "obs": "state", "iterations": 2, "settings": {}}))
     jobs = [(exp, exp.rows[0], 1), (exp, exp.rows[0], 2)]
-    estimates = experiments.wall_estimates(jobs, [tmp_path / "a", tmp_path / "b", tmp_path / "missing"])
-    assert estimates == {("tiny", "reach"): 200.0}
+    # a new variant of a measured row: its iterations x the seconds per iteration of the same task's results (100 s
+    # per iteration here); a task with no result has no estimate
+    longer = experiments.Row("reach-long", "Reach", {}, "state", 5, None, "")
+    pixels = experiments.Row("reach-rgb", "Reach", {"image_shape": [64, 64]}, "rgb", 5, None, "")
+    estimates = experiments.wall_estimates(jobs + [(exp, longer, 0), (exp, pixels, 0)],
+                                           [tmp_path / "a", tmp_path / "b", tmp_path / "missing"])
+    assert estimates == {("tiny", "reach"): 200.0, ("tiny", "reach-long"): 500.0}
     lines = []
 
     class Stream:

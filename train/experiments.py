@@ -486,17 +486,31 @@ def run_command(row: Row, seed: int, preset: str, paths: dict[str, Path], device
     return cmd
 
 
+def _shape_key(task: str, obs: str, image_shape: Any) -> tuple[str, str, str]:
+    return task, obs, json.dumps(image_shape) if obs != "state" else ""
+
+
 def wall_estimates(jobs: list[tuple[Experiment, Row, int]], result_dirs: list[Path]) -> dict[tuple[str, str], float]:
     """Expected wall seconds per (experiment, row) of ``jobs``: the mean ``wall_s`` of the row's results already in
-    ``result_dirs`` (e.g. ``--out`` and the committed ``benchmarks/results/learning``); rows without one are left
-    out."""
+    ``result_dirs`` (e.g. ``--out`` and the committed ``benchmarks/results/learning``); for a row without one, its
+    iterations times the mean seconds per iteration of every result of the same task, observation type and image
+    size there (a new variant of a measured row); rows with neither are left out."""
+    results = [json.loads(path.read_text()) for base in result_dirs for path in sorted(base.glob("*/*/seed*.json"))]
+    per_iteration: dict[tuple[str, str, str], list[float]] = {}
+    for result in results:
+        if isinstance(result.get("wall_s"), (int, float)) and result.get("iterations"):
+            key = _shape_key(result.get("task"), result.get("obs"), result.get("settings", {}).get("image_shape"))
+            per_iteration.setdefault(key, []).append(result["wall_s"] / result["iterations"])
     estimates = {}
     for experiment, row, _ in jobs:
         walls = [json.loads(path.read_text()).get("wall_s") for base in result_dirs
                  for path in sorted((base / experiment.name / row.name).glob("seed*.json"))]
         walls = [w for w in walls if isinstance(w, (int, float))]
+        similar = per_iteration.get(_shape_key(row.task, row.obs, row.config.get("image_shape")))
         if walls:
             estimates[experiment.name, row.name] = sum(walls) / len(walls)
+        elif similar:
+            estimates[experiment.name, row.name] = row.iterations * sum(similar) / len(similar)
     return estimates
 
 
