@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 import sys
 from pathlib import Path
 
@@ -281,6 +282,44 @@ def test_learning_rate_options_override_the_preset():
     for bad in (["--learning-rate", "0"], ["--learning-rate", "nan"], ["--preset", "paper", "--lr-schedule", "fixed"]):
         with pytest.raises(SystemExit):
             ppo.training_config(parser.parse_args(bad), parser, "cpu")
+
+
+def test_final_noise_std_caps_the_action_noise_linearly(capsys):
+    """``--final-noise-std``: the config's algorithm becomes ``ScheduledPPO`` (the rate left to the preset) or adds
+    the cap to the paper preset's linear schedule; the cap falls from the initial std to the final one at the last
+    update and clamps rsl-rl's std (its parameter left alone); out-of-range values are usage errors."""
+    from rsl_rl.modules.distribution import GaussianDistribution
+
+    parser = ppo.build_parser()
+    args = parser.parse_args(["--preset", "gpu", "--final-noise-std", "0.2", "--max-iterations", "4"])
+    *_, cfg, _ = ppo.training_config(args, parser, "cpu")
+    alg = cfg["algorithm"]
+    assert alg["class_name"] is ppo.ScheduledPPO and (alg["total_updates"], alg["decay_rate"], alg["final_noise_std"],
+                                                      alg["schedule"]) == (4, False, 0.2, "adaptive")
+    args = parser.parse_args(["--preset", "paper", "--final-noise-std", "0.3"])
+    *_, cfg, _ = ppo.training_config(args, parser, "cpu")
+    assert cfg["algorithm"]["class_name"] is ppo.LinearSchedulePPO and cfg["algorithm"]["final_noise_std"] == 0.3
+    for bad in ("0", "nan", "11"):
+        with pytest.raises(SystemExit):
+            ppo.training_config(parser.parse_args(["--final-noise-std", bad]), parser, "cpu")
+        assert "--final-noise-std must be in (0, 10]" in capsys.readouterr().err
+
+    # the schedule itself, on a bare object with the attributes PPO.__init__ would have set
+    for std_type in ("log", "scalar"):
+        alg = object.__new__(ppo.ScheduledPPO)
+        distribution = GaussianDistribution(2, init_std=1.0, std_type=std_type)
+        alg._raw_actor = torch.nn.Module()
+        alg._raw_actor.distribution = distribution
+        alg.total_updates, alg.decay_rate, alg.final_noise_std = 4, False, 0.2
+        alg.initial_noise_std, alg.updates_done = None, 0
+        caps = []
+        for _ in range(4):
+            alg.apply_schedules()
+            caps.append(distribution.std_range[1])
+            distribution.update(torch.zeros(3, 2))
+            assert torch.allclose(distribution.std, torch.full((3, 2), caps[-1]))  # the std in use is the cap
+        assert caps == pytest.approx([0.8, 0.6, 0.4, 0.2])
+        assert distribution.log_std_range[1] == pytest.approx(math.log(0.2))
 
 
 def test_update_shape_options_override_the_preset(capsys):

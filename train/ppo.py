@@ -37,6 +37,7 @@ import csv
 import dataclasses
 import io
 import json
+import math
 import os
 import pickle
 import statistics
@@ -65,24 +66,53 @@ import lapwarp
 from lapwarp.cli import default_device, with_fixed
 
 
-class LinearSchedulePPO(PPO):
-    """PPO whose learning rate and clip range decay linearly to 0 over ``total_updates`` (the paper's lin(x))."""
+class ScheduledPPO(PPO):
+    """PPO with linear schedules over ``total_updates``: the learning rate and clip range decaying to 0
+    (``decay_rate``, the paper's lin(x)), and a cap on the actor's action noise falling from its initial standard
+    deviation to ``final_noise_std`` at the last update (``ppo.py --final-noise-std``: late in training the mean
+    action has to do what the noise did, so the deterministic policy is the one that was trained; rsl-rl's learned
+    std is clamped to the cap, its parameter left alone)."""
 
-    def __init__(self, *args, total_updates: int = 1, **kwargs):
+    def __init__(self, *args, total_updates: int = 1, decay_rate: bool = True, final_noise_std: float | None = None,
+                 **kwargs):
         super().__init__(*args, **kwargs)
         self.total_updates = max(1, int(total_updates))
+        self.decay_rate = decay_rate
+        self.final_noise_std = final_noise_std
         self.initial_learning_rate = self.learning_rate
         self.initial_clip_param = self.clip_param
+        self.initial_noise_std: float | None = None
         self.updates_done = 0
 
-    def update(self) -> dict:
-        remaining = max(0.0, 1.0 - self.updates_done / self.total_updates)
-        self.learning_rate = self.initial_learning_rate * remaining
-        self.clip_param = max(self.initial_clip_param * remaining, 1e-8)
-        for group in self.optimizer.param_groups:
-            group["lr"] = self.learning_rate
+    def apply_schedules(self) -> None:
+        """Set this update's rate, clip range and noise cap (before ``PPO.update``)."""
+        if self.decay_rate:
+            remaining = max(0.0, 1.0 - self.updates_done / self.total_updates)
+            self.learning_rate = self.initial_learning_rate * remaining
+            self.clip_param = max(self.initial_clip_param * remaining, 1e-8)
+            for group in self.optimizer.param_groups:
+                group["lr"] = self.learning_rate
+        if self.final_noise_std is not None:
+            distribution = self._raw_actor.distribution
+            if self.initial_noise_std is None:
+                std = (torch.exp(distribution.log_std_param) if distribution.std_type == "log"
+                       else distribution.std_param)
+                self.initial_noise_std = float(std.detach().max())
+            # reaches the final value at the last update (the rate's schedule reaches 0 after it)
+            progress = min(1.0, (self.updates_done + 1) / self.total_updates)
+            cap = self.initial_noise_std + (self.final_noise_std - self.initial_noise_std) * progress
+            cap = max(cap, distribution.std_range[0])
+            distribution.std_range[1] = cap
+            distribution.log_std_range[1] = math.log(cap)
         self.updates_done += 1
+
+    def update(self) -> dict:
+        self.apply_schedules()
         return super().update()
+
+
+class LinearSchedulePPO(ScheduledPPO):
+    """PPO whose learning rate and clip range decay linearly to 0 over ``total_updates`` (the paper's lin(x))."""
 
 
 def mlp(activation: str, init_std: float | None = None) -> dict:
@@ -426,6 +456,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--init-noise-std", type=float, default=None, metavar="STD",
                         help="the actor's initial action standard deviation (default 1.0; image presets too): "
                              "smaller for tasks whose reward needs precise placement (LigatingLoop)")
+    parser.add_argument("--final-noise-std", type=float, default=None, metavar="STD",
+                        help="cap the actor's action noise, falling linearly from its initial std to STD at the last "
+                             "iteration (the deterministic policy is then the trained one: for policies whose mean "
+                             "actions stall where the noise moved them)")
     parser.add_argument("--obs-normalization", action="store_true",
                         help="normalise the state observations of the MLP models (actor and critic, or an image run's "
                              "state critic) by running mean and standard deviation (rsl-rl's empirical "
@@ -492,6 +526,14 @@ def training_config(args: argparse.Namespace, parser: argparse.ArgumentParser, d
         if not 0.0 < args.learning_rate <= 1.0:  # NaN fails the comparison too
             parser.error(f"--learning-rate must be in (0, 1], got {args.learning_rate}")
         alg["learning_rate"] = args.learning_rate
+    if args.final_noise_std is not None:
+        if not 0.0 < args.final_noise_std <= 10.0:  # NaN fails the comparison too
+            parser.error(f"--final-noise-std must be in (0, 10], got {args.final_noise_std}")
+        if alg.get("class_name") is LinearSchedulePPO:
+            alg["final_noise_std"] = args.final_noise_std
+        else:
+            alg.update(class_name=ScheduledPPO, total_updates=iterations, decay_rate=False,
+                       final_noise_std=args.final_noise_std)
     if args.init_noise_std is not None:
         if not 0.0 < args.init_noise_std <= 10.0:  # NaN fails the comparison too
             parser.error(f"--init-noise-std must be in (0, 10], got {args.init_noise_std}")
