@@ -590,17 +590,22 @@ def test_seeding(device):
 
 
 # ---------------------------------------------------------------------------- expert
-def _expert_first_episodes(env, steps: int) -> np.ndarray:
-    """Whether each env's first episode under the scripted expert ended in success within ``steps`` steps."""
+def _expert_first_episodes(env, steps: int) -> tuple[np.ndarray, np.ndarray]:
+    """Whether each env's first episode under the scripted expert ended in success within ``steps`` steps, and its
+    return."""
     expert = make_expert(env)
     counted = np.zeros(env.num_envs, bool)
     success = np.zeros(env.num_envs, bool)
+    returns = np.zeros(env.num_envs)
     for _ in range(steps):
-        _, _, done, _ = env.step(expert())
+        _, reward, done, _ = env.step(expert())
+        returns += np.where(counted, 0.0, reward.cpu().numpy())
         done = done.bool().cpu().numpy() & ~counted
         success |= done & (env.last_episode_success.numpy() > 0)
         counted |= done
-    return success
+        if counted.all():
+            break
+    return success, returns
 
 
 def test_expert_closes_the_loop_on_the_band(device):
@@ -609,7 +614,7 @@ def test_expert_closes_the_loop_on_the_band(device):
     on it with its centre inside the cavity and the tip outside; the issue asks >= 80 %). (Holding the tip at a fixed
     distance beside the band, the former rule, it solved about a quarter: the shrinking loop lifted the over-soft
     cavity, its centre left the cavity's hull and the encircling flag reset.)"""
-    success = _expert_first_episodes(make(device, 8, seed=1), 200)
+    success, _ = _expert_first_episodes(make(device, 8, seed=1), 200)
     assert success.sum() >= 6, success
 
 
@@ -618,7 +623,8 @@ def test_expert_closes_the_loop_with_discrete_actions(device):
     cylinder snaps sideways in the closing loop; uncorrected, the error around the cylinder (``side_band``) let the
     loop's COM drift out of the cavity's hull and the encircling flag reset (measured on CPU: 8 of 8 here, 5 of 8
     without the correction)."""
-    success = _expert_first_episodes(make(device, 8, seed=1, action_type="DISCRETE", invalid_actions="zero"), 250)
+    success, _ = _expert_first_episodes(make(device, 8, seed=1, action_type="DISCRETE", invalid_actions="zero"),
+                                        250)
     assert success.sum() >= 7, success
 
 
@@ -632,19 +638,7 @@ def test_delta_closure_shaping_pays_the_net_closure_on_the_band(device):
     weights = dict.fromkeys(REWARDS.names, 0.0)
     weights.update(delta_loop_closed_on_marking=100.0, successful_task=1000.0)
     env = make(device, 4, seed=3, index_steps_per_action=2, reward_weights=weights)
-    expert = make_expert(env)
-    counted = np.zeros(env.num_envs, bool)
-    success = np.zeros(env.num_envs, bool)
-    returns = np.zeros(env.num_envs)
-    env.reset()
-    for _ in range(150):
-        _, reward, done, _ = env.step(expert())
-        returns += np.where(counted, 0.0, reward.cpu().numpy())
-        done = done.bool().cpu().numpy() & ~counted
-        success |= done & (env.last_episode_success.numpy() > 0)
-        counted |= done
-        if counted.all():
-            break
+    success, returns = _expert_first_episodes(env, 150)
     assert success.all(), success
     assert np.all((returns > 1000.0 + 100.0 * env.cfg.target_loop_closed_ratio) & (returns <= 1100.0 + 1e-3)), returns
 

@@ -366,8 +366,7 @@ def _deflect_pixel_study_rows() -> list[Row]:
             # hardest configuration with the state critic for 1,200 iterations (157M env-steps, ~10 min)
             dataclasses.replace(m1, name="deflect-m1-b1-rgb128-asym-i400", iterations=400, critic="state",
                                 config=rgb128),
-            dataclasses.replace(base["deflect-m5-b2-rgb"], name="deflect-m5-b2-rgb-asym-i1200", iterations=1200,
-                                critic="state"),
+            dataclasses.replace(m5_asym, name="deflect-m5-b2-rgb-asym-i1200", iterations=1200),
             # the state critic reading normalised observations (what took active-vision SearchForPoint's state
             # policy from 60.8 to 100 %)
             _with_obs_normalization(m1, "deflect-m1-b1-rgb-asym-norm-i600", iterations=600, critic="state"),
@@ -500,17 +499,20 @@ def wall_estimates(jobs: list[tuple[Experiment, Row, int]], result_dirs: list[Pa
     ``result_dirs`` (e.g. ``--out`` and the committed ``benchmarks/results/learning``); for a row without one, its
     iterations times the mean seconds per iteration of every result of the same task, observation type and image
     size there (a new variant of a measured row); rows with neither are left out."""
-    results = [json.loads(path.read_text()) for base in result_dirs for path in sorted(base.glob("*/*/seed*.json"))]
+    per_row: dict[tuple[str, str], list[float]] = {}  # (experiment, row) folder names -> wall seconds
     per_iteration: dict[tuple[str, str, str], list[float]] = {}
-    for result in results:
-        if isinstance(result.get("wall_s"), (int, float)) and result.get("iterations"):
-            key = _shape_key(result.get("task"), result.get("obs"), result.get("settings", {}).get("image_shape"))
-            per_iteration.setdefault(key, []).append(result["wall_s"] / result["iterations"])
+    for base in result_dirs:
+        for path in sorted(base.glob("*/*/seed*.json")):
+            result = json.loads(path.read_text())
+            if not isinstance(result.get("wall_s"), (int, float)):
+                continue
+            per_row.setdefault((path.parent.parent.name, path.parent.name), []).append(result["wall_s"])
+            if result.get("iterations"):
+                key = _shape_key(result.get("task"), result.get("obs"), result.get("settings", {}).get("image_shape"))
+                per_iteration.setdefault(key, []).append(result["wall_s"] / result["iterations"])
     estimates = {}
     for experiment, row, _ in jobs:
-        walls = [json.loads(path.read_text()).get("wall_s") for base in result_dirs
-                 for path in sorted((base / experiment.name / row.name).glob("seed*.json"))]
-        walls = [w for w in walls if isinstance(w, (int, float))]
+        walls = per_row.get((experiment.name, row.name))
         similar = per_iteration.get(_shape_key(row.task, row.obs, row.config.get("image_shape")))
         if walls:
             estimates[experiment.name, row.name] = sum(walls) / len(walls)
