@@ -264,6 +264,21 @@ def test_deadline_skips_runs_that_cannot_finish_in_time(tmp_path):
     estimates = experiments.wall_estimates(jobs + [(exp, longer, 0), (exp, pixels, 0)],
                                            [tmp_path / "a", tmp_path / "b", tmp_path / "missing"])
     assert estimates == {("tiny", "reach"): 200.0, ("tiny", "reach-long"): 500.0}
+    # a row with only a cut-off run (its curve, no JSON): its iterations x the curve's seconds per iteration (40 s at
+    # iteration 2 -> 20 s) plus the overhead wall_s - train_s of finished runs (30 s here); the curve also stands
+    # for its task in a new variant's estimate; finished results record train_s, so their rate is train_s/iteration
+    cut_off = experiments.Row("reach-cut", "Reach", {}, "state", 5, None, "")
+    registry = {"tiny": experiments.Experiment("tiny", exp.description, [*exp.rows, cut_off], exp.preset)}
+    (tmp_path / "c" / "tiny" / "reach-cut").mkdir(parents=True)
+    (tmp_path / "c" / "tiny" / "reach-cut" / "seed0.csv").write_text(
+        "iteration,env_steps,wall_s,success\n1,10,15.0,0.0\n2,20,40.0,0.1\n")
+    (tmp_path / "c" / "tiny" / "reach").mkdir(parents=True)
+    (tmp_path / "c" / "tiny" / "reach" / "seed3.json").write_text(json.dumps(
+        {"wall_s": 230.0, "train_s": 200.0, "task": "Reach", "obs": "state", "iterations": 2, "settings": {}}))
+    (tmp_path / "c" / "tiny" / "reach" / "seed3.csv").write_text("iteration,wall_s\n2,1000.0\n")  # has its JSON
+    with_cut = experiments.wall_estimates([(exp, cut_off, 0), (exp, longer, 0)], [tmp_path / "c"], registry)
+    assert with_cut == {("tiny", "reach-cut"): pytest.approx(5 * 20.0 + 30.0),
+                        ("tiny", "reach-long"): pytest.approx(5 * (20.0 + 100.0) / 2 + 30.0)}
     lines = []
 
     class Stream:

@@ -45,6 +45,8 @@ PPO_SCRIPT = ROOT / "train" / "ppo.py"
 #: keeps the two equal)
 COMPILE_MODES = ("default", "reduce-overhead", "max-autotune", "max-autotune-no-cudagraphs")
 DEFAULT_OUT = ROOT / "benchmarks" / "results" / "learning"
+# curves of runs a lease cut off (no result JSON), laid out like DEFAULT_OUT; read for run-time estimates only
+PARTIAL_OUT = ROOT / "benchmarks" / "results" / "partial"
 
 SUMMARY_COLUMNS = ["row", "task", "config", "obs", "learner", "seeds", "env_steps", "success_mean", "success_std",
                    "sampled_success_mean", "wall_s_per_run", "device", "commit", "paper_success", "paper_note"]
@@ -494,31 +496,70 @@ def _shape_key(task: str, obs: str, image_shape: Any) -> tuple[str, str, str]:
     return task, obs, json.dumps(image_shape) if obs != "state" else ""
 
 
-def wall_estimates(jobs: list[tuple[Experiment, Row, int]], result_dirs: list[Path]) -> dict[tuple[str, str], float]:
-    """Expected wall seconds per (experiment, row) of ``jobs``: the mean ``wall_s`` of the row's results already in
-    ``result_dirs`` (e.g. ``--out`` and the committed ``benchmarks/results/learning``); for a row without one, its
-    iterations times the mean seconds per iteration of every result of the same task, observation type and image
-    size there (a new variant of a measured row); rows with neither are left out."""
+def wall_estimates(jobs: list[tuple[Experiment, Row, int]], result_dirs: list[Path],
+                   registry: dict[str, Experiment] | None = None) -> dict[tuple[str, str], float]:
+    """Expected wall seconds per (experiment, row) of ``jobs`` from the runs in ``result_dirs`` (``--out``, the
+    committed ``benchmarks/results/learning`` and ``PARTIAL_OUT``, the curves of runs a lease cut off):
+
+    - a row with finished results (``seed*.json``): the mean of their ``wall_s``;
+    - else a row with a cut-off run (a ``seed*.csv`` without its JSON): its iterations x that run's training seconds
+      per iteration (the CSV's last ``wall_s`` over its iteration) plus the start-up and evaluation overhead;
+    - else a new variant: its iterations x the mean training seconds per iteration of every run of the same task,
+      observation type and image size (rows found in ``registry``, default ``EXPERIMENTS``), plus the overhead;
+    rows with none of these are left out. The overhead is the mean ``wall_s - train_s`` of the finished results (0
+    where none records ``train_s``)."""
+    registry = EXPERIMENTS if registry is None else registry
     per_row: dict[tuple[str, str], list[float]] = {}  # (experiment, row) folder names -> wall seconds
-    per_iteration: dict[tuple[str, str, str], list[float]] = {}
+    per_row_rate: dict[tuple[str, str], list[float]] = {}  # -> training seconds per iteration of cut-off runs
+    per_shape_rate: dict[tuple[str, str, str], list[float]] = {}
+    overheads: list[float] = []
     for base in result_dirs:
         for path in sorted(base.glob("*/*/seed*.json")):
             result = json.loads(path.read_text())
             if not isinstance(result.get("wall_s"), (int, float)):
                 continue
             per_row.setdefault((path.parent.parent.name, path.parent.name), []).append(result["wall_s"])
+            train_s = result.get("train_s")
+            if isinstance(train_s, (int, float)):
+                overheads.append(result["wall_s"] - train_s)
             if result.get("iterations"):
                 key = _shape_key(result.get("task"), result.get("obs"), result.get("settings", {}).get("image_shape"))
-                per_iteration.setdefault(key, []).append(result["wall_s"] / result["iterations"])
+                seconds = train_s if isinstance(train_s, (int, float)) else result["wall_s"]
+                per_shape_rate.setdefault(key, []).append(seconds / result["iterations"])
+        for path in sorted(base.glob("*/*/seed*.csv")):
+            rate = _csv_seconds_per_iteration(path)
+            if rate is None or path.with_suffix(".json").is_file():
+                continue
+            names = path.parent.parent.name, path.parent.name
+            per_row_rate.setdefault(names, []).append(rate)
+            experiment = registry.get(names[0])
+            row = next((r for r in experiment.rows if r.name == names[1]), None) if experiment else None
+            if row is not None:
+                key = _shape_key(row.task, row.obs, row.config.get("image_shape"))
+                per_shape_rate.setdefault(key, []).append(rate)
+    overhead = sum(overheads) / len(overheads) if overheads else 0.0
     estimates = {}
     for experiment, row, _ in jobs:
         walls = per_row.get((experiment.name, row.name))
-        similar = per_iteration.get(_shape_key(row.task, row.obs, row.config.get("image_shape")))
+        rates = per_row_rate.get((experiment.name, row.name)) or per_shape_rate.get(
+            _shape_key(row.task, row.obs, row.config.get("image_shape")))
         if walls:
             estimates[experiment.name, row.name] = sum(walls) / len(walls)
-        elif similar:
-            estimates[experiment.name, row.name] = row.iterations * sum(similar) / len(similar)
+        elif rates:
+            estimates[experiment.name, row.name] = row.iterations * sum(rates) / len(rates) + overhead
     return estimates
+
+
+def _csv_seconds_per_iteration(path: Path) -> float | None:
+    """Training seconds per iteration of a run's curve (its last ``wall_s`` over its ``iteration``); None for an
+    empty or unreadable curve."""
+    try:
+        with path.open(newline="") as handle:
+            rows = list(csv.DictReader(handle))
+        last = rows[-1] if rows else None
+        return float(last["wall_s"]) / float(last["iteration"]) if last and float(last["iteration"]) > 0 else None
+    except (OSError, KeyError, TypeError, ValueError):
+        return None
 
 
 def run_jobs(jobs: list[tuple[Experiment, Row, int]], out: Path, devices: list[str | None], nproc: int,
@@ -823,7 +864,7 @@ def main(argv: list[str] | None = None, experiments: dict[str, Experiment] | Non
         parser.error(str(exc))
     failed = []
     if not args.summarize_only:
-        estimates = wall_estimates(jobs, list(dict.fromkeys([args.out, DEFAULT_OUT])))
+        estimates = wall_estimates(jobs, list(dict.fromkeys([args.out, DEFAULT_OUT, PARTIAL_OUT])), experiments)
         results = run_jobs(jobs, args.out, args.devices, args.nproc_per_run, args.preset, args.num_envs,
                            args.iterations, args.eval_envs, args.skip_done, args.log_dir,
                            fast_pixels=args.fast_pixels, shared_encoder=args.shared_encoder, compile_mode=args.compile,
