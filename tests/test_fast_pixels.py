@@ -288,7 +288,7 @@ def test_ppo_trains_fast_pixels_with_state_critic_and_writes_a_video(device, tmp
 
 
 @pytest.mark.parametrize("bad, message", [
-    (["--fast-pixels"], "apply to image observations"),
+    (["--fast-pixels"], "applies to image observations"),
     (["--obs", "rgbd", "--fast-pixels"], "exact only for --obs rgb"),
     (["--obs", "rgb", "--video", "x.gif"], "--video writes an .mp4"),
     (["--obs", "rgb", "--shared-encoder"], "--shared-encoder needs --fast-pixels"),

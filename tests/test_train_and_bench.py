@@ -499,3 +499,41 @@ def test_trace_policy_writes_actions_features_and_forced_components(device, tmp_
             trace_policy.main([str(checkpoint), "--task", "Reach", "--preset", "cpu", "--device", device, *bad,
                                "--out", str(out)])
         assert message in capsys.readouterr().err
+
+
+def test_state_run_with_a_privileged_critic(tmp_path):
+    """``--critic state`` on a state run: the actor reads the policy's observation, the critic the task's privileged
+    layout (the policy's values first, then e.g. Reach's offset to the target), and the run trains and evaluates."""
+    parser = ppo.build_parser()
+    *_, cfg, overrides = ppo.training_config(parser.parse_args(["--preset", "gpu", "--critic", "state"]), parser,
+                                             "cpu")
+    assert cfg["obs_groups"] == {"actor": ["policy"], "critic": ["critic"]} and overrides["privileged_critic"]
+    *_, cfg, overrides = ppo.training_config(parser.parse_args(["--preset", "gpu"]), parser, "cpu")
+    assert cfg["obs_groups"] == {"actor": ["policy"], "critic": ["policy"]} and "privileged_critic" not in overrides
+    assert ppo.main(["--task", "Reach", "--device", "cpu", "--preset", "cpu", "--num-envs", "8", "--max-iterations",
+                     "1", "--eval-envs", "4", "--log-dir", str(tmp_path), "--critic", "state"]) == 0
+    checkpoint = torch.load(sorted(tmp_path.glob("Reach/*/model_*.pt"))[-1], weights_only=False)
+    env = lapwarp.make("Reach", num_envs=1, device="cpu", privileged_critic=True)
+    obs, _ = env.reset()
+    policy_dim, critic_dim = obs["policy"].shape[1], obs["critic"].shape[1]
+    assert critic_dim > policy_dim
+
+    def first_weight(state):  # the first linear layer's weight: (hidden, input dim)
+        return next(v for k, v in state.items() if k.endswith("weight") and v.dim() == 2)
+
+    assert first_weight(checkpoint["actor_state_dict"]).shape[1] == policy_dim
+    assert first_weight(checkpoint["critic_state_dict"]).shape[1] == critic_dim
+
+
+def test_entropy_coef_sets_the_loss_weight(capsys):
+    parser = ppo.build_parser()
+    for preset in ("gpu", "paper"):
+        *_, cfg, _ = ppo.training_config(parser.parse_args(["--preset", preset, "--entropy-coef", "0.005"]), parser,
+                                         "cpu")
+        assert cfg["algorithm"]["entropy_coef"] == 0.005
+    *_, cfg, _ = ppo.training_config(parser.parse_args(["--preset", "gpu"]), parser, "cpu")
+    assert cfg["algorithm"]["entropy_coef"] == 0.0
+    for bad in ("-0.1", "nan", "2"):
+        with pytest.raises(SystemExit):
+            ppo.training_config(parser.parse_args(["--preset", "gpu", "--entropy-coef", bad]), parser, "cpu")
+        assert "--entropy-coef must be in [0, 1]" in capsys.readouterr().err

@@ -423,8 +423,9 @@ def build_parser() -> argparse.ArgumentParser:
                              "mini-batches, so the mini-batch summed over ranks and the updates per env-step equal "
                              "one process's (without it N ranks take the preset's updates on N x larger batches)")
     parser.add_argument("--critic", choices=["same", "state"], default="same",
-                        help="image runs: the critic reads the images (same, the paper's) or the privileged state "
-                             "(state: asymmetric actor-critic)")
+                        help="the critic reads the actor's observations (same, the paper's) or the task's privileged "
+                             "state (state: asymmetric actor-critic; for image runs the state, for state runs the "
+                             "policy's observation plus privileged values)")
     parser.add_argument("--fast-pixels", action="store_true",
                         help="image runs: uint8 rollout storage, channels-last bf16 encoders (train/fast_pixels.py)")
     parser.add_argument("--shared-encoder", action="store_true",
@@ -460,6 +461,9 @@ def build_parser() -> argparse.ArgumentParser:
                         help="cap the actor's action noise, falling linearly from its initial std to STD at the last "
                              "iteration (the deterministic policy is then the trained one: for policies whose mean "
                              "actions stall where the noise moved them)")
+    parser.add_argument("--entropy-coef", type=float, default=None, metavar="C",
+                        help="weight of the policy's entropy bonus in the PPO loss (default: the preset's, 0): keeps "
+                             "the action noise from collapsing before a sparse success is found")
     parser.add_argument("--obs-normalization", action="store_true",
                         help="normalise the state observations of the MLP models (actor and critic, or an image run's "
                              "state critic) by running mean and standard deviation (rsl-rl's empirical "
@@ -502,8 +506,13 @@ def training_config(args: argparse.Namespace, parser: argparse.ArgumentParser, d
         use_images(train_cfg, privileged_critic=args.critic == "state")
         if args.fast_pixels:
             use_fast_pixels(train_cfg, space_to_depth=args.first_conv == "space-to-depth")
-    elif args.critic != "same" or args.fast_pixels:
-        parser.error("--critic state and --fast-pixels apply to image observations (--obs rgb ...)")
+    elif args.fast_pixels:
+        parser.error("--fast-pixels applies to image observations (--obs rgb ...)")
+    elif args.critic == "state":
+        # state actor, critic on the task's privileged layout (the policy's values first, then what the actor may
+        # not see, e.g. tets left to cut): a value estimate of the sparse success the actor's observation hides
+        env_overrides["privileged_critic"] = True
+        train_cfg["obs_groups"] = {"actor": ["policy"], "critic": ["critic"]}
     if args.first_conv != "space-to-depth" and not args.fast_pixels:
         parser.error("--first-conv applies to the --fast-pixels encoders")
     if args.fast_pixels and args.obs != "rgb":
@@ -534,6 +543,10 @@ def training_config(args: argparse.Namespace, parser: argparse.ArgumentParser, d
         else:
             alg.update(class_name=ScheduledPPO, total_updates=iterations, decay_rate=False,
                        final_noise_std=args.final_noise_std)
+    if args.entropy_coef is not None:
+        if not 0.0 <= args.entropy_coef <= 1.0:  # NaN fails the comparison too
+            parser.error(f"--entropy-coef must be in [0, 1], got {args.entropy_coef}")
+        alg["entropy_coef"] = args.entropy_coef
     if args.init_noise_std is not None:
         if not 0.0 < args.init_noise_std <= 10.0:  # NaN fails the comparison too
             parser.error(f"--init-noise-std must be in (0, 10], got {args.init_noise_std}")
