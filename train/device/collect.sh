@@ -1,7 +1,9 @@
 #!/usr/bin/env bash
 # Wait up to SECONDS (or until the queue of train/device/queue.sh is done), then pack what has finished into
 # $OUT/r.tgz (checkpoints left out: one returned file is limited to 16 MiB). Call it back to back: a lease is given
-# back after ~30 s idle.
+# back after ~30 s idle. Issue the queue call and every collect call of a lease together (one batch of calls, which
+# run one after another with no gap): in the twenty-fourth session a collect call sent a moment after the previous
+# one had returned found a fresh machine, and the queue's runs in flight were lost.
 #
 #   bash train/device/collect.sh SECONDS
 set -uo pipefail
