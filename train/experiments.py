@@ -423,14 +423,14 @@ def _normalization_study_rows() -> list[Row]:
 
 
 def _dissection_study_rows() -> list[Row]:
-    """Why PPO does not free TissueDissection's flap from state, and its pixel row with a state critic (not rows of the paper's table): at two rows of
-    connective tissue (CT) the gpu preset's policy cuts ~18 of the 30 CT tets per episode (0.5 each) and stalls, 0 %
-    success after 300 iterations (H200, twenty-fourth session), while the scripted expert frees the flap in ~110 of
-    the 400 steps (return ~64 with the +50 success). The actor's STATE observation (sofa_env's: 10 CT points
-    re-sampled after every cut, the border point) does not say how many tets are left; the task's privileged critic
-    layout does (tets left per layer, the offset to the border point), so an asymmetric critic can value the last
-    tets' +50. Variants: that critic, with normalised observations, and with an entropy bonus that keeps the action
-    noise (exploration) from collapsing on the 18-tet plateau."""
+    """Why PPO does not free TissueDissection's flap from state, and its pixel row with a state critic (not rows of
+    the paper's table): at two rows of connective tissue (CT) the gpu preset's policy cuts ~18 of the 30 CT tets per
+    episode (0.5 each) and stalls, 0 % success after 300 iterations (H200, twenty-fourth session), while the scripted
+    expert frees the flap in ~110 of the 400 steps (return ~64 with the +50 success). The actor's STATE observation
+    (sofa_env's: 10 CT points re-sampled after every cut, the border point) does not say how many tets are left; the
+    task's privileged critic layout does (tets left per layer, the offset to the border point), so an asymmetric
+    critic can value the last tets' +50. Variants: that critic, with normalised observations, and with an entropy
+    bonus that keeps the action noise (exploration) from collapsing on the 18-tet plateau."""
     base = {row.name: row for row in _dissection_rows()}["td-r2-state"]
     private = dataclasses.replace(base, name="td-r2-priv-state", critic="state")
     private_norm = _with_obs_normalization(private, "td-r2-priv-norm-state")
@@ -459,7 +459,8 @@ EXPERIMENTS: dict[str, Experiment] = {
     "state-normalization-study": Experiment(
         "state-normalization-study", "State rows retrained with normalised observations", _normalization_study_rows()),
     "dissection-study": Experiment(
-        "dissection-study", "TissueDissection: a privileged critic, normalisation, entropy (state); a state critic (RGB)",
+        "dissection-study",
+        "TissueDissection: a privileged critic, normalisation, entropy (state); a state critic (RGB)",
         _dissection_study_rows()),
     "deformable-state": Experiment("deformable-state", "Deformable Manipulation track from state", _deformable_rows()),
     "deformable-rgb": Experiment("deformable-rgb", "Deformable Manipulation track from 64x64 RGB",
