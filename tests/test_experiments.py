@@ -248,8 +248,8 @@ def test_failure_text_summarises_how_episodes_failed():
 
 def test_deadline_skips_runs_that_cannot_finish_in_time(tmp_path):
     """``--deadline``: a run expected (from the row's earlier results) to outlast the time left is not started but
-    reported with status None, and is no failure; a row without results starts while time is left (not exercised
-    here: it would train). The estimate is the mean ``wall_s`` over the row's results in every directory given."""
+    reported with status None, and is no failure; a row nothing estimates is assumed to take 10 min. The estimate is
+    the mean ``wall_s`` over the row's results in every directory given."""
     exp = TINY["tiny"]
     for base, wall in ((tmp_path / "a", 100.0), (tmp_path / "b", 300.0)):
         row_dir = base / "tiny" / "reach"
@@ -289,10 +289,14 @@ def test_deadline_skips_runs_that_cannot_finish_in_time(tmp_path):
             pass
 
     out = tmp_path / "out"
-    results = experiments.run_jobs(jobs, out, [None], 1, "cpu", 2, 1, 2, False, tmp_path / "logs", stream=Stream(),
-                                   deadline=150.0, estimates=estimates)
-    assert [(row.name, seed, status) for _, row, seed, status in results] == [("reach", 1, None), ("reach", 2, None)]
-    assert "not started reach seed 1: expected 200 s, 150 s left before the deadline" in "".join(lines)
+    # a row nothing estimates (here the pixel row) is assumed to take UNKNOWN_RUN_S (600 s)
+    results = experiments.run_jobs(jobs + [(exp, pixels, 0)], out, [None], 1, "cpu", 2, 1, 2, False,
+                                   tmp_path / "logs", stream=Stream(), deadline=550.0,
+                                   estimates={("tiny", "reach"): 560.0})
+    assert [(row.name, seed, status) for _, row, seed, status in results] == [
+        ("reach", 1, None), ("reach", 2, None), ("reach-rgb", 0, None)]
+    assert "not started reach seed 1: expected 560 s, 550 s left before the deadline" in "".join(lines)
+    assert "not started reach-rgb seed 0: no estimate (600 s assumed), 550 s left before the deadline" in "".join(lines)
     assert not (out / "tiny").exists()  # nothing was started
 
 
