@@ -10,6 +10,11 @@ By default only each env's first episode counts (``--episodes`` is then ``--num-
 finish (``--as-finished``, what this script did before) favours short ones, because an env that succeeds quickly
 finishes a second episode before a slow one times out, so a run that stops at ``--episodes`` can report 100 % before
 any time-out was counted.
+
+``--action-noise SIGMA`` adds Gaussian noise of that standard deviation to the expert's continuous actions (clipped
+to [-1, 1]): how precise a policy must be to solve the task (TissueDissection's expert still frees the flap in every
+episode at SIGMA = 1, the width of the action box). Each record also gives the counted episodes' mean return and
+length.
 """
 
 from __future__ import annotations
@@ -27,17 +32,27 @@ from lapwarp.experts import make_expert
 
 
 def run(task: str, overrides: dict, action_type: str, num_envs: int, episodes: int, max_steps: int,
-        device: str, seed: int, first_episodes: bool = False) -> dict:
+        device: str, seed: int, first_episodes: bool = False, action_noise: float = 0.0) -> dict:
     env = lapwarp.make(task, num_envs=num_envs, device=device, action_type=action_type, seed=seed,
                        invalid_actions="zero", **overrides)
     expert = make_expert(env)
+    noise = torch.Generator(device=env.device).manual_seed(seed)
     obs = env.get_observations()
     finished = succeeded = 0
+    return_sum = length_sum = 0.0
     counted = torch.zeros(num_envs, dtype=torch.bool, device=env.device)
+    running_return = torch.zeros(num_envs, device=env.device)
+    running_length = torch.zeros(num_envs, device=env.device)
     start = time.perf_counter()
     step = 0
     for step in range(max_steps):  # noqa: B007 (reported below)
-        obs, _, done, _ = env.step(expert(obs))
+        actions = expert(obs)
+        if action_noise > 0.0:
+            actions = (actions + action_noise * torch.randn(actions.shape, generator=noise, device=env.device)).clamp(
+                -1.0, 1.0)
+        obs, reward, done, _ = env.step(actions)
+        running_return += reward
+        running_length += 1.0
         mask = done.bool()
         if first_episodes:
             mask = mask & ~counted
@@ -45,12 +60,18 @@ def run(task: str, overrides: dict, action_type: str, num_envs: int, episodes: i
         if mask.any():
             finished += int(mask.sum())
             succeeded += int(wp.to_torch(env.last_episode_success)[mask].sum())
+            return_sum += float(running_return[mask].sum())
+            length_sum += float(running_length[mask].sum())
+        running_return[done.bool()] = 0.0
+        running_length[done.bool()] = 0.0
         if finished >= episodes:
             break
     env.close()
     return {"task": task, "overrides": overrides, "action_type": action_type, "num_envs": num_envs,
-            "episodes": finished, "successes": succeeded, "success_rate": succeeded / max(finished, 1),
-            "first_episodes": first_episodes, "steps": step + 1, "seconds": time.perf_counter() - start}
+            "action_noise": action_noise, "episodes": finished, "successes": succeeded,
+            "success_rate": succeeded / max(finished, 1), "mean_return": return_sum / max(finished, 1),
+            "mean_length": length_sum / max(finished, 1), "first_episodes": first_episodes, "steps": step + 1,
+            "seconds": time.perf_counter() - start}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -68,12 +89,18 @@ def main(argv: list[str] | None = None) -> int:
                         help="count only each env's first episode (the default; unbiased when episode lengths differ)")
     parser.add_argument("--as-finished", dest="first_episodes", action="store_false",
                         help="count episodes as they finish until --episodes (biased towards short episodes)")
+    parser.add_argument("--action-noise", type=float, default=0.0, metavar="SIGMA",
+                        help="Gaussian noise added to the expert's continuous actions (clipped to [-1, 1])")
     parser.add_argument("--out", default=None,
                         help="append one JSON line per result to this file (as bench_physics.py and soak.py do)")
     args = parser.parse_args(argv)
     if min(args.num_envs, args.episodes, args.max_steps) < 1:
         parser.error(f"--num-envs, --episodes and --max-steps must be positive, got {args.num_envs}, "
                      f"{args.episodes} and {args.max_steps}")
+    if not 0.0 <= args.action_noise <= 10.0:  # NaN fails the comparison too
+        parser.error(f"--action-noise must be in [0, 10], got {args.action_noise}")
+    if args.action_noise > 0.0 and "DISCRETE" in args.action_types:
+        parser.error("--action-noise perturbs continuous actions: add --action-types CONTINUOUS")
     if args.first_episodes:
         args.episodes = args.num_envs
     wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)
@@ -89,7 +116,7 @@ def main(argv: list[str] | None = None) -> int:
     for overrides in configs:
         for action_type in args.action_types:
             r = run(args.task, overrides, action_type, args.num_envs, args.episodes, args.max_steps, args.device,
-                    args.seed, args.first_episodes)
+                    args.seed, args.first_episodes, args.action_noise)
             records.append(r)
             print(json.dumps(r), flush=True)
     if args.out:

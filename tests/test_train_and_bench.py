@@ -233,6 +233,8 @@ def test_soak_counts_faults_and_checks_determinism(device, tmp_path, capsys):
     (profile_step, ["--task", "Reach", "--set", "invalid_actions=maybe"], "invalid_actions"),
     (soak, ["--tasks", "Reach", "--set", "seed=3"], "--set cannot set ['seed']"),
     (expert_success, ["--task", "Reach", "--config", "action_type=DISCRETE"], "--config cannot set ['action_type']"),
+    (expert_success, ["--task", "Reach", "--action-noise", "0.5"], "add --action-types CONTINUOUS"),
+    (expert_success, ["--task", "Reach", "--action-noise", "nan"], "--action-noise must be in [0, 10]"),
 ])
 def test_benchmark_scripts_refuse_bad_input_before_any_run(script, args, message, capsys, monkeypatch):
     """A bad configuration anywhere in the list is a usage error before the first env is built (on the GPU the first
@@ -537,3 +539,14 @@ def test_entropy_coef_sets_the_loss_weight(capsys):
         with pytest.raises(SystemExit):
             ppo.training_config(parser.parse_args(["--preset", "gpu", "--entropy-coef", bad]), parser, "cpu")
         assert "--entropy-coef must be in [0, 1]" in capsys.readouterr().err
+
+
+def test_expert_success_with_action_noise():
+    """``expert_success.run``: the Reach expert solves its first episodes; noise on its actions changes what the
+    episodes return (so it is applied), and each record gives the counted episodes' mean return and length."""
+    clean = expert_success.run("Reach", {}, "CONTINUOUS", 4, 4, 500, "cpu", 0, True)
+    noisy = expert_success.run("Reach", {}, "CONTINUOUS", 4, 4, 500, "cpu", 0, True, action_noise=0.3)
+    assert clean["episodes"] == noisy["episodes"] == 4 and clean["success_rate"] == 1.0
+    assert clean["action_noise"] == 0.0 and noisy["action_noise"] == 0.3
+    assert 0 < clean["mean_length"] <= 500 and 0 < noisy["mean_length"] <= 500
+    assert math.isfinite(clean["mean_return"]) and noisy["mean_return"] != clean["mean_return"]
