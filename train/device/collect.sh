@@ -10,5 +10,6 @@ set -uo pipefail
 end=$(( $(date +%s) + $1 ))
 while [ "$(date +%s)" -lt "$end" ] && ! grep -q ALLDONE /tmp/r/done.txt 2>/dev/null; do sleep 10; done
 grep -E "started|finished|FAILED" /tmp/r/queue.log | tail -40
+[ -f /tmp/r/beside.log ] && tail -5 /tmp/r/beside.log
 nvidia-smi --query-gpu=index,utilization.gpu,memory.used --format=csv
 cd /tmp && tar czf "$OUT/r.tgz" --exclude='*.pt' r && ls -la "$OUT"

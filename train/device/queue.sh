@@ -11,7 +11,10 @@
 # ../shared/tools/device-wheels.sh). DEADLINE (seconds; the lease's time left minus the last collection): runs not
 # expected to end by then are skipped (experiments.py --deadline, estimated from the rows' committed results).
 # Results: /tmp/r/learning/<experiment>/<row>/, log /tmp/r/queue.log, ALLDONE in /tmp/r/done.txt at the end;
-# collect them with train/device/collect.sh.
+# collect them with train/device/collect.sh. BESIDE (environment variable, optional): a command run detached beside
+# the queue from the same copy of the code, its output in /tmp/r/beside.log and its files where it writes them under
+# /tmp/r (e.g. a soak on the GPU the queue leaves free: NUM_GPUS 3 and
+# BESIDE="python3 benchmarks/soak.py --device cuda:3 ... --out /tmp/r/soak.jsonl").
 set -euo pipefail
 jobs_file=$1
 num_gpus=$2
@@ -28,5 +31,10 @@ cd /tmp/queue_code
 setsid nohup bash -c "python3 train/experiments.py --queue /tmp/r/jobs.txt --devices $devices --fast-pixels \
   --shared-encoder --skip-done --no-plots $deadline --out /tmp/r/learning --log-dir /tmp/queue_runs > /tmp/r/queue.log 2>&1; \
   echo ALLDONE >> /tmp/r/done.txt" > /dev/null 2>&1 &
+if [ -n "${BESIDE:-}" ]; then
+  setsid nohup bash -c "$BESIDE > /tmp/r/beside.log 2>&1; echo \"BESIDE exit \$?\" >> /tmp/r/beside.log" \
+    > /dev/null 2>&1 &
+fi
 sleep 30
 cat /tmp/r/queue.log
+[ -z "${BESIDE:-}" ] || tail -5 /tmp/r/beside.log
