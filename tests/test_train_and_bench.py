@@ -160,7 +160,7 @@ def test_profile_learner_splits_iterations_and_lists_operators(device, tmp_path,
     (["--profile-iterations", "-1", "--", "--task", "Reach"], "--profile-iterations must be >= 0, got -1"),
     (["--iterations", "0", "--", "--task", "Reach"], "expected a positive integer, got 0"),
     (["--", "--task", "Reach", "--play", "model.pt"], "trains from scratch in one process"),
-    (["--", "--task", "Reach", "--obs", "state", "--fast-pixels"], "apply to image observations"),
+    (["--", "--task", "Reach", "--obs", "state", "--fast-pixels"], "applies to image observations"),
 ])
 def test_profile_learner_refuses_bad_input_before_any_run(args, message, capsys, monkeypatch):
     import lapwarp
