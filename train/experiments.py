@@ -446,6 +446,14 @@ def _dissection_study_rows() -> list[Row]:
             dataclasses.replace(private_norm, name="td-r2-priv-norm-ent-state",
                                 train_args=(*private_norm.train_args, "--entropy-coef", "0.005")),
             dataclasses.replace(private_norm, name="td-r2-priv-norm-i600-state", iterations=600),
+            # Table A's pull towards the border point is ~3.4e-4 per 10 mm (its -10 on a distance scaled twice by the
+            # workspace diagonal, sofa_env's), so it does not guide; -1,500 on its delta pays ~0.5 (one CT tet's
+            # reward) per 10 mm approached, potential-based (a sum over an episode telescopes to the start and end
+            # distances, so it cannot be farmed; a cut that moves the border point away costs what approaching the
+            # next point pays back)
+            dataclasses.replace(private_norm, name="td-r2-priv-norm-pull-state",
+                                config={**private_norm.config,
+                                        "reward_weights": {"delta_distance_cauter_border_point": -1500.0}}),
             # from pixels (the paper's ~60 %, the bar) with the state critic that lifted every DeflectSpheres
             # pixel row (1 / 1: 66.3 -> 88.7 %), twice the symmetric row's iterations
             dataclasses.replace({row.name: row for row in _dissection_image_rows()}["td-r2-rgb"],
