@@ -24,10 +24,14 @@ Outputs (device arrays, valid after ``cut()``):
 * ``label_links (N, L * L)``: 1 where some piece holds live elements of both labels (a flap still attached to
   its connective tissue); ``component (N, M)``: the piece (its smallest element) of each element, -1 = removed.
 
-Removal rule: an element goes when its centroid lies within ``tool_radius[k] + carving_distance`` of tool
-capsule ``k`` (segment ``tool_a`` -> ``tool_b``) while the env's ``tool_active`` is set. Connectivity (union-find
-over the lanes of a thread block per env, only for envs where something was cut or that were reset) joins tets across
-shared faces, triangles across shared edges, consecutive rod segments, plus links added with :meth:`add_links`.
+Removal rule: an element goes when it lies within ``tool_radius[k] + carving_distance`` of tool capsule ``k``
+(segment ``tool_a`` -> ``tool_b``) while the env's ``tool_active`` is set: with ``removal="centroid"`` (the default)
+a tet or triangle is measured at its centroid, with ``removal="touch"`` at its nearest point (a tet's nearest face),
+which is what SOFA's CarvingManager does (its proximity query runs against the carved surface's triangles, so a tool
+touching an element anywhere removes it); rod segments are always measured at their nearest point. Connectivity
+(union-find over the lanes of a thread block per env, only for envs where something was cut or that were reset)
+joins tets across shared faces, triangles across shared edges, consecutive rod segments, plus links added with
+:meth:`add_links`.
 """
 
 from __future__ import annotations
@@ -76,14 +80,21 @@ class CuttingSystem:
         num_tools: capsules per env (hook: a few segments along the hook; scissors: the blade between the jaws).
         num_labels: element labels (at most 32), e.g. off / on a cutting path, flap / connective tissue.
         tool_radius: scalar or ``(num_tools,)`` capsule radii, m.
+        removal: ``"centroid"`` (a tet or triangle is measured at its centroid) or ``"touch"`` (at its nearest point,
+            SOFA's CarvingManager); see the module docstring.
     """
 
+    REMOVALS = ("centroid", "touch")
+
     def __init__(self, world, carving_distance: float = 1.2e-3, num_tools: int = 1, num_labels: int = 1,
-                 tool_radius=0.0):
+                 tool_radius=0.0, removal: str = "centroid"):
         if world.state.cut_dirty is None:
             raise ValueError("the World has no cuttable object (pass cuttable=True to the builder)")
         if not 1 <= num_labels <= 32:
             raise ValueError("num_labels must be in 1..32")
+        if removal not in self.REMOVALS:
+            raise ValueError(f"removal must be one of {self.REMOVALS}, got {removal!r}")
+        self.removal = removal
         self.world = world
         # lanes of the per-env block of the cut-and-recount launch (CUDA): a changed env's phases stride its
         # elements over them; an unchanged env's block leaves at once
@@ -198,7 +209,8 @@ class CuttingSystem:
         self._elements = make_struct(ck.CutElements, nodes=self._nodes, kind=self._kind, col=self._col,
                                      label=self._label, obj=self._obj, pairs=self._pairs, label_total=self._label_total)
         self._tools = make_struct(ck.CutTools, a=self.tool_a, b=self.tool_b, radius=self.tool_radius,
-                                  active=self.tool_active, carving_distance=self.carving_distance)
+                                  active=self.tool_active, carving_distance=self.carving_distance,
+                                  touch=int(self.removal == "touch"))
         self._mask_state = make_struct(
             ck.CutMaskState, tet_active=mask(s.tet_active), tri_active=mask(s.tri_active),
             segment_active=mask(s.segment_active), tet_face_active=mask(s.tet_face_active),

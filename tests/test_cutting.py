@@ -182,6 +182,59 @@ def test_tet_slab_carving_surface_and_reset(device):
     np.testing.assert_array_equal(cut.cut_ratio.numpy()[:, 0], [0.0, 0.0])
 
 
+def _point_triangle_distance(p, a, b, c):
+    """Reference: distance from p to triangle abc (projection if it falls inside, else the nearest edge)."""
+    n = np.cross(b - a, c - a)
+    n = n / np.linalg.norm(n)
+    proj = p - np.dot(p - a, n) * n
+    inside = all(np.dot(np.cross(y - x, proj - x), n) >= 0 for x, y in ((a, b), (b, c), (c, a)))
+    if inside:
+        return abs(np.dot(p - a, n))
+
+    def seg(x, y):
+        t = np.clip(np.dot(p - x, y - x) / np.dot(y - x, y - x), 0.0, 1.0)
+        return np.linalg.norm(p - (x + t * (y - x)))
+
+    return min(seg(a, b), seg(b, c), seg(c, a))
+
+
+@pytest.mark.parametrize("removal", ["centroid", "touch"])
+def test_removal_by_centroid_or_by_touch(device, removal):
+    """A point tool just above a thin slab (0.1 mm, like TissueDissection's connective tissue): by centroid only the
+    tets whose centroid is within reach go; by touch (SOFA's CarvingManager) every tet with a face within reach, the
+    reference distance taken to each tet's nearest face in NumPy, tolerance 1e-6 m around the reach."""
+    b = SceneBuilder(gravity=(0.0, 0.0, 0.0))
+    v, t = box_tets((0.06, 0.02, 1e-4), (5, 1, 1))
+    slab = b.add_tet_mesh(v, t, density=1000.0, youngs_modulus=5e3, poisson_ratio=0.0, damping=1.0,
+                          fixed=np.arange(len(v)), cuttable=True)
+    world = b.finalize(1, device, substeps=1)
+    reach = 1.0e-3
+    cut = CuttingSystem(world, carving_distance=2e-4, num_tools=1, tool_radius=reach - 2e-4, removal=removal)
+    cut.add_object(slab)
+    cut.finalize()
+    tip = np.array([0.025, 0.019, 1e-4 + 0.5e-3])  # above the slab's far edge, 0.5 mm over its top
+    cut.set_tools([tip], [tip], active=[1])
+    cut.cut()
+    tets = slab.tets - slab.particle_start
+    if removal == "centroid":
+        d = np.linalg.norm(v[tets].mean(axis=1) - tip, axis=1)
+    else:
+        faces = ((0, 1, 2), (0, 1, 3), (0, 2, 3), (1, 2, 3))
+        d = np.array([min(_point_triangle_distance(tip, *v[tet[list(f)]]) for f in faces) for tet in tets])
+    assert not np.any(np.abs(d - reach) < 1e-6)  # no tet on the boundary of the rule
+    expect = (d > reach).astype(np.int32)
+    np.testing.assert_array_equal(world.state.tet_active.numpy()[0], expect)
+    removed = int((expect == 0).sum())
+    # touching removes the tets under the tool; no centroid of these 12 x 20 mm tets is within 1 mm of it
+    assert removed == 0 if removal == "centroid" else removed >= 1
+
+
+def test_removal_rule_is_checked(device):
+    world, rope = _rope(device, 1)
+    with pytest.raises(ValueError, match="removal must be one of"):
+        CuttingSystem(world, removal="nearest")
+
+
 def test_flap_detaches_from_connective_tissue(device):
     """Labels + links: a cloth flap (label 0) hangs from a connective strip (label 1); cutting the strip's
     link row through the full width detaches them."""

@@ -19,6 +19,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 import bench_env  # noqa: E402
 import bench_fused  # noqa: E402
+import border_follower  # noqa: E402
 import expert_success  # noqa: E402
 import ppo  # noqa: E402
 import profile_learner  # noqa: E402
@@ -235,6 +236,8 @@ def test_soak_counts_faults_and_checks_determinism(device, tmp_path, capsys):
     (expert_success, ["--task", "Reach", "--config", "action_type=DISCRETE"], "--config cannot set ['action_type']"),
     (expert_success, ["--task", "Reach", "--action-noise", "0.5"], "add --action-types CONTINUOUS"),
     (expert_success, ["--task", "Reach", "--action-noise", "nan"], "--action-noise must be in [0, 10]"),
+    (border_follower, ["--num-envs", "0"], "--num-envs must be positive"),
+    (border_follower, ["--rows-to-cut", "1"], "rows_to_cut"),
 ])
 def test_benchmark_scripts_refuse_bad_input_before_any_run(script, args, message, capsys, monkeypatch):
     """A bad configuration anywhere in the list is a usage error before the first env is built (on the GPU the first
@@ -550,3 +553,11 @@ def test_expert_success_with_action_noise():
     assert clean["action_noise"] == 0.0 and noisy["action_noise"] == 0.3
     assert 0 < clean["mean_length"] <= 500 and 0 < noisy["mean_length"] <= 500
     assert math.isfinite(clean["mean_return"]) and noisy["mean_return"] != clean["mean_return"]
+
+
+def test_border_follower_records_each_cut_rule():
+    """``benchmarks/border_follower.py`` on 2 envs for one rule: a record per rule with every first episode counted
+    (the follower's success is measured in benchmarks/results/session24, not asserted: it is a diagnostic)."""
+    record = border_follower.run("touch", 2, 5, "cpu", 2)
+    assert record["episodes"] == 2 and 0 <= record["successes"] <= 2 and record["cut_removal"] == "touch"
+    assert 0 < record["mean_length"] <= 400 and math.isfinite(record["mean_return"])

@@ -8,7 +8,7 @@ segments). Element ``e`` has up to four particles ``elem_nodes[e]`` (-1 padded),
 
 import warp as wp
 
-from lapwarp.kernels.geometry import closest_segment_segment
+from lapwarp.kernels.geometry import closest_segment_segment, closest_segment_triangle
 
 wp.set_module_options({"enable_backward": False})
 
@@ -120,6 +120,7 @@ class CutTools:
     radius: wp.array(dtype=float)
     active: wp.array(dtype=wp.int32)
     carving_distance: float
+    touch: int  # 1: tets and triangles measured at their nearest point (SOFA's rule), 0: at their centroid
 
 
 @wp.struct
@@ -159,6 +160,26 @@ class CutCounters:
 
 
 @wp.func
+def segment_triangle_distance(ta: wp.vec3, tb: wp.vec3, x0: wp.vec3, x1: wp.vec3, x2: wp.vec3) -> float:
+    cl = closest_segment_triangle(ta, tb, x0, x1, x2)
+    return wp.length(x0 * cl[1] + x1 * cl[2] + x2 * cl[3] - (ta + (tb - ta) * cl[0]))
+
+
+@wp.func
+def segment_element_distance(ta: wp.vec3, tb: wp.vec3, x0: wp.vec3, x1: wp.vec3, x2: wp.vec3, x3: wp.vec3,
+                             is_tet: int) -> float:
+    """Distance from a tool axis to a triangle, or to a tet's nearest face (a segment lying wholly inside a tet is
+    measured to the faces too: the thin tets carved here cannot hold a tool axis, and inside a 2 mm flap tet a face
+    is within 1 mm)."""
+    d = segment_triangle_distance(ta, tb, x0, x1, x2)
+    if is_tet != 0:
+        d = wp.min(d, segment_triangle_distance(ta, tb, x0, x1, x3))
+        d = wp.min(d, segment_triangle_distance(ta, tb, x0, x2, x3))
+        d = wp.min(d, segment_triangle_distance(ta, tb, x1, x2, x3))
+    return d
+
+
+@wp.func
 def element_alive_in(env: int, e: int, el: CutElements, ms: CutMaskState):
     return element_alive(env, el.kind[e], el.col[e], ms.tet_active, ms.tri_active, ms.segment_active)
 
@@ -167,8 +188,9 @@ def element_alive_in(env: int, e: int, el: CutElements, ms: CutMaskState):
 def cut_element(env: int, e: int, el: CutElements, tools: CutTools, q: wp.array2d(dtype=wp.vec3), ms: CutMaskState,
                 out: CutCounters):
     """Remove element ``e`` if it lies within ``radius + carving_distance`` of a tool capsule: tets and triangles by
-    their centroid, rod segments by their closest point (SOFA carves line models along their length; a rope's 5 mm
-    segments would otherwise need the tool at their midpoint, where contact may never let it go)."""
+    their centroid (``tools.touch`` 0) or their nearest point (1: SOFA's rule), rod segments by their closest point
+    (SOFA carves line models along their length; a rope's 5 mm segments would otherwise need the tool at their
+    midpoint, where contact may never let it go)."""
     kind = el.kind[e]
     col = el.col[e]
     if element_alive(env, kind, col, ms.tet_active, ms.tri_active, ms.segment_active) == 0:
@@ -183,19 +205,32 @@ def cut_element(env: int, e: int, el: CutElements, tools: CutTools, q: wp.array2
         c = c + q[env, nd[3]]
         cnt = 4.0
     c = c / cnt
+    # touch: the element's bounding sphere about the centroid rejects far tools before the face tests
+    bound = float(0.0)
+    if tools.touch != 0 and kind != KIND_SEG:
+        for i in range(4):
+            if nd[i] >= 0:
+                bound = wp.max(bound, wp.length(q[env, nd[i]] - c))
     hit = int(0)
     for k in range(tools.a.shape[1]):
         d = float(0.0)
+        reach = tools.radius[k] + tools.carving_distance
+        ta = tools.a[env, k]
+        tb = tools.b[env, k]
         if kind == KIND_SEG:
             a = q[env, nd[0]]
             b = q[env, nd[1]]
-            ta = tools.a[env, k]
-            tb = tools.b[env, k]
             st = closest_segment_segment(a, b, ta, tb)
             d = wp.length((a + (b - a) * st[0]) - (ta + (tb - ta) * st[1]))
         else:
-            d = point_segment_distance(c, tools.a[env, k], tools.b[env, k])
-        if d <= tools.radius[k] + tools.carving_distance:
+            d = point_segment_distance(c, ta, tb)
+            if tools.touch != 0 and d > reach and d <= reach + bound:
+                x3 = q[env, nd[0]]
+                if nd[3] >= 0:
+                    x3 = q[env, nd[3]]
+                d = segment_element_distance(ta, tb, q[env, nd[0]], q[env, nd[1]], q[env, nd[2]], x3,
+                                             wp.where(nd[3] >= 0, 1, 0))
+        if d <= reach:
             hit = 1
     if hit == 0:
         return
