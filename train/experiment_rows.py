@@ -423,6 +423,10 @@ def _dissection_study_rows() -> list[Row]:
             dataclasses.replace(base, name="td-r2-touch-state", config={**base.config, "cut_removal": "touch"}),
             dataclasses.replace(private_norm, name="td-r2-priv-norm-touch-state",
                                 config={**private_norm.config, "cut_removal": "touch"}),
+            # the pull towards the border point where the border point is within cutting reach
+            dataclasses.replace(private_norm, name="td-r2-priv-norm-touch-pull-state",
+                                config={**private_norm.config, "cut_removal": "touch",
+                                        "reward_weights": {"delta_distance_cauter_border_point": -1500.0}}),
             # from pixels (the paper's ~60 %, the bar) with the state critic that lifted every DeflectSpheres
             # pixel row (1 / 1: 66.3 -> 88.7 %), twice the symmetric row's iterations
             dataclasses.replace({row.name: row for row in _dissection_image_rows()}["td-r2-rgb"],

@@ -50,6 +50,9 @@ Deliberate differences from sofa_env (task-cards §7, §12):
 * The remote centre of motion is exact (TPSD kinematics), so sofa_env's RCM-violation features (weight 0) are not
   computed; without ``with_board_collision`` the board feature counts a tip below z = 0 (sofa_env's fallback).
 * A CT node whose tets were all cut stays tied to the flap (0.02 kg riding on a 0.8 kg flap node); it no longer falls.
+* By default a tet goes when the hook reaches its centroid; sofa_env's CarvingManager removes what the hook touches
+  (``cut_removal="touch"``, which makes the CT much easier to cut and the flap easier to carve by accident; see the
+  config for the measurements). Which one becomes the default waits on the PPO comparison (``dissection-study``).
 """
 
 from __future__ import annotations
