@@ -3,10 +3,16 @@
 # $OUT/r.tgz (checkpoints left out: one returned file is limited to 16 MiB). Call it back to back: a lease is given
 # back after ~30 s idle. Issue the queue call and every collect call of a lease together (one batch of calls, which
 # run one after another with no gap): in the twenty-fourth session a collect call sent a moment after the previous
-# one had returned found a fresh machine, and the queue's runs in flight were lost.
+# one had returned found a fresh machine, and the queue's runs in flight were lost (it then waited its full time for
+# nothing: now it stops at once when no queue is running here).
 #
 #   bash train/device/collect.sh SECONDS
 set -uo pipefail
+if [ ! -f /tmp/r/queue.log ]; then
+  # a fresh machine (the lease went idle and was given back): waiting would only spend device time
+  echo "no queue on this machine: the lease was given back and its runs are lost; install and run queue.sh again"
+  exit 3
+fi
 end=$(( $(date +%s) + $1 ))
 while [ "$(date +%s)" -lt "$end" ] && ! grep -q ALLDONE /tmp/r/done.txt 2>/dev/null; do sleep 10; done
 grep -E "started|finished|FAILED" /tmp/r/queue.log | tail -40
