@@ -208,7 +208,8 @@ def test_controlled_force_and_activation_column():
     np.testing.assert_allclose(nodes, np.tile(force[0] / 4.0, (4, 1)), atol=1e-5)
 
 
-@pytest.mark.parametrize("bad", [dict(rows_to_cut=1), dict(rows_to_cut=8), dict(retraction_force=(0.0, 0.0, 150.0))])
+@pytest.mark.parametrize("bad", [dict(rows_to_cut=1), dict(rows_to_cut=8), dict(retraction_force=(0.0, 0.0, 150.0)),
+                                 dict(cut_removal="nearest")])
 def test_invalid_configurations_raise(bad):
     with pytest.raises(ValueError):
         lapwarp.make("TissueDissection", num_envs=1, device="cpu", **bad)
