@@ -25,6 +25,7 @@ import ppo  # noqa: E402
 import profile_learner  # noqa: E402
 import profile_step  # noqa: E402
 import soak  # noqa: E402
+import visibility  # noqa: E402
 
 
 def test_ppo_trains_saves_resumes_and_plays(device, tmp_path, capsys):
@@ -237,6 +238,8 @@ def test_soak_counts_faults_and_checks_determinism(device, tmp_path, capsys):
     (expert_success, ["--task", "Reach", "--action-noise", "0.5"], "add --action-types CONTINUOUS"),
     (expert_success, ["--task", "Reach", "--action-noise", "nan"], "--action-noise must be in [0, 10]"),
     (border_follower, ["--num-envs", "0"], "--num-envs must be positive"),
+    (visibility, ["--task", "Reach", "--steps", "-1"], "--steps non-negative"),
+    (visibility, ["--task", "DeflectSpheres", "--set", "num_spheres=1"], "exceeds num_spheres=1"),
     (border_follower, ["--rows-to-cut", "1"], "rows_to_cut"),
 ])
 def test_benchmark_scripts_refuse_bad_input_before_any_run(script, args, message, capsys, monkeypatch):
@@ -561,3 +564,13 @@ def test_border_follower_records_each_cut_rule():
     record = border_follower.run("touch", 2, 5, "cpu", 2)
     assert record["episodes"] == 2 and 0 <= record["successes"] <= 2 and record["cut_removal"] == "touch"
     assert 0 < record["mean_length"] <= 400 and math.isfinite(record["mean_return"])
+
+
+def test_visibility_reports_each_visual_object():
+    """``benchmarks/visibility.py``: every visual object of the scene gets the fraction of envs showing it; the board
+    fills the view of every env, and each fraction is one of k / num_envs."""
+    record = visibility.visibility("DeflectSpheres", {"single_instrument": False}, 4, 2, "cpu", 1, 32)
+    shown = record["visible_fraction"]
+    assert shown["board"] == 1.0 and record["image"] == [32, 32] and record["steps_after_reset"] == 2
+    assert {"right_cauter/shaft", "left_cauter/shaft"} <= set(shown)
+    assert all(v * 4 == int(v * 4) and 0.0 <= v <= 1.0 for v in shown.values())
