@@ -21,10 +21,8 @@ import warp as wp
 
 import lapwarp
 from lapwarp import launching
-from lapwarp.cli import default_device
-from lapwarp.instrument_shapes import CAUTER_CUTTING_CENTER
-from lapwarp.kernels.kinematics import point_to_ptsd
-from lapwarp.tasks.dissection.tissue_dissection import TissueDissectionExpert
+from lapwarp.cli import append_json_lines, default_device, quiet_warp
+from lapwarp.tasks.dissection.tissue_dissection import TissueDissectionExpert, approach_errors
 from lapwarp.tasks.rig import cutting_center
 
 
@@ -33,21 +31,10 @@ def follow_border(border: wp.array(dtype=wp.vec3), pose: wp.array2d(dtype=wp.tra
                   rcm: wp.array2d(dtype=wp.transform), ptsd: wp.array2d(dtype=wp.vec4),
                   active: wp.array2d(dtype=wp.int32), switch_on: float, keep_on: float, lift: float,
                   error_out: wp.array2d(dtype=float)):
-    """PTSD error towards the border point and the wanted activation (``expert_errors`` with the border point as
-    the target)."""
+    """The expert's approach (``approach_errors``) aimed at the border point."""
     env = wp.tid()
-    x = cutting_center(pose[env, 0])
-    target_point = border[env]
-    s = ptsd[env, 0]
-    d = wp.length(target_point - x)
-    flat = wp.vec3(target_point[0] - x[0], target_point[1] - x[1], 0.0)
-    goal = point_to_ptsd(rcm[env, 0], target_point + wp.vec3(0.0, 0.0, wp.min(lift, wp.length(flat))), s[2])
-    error_out[env, 0] = goal[0] - s[0]
-    error_out[env, 1] = goal[1] - s[1]
-    error_out[env, 2] = 0.0
-    error_out[env, 3] = goal[3] - CAUTER_CUTTING_CENTER - s[3]
-    want = wp.where(d < switch_on or (active[env, 0] != 0 and d < keep_on), 1, 0)
-    error_out[env, 4] = float(want - active[env, 0])
+    approach_errors(env, cutting_center(pose[env, 0]), border[env], ptsd[env, 0], rcm[env, 0], active[env, 0],
+                    switch_on, keep_on, lift, error_out)
 
 
 def run(cut_removal: str, num_envs: int, seed: int, device: str, rows_to_cut: int) -> dict:
@@ -99,13 +86,11 @@ def main(argv: list[str] | None = None) -> int:
         lapwarp.check_config("TissueDissection", rows_to_cut=args.rows_to_cut)
     except ValueError as exc:
         parser.error(str(exc))
-    wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)
+    quiet_warp()
     records = [run(rule, args.num_envs, args.seed, args.device, args.rows_to_cut) for rule in args.cut_removal]
     for record in records:
         print(json.dumps(record), flush=True)
-    if args.out:
-        with open(args.out, "a") as f:
-            f.writelines(json.dumps(r) + "\n" for r in records)
+    append_json_lines(args.out, records)
     return 0
 
 

@@ -27,7 +27,7 @@ import torch
 import warp as wp
 
 import lapwarp
-from lapwarp.cli import default_device, parse_overrides, with_fixed
+from lapwarp.cli import append_json_lines, default_device, parse_overrides, with_fixed
 from lapwarp.experts import make_expert
 
 
@@ -119,9 +119,7 @@ def main(argv: list[str] | None = None) -> int:
                     args.seed, args.first_episodes, args.action_noise)
             records.append(r)
             print(json.dumps(r), flush=True)
-    if args.out:
-        with open(args.out, "a") as f:
-            f.writelines(json.dumps(r) + "\n" for r in records)
+    append_json_lines(args.out, records)
     return 0
 
 

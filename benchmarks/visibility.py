@@ -20,7 +20,7 @@ import torch
 import warp as wp
 
 import lapwarp
-from lapwarp.cli import default_device, parse_overrides, with_fixed
+from lapwarp.cli import append_json_lines, default_device, parse_overrides, quiet_warp, with_fixed
 from lapwarp.scene_render import SceneRenderer
 
 
@@ -72,14 +72,12 @@ def main(argv: list[str] | None = None) -> int:
         lapwarp.check_config(args.task, **with_fixed(overrides, "--set", seed=args.seed, invalid_actions="zero"))
     except ValueError as exc:
         parser.error(str(exc))
-    wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)
+    quiet_warp()
     records = [visibility(args.task, overrides, args.num_envs, steps, args.device, args.seed, args.size)
                for steps in args.steps]
     for record in records:
         print(json.dumps(record), flush=True)
-    if args.out:
-        with open(args.out, "a") as f:
-            f.writelines(json.dumps(r) + "\n" for r in records)
+    append_json_lines(args.out, records)
     return 0
 
 

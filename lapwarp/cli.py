@@ -170,6 +170,13 @@ def _bounded(text: str, kind: type, what: str, accept) -> Any:
     return value
 
 
+def append_json_lines(path: str | None, records: list[dict]) -> None:
+    """Append one JSON line per record to ``path`` (the benchmark scripts' ``--out``; nothing when it is None)."""
+    if path:
+        with open(path, "a") as f:
+            f.writelines(json.dumps(r) + "\n" for r in records)
+
+
 def quiet_warp() -> None:
     import warp as wp
 

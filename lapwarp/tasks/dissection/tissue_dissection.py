@@ -526,6 +526,23 @@ def tet_target(q: wp.array2d(dtype=wp.vec3), env: int, n: wp.vec4i, touch: int, 
     return y
 
 
+@wp.func
+def approach_errors(env: int, x: wp.vec3, point: wp.vec3, s: wp.vec4, rcm: wp.transform, on: int, switch_on: float,
+                    keep_on: float, lift: float, error_out: wp.array2d(dtype=float)):
+    """The expert's move of the hook's cutting centre ``x`` onto ``point`` as a PTSD error (spin left alone) and its
+    activation change: it approaches from ``lift`` above the point and descends as the horizontal distance closes,
+    switches on within ``switch_on`` and, once on, stays on within ``keep_on`` (no step lost to switching)."""
+    d = wp.length(point - x)
+    flat = wp.vec3(point[0] - x[0], point[1] - x[1], 0.0)
+    goal = point_to_ptsd(rcm, point + wp.vec3(0.0, 0.0, wp.min(lift, wp.length(flat))), s[2])
+    error_out[env, 0] = goal[0] - s[0]
+    error_out[env, 1] = goal[1] - s[1]
+    error_out[env, 2] = 0.0
+    error_out[env, 3] = goal[3] - CAUTER_CUTTING_CENTER - s[3]
+    want = wp.where(d < switch_on or (on != 0 and d < keep_on), 1, 0)
+    error_out[env, 4] = float(want - on)
+
+
 @wp.kernel
 def expert_errors(q: wp.array2d(dtype=wp.vec3), tet_active: wp.array2d(dtype=wp.int32),
                   ct_tets: wp.array(dtype=wp.vec4i), rest_y: wp.array(dtype=float), ct_tet0: int,
@@ -551,22 +568,11 @@ def expert_errors(q: wp.array2d(dtype=wp.vec3), tet_active: wp.array2d(dtype=wp.
             if wp.length(y - x) < best_d:
                 best_d = wp.length(y - x)
                 best = y
-    s = ptsd[env, 0]
     if best_d > 1.0e8:  # nothing left to cut
         for i in range(5):
             error_out[env, i] = 0.0
         return
-    # approach from above the tet and descend onto it as the horizontal distance closes
-    flat = wp.vec3(best[0] - x[0], best[1] - x[1], 0.0)
-    target = best + wp.vec3(0.0, 0.0, wp.min(lift, wp.length(flat)))
-    goal = point_to_ptsd(rcm[env, 0], target, s[2])
-    error_out[env, 0] = goal[0] - s[0]
-    error_out[env, 1] = goal[1] - s[1]
-    error_out[env, 2] = 0.0
-    error_out[env, 3] = goal[3] - CAUTER_CUTTING_CENTER - s[3]
-    # hysteresis: once on, it stays on while the hook moves to the next tet close by (no step lost to switching)
-    want = wp.where(best_d < switch_on or (active[env, 0] != 0 and best_d < keep_on), 1, 0)
-    error_out[env, 4] = float(want - active[env, 0])
+    approach_errors(env, x, best, ptsd[env, 0], rcm[env, 0], active[env, 0], switch_on, keep_on, lift, error_out)
 
 
 @wp.func
