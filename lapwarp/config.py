@@ -221,6 +221,10 @@ class EnvConfig:
         clip_actions: clip continuous actions to [-1, 1] (the action space's bounds); the fraction of
             clipped components is logged under ``/action/clipped_fraction``.
         privileged_critic: also return a ``critic`` observation group with privileged state.
+        proprioception: with image observations, also return a ``proprio`` observation group: each instrument's pan,
+            tilt, spin and depth, mapped from its state limits to [-1, 1] (the robot's own joint readings beside the
+            camera, which the paper's image observation does not include). Tasks with an instrument rig only; the
+            gymnasium adapters return the policy group only and refuse it.
         image_shape: (height, width) of image observations in pixels, each at most ``MAX_IMAGE_SIDE``.
         seed: seed of the per-env device RNG streams.
         chain_block_links: how the direct chain solve (rods' stretch, cloth edge chains) runs: 0 = one thread walks
@@ -240,6 +244,7 @@ class EnvConfig:
     invalid_actions: Literal["raise", "zero"] = "raise"
     clip_actions: bool = True
     privileged_critic: bool = False
+    proprioception: bool = False
     image_shape: tuple[Annotated[int, Range(ge=1, le=MAX_IMAGE_SIDE)], Annotated[int, Range(ge=1, le=MAX_IMAGE_SIDE)]] \
         = (64, 64)
     seed: int = 0

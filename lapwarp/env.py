@@ -26,6 +26,7 @@ it runs without host syncs and orders naturally with the policy's torch work. Ou
 
 from __future__ import annotations
 
+import math
 import os
 from abc import abstractmethod
 from typing import Any, ClassVar
@@ -339,6 +340,27 @@ class BatchedEnv(VecEnv):
             self._t["final_obs"] = wp.to_torch(self.final_obs)
         if self.cfg.privileged_critic:
             self._t["critic_stack"] = wp.to_torch(self.critic_stack)
+        if self.cfg.proprioception:
+            self._setup_proprioception()
+
+    def _setup_proprioception(self) -> None:
+        """The ``proprio`` group's source (the rig's PTSD, a zero-copy view) and its map from each instrument's state
+        limits (deg, deg, deg, m) to [-1, 1]; a component whose limits coincide reads 0."""
+        rig = getattr(self, "rig", None)
+        if not self.uses_images:
+            raise ValueError("proprioception=True adds the instruments' PTSD beside image observations; the STATE "
+                             "observation already holds it")
+        if rig is None:
+            raise ValueError(f"{type(self).__name__} has no instrument rig to read (proprioception=True)")
+        to_rad = np.array([math.pi / 180.0] * 3 + [1.0])
+        low = np.concatenate([np.asarray(spec.tpsd.state_low, np.float64) * to_rad for spec in rig.specs])
+        high = np.concatenate([np.asarray(spec.tpsd.state_high, np.float64) * to_rad for spec in rig.specs])
+        span = high - low
+        scale = np.divide(2.0, span, out=np.zeros_like(span), where=span > 0.0)
+        self._proprio_low = torch.as_tensor(low, dtype=torch.float32, device=self.device)
+        self._proprio_scale = torch.as_tensor(scale, dtype=torch.float32, device=self.device)
+        self._proprio_bias = torch.as_tensor(np.where(span > 0.0, -1.0, 0.0), dtype=torch.float32, device=self.device)
+        self._t["ptsd"] = wp.to_torch(rig.ptsd)
 
     def _allocate_image_buffers(self) -> None:
         """Camera, image frame ``(N, C, H, W)`` in [0, 1] and its stack ``(N, S*C, H, W)`` (newest last)."""
@@ -388,13 +410,17 @@ class BatchedEnv(VecEnv):
 
     def get_observations(self) -> TensorDict:
         """Current observation groups (clones): ``policy`` (STATE) or ``image`` ``(N, S*C, H, W)`` in [0, 1]
-        (RGB / RGBD / DEPTH), and ``critic`` (privileged state) with ``privileged_critic``."""
+        (RGB / RGBD / DEPTH), ``critic`` (privileged state) with ``privileged_critic`` and ``proprio`` ``(N, 4 K)`` (the
+        K instruments' PTSD in [-1, 1], the newest frame only) with ``proprioception``."""
         if self.uses_images:
             groups = {"image": self._t["image_stack"].clone()}
         else:
             groups = {"policy": self._t["obs_stack"].clone()}
         if self.cfg.privileged_critic:
             groups["critic"] = self._t["critic_stack"].clone()
+        if self.cfg.proprioception:
+            ptsd = self._t["ptsd"].reshape(self.num_envs, -1)
+            groups["proprio"] = (ptsd - self._proprio_low) * self._proprio_scale + self._proprio_bias
         return TensorDict(groups, batch_size=[self.num_envs], device=self.device)
 
     def reset(self, seed: int | None = None) -> tuple[TensorDict, dict]:

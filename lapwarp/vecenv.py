@@ -21,6 +21,10 @@ from lapwarp.registry import make
 
 
 def _spaces(env: BatchedEnv) -> tuple[gym.spaces.Space, gym.spaces.Space]:
+    if env.cfg.proprioception:
+        # a Box space holds one group; the proprio group would be dropped without a word
+        raise ValueError("proprioception=True adds a second observation group, which the gymnasium adapters (one Box "
+                         "observation) do not return; use the batched env (lapwarp.make) and its TensorDict groups")
     low, high = (0.0, 1.0) if env.uses_images else env.observation_bounds()
     obs_space = gym.spaces.Box(low=np.float32(low), high=np.float32(high), shape=env.observation_shape,
                                dtype=np.float32)

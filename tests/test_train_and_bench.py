@@ -12,6 +12,7 @@ import pytest
 import torch
 
 import lapwarp
+from lapwarp.vecenv import LapwarpVectorEnv
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "train"))
@@ -574,3 +575,41 @@ def test_visibility_reports_each_visual_object():
     assert shown["board"] == 1.0 and record["image"] == [32, 32] and record["steps_after_reset"] == 2
     assert {"right_cauter/shaft", "left_cauter/shaft"} <= set(shown)
     assert all(v * 4 == int(v * 4) and 0.0 <= v <= 1.0 for v in shown.values())
+
+
+def test_proprio_group_beside_images(tmp_path, capsys):
+    """``--proprio``: the actor (and a critic reading the actor's groups) also reads the ``proprio`` group, the
+    instruments' PTSD mapped from their state limits to [-1, 1]; a 1-iteration run trains and evaluates with it, and
+    the actor's MLP input grows by the group's 4 values per instrument."""
+    parser = ppo.build_parser()
+    *_, cfg, overrides = ppo.training_config(parser.parse_args(["--preset", "gpu", "--obs", "rgb", "--proprio"]),
+                                             parser, "cpu")
+    assert overrides["proprioception"] and cfg["obs_groups"] == {"actor": ["image", "proprio"],
+                                                                 "critic": ["image", "proprio"]}
+    *_, cfg, _ = ppo.training_config(parser.parse_args(["--preset", "gpu", "--obs", "rgb", "--critic", "state",
+                                                        "--proprio"]), parser, "cpu")
+    assert cfg["obs_groups"] == {"actor": ["image", "proprio"], "critic": ["critic"]}
+    with pytest.raises(SystemExit):
+        ppo.training_config(parser.parse_args(["--preset", "gpu", "--proprio"]), parser, "cpu")
+    assert "--proprio applies to image observations" in capsys.readouterr().err
+    assert ppo.main(["--task", "DeflectSpheres", "--device", "cpu", "--preset", "cpu", "--obs", "rgb", "--num-envs",
+                     "4", "--max-iterations", "1", "--eval-envs", "2", "--log-dir", str(tmp_path), "--proprio",
+                     "--critic", "state", "--set", "single_instrument=False"]) == 0
+    checkpoint = torch.load(sorted(tmp_path.glob("DeflectSpheres/*/model_*.pt"))[-1], weights_only=False)
+    # the MLP reads the 64x64 NatureCNN's 64 x 4 x 4 features and the two instruments' 2 x 4 PTSD values
+    assert checkpoint["actor_state_dict"]["mlp.0.weight"].shape[1] == 64 * 4 * 4 + 8
+    env = lapwarp.make("DeflectSpheres", num_envs=2, device="cpu", observation_type="RGB", proprioception=True,
+                       single_instrument=False)
+    obs, _ = env.reset()
+    ptsd = env.rig.ptsd.numpy().reshape(2, 8).astype(np.float64)
+    low = np.tile(np.radians([-90.0, -90.0, -90.0]).tolist() + [0.0], 2)
+    high = np.tile(np.radians([90.0, 90.0, 90.0]).tolist() + [0.3], 2)
+    assert [s.tpsd.state_high[3] for s in env.rig.specs] == [0.3, 0.3]  # the limits this reference assumes
+    np.testing.assert_allclose(obs["proprio"].numpy(), 2.0 * (ptsd - low) / (high - low) - 1.0, atol=1e-5)
+    for bad, message in ((dict(observation_type="STATE"), "already holds it"),
+                         (dict(task="Reach"), "no instrument rig")):
+        with pytest.raises(ValueError, match=message):
+            lapwarp.make(bad.pop("task", "DeflectSpheres"), num_envs=1, device="cpu",
+                         **{"observation_type": "RGB", **bad}, proprioception=True)
+    with pytest.raises(ValueError, match="gymnasium adapters"):
+        LapwarpVectorEnv("DeflectSpheres", num_envs=1, observation_type="RGB", proprioception=True)

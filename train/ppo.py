@@ -426,6 +426,10 @@ def build_parser() -> argparse.ArgumentParser:
                         help="the critic reads the actor's observations (same, the paper's) or the task's privileged "
                              "state (state: asymmetric actor-critic; for image runs the state, for state runs the "
                              "policy's observation plus privileged values)")
+    parser.add_argument("--proprio", action="store_true",
+                        help="image runs: the actor (and a critic that reads the actor's observations) also reads the "
+                             "instruments' PTSD in [-1, 1] (the env's proprioception group; not in the paper's image "
+                             "observation)")
     parser.add_argument("--fast-pixels", action="store_true",
                         help="image runs: uint8 rollout storage, channels-last bf16 encoders (train/fast_pixels.py)")
     parser.add_argument("--shared-encoder", action="store_true",
@@ -504,10 +508,17 @@ def training_config(args: argparse.Namespace, parser: argparse.ArgumentParser, d
         if args.critic == "state":
             env_overrides["privileged_critic"] = True
         use_images(train_cfg, privileged_critic=args.critic == "state")
+        if args.proprio:
+            env_overrides["proprioception"] = True
+            for role in ("actor", "critic"):
+                if "image" in train_cfg["obs_groups"][role]:
+                    train_cfg["obs_groups"][role].append("proprio")
         if args.fast_pixels:
             use_fast_pixels(train_cfg, space_to_depth=args.first_conv == "space-to-depth")
     elif args.fast_pixels:
         parser.error("--fast-pixels applies to image observations (--obs rgb ...)")
+    elif args.proprio:
+        parser.error("--proprio applies to image observations (the STATE observation already holds the PTSD)")
     elif args.critic == "state":
         # state actor, critic on the task's privileged layout (the policy's values first, then what the actor may
         # not see, e.g. tets left to cut): a value estimate of the sparse success the actor's observation hides
