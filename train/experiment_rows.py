@@ -207,8 +207,10 @@ def _dissection_image_rows() -> list[Row]:
         # the env steps at 18-21k env-steps/s (H100 / H200, STATE): 60 iterations, about 7-8 min
         rows.append(Row(f"pc-line-{'random' if randomize else 'fixed'}-rgb", "PrecisionCutting",
                         {"path_function": "line", "randomize_path": randomize, **image}, "rgb", 60, *paper))
+    # 300 iterations as the state row: from state the paper's learner broke through only at iteration ~210 (training
+    # success 0 -> 0.94 between iterations 200 and 225; twenty-fifth session)
     rows.append(Row("td-r2-rgb", "TissueDissection", {"rows_to_cut": 2, "show_border_point": False, **image}, "rgb",
-                    150, 0.6, "text: about 60 % (image, high variance)"))
+                    300, 0.6, "text: about 60 % (image, high variance)"))
     return rows
 
 
@@ -433,8 +435,11 @@ def _dissection_study_rows() -> list[Row]:
             dataclasses.replace(private_norm, name="td-r2-priv-norm-touch-state", config=touch),
             dataclasses.replace(private_norm, name="td-r2-priv-norm-touch-pull-state", config={**touch, **pull}),
             # from pixels (the paper's ~60 %, the bar) with the state critic that lifted every DeflectSpheres
-            # pixel row (1 / 1: 66.3 -> 88.7 %), twice the symmetric row's iterations
-            dataclasses.replace(rgb, name="td-r2-rgb-asym-i300", critic="state", iterations=300)]
+            # pixel row (1 / 1: 66.3 -> 88.7 %), the symmetric row's 300 iterations (named when it had 150)
+            dataclasses.replace(rgb, name="td-r2-rgb-asym-i300", critic="state"),
+            # the state critic normalised: from state the privileged normalised critic broke through at iteration ~85
+            # (the paper's learner at ~210)
+            _with_obs_normalization(rgb, "td-r2-rgb-asym-norm-i300", critic="state")]
 
 
 EXPERIMENTS: dict[str, Experiment] = {
