@@ -102,11 +102,14 @@ def test_every_row_config_is_valid_for_its_task():
 
             # the values the env gets (after the config's coercion of e.g. "True") are the row's
             assert {k: plain(getattr(cfg, k)) for k in row.config} == {k: plain(v) for k, v in row.config.items()}
-            # and its own training options are ppo.py's (parsed and checked as ppo.py checks them)
+            # and its command line (as the device queue runs it: fast pixels, shared encoder) is one ppo.py accepts
+            # (parsed and checked as ppo.py checks them)
             parser = ppo.build_parser()
-            args = parser.parse_args(["--task", row.task, "--preset", exp.preset,
-                                      "--max-iterations", str(row.iterations), *row.train_args])
-            ppo.training_config(args, parser, "cpu")
+            paths = {"csv": Path("seed0.csv"), "json": Path("seed0.json")}
+            command = experiments.run_command(row, 0, exp.preset, paths, None, 1, None, None, 4, Path("runs"),
+                                              fast_pixels=True, shared_encoder=True)
+            assert command[1] == str(experiments.PPO_SCRIPT)
+            ppo.training_config(parser.parse_args(command[2:]), parser, "cpu")
 
 
 def test_tiny_cpu_run_writes_progress_results_summary_and_plots(tmp_path, capsys):
