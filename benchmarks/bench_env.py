@@ -198,7 +198,7 @@ def main(argv: list[str] | None = None) -> int:
     regime = "the expert's recorded actions replayed" if args.policy == "replay" else f"{args.policy} actions"
     report = {"benchmark": "env_step", "regime": f"env step only, {regime}", "device": args.device,
               "device_name": device_name(args.device), "warp": wp.__version__, "torch": torch.__version__,
-              "results": results}
+              "config_overrides": parse_overrides(args.set), "results": results}
     if args.out:
         with open(args.out, "w") as f:
             json.dump(report, f, indent=2)

@@ -38,6 +38,7 @@ def _archive(tmp_path: Path, name: str, runs: list[tuple[str, str, int, bool]], 
     for experiment, row, seed, finished in runs:
         _run_files(base / "r" / "learning" / experiment / row, seed, finished)
     for file_name, text in extra.items():
+        (base / "r" / file_name).parent.mkdir(parents=True, exist_ok=True)
         (base / "r" / file_name).write_text(text)
     path = tmp_path / f"{name}.tgz"
     with tarfile.open(path, "w:gz") as archive:
@@ -49,7 +50,8 @@ def test_merge_copies_finished_runs_keeps_cut_off_curves_apart_and_summarises(tm
     learning, partial, session = tmp_path / "learning", tmp_path / "partial", tmp_path / "session"
     first = _archive(tmp_path, "a", [("tiny", "reach", 0, True), ("tiny", "reach", 1, False),
                                      ("tiny", "unknown-row", 0, True), ("other", "reach", 0, True)],
-                     {"queue.log": "started\n", "gpu.txt": "NVIDIA H200\n", "soak.jsonl": "{}\n"})
+                     {"queue.log": "started\n", "gpu.txt": "NVIDIA H200\n", "soak.jsonl": "{}\n",
+                      "td_touch/summary.txt": "TissueDissection_STATE_replay rc=0\n"})
     # the second lease finishes seed 1, which the first cut off
     second = _archive(tmp_path, "b", [("tiny", "reach", 1, True)], {"queue.log": "again\n"})
     assert merge_results.main([str(first), "--learning", str(learning), "--partial", str(partial), "--session",
@@ -61,7 +63,8 @@ def test_merge_copies_finished_runs_keeps_cut_off_curves_apart_and_summarises(tm
     assert sorted(p.name for p in row_dir.iterdir()) == ["seed0.csv", "seed0.json", "seed0.log"]
     assert (partial / "tiny" / "reach" / "seed1.csv").is_file()
     assert not (learning / "other").exists() and not (learning / "tiny" / "unknown-row").exists()
-    assert sorted(p.name for p in session.iterdir()) == ["gpu-1.txt", "queue-1.log", "soak-1.jsonl"]
+    assert sorted(p.name for p in session.iterdir()) == ["gpu-1.txt", "queue-1.log", "soak-1.jsonl", "td_touch-1"]
+    assert (session / "td_touch-1" / "summary.txt").read_text() == "TissueDissection_STATE_replay rc=0\n"
     summary = list(csv.DictReader((learning / "tiny" / "summary.csv").open()))
     assert [(s["row"], s["seeds"], float(s["success_mean"])) for s in summary] == [("reach", "0", 0.5)]
 

@@ -85,6 +85,11 @@ def test_bench_env_writes_json(device, tmp_path):
     report = json.loads(out.read_text())
     assert [r["num_envs"] for r in report["results"]] == [1, 1, 8, 8]
     assert all(r["env_steps_per_s"] > 0 for r in report["results"])
+    assert report["config_overrides"] == {}
+    # --set overrides are recorded with the figures they produced
+    assert bench_env.main(["--device", device, "--num-envs", "1", "--seconds", "0.05", "--out", str(out),
+                           "--set", "sphere_radius=0.02"]) == 0
+    assert json.loads(out.read_text())["config_overrides"] == {"sphere_radius": 0.02}
 
 
 def test_bench_env_applies_and_records_the_contact_settings(device, tmp_path):

@@ -11,7 +11,8 @@ Each archive (or an extracted folder holding ``r/``) is read in the order given,
   ``benchmarks/results/partial/<experiment>/<row>/`` (read by ``experiments.py --deadline`` for run times), unless
   the seed has finished results;
 - with ``--session``, the archive's ``queue.log``, ``gpu.txt``, ``jobs.txt``, ``beside.log`` and ``*.jsonl`` are
-  copied there as ``<name>-<n>.<ext>`` (``n``: the archive's place in the list, from 1);
+  copied there as ``<name>-<n>.<ext>`` (``n``: the archive's place in the list, from 1), and every other folder of
+  ``r/`` (what a command beside the queue wrote, e.g. ``benchmarks/step_targets.sh``'s output) as ``<folder>-<n>/``;
 
 then every experiment with a newly finished run gets its ``summary.csv`` (and plots, unless ``--no-plots``) rewritten.
 Runs of experiments or rows the registry does not know are reported and left out.
@@ -95,6 +96,10 @@ def merge(sources: list[Path], learning: Path, partial: Path, session: Path | No
                         target = session / f"{path.stem}-{number}{path.suffix}"
                         shutil.copy2(path, target)
                         merged.session_files.append(target)
+                for folder in sorted(p for p in root.iterdir() if p.is_dir() and p.name != "learning"):
+                    target = session / f"{folder.name}-{number}"
+                    shutil.copytree(folder, target, dirs_exist_ok=True)
+                    merged.session_files.append(target)
     # a run one archive cut off and a later one finished (a lease lost and its queue run again) counts as finished
     merged.cut_off = [run for run in merged.cut_off if run not in merged.finished]
     return merged
