@@ -166,17 +166,22 @@ def segment_triangle_distance(ta: wp.vec3, tb: wp.vec3, x0: wp.vec3, x1: wp.vec3
 
 
 @wp.func
-def segment_element_distance(ta: wp.vec3, tb: wp.vec3, x0: wp.vec3, x1: wp.vec3, x2: wp.vec3, x3: wp.vec3,
-                             is_tet: int) -> float:
-    """Distance from a tool axis to a triangle, or to a tet's nearest face (a segment lying wholly inside a tet is
-    measured to the faces too: the thin tets carved here cannot hold a tool axis, and inside a 2 mm flap tet a face
-    is within 1 mm)."""
-    d = segment_triangle_distance(ta, tb, x0, x1, x2)
-    if is_tet != 0:
-        d = wp.min(d, segment_triangle_distance(ta, tb, x0, x1, x3))
-        d = wp.min(d, segment_triangle_distance(ta, tb, x0, x2, x3))
-        d = wp.min(d, segment_triangle_distance(ta, tb, x1, x2, x3))
-    return d
+def segment_touches_element(ta: wp.vec3, tb: wp.vec3, x0: wp.vec3, x1: wp.vec3, x2: wp.vec3, x3: wp.vec3,
+                            is_tet: int, reach: float) -> int:
+    """1 if a tool axis comes within ``reach`` of a triangle, or of one of a tet's faces (a segment lying wholly inside
+    a tet is measured to the faces too: the thin tets carved here cannot hold a tool axis, and inside a 2 mm flap tet a
+    face is within 1 mm). Stops at the first face within reach: only whether one is matters."""
+    if segment_triangle_distance(ta, tb, x0, x1, x2) <= reach:
+        return 1
+    if is_tet == 0:
+        return 0
+    if segment_triangle_distance(ta, tb, x0, x1, x3) <= reach:
+        return 1
+    if segment_triangle_distance(ta, tb, x0, x2, x3) <= reach:
+        return 1
+    if segment_triangle_distance(ta, tb, x1, x2, x3) <= reach:
+        return 1
+    return 0
 
 
 @wp.func
@@ -213,7 +218,8 @@ def cut_element(env: int, e: int, el: CutElements, tools: CutTools, q: wp.array2
                 bound = wp.max(bound, wp.length(q[env, nd[i]] - c))
     hit = int(0)
     for k in range(tools.a.shape[1]):
-        d = float(0.0)
+        if hit != 0:  # one tool within reach removes the element: the others need no test
+            break
         reach = tools.radius[k] + tools.carving_distance
         ta = tools.a[env, k]
         tb = tools.b[env, k]
@@ -221,17 +227,17 @@ def cut_element(env: int, e: int, el: CutElements, tools: CutTools, q: wp.array2
             a = q[env, nd[0]]
             b = q[env, nd[1]]
             st = closest_segment_segment(a, b, ta, tb)
-            d = wp.length((a + (b - a) * st[0]) - (ta + (tb - ta) * st[1]))
+            hit = wp.where(wp.length((a + (b - a) * st[0]) - (ta + (tb - ta) * st[1])) <= reach, 1, 0)
         else:
             d = point_segment_distance(c, ta, tb)
-            if tools.touch != 0 and d > reach and d <= reach + bound:
+            if d <= reach:
+                hit = 1
+            elif tools.touch != 0 and d <= reach + bound:
                 x3 = q[env, nd[0]]
                 if nd[3] >= 0:
                     x3 = q[env, nd[3]]
-                d = segment_element_distance(ta, tb, q[env, nd[0]], q[env, nd[1]], q[env, nd[2]], x3,
-                                             wp.where(nd[3] >= 0, 1, 0))
-        if d <= reach:
-            hit = 1
+                hit = segment_touches_element(ta, tb, q[env, nd[0]], q[env, nd[1]], q[env, nd[2]], x3,
+                                              wp.where(nd[3] >= 0, 1, 0), reach)
     if hit == 0:
         return
     element_kill(env, kind, col, ms.tet_active, ms.tri_active, ms.segment_active)
