@@ -393,8 +393,9 @@ def _normalization_study_rows() -> list[Row]:
     observations (``ppo.py --obs-normalization``), which took active-vision SearchForPoint from 44.5 to 100 % in a
     CPU study (twenty-second session): ThreadInHole flexible (93.0 %, sampled 99.6 %), RopeThreading base (94.8 %;
     paper 100 %), LigatingLoop stiff (42.6 %, sampled 72.8 %); and the two Dissection tasks PPO has not learned yet
-    (TissueDissection 0 % after 119 iterations, PrecisionCutting's fixed line 2.8 % after 30). Whether it should
-    become the presets' default."""
+    (TissueDissection 0 % after 119 iterations, PrecisionCutting's fixed line 2.8 % after 30; both have since been
+    learned without it: TissueDissection once it cut by touch, 97.7 %, the fixed line at 120 iterations, 99.6 %).
+    Whether it should become the presets' default."""
     rows = {row.name: row for row in _thread_rows() + _dissection_rows()}
     return [_with_obs_normalization(rows[name], name.removesuffix("-state") + "-norm-state")
             for name in ("tih-flexible-state", "rt-base-fixed-state", "ll-stiff-closure-n05-i2-state", "td-r2-state",
