@@ -313,3 +313,29 @@ def test_touch_rule_expert_frees_the_flap_sooner():
         assert None not in done_at, f"{rule}: {done_at}"
         lengths[rule] = max(done_at)
     assert lengths["touch"] < lengths["centroid"], lengths
+
+
+def test_expert_reaches_tets_the_folded_flap_carries_out_of_the_workspace():
+    """At R = 7 the peeled flap folds back towards -y and carries CT nodes out of the hook's workspace (y >= 0; seen at
+    y = -46 mm), with the centroids of tets still tied to the board: the continuous expert then aims inside the tet,
+    where its segment from the board node crosses 2 mm into the workspace (``tet_target``), and frees the flap. Aiming
+    at the centroids, the hook stayed clamped at the workspace's edge (1 / 16 episodes by centroid, 6 / 16 by touch
+    before this rule; CPU, seed 5)."""
+    outcomes = {}
+    for y_min in (None, -1.0):  # -1 m: the rule never applies
+        env = lapwarp.make("TissueDissection", num_envs=2, device="cpu", seed=5, rows_to_cut=7)
+        obs, _ = env.reset()
+        expert = make_expert(env)
+        if y_min is not None:
+            expert.y_min = y_min
+        ended = [None, None]
+        for step in range(env.cfg.max_episode_steps):
+            obs, _, done, _ = env.step(expert(obs))
+            for i in range(2):
+                if done[i] and ended[i] is None:
+                    ended[i] = (step + 1, int(env.last_episode_success.numpy()[i]))
+            if None not in ended or (y_min is not None and step >= 400):
+                break
+        outcomes[y_min] = ended
+    assert all(e is not None and e[1] == 1 for e in outcomes[None]), outcomes
+    assert any(e is None or e[1] == 0 for e in outcomes[-1.0]), outcomes  # without it an episode stalls

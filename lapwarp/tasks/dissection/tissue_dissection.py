@@ -510,11 +510,15 @@ def place_marker(tissue: Tissue, out: wp.array2d(dtype=wp.transform)):
 
 
 @wp.func
-def tet_target(q: wp.array2d(dtype=wp.vec3), env: int, n: wp.vec4i, touch: int, high: float) -> wp.vec3:
+def tet_target(q: wp.array2d(dtype=wp.vec3), env: int, n: wp.vec4i, touch: int, high: float,
+               y_min: float) -> wp.vec3:
     """Where the expert takes the hook to cut CT tet ``n``: its centroid; with the touch rule, a tet whose centroid
     the peeled flap has lifted more than ``high`` above the board (its top nodes ride on the flap, its bottom one
     stays fixed) at its lowest node, which the hook reaches (the centroid may leave the workspace). (Aiming at the
-    tet's point nearest the hook instead cut two to three times the flap tets: CPU, seed 3, 4 envs.)"""
+    tet's point nearest the hook instead cut two to three times the flap tets: CPU, seed 3, 4 envs.) With the touch
+    rule a target below ``y_min`` (the hook's workspace ends at y = 0, and at R = 7 the flap folded back towards -y
+    carries CT nodes to y = -46 mm, taking tets' centroids with them) moves along the segment from the tet's node of
+    largest y (on the board) towards it, to ``y_min``: a point inside the tet that the hook reaches."""
     y = (q[env, n[0]] + q[env, n[1]] + q[env, n[2]] + q[env, n[3]]) * 0.25
     if touch != 0 and y[2] > high:
         low = q[env, n[0]]
@@ -522,6 +526,13 @@ def tet_target(q: wp.array2d(dtype=wp.vec3), env: int, n: wp.vec4i, touch: int, 
             if q[env, n[i]][2] < low[2]:
                 low = q[env, n[i]]
         y = low
+    if touch != 0 and y[1] < y_min:
+        inner = q[env, n[0]]
+        for i in range(1, 4):
+            if q[env, n[i]][1] > inner[1]:
+                inner = q[env, n[i]]
+        if inner[1] > y_min:
+            y = inner + (y - inner) * ((inner[1] - y_min) / (inner[1] - y[1]))
     return y
 
 
@@ -547,7 +558,7 @@ def expert_errors(q: wp.array2d(dtype=wp.vec3), tet_active: wp.array2d(dtype=wp.
                   ct_tets: wp.array(dtype=wp.vec4i), rest_y: wp.array(dtype=float), ct_tet0: int,
                   ptsd: wp.array2d(dtype=wp.vec4), pose: wp.array2d(dtype=wp.transform),
                   rcm: wp.array2d(dtype=wp.transform), active: wp.array2d(dtype=wp.int32), band: float,
-                  switch_on: float, keep_on: float, lift: float, touch: int, high: float,
+                  switch_on: float, keep_on: float, lift: float, touch: int, high: float, y_min: float,
                   error_out: wp.array2d(dtype=float)):
     """PTSD error of the hook's cutting centre towards the next CT tet and the activation the expert wants (see
     ``TissueDissectionExpert``)."""
@@ -563,7 +574,7 @@ def expert_errors(q: wp.array2d(dtype=wp.vec3), tet_active: wp.array2d(dtype=wp.
     best_d = float(1.0e9)
     for t in range(ct_tets.shape[0]):
         if tet_active[env, ct_tet0 + t] != 0 and rest_y[t] >= top - band:
-            y = tet_target(q, env, ct_tets[t], touch, high)
+            y = tet_target(q, env, ct_tets[t], touch, high, y_min)
             if wp.length(y - x) < best_d:
                 best_d = wp.length(y - x)
                 best = y
@@ -611,8 +622,8 @@ def expert_discrete(q: wp.array2d(dtype=wp.vec3), tet_active: wp.array2d(dtype=w
                     ct_tet0: int, ptsd: wp.array2d(dtype=wp.vec4), pose: wp.array2d(dtype=wp.transform),
                     rcm: wp.array2d(dtype=wp.transform), active: wp.array2d(dtype=wp.int32), switch_on: float,
                     keep_on: float, reach: float, margin: float, sweep: float, lifted: float, step: wp.vec4,
-                    b: RigBounds, noop: int, touch: int, high: float, target_out: wp.array(dtype=wp.vec3),
-                    action_out: wp.array(dtype=wp.int32)):
+                    b: RigBounds, noop: int, touch: int, high: float, y_min: float,
+                    target_out: wp.array(dtype=wp.vec3), action_out: wp.array(dtype=wp.int32)):
     """The discrete action of ``TissueDissectionExpert`` (see there) and the CT tet centroid it goes for."""
     env = wp.tid()
     tf = pose[env, 0]
@@ -634,7 +645,7 @@ def expert_discrete(q: wp.array2d(dtype=wp.vec3), tet_active: wp.array2d(dtype=w
     best_cost = float(1.0e9)
     for t in range(ct_tets.shape[0]):
         if tet_active[env, ct_tet0 + t] != 0:
-            y = tet_target(q, env, ct_tets[t], touch, high)
+            y = tet_target(q, env, ct_tets[t], touch, high, y_min)
             cost = steps_to(rcm[env, 0], s, y, step) + sweep * 1.0e3 * wp.abs(rest_x[t] - x_end) - lifted * ct_top[t]
             if cost < best_cost:
                 best_cost = cost
@@ -905,10 +916,13 @@ class TissueDissectionExpert(Expert):
 
     def __init__(self, env: TissueDissectionEnv, band: float = 0.012, switch_on: float = 0.003,
                  keep_on: float = 0.008, lift: float = 0.004, discrete_keep_on: float = 1.0, reach: float = 9.0e-4,
-                 margin: float = 1.0e-4, sweep: float = 0.5, lifted: float = 5.0, high: float = 0.01):
+                 margin: float = 1.0e-4, sweep: float = 0.5, lifted: float = 5.0, high: float = 0.01,
+                 y_margin: float = 0.002):
         super().__init__(env)
         # with the touch cut rule a CT tet the flap has stretched upwards is cut at its lowest node (``tet_target``)
         self.touch, self.high = int(env.cfg.cut_removal == "touch"), float(high)
+        # and a target below the hook's workspace is moved into it along the tet (``tet_target``)
+        self.y_min = float(env.cfg.workspace[0][1] + y_margin)
         self.band, self.switch_on, self.keep_on, self.lift = float(band), float(switch_on), float(keep_on), float(lift)
         n, dev = env.num_envs, env.wp_device
         self.error = wp.zeros((n, 5), dtype=float, device=dev)
@@ -939,14 +953,14 @@ class TissueDissectionExpert(Expert):
                                          self.ct_tet0, rig.ptsd, rig.pose, rig.rcm, rig.active, self.switch_on,
                                          self.discrete_keep_on, self.reach, self.margin, self.sweep, self.lifted,
                                          self.discrete_step, env.params.bounds, 2 * env.action_dim, self.touch,
-                                         self.high],
+                                         self.high, self.y_min],
                                  outputs=[self.target, self.action], device=env.wp_device)
             return wp.to_torch(self.action).long()
         with env._torch_stream_scope():
             launching.launch(expert_errors, dim=env.num_envs,
                              inputs=[s.particle_q, s.tet_active, self.ct_tets, self.rest_y, self.ct_tet0, rig.ptsd,
                                      rig.pose, rig.rcm, rig.active, self.band, self.switch_on, self.keep_on, self.lift,
-                                     self.touch, self.high],
+                                     self.touch, self.high, self.y_min],
                              outputs=[self.error], device=env.wp_device)
         ideal = wp.to_torch(self.error) / self.step_size
         if env.action_dim > 5:  # leave the retraction force alone
