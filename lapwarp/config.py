@@ -255,6 +255,9 @@ class EnvConfig:
         with checks that relate fields to each other."""
         check_fields(self)
         _check_choice("observation_type", self.observation_type, supported_observations)
+        if self.proprioception and self.observation_type == "STATE":  # before anything is built
+            raise ValueError("proprioception=True adds the instruments' PTSD beside image observations; the STATE "
+                             "observation already holds it")
         unknown = sorted(set(self.reward_weights) - set(reward_features))
         if unknown:
             raise ValueError(f"reward_weights names unknown feature(s) {unknown}; valid features: "

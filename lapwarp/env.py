@@ -346,10 +346,7 @@ class BatchedEnv(VecEnv):
     def _setup_proprioception(self) -> None:
         """The ``proprio`` group's source (the rig's PTSD, a zero-copy view) and its map from each instrument's state
         limits (deg, deg, deg, m) to [-1, 1]; a component whose limits coincide reads 0."""
-        rig = getattr(self, "rig", None)
-        if not self.uses_images:
-            raise ValueError("proprioception=True adds the instruments' PTSD beside image observations; the STATE "
-                             "observation already holds it")
+        rig = getattr(self, "rig", None)  # (a STATE observation with it was refused by the config's validate)
         if rig is None:
             raise ValueError(f"{type(self).__name__} has no instrument rig to read (proprioception=True)")
         to_rad = np.array([math.pi / 180.0] * 3 + [1.0])
