@@ -13,6 +13,8 @@ Each archive (or an extracted folder holding ``r/``) is read in the order given,
 - with ``--session``, the archive's ``queue.log``, ``gpu.txt``, ``jobs.txt``, ``beside.log`` and ``*.jsonl`` are
   copied there as ``<name>-<n>.<ext>`` (``n``: the archive's place in the list, from 1), and every other folder of
   ``r/`` (what a command beside the queue wrote, e.g. ``benchmarks/step_targets.sh``'s output) as ``<folder>-<n>/``;
+  a lease's collections each archive everything so far, so a copied file that the same name's copy from a later
+  archive begins with (its content at an earlier collection) is removed (files only, not folders);
 
 then every experiment with a newly finished run gets its ``summary.csv`` (and plots, unless ``--no-plots``) rewritten.
 Runs of experiments or rows the registry does not know are reported and left out.
@@ -102,7 +104,24 @@ def merge(sources: list[Path], learning: Path, partial: Path, session: Path | No
                     merged.session_files.append(target)
     # a run one archive cut off and a later one finished (a lease lost and its queue run again) counts as finished
     merged.cut_off = [run for run in merged.cut_off if run not in merged.finished]
+    merged.session_files = _drop_earlier_prefixes(merged.session_files)
     return merged
+
+
+def _drop_earlier_prefixes(paths: list[Path]) -> list[Path]:
+    """Remove each copied file (``<stem>-<n><suffix>``) whose content begins the copy of the same name from a later
+    archive (the later collection of one lease holds it all); returns the paths kept."""
+    kept = list(paths)
+    files = [path for path in paths if path.is_file()]
+    for earlier in files:
+        stem, _, number = earlier.stem.rpartition("-")
+        later = [path for path in files if path.suffix == earlier.suffix and path.stem.rpartition("-")[0] == stem
+                 and int(path.stem.rpartition("-")[2]) > int(number) and path.exists()]
+        content = earlier.read_bytes()
+        if any(path.read_bytes().startswith(content) for path in later):
+            earlier.unlink()
+            kept.remove(earlier)
+    return kept
 
 
 def main(argv: list[str] | None = None, registry: dict[str, Experiment] | None = None) -> int:
