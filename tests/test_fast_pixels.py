@@ -67,6 +67,33 @@ def test_fast_model_matches_rsl_rl_cnn_model(rgb_env):
             assert torch.allclose(fast_cuda(uint8_obs.cuda()).cpu(), expected, atol=0.05)
 
 
+def test_fast_model_matches_rsl_rl_cnn_model_with_proprioception(device):
+    """With the ``proprio`` group beside the image (``ppo.py --proprio``) the fast model still computes rsl-rl's
+    ``CNNModel``: the 1-D group joins the encoder's features before the MLP, and uint8 storage leaves it as it is."""
+    from rsl_rl.models import CNNModel
+
+    import lapwarp
+
+    env = lapwarp.make("DeflectSpheres", num_envs=3, device=device, seed=2, observation_type="RGB",
+                       image_shape=(48, 48), proprioception=True, single_instrument=False)
+    obs = env.get_observations()
+    cfg = ppo.use_images(ppo.preset_config("gpu", 3, 1)[0])["actor"]
+    kwargs = {k: v for k, v in cfg.items() if k != "class_name"}
+    groups = {"actor": ["image", "proprio"], "critic": ["image", "proprio"]}
+    torch.manual_seed(0)
+    reference = CNNModel(obs, groups, "actor", 5, **kwargs)
+    fast = fast_pixels.FastCNNModel(obs, groups, "actor", 5, autocast_bf16=False, **kwargs)
+    fast.load_state_dict(reference.state_dict())
+    uint8_obs = fast_pixels.Uint8Images(env).get_observations()
+    assert torch.equal(uint8_obs["proprio"], obs["proprio"])
+    with torch.no_grad():
+        expected = reference(obs.cpu())
+        assert torch.allclose(fast(uint8_obs.cpu()), expected, atol=1e-5)
+        moved = obs.cpu().clone()
+        moved["proprio"] = moved["proprio"] + 0.5  # the group reaches the output
+        assert not torch.allclose(reference(moved), expected, atol=1e-5)
+
+
 @pytest.mark.parametrize("size, kernel, stride", [((64, 64), 8, 4), ((50, 47), 8, 4), ((8, 8), 8, 4),
                                                   ((13, 16), 4, 2), ((12, 9), (6, 3), (3, 3))])
 def test_space_to_depth_conv_is_the_strided_convolution(size, kernel, stride):
