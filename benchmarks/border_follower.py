@@ -13,7 +13,6 @@ the hook must come within 1 mm of.)
 from __future__ import annotations
 
 import argparse
-import json
 import time
 
 import torch
@@ -21,7 +20,7 @@ import warp as wp
 
 import lapwarp
 from lapwarp import launching
-from lapwarp.cli import append_json_lines, default_device, quiet_warp
+from lapwarp.cli import default_device, emit_json_lines, quiet_warp
 from lapwarp.tasks.dissection.tissue_dissection import TissueDissectionExpert, approach_errors
 from lapwarp.tasks.rig import cutting_center
 
@@ -88,9 +87,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(str(exc))
     quiet_warp()
     records = [run(rule, args.num_envs, args.seed, args.device, args.rows_to_cut) for rule in args.cut_removal]
-    for record in records:
-        print(json.dumps(record), flush=True)
-    append_json_lines(args.out, records)
+    emit_json_lines(args.out, records)
     return 0
 
 

@@ -41,8 +41,6 @@ def run(task: str, overrides: dict, action_type: str, num_envs: int, episodes: i
     finished = succeeded = 0
     return_sum = length_sum = 0.0
     counted = torch.zeros(num_envs, dtype=torch.bool, device=env.device)
-    running_return = torch.zeros(num_envs, device=env.device)
-    running_length = torch.zeros(num_envs, device=env.device)
     start = time.perf_counter()
     step = 0
     for step in range(max_steps):  # noqa: B007 (reported below)
@@ -50,9 +48,7 @@ def run(task: str, overrides: dict, action_type: str, num_envs: int, episodes: i
         if action_noise > 0.0:
             actions = (actions + action_noise * torch.randn(actions.shape, generator=noise, device=env.device)).clamp(
                 -1.0, 1.0)
-        obs, reward, done, _ = env.step(actions)
-        running_return += reward
-        running_length += 1.0
+        obs, _, done, _ = env.step(actions)
         mask = done.bool()
         if first_episodes:
             mask = mask & ~counted
@@ -60,10 +56,9 @@ def run(task: str, overrides: dict, action_type: str, num_envs: int, episodes: i
         if mask.any():
             finished += int(mask.sum())
             succeeded += int(wp.to_torch(env.last_episode_success)[mask].sum())
-            return_sum += float(running_return[mask].sum())
-            length_sum += float(running_length[mask].sum())
-        running_return[done.bool()] = 0.0
-        running_length[done.bool()] = 0.0
+            # the env keeps each finished episode's return and length
+            return_sum += float(wp.to_torch(env.last_episode_return)[mask].sum())
+            length_sum += float(wp.to_torch(env.last_episode_length)[mask].sum())
         if finished >= episodes:
             break
     env.close()

@@ -14,13 +14,12 @@ JSON line: per object (by name), the fraction of envs showing it, rendered at th
 from __future__ import annotations
 
 import argparse
-import json
 
 import torch
 import warp as wp
 
 import lapwarp
-from lapwarp.cli import append_json_lines, default_device, parse_overrides, quiet_warp, with_fixed
+from lapwarp.cli import default_device, emit_json_lines, parse_overrides, quiet_warp, with_fixed
 from lapwarp.scene_render import SceneRenderer
 
 
@@ -75,9 +74,7 @@ def main(argv: list[str] | None = None) -> int:
     quiet_warp()
     records = [visibility(args.task, overrides, args.num_envs, steps, args.device, args.seed, args.size)
                for steps in args.steps]
-    for record in records:
-        print(json.dumps(record), flush=True)
-    append_json_lines(args.out, records)
+    emit_json_lines(args.out, records)
     return 0
 
 

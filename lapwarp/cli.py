@@ -177,6 +177,13 @@ def append_json_lines(path: str | None, records: list[dict]) -> None:
             f.writelines(json.dumps(r) + "\n" for r in records)
 
 
+def emit_json_lines(path: str | None, records: list[dict]) -> None:
+    """Print one JSON line per record and append them to ``path`` (``append_json_lines``)."""
+    for record in records:
+        print(json.dumps(record), flush=True)
+    append_json_lines(path, records)
+
+
 def quiet_warp() -> None:
     import warp as wp
 

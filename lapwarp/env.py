@@ -345,7 +345,7 @@ class BatchedEnv(VecEnv):
 
     def _setup_proprioception(self) -> None:
         """The ``proprio`` group's source (the rig's PTSD, a zero-copy view) and its map from each instrument's state
-        limits (deg, deg, deg, m) to [-1, 1]; a component whose limits coincide reads 0."""
+        limits (deg, deg, deg, m) to [-1, 1] about their midpoint; a component whose limits coincide reads 0."""
         rig = getattr(self, "rig", None)  # (a STATE observation with it was refused by the config's validate)
         if rig is None:
             raise ValueError(f"{type(self).__name__} has no instrument rig to read (proprioception=True)")
@@ -353,10 +353,9 @@ class BatchedEnv(VecEnv):
         low = np.concatenate([np.asarray(spec.tpsd.state_low, np.float64) * to_rad for spec in rig.specs])
         high = np.concatenate([np.asarray(spec.tpsd.state_high, np.float64) * to_rad for spec in rig.specs])
         span = high - low
-        scale = np.divide(2.0, span, out=np.zeros_like(span), where=span > 0.0)
-        self._proprio_low = torch.as_tensor(low, dtype=torch.float32, device=self.device)
-        self._proprio_scale = torch.as_tensor(scale, dtype=torch.float32, device=self.device)
-        self._proprio_bias = torch.as_tensor(np.where(span > 0.0, -1.0, 0.0), dtype=torch.float32, device=self.device)
+        self._proprio_mid = torch.as_tensor(0.5 * (low + high), dtype=torch.float32, device=self.device)
+        self._proprio_scale = torch.as_tensor(np.divide(2.0, span, out=np.zeros_like(span), where=span > 0.0),
+                                              dtype=torch.float32, device=self.device)
         self._t["ptsd"] = wp.to_torch(rig.ptsd)
 
     def _allocate_image_buffers(self) -> None:
@@ -417,7 +416,7 @@ class BatchedEnv(VecEnv):
             groups["critic"] = self._t["critic_stack"].clone()
         if self.cfg.proprioception:
             ptsd = self._t["ptsd"].reshape(self.num_envs, -1)
-            groups["proprio"] = (ptsd - self._proprio_low) * self._proprio_scale + self._proprio_bias
+            groups["proprio"] = (ptsd - self._proprio_mid) * self._proprio_scale
         return TensorDict(groups, batch_size=[self.num_envs], device=self.device)
 
     def reset(self, seed: int | None = None) -> tuple[TensorDict, dict]:

@@ -510,6 +510,16 @@ def place_marker(tissue: Tissue, out: wp.array2d(dtype=wp.transform)):
 
 
 @wp.func
+def tet_extreme_node(q: wp.array2d(dtype=wp.vec3), env: int, n: wp.vec4i, axis: int, sign: float) -> wp.vec3:
+    """The node of tet ``n`` with the largest ``sign`` x coordinate ``axis`` (the first of equals)."""
+    best = q[env, n[0]]
+    for i in range(1, 4):
+        if sign * q[env, n[i]][axis] > sign * best[axis]:
+            best = q[env, n[i]]
+    return best
+
+
+@wp.func
 def tet_target(q: wp.array2d(dtype=wp.vec3), env: int, n: wp.vec4i, touch: int, high: float,
                y_min: float) -> wp.vec3:
     """Where the expert takes the hook to cut CT tet ``n``: its centroid; with the touch rule, a tet whose centroid
@@ -521,16 +531,9 @@ def tet_target(q: wp.array2d(dtype=wp.vec3), env: int, n: wp.vec4i, touch: int, 
     largest y (on the board) towards it, to ``y_min``: a point inside the tet that the hook reaches."""
     y = (q[env, n[0]] + q[env, n[1]] + q[env, n[2]] + q[env, n[3]]) * 0.25
     if touch != 0 and y[2] > high:
-        low = q[env, n[0]]
-        for i in range(1, 4):
-            if q[env, n[i]][2] < low[2]:
-                low = q[env, n[i]]
-        y = low
+        y = tet_extreme_node(q, env, n, 2, -1.0)  # the lowest
     if touch != 0 and y[1] < y_min:
-        inner = q[env, n[0]]
-        for i in range(1, 4):
-            if q[env, n[i]][1] > inner[1]:
-                inner = q[env, n[i]]
+        inner = tet_extreme_node(q, env, n, 1, 1.0)  # the one of largest y
         if inner[1] > y_min:
             y = inner + (y - inner) * ((inner[1] - y_min) / (inner[1] - y[1]))
     return y
