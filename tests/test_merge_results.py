@@ -72,12 +72,16 @@ def test_merge_copies_finished_runs_keeps_cut_off_curves_apart_and_summarises(tm
                         str(session), "--no-plots"], REGISTRY)
     # one lease's collections: the later archive's log begins with the earlier one's, which is dropped
     lease = tmp_path / "lease"
-    grown = [_archive(tmp_path, f"c{k}", [], {"queue.log": "started\n" + "finished\n" * k, "gpu.txt": "H200\n"})
-             for k in (1, 2)]
+    grown = [_archive(tmp_path, f"c{k}", [], {
+        "queue.log": "started\n" + "finished\n" * k, "gpu.txt": "H200\n",
+        "td_touch/summary.txt": "TissueDissection_STATE_replay rc=0\n" + "TissueDissection_RGB_replay rc=0\n" * k,
+        **({"td_touch/RGB.json": "{}"} if k == 2 else {}), "other/a.txt": "xy"[k - 1]}) for k in (1, 2)]
     merge_results.merge([first, *grown], tmp_path / "l3", tmp_path / "p3", lease, REGISTRY)
-    # queue-1 ("started") begins queue-2, which begins queue-3; gpu-2 equals gpu-3; gpu-1 differs from both
-    assert sorted(p.name for p in lease.iterdir()) == ["gpu-1.txt", "gpu-3.txt", "queue-3.log", "soak-1.jsonl",
-                                                       "td_touch-1"]
+    # queue-1 ("started") begins queue-2, which begins queue-3; gpu-2 equals gpu-3; gpu-1 differs from both;
+    # td_touch-3 holds every file of td_touch-1 and -2 as they grew; other-2's file is not how other-3's began
+    assert sorted(p.name for p in lease.iterdir()) == ["gpu-1.txt", "gpu-3.txt", "other-2", "other-3", "queue-3.log",
+                                                       "soak-1.jsonl", "td_touch-3"]
+    assert sorted(p.name for p in (lease / "td_touch-3").iterdir()) == ["RGB.json", "summary.txt"]
     assert (lease / "queue-3.log").read_text() == "started\nfinished\nfinished\n"
     assert not (partial / "tiny" / "reach" / "seed1.csv").exists()  # superseded by the finished run
     both = merge_results.merge([first, second], tmp_path / "l2", tmp_path / "p2", None, REGISTRY)

@@ -14,7 +14,8 @@ Each archive (or an extracted folder holding ``r/``) is read in the order given,
   copied there as ``<name>-<n>.<ext>`` (``n``: the archive's place in the list, from 1), and every other folder of
   ``r/`` (what a command beside the queue wrote, e.g. ``benchmarks/step_targets.sh``'s output) as ``<folder>-<n>/``;
   a lease's collections each archive everything so far, so a copied file that the same name's copy from a later
-  archive begins with (its content at an earlier collection) is removed (files only, not folders);
+  archive begins with (its content at an earlier collection) is removed, and so is a copied folder whose every file
+  the later folder's copy begins with;
 
 then every experiment with a newly finished run gets its ``summary.csv`` (and plots, unless ``--no-plots``) rewritten.
 Runs of experiments or rows the registry does not know are reported and left out.
@@ -108,18 +109,30 @@ def merge(sources: list[Path], learning: Path, partial: Path, session: Path | No
     return merged
 
 
+def _begins(later: Path, earlier: Path) -> bool:
+    """Whether ``later`` holds ``earlier`` as it grew: a file whose content begins with the earlier file's, or a folder
+    holding each of the earlier folder's files (by relative path) in that sense."""
+    if earlier.is_file():
+        return later.is_file() and later.read_bytes().startswith(earlier.read_bytes())
+    return later.is_dir() and all(_begins(later / path.relative_to(earlier), path)
+                                  for path in earlier.rglob("*") if path.is_file())
+
+
 def _drop_earlier_prefixes(paths: list[Path]) -> list[Path]:
-    """Remove each copied file (``<stem>-<n><suffix>``) whose content begins the copy of the same name from a later
-    archive (the later collection of one lease holds it all); returns the paths kept."""
+    """Remove each copy (``<stem>-<n><suffix>``, a file or a folder) that the copy of the same name from a later
+    archive begins with (the later collection of one lease holds it all); returns the paths kept."""
+    def name_and_number(path: Path) -> tuple[str, int]:
+        stem, suffix = (path.name, "") if path.is_dir() else (path.stem, path.suffix)
+        name, _, number = stem.rpartition("-")
+        return name + suffix, int(number)
+
     kept = list(paths)
-    files = [path for path in paths if path.is_file()]
-    for earlier in files:
-        stem, _, number = earlier.stem.rpartition("-")
-        later = [path for path in files if path.suffix == earlier.suffix and path.stem.rpartition("-")[0] == stem
-                 and int(path.stem.rpartition("-")[2]) > int(number) and path.exists()]
-        content = earlier.read_bytes()
-        if any(path.read_bytes().startswith(content) for path in later):
-            earlier.unlink()
+    for earlier in paths:
+        name, number = name_and_number(earlier)
+        later = [path for path in paths if path.exists() and path.is_dir() == earlier.is_dir()
+                 and name_and_number(path)[0] == name and name_and_number(path)[1] > number]
+        if any(_begins(path, earlier) for path in later):
+            shutil.rmtree(earlier) if earlier.is_dir() else earlier.unlink()
             kept.remove(earlier)
     return kept
 
