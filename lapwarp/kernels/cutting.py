@@ -166,11 +166,49 @@ def segment_triangle_distance(ta: wp.vec3, tb: wp.vec3, x0: wp.vec3, x1: wp.vec3
 
 
 @wp.func
+def segment_meets_box(ta: wp.vec3, tb: wp.vec3, lo: wp.vec3, hi: wp.vec3) -> int:
+    """1 if segment ``ta tb`` meets the axis-aligned box ``[lo, hi]`` (slab clipping of its parameter interval)."""
+    d = tb - ta
+    t0 = float(0.0)
+    t1 = float(1.0)
+    for i in range(3):
+        if wp.abs(d[i]) < 1.0e-12:
+            if ta[i] < lo[i] or ta[i] > hi[i]:
+                return 0
+        else:
+            inv = 1.0 / d[i]
+            u = (lo[i] - ta[i]) * inv
+            w = (hi[i] - ta[i]) * inv
+            t0 = wp.max(t0, wp.min(u, w))
+            t1 = wp.min(t1, wp.max(u, w))
+            if t0 > t1:
+                return 0
+    return 1
+
+
+# the box test's margin over the reach (m): it may only let more elements through to the exact tests, never fewer
+BOX_MARGIN = wp.constant(1.0e-6)
+
+
+@wp.func
 def segment_touches_element(ta: wp.vec3, tb: wp.vec3, x0: wp.vec3, x1: wp.vec3, x2: wp.vec3, x3: wp.vec3,
                             is_tet: int, reach: float) -> int:
     """1 if a tool axis comes within ``reach`` of a triangle, or of one of a tet's faces (a segment lying wholly inside
     a tet is measured to the faces too: the thin tets carved here cannot hold a tool axis, and inside a 2 mm flap tet a
-    face is within 1 mm). Stops at the first face within reach: only whether one is matters."""
+    face is within 1 mm). For a triangle pass ``x3 = x0``.
+
+    The exact test (segment against each face: ends, edges, piercing) is the costly part, so two cheap ones go first:
+    a segment that misses the element's bounding box grown by the reach cannot be within reach of it (the box holds the
+    element, the grown box every point within reach; most candidates near a tool end here), and one that comes within
+    reach of a vertex is within reach of that vertex's faces. Stops at the first face within reach."""
+    grow = wp.vec3(reach + BOX_MARGIN)
+    lo = wp.min(wp.min(x0, x1), wp.min(x2, x3)) - grow
+    hi = wp.max(wp.max(x0, x1), wp.max(x2, x3)) + grow
+    if segment_meets_box(ta, tb, lo, hi) == 0:
+        return 0
+    if point_segment_distance(x0, ta, tb) <= reach or point_segment_distance(x1, ta, tb) <= reach \
+            or point_segment_distance(x2, ta, tb) <= reach or point_segment_distance(x3, ta, tb) <= reach:
+        return 1
     if segment_triangle_distance(ta, tb, x0, x1, x2) <= reach:
         return 1
     if is_tet == 0:
