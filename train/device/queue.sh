@@ -5,7 +5,7 @@
 #
 # Run from the checkout's copy on the machine. JOBS_FILE holds `EXPERIMENT ROW SEED [SEED ...]` lines
 # (train/experiments.py --queue). The checkout is copied to /tmp/queue_code first, so a later call's copy of the
-# working tree cannot change the code under the running jobs. COMMIT (the machine's copy has no .git: pass
+# working tree cannot change the code under the running jobs. COMMIT (the copy leaves out .git, whose HEAD is stale there: pass
 # `$(git rev-parse --short HEAD)` from here, committed tree) is recorded in every result. Python packages are read
 # from /tmp/site (wheels installed with `pip install --no-index --no-deps --target /tmp/site`, see
 # ../shared/tools/device-wheels.sh). DEADLINE (seconds; the lease's time left minus the last collection): runs not
@@ -20,7 +20,10 @@ jobs_file=$1
 num_gpus=$2
 code=$(cd "$(dirname "$0")/../.." && pwd)
 rm -rf /tmp/queue_code && mkdir -p /tmp/queue_code
-(cd "$code" && tar --exclude=./.device --exclude=./runs --exclude=__pycache__ -cf - .) | tar xf - -C /tmp/queue_code
+# no .git: the machine's copy of it names a stale HEAD (the session's first commit, seen as b101f32 for code at
+# f67e92a in the twenty-sixth session), so the runs record COMMIT instead (experiments.git_commit's fallback)
+(cd "$code" && tar --exclude=./.git --exclude=./.device --exclude=./runs --exclude=__pycache__ -cf - .) \
+  | tar xf - -C /tmp/queue_code
 export PYTHONUNBUFFERED=1 PYTHONPATH=/tmp/site:/tmp/queue_code
 export LAPWARP_COMMIT=${3:-}
 deadline=${4:+--deadline $4}
