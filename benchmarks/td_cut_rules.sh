@@ -3,8 +3,9 @@
 # met by centroid; touch, sofa_env's rule, has been the default since the twenty-fifth session):
 #   bash benchmarks/td_cut_rules.sh OUT_DIR
 # Per rule (touch, centroid): bench_env.py --policy replay (the rule's own expert actions recorded, then replayed:
-# env.step alone), STATE and 64x64 RGB, 4,096 envs, and profile_step.py (kernel times without the CUDA graph, after
-# 60 expert steps). DEVICE (default cuda:0), NUM_ENVS (4096), SECONDS_PER_POINT (3) and PYTHON (python3) override.
+# env.step alone), STATE and 64x64 RGB, 4,096 envs; profile_step.py (kernel times without the CUDA graph, after
+# 60 expert steps); bench_reset.py (a reset of every env after 40 expert steps, with cuts, against one after 40 idle
+# steps). DEVICE (default cuda:0), NUM_ENVS (4096), SECONDS_PER_POINT (3) and PYTHON (python3) override.
 set -u
 out=${1:?usage: td_cut_rules.sh OUT_DIR}
 mkdir -p "$out"
@@ -22,4 +23,7 @@ for rule in touch centroid; do
     --warmup 60 --steps 20 --timing all --set "cut_removal=$rule" --out "$out/profile_$rule.json" \
     > "$out/profile_$rule.txt" 2>&1
   echo "profile_$rule rc=$?" | tee -a "$out/summary.txt"
+  "$py" "$here/bench_reset.py" --tasks TissueDissection --device "${DEVICE:-cuda:0}" --num-envs "${NUM_ENVS:-4096}" \
+    --set "cut_removal=$rule" --out "$out/reset_$rule.json" > "$out/reset_$rule.txt" 2>&1
+  echo "reset_$rule rc=$? $(tail -1 "$out/reset_$rule.txt")" | tee -a "$out/summary.txt"
 done

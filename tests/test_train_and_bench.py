@@ -20,6 +20,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 import bench_env  # noqa: E402
 import bench_fused  # noqa: E402
+import bench_reset  # noqa: E402
 import border_follower  # noqa: E402
 import expert_success  # noqa: E402
 import ppo  # noqa: E402
@@ -90,6 +91,19 @@ def test_bench_env_writes_json(device, tmp_path):
     assert bench_env.main(["--device", device, "--num-envs", "1", "--seconds", "0.05", "--out", str(out),
                            "--set", "sphere_radius=0.02"]) == 0
     assert json.loads(out.read_text())["config_overrides"] == {"sphere_radius": 0.02}
+
+
+def test_bench_reset_times_cut_and_uncut_resets_after_as_many_steps(device, tmp_path):
+    """Both resets follow the same number of steps (idle before the uncut one, the expert before the cut one), and
+    the JSON says how many elements each found removed: none after the idle steps, some after the expert's."""
+    out = tmp_path / "reset.json"
+    assert bench_reset.main(["--tasks", "TissueDissection", "--device", device, "--num-envs", "2", "--repeats", "1",
+                             "--expert-steps", "30", "--out", str(out)]) == 0
+    result = json.loads(out.read_text())["results"][0]
+    assert result["steps_before_each_reset"] == 30
+    assert result["removed_elements_per_env_at_uncut_reset"] == 0.0
+    assert result["removed_elements_per_env_at_cut_reset"] > 0.0
+    assert result["uncut_reset_ms"] > 0.0 and result["cut_reset_ms"] > 0.0
 
 
 def test_bench_env_applies_and_records_the_contact_settings(device, tmp_path):
