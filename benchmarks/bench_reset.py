@@ -92,7 +92,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--device", default=default_device())
     parser.add_argument("--num-envs", type=int, default=4096)
     parser.add_argument("--repeats", type=int, default=10)
-    parser.add_argument("--expert-steps", type=int, default=40, help="steps (idle or the expert's) before each timed reset")
+    parser.add_argument("--expert-steps", type=int, default=40,
+                        help="steps (idle or the expert's) before each timed reset")
     parser.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
                         help="config overrides (JSON values); a task that ends at its first cut needs more cuts to "
                              "leave cut envs standing, e.g. RopeCutting num_ropes_to_cut=3")
