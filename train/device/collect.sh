@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
-# Wait up to SECONDS (or until the queue of train/device/queue.sh is done), then pack what has finished into
-# $OUT/r.tgz (checkpoints left out: one returned file is limited to 16 MiB). Call it back to back: a lease is given
-# back after ~30 s idle. Issue the queue call and every collect call of a lease together (one batch of calls, which
+# Wait up to SECONDS (or until the queue of train/device/queue.sh and its BESIDE command are done), then pack what
+# has finished into $OUT/r.tgz (checkpoints left out: one returned file is limited to 16 MiB). Call it back to back:
+# a lease is given back after ~30 s idle. Issue the queue call and every collect call of a lease together (one batch of calls, which
 # run one after another with no gap): in the twenty-fourth session a collect call sent a moment after the previous
 # one had returned found a fresh machine, and the queue's runs in flight were lost (it then waited its full time for
 # nothing: now it stops at once when no queue is running here).
@@ -13,9 +13,17 @@ if [ ! -f /tmp/r/queue.log ]; then
   echo "no queue on this machine: the lease was given back and its runs are lost; install and run queue.sh again"
   exit 3
 fi
+all_done() {
+  # the queue and, where queue.sh started one, the command beside it (e.g. a second GPU's queue) have ended
+  grep -q ALLDONE /tmp/r/done.txt 2>/dev/null \
+    && { [ ! -f /tmp/r/beside.log ] || grep -q "BESIDE exit" /tmp/r/beside.log; }
+}
 end=$(( $(date +%s) + $1 ))
-while [ "$(date +%s)" -lt "$end" ] && ! grep -q ALLDONE /tmp/r/done.txt 2>/dev/null; do sleep 10; done
+while [ "$(date +%s)" -lt "$end" ] && ! all_done; do sleep 10; done
 grep -E "started|finished|FAILED" /tmp/r/queue.log | tail -40
-[ -f /tmp/r/beside.log ] && tail -5 /tmp/r/beside.log
+if [ -f /tmp/r/beside.log ]; then
+  grep -E "started|finished|FAILED" /tmp/r/beside.log | tail -20
+  tail -3 /tmp/r/beside.log
+fi
 nvidia-smi --query-gpu=index,utilization.gpu,memory.used --format=csv
 cd /tmp && tar czf "$OUT/r.tgz" --exclude='*.pt' r && ls -la "$OUT"
