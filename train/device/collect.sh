@@ -1,10 +1,10 @@
 #!/usr/bin/env bash
 # Wait up to SECONDS (or until the queue of train/device/queue.sh and its BESIDE command are done), then pack what
 # has finished into $OUT/r.tgz (checkpoints left out: one returned file is limited to 16 MiB). Call it back to back:
-# a lease is given back after ~30 s idle. Issue the queue call and every collect call of a lease together (one batch of calls, which
-# run one after another with no gap): in the twenty-fourth session a collect call sent a moment after the previous
-# one had returned found a fresh machine, and the queue's runs in flight were lost (it then waited its full time for
-# nothing: now it stops at once when no queue is running here).
+# a lease is given back after ~30 s idle. Issue the queue call and every collect call of a lease together (one batch
+# of calls, which run one after another with no gap): in the twenty-fourth session a collect call sent a moment after
+# the previous one had returned found a fresh machine, and the queue's runs in flight were lost (it then waited its
+# full time for nothing: now it stops at once when no queue is running here).
 #
 #   bash train/device/collect.sh SECONDS
 set -uo pipefail
