@@ -5,8 +5,8 @@
 #
 # Run from the checkout's copy on the machine. JOBS_FILE holds `EXPERIMENT ROW SEED [SEED ...]` lines
 # (train/experiments.py --queue). The checkout is copied to /tmp/queue_code first, so a later call's copy of the
-# working tree cannot change the code under the running jobs. COMMIT (the copy leaves out .git, whose HEAD is stale there: pass
-# `$(git rev-parse --short HEAD)` from here, committed tree) is recorded in every result. Python packages are read
+# working tree cannot change the code under the running jobs. COMMIT (the copy leaves out .git, whose HEAD is stale
+# there: pass `$(git rev-parse --short HEAD)` from here, committed tree) is recorded in every result. Python packages are read
 # from /tmp/site (wheels installed with `pip install --no-index --no-deps --target /tmp/site`, see
 # ../shared/tools/device-wheels.sh). DEADLINE (seconds; the lease's time left minus the last collection): runs not
 # expected to end by then are skipped (experiments.py --deadline, estimated from the rows' committed results).

@@ -24,4 +24,5 @@ n=0
 for p in /tmp/lapwarp_wheel/part_*; do n=$((n + 1)); mkdir -p "w$n"; mv "$p" "w$n/"; done
 echo "$name" > "w$n/warp_name"
 mkdir -p wheels && cp small/*.whl wheels/
-echo "$n parts of at most $part bytes (tracked tree $tree bytes): .device/w1 .. .device/w$n, small wheels in .device/wheels"
+echo "$n parts of at most $part bytes (tracked tree $tree bytes): .device/w1 .. .device/w$n;" \
+  "small wheels in .device/wheels"
