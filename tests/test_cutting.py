@@ -256,7 +256,7 @@ def _segment_triangle_distance(p0, p1, a, b, c):
 
 def test_touch_removal_of_random_tool_segments_matches_a_reference(device):
     """By touch a tet goes when a tool's axis comes within reach of one of its faces. 24 envs, each with a random
-    segment tool (1-12 mm long, any direction) around a thin slab of 60 tets (2 mm thick, like TissueDissection's flap),
+    segment tool (1-12 mm long, any direction, a third along an axis, three of zero length) around a thin slab of 60 tets (2 mm thick, like TissueDissection's flap),
     against a NumPy reference of the segment-to-face distance; cases within 1e-6 m of the reach are redrawn. Checks
     every shortcut the kernel takes (bounding sphere, box, vertex and face tests) against the plain definition."""
     rng = np.random.default_rng(7)
@@ -279,7 +279,10 @@ def test_touch_removal_of_random_tool_segments_matches_a_reference(device):
     while len(starts) < num_envs:
         p0 = rng.uniform((-0.002, -0.002, -0.003), (0.022, 0.012, 0.005))
         direction = rng.normal(size=3)
-        p1 = p0 + direction / np.linalg.norm(direction) * rng.uniform(0.001, 0.012)
+        if len(starts) % 3 == 1:  # along an axis: the box test's zero-extent slabs
+            direction = np.eye(3)[rng.integers(3)] * rng.choice([-1.0, 1.0])
+        length = 0.0 if len(starts) % 8 == 5 else rng.uniform(0.001, 0.012)  # a few point tools too
+        p1 = p0 + direction / np.linalg.norm(direction) * length
         d = distances(p0, p1)
         if np.any(np.abs(d - reach) < 1e-6):
             continue
