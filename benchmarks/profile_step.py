@@ -7,6 +7,11 @@ scripted expert (``--policy random`` for random actions); after warm-up, ``--ste
 ``wp.ScopedTimer(cuda_filter=wp.TIMING_KERNEL)``. Reported per kernel: launches per env step and device
 milliseconds per env step, sorted by time. The total is device kernel time only (no launch gaps, no torch ops), so
 it is a lower bound of the graph-replayed step.
+
+    python benchmarks/profile_step.py --diff touch.json centroid.json
+
+compares two written profiles kernel by kernel (ms per env step and launches of each, the difference), largest
+differences first: where the device time of one configuration goes that the other's does not.
 """
 
 from __future__ import annotations
@@ -15,6 +20,7 @@ import argparse
 import collections
 import json
 import time
+from pathlib import Path
 
 import torch
 import warp as wp
@@ -23,6 +29,22 @@ from bench_env import apply_contact_settings
 import lapwarp
 from lapwarp.cli import parse_overrides, positive_int
 from lapwarp.experts import make_expert
+
+
+def diff_profiles(first: dict, second: dict, top: int) -> list[tuple[str, float, float, float, float]]:
+    """Per kernel name of either profile: (name, ms per step in ``first``, in ``second``, launches per step in each),
+    largest absolute difference in ms first; printed with the totals."""
+    a = {k["name"]: k for k in first["kernels"]}
+    b = {k["name"]: k for k in second["kernels"]}
+    rows = [(name, a.get(name, {}).get("ms_per_step", 0.0), b.get(name, {}).get("ms_per_step", 0.0),
+             a.get(name, {}).get("launches_per_step", 0.0), b.get(name, {}).get("launches_per_step", 0.0))
+            for name in sorted(set(a) | set(b))]
+    rows.sort(key=lambda row: -abs(row[1] - row[2]))
+    print(f"kernel ms per env step: {first['kernel_ms_per_step']:.3f} (first) / {second['kernel_ms_per_step']:.3f} "
+          f"(second), difference {first['kernel_ms_per_step'] - second['kernel_ms_per_step']:+.3f}")
+    for name, ms_a, ms_b, n_a, n_b in rows[:top]:
+        print(f"  {ms_a:8.3f} {ms_b:8.3f} {ms_a - ms_b:+8.3f} ms  {n_a:5.0f} / {n_b:5.0f} x  {name}")
+    return rows
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -40,7 +62,18 @@ def main(argv: list[str] | None = None) -> int:
                         help="the contact system's triangle sweep (default: its own)")
     parser.add_argument("--top", type=positive_int, default=25, help="kernels printed")
     parser.add_argument("--out", default=None)
+    parser.add_argument("--diff", nargs=2, default=None, metavar=("FIRST", "SECOND"),
+                        help="compare two profiles written with --out (nothing is run)")
     args = parser.parse_args(argv)
+    if args.diff:
+        try:
+            first, second = (json.loads(Path(path).read_text()) for path in args.diff)
+        except (OSError, ValueError) as exc:
+            parser.error(f"--diff needs two profile JSON files: {exc}")
+        if not all(isinstance(p, dict) and isinstance(p.get("kernels"), list) for p in (first, second)):
+            parser.error("--diff needs two profile JSON files written by --out (with a 'kernels' list)")
+        diff_profiles(first, second, args.top)
+        return 0
     wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)
     try:
         overrides = {"invalid_actions": "zero", **parse_overrides(args.set)}  # no host sync unless asked for

@@ -27,3 +27,6 @@ for rule in touch centroid; do
     --set "cut_removal=$rule" --out "$out/reset_$rule.json" > "$out/reset_$rule.txt" 2>&1
   echo "reset_$rule rc=$? $(tail -1 "$out/reset_$rule.txt")" | tee -a "$out/summary.txt"
 done
+"$py" "$here/profile_step.py" --diff "$out/profile_touch.json" "$out/profile_centroid.json" --top 15 \
+  > "$out/profile_diff.txt" 2>&1
+echo "profile_diff (touch - centroid) rc=$?" | tee -a "$out/summary.txt"

@@ -256,9 +256,10 @@ def _segment_triangle_distance(p0, p1, a, b, c):
 
 def test_touch_removal_of_random_tool_segments_matches_a_reference(device):
     """By touch a tet goes when a tool's axis comes within reach of one of its faces. 24 envs, each with a random
-    segment tool (1-12 mm long, any direction, a third along an axis, three of zero length) around a thin slab of 60 tets (2 mm thick, like TissueDissection's flap),
-    against a NumPy reference of the segment-to-face distance; cases within 1e-6 m of the reach are redrawn. Checks
-    every shortcut the kernel takes (bounding sphere, box, vertex and face tests) against the plain definition."""
+    segment tool (1-12 mm long, any direction, a third along an axis, three of zero length) around a thin slab of 60
+    tets (2 mm thick, like TissueDissection's flap), against a NumPy reference of the segment-to-face distance; cases
+    within 1e-6 m of the reach are redrawn. Checks every shortcut the kernel takes (bounding sphere, box, vertex and
+    face tests) against the plain definition."""
     rng = np.random.default_rng(7)
     b = SceneBuilder(gravity=(0.0, 0.0, 0.0))
     v, t = box_tets((0.02, 0.01, 0.002), (5, 2, 1))

@@ -162,6 +162,26 @@ def test_profile_step_records_warmup_timing_and_wall(device, tmp_path):
     assert report["warmup"] == 1 and report["timing"] == "all" and report["profiled_wall_ms_per_step"] > 0
 
 
+def test_profile_step_diff_compares_two_profiles_kernel_by_kernel(tmp_path, capsys):
+    def profile(path, kernels):
+        path.write_text(json.dumps({"kernel_ms_per_step": sum(k[2] for k in kernels), "kernels": [
+            {"name": n, "launches_per_step": c, "ms_per_step": t} for n, c, t in kernels]}))
+        return str(path)
+
+    first = profile(tmp_path / "a.json", [("cut", 11, 1.5), ("tets", 40, 5.0), ("only_a", 1, 0.1)])
+    second = profile(tmp_path / "b.json", [("cut", 11, 0.5), ("tets", 40, 5.2), ("only_b", 2, 0.3)])
+    assert profile_step.main(["--diff", first, second]) == 0
+    out = capsys.readouterr().out
+    lines = [line.split() for line in out.splitlines()[1:]]
+    # largest difference first; a kernel missing from one profile counts 0 there
+    assert [line[-1] for line in lines] == ["cut", "only_b", "tets", "only_a"]
+    assert lines[0][:3] == ["1.500", "0.500", "+1.000"] and lines[1][:3] == ["0.000", "0.300", "-0.300"]
+    assert "6.600 (first) / 6.000 (second), difference +0.600" in out.splitlines()[0]
+    with pytest.raises(SystemExit):
+        profile_step.main(["--diff", first, str(tmp_path / "missing.json")])
+    assert "needs two profile JSON files" in capsys.readouterr().err
+
+
 def test_profile_learner_splits_iterations_and_lists_operators(device, tmp_path, capsys):
     out = tmp_path / "learner.json"
     assert profile_learner.main(["--warmup", "1", "--iterations", "2", "--profile-iterations", "1", "--top", "5",
