@@ -121,16 +121,18 @@ def _begins(later: Path, earlier: Path) -> bool:
 def _drop_earlier_prefixes(paths: list[Path]) -> list[Path]:
     """Remove each copy (``<stem>-<n><suffix>``, a file or a folder) that the copy of the same name from a later
     archive begins with (the later collection of one lease holds it all); returns the paths kept."""
-    def name_and_number(path: Path) -> tuple[str, int]:
+    def key(path: Path) -> tuple[str, bool, int]:
+        """(the name without the archive's number, whether a folder, that number)"""
         stem, suffix = (path.name, "") if path.is_dir() else (path.stem, path.suffix)
         name, _, number = stem.rpartition("-")
-        return name + suffix, int(number)
+        return name + suffix, path.is_dir(), int(number)
 
+    keys = {path: key(path) for path in paths}  # before any removal
     kept = list(paths)
     for earlier in paths:
-        name, number = name_and_number(earlier)
-        later = [path for path in paths if path.exists() and path.is_dir() == earlier.is_dir()
-                 and name_and_number(path)[0] == name and name_and_number(path)[1] > number]
+        name, is_dir, number = keys[earlier]
+        later = [path for path in paths
+                 if path.exists() and keys[path][:2] == (name, is_dir) and keys[path][2] > number]
         if any(_begins(path, earlier) for path in later):
             shutil.rmtree(earlier) if earlier.is_dir() else earlier.unlink()
             kept.remove(earlier)
