@@ -18,6 +18,11 @@ of each kind of reset are reported too (0 expected for ``uncut``).
 
 Each reset is timed alone, with a device sync before and after (it is a host call that launches the masked reset
 and the observation kernels; no CUDA graph).
+
+``--profile DIR`` then profiles one more reset of each kind kernel by kernel (``wp.ScopedTimer`` with kernel timing,
+outside the timed resets, whose figures it would distort) and writes ``DIR/<task>_reset_uncut.json`` and
+``_cut.json`` in ``profile_step.py``'s format (ms per reset for each kernel, and the profiled reset's wall time), then
+prints their difference (``profile_step.py --diff``): whether a cut reset's extra time is device work or host time.
 """
 
 from __future__ import annotations
@@ -26,10 +31,12 @@ import argparse
 import json
 import statistics
 import time
+from pathlib import Path
 
 import torch
 import warp as wp
 from bench_env import device_name, sync
+from profile_step import diff_profiles, kernel_rows
 
 import lapwarp
 from lapwarp.cli import default_device, parse_overrides
@@ -55,7 +62,20 @@ def timed_reset(env) -> float:
     return time.perf_counter() - start
 
 
-def bench_task(task: str, num_envs: int, device: str, repeats: int, expert_steps: int, overrides: dict) -> dict:
+def profiled_reset(env) -> dict:
+    """One reset under ``wp.ScopedTimer`` kernel timing: per-kernel ms and launches, and the reset's wall time."""
+    sync(env.device)
+    start = time.perf_counter()
+    with wp.ScopedTimer("reset", cuda_filter=wp.TIMING_KERNEL, print=False, synchronize=True) as timer:
+        env.reset()
+    wall_ms = 1e3 * (time.perf_counter() - start)
+    rows = kernel_rows(timer.timing_results, 1)
+    return {"kernel_ms_per_step": sum(row[2] for row in rows), "profiled_wall_ms_per_step": wall_ms,
+            "kernels": [{"name": n, "launches_per_step": k, "ms_per_step": t} for n, k, t in rows]}
+
+
+def bench_task(task: str, num_envs: int, device: str, repeats: int, expert_steps: int, overrides: dict,
+               profile_dir: str | None = None) -> dict:
     env = lapwarp.make(task, num_envs=num_envs, device=device, invalid_actions="zero", **overrides)
     expert = make_expert(env)
     env.reset()
@@ -76,7 +96,22 @@ def bench_task(task: str, num_envs: int, device: str, repeats: int, expert_steps
             env.step(expert())
         removed.append(removed_elements(env))
         cut.append(timed_reset(env))
+    profiles = {}
+    if profile_dir is not None:
+        for kind, act in (("uncut", lambda: idle), ("cut", expert)):
+            for _ in range(expert_steps):
+                env.step(act())
+            profiles[kind] = {"task": task, "num_envs": num_envs, "reset": kind, "overrides": overrides,
+                              "removed_elements_per_env": removed_elements(env), **profiled_reset(env)}
+            path = Path(profile_dir) / f"{task}_reset_{kind}.json"
+            path.parent.mkdir(parents=True, exist_ok=True)
+            path.write_text(json.dumps(profiles[kind], indent=2))
     env.close()
+    if profiles:
+        walls = [profiles[kind]["profiled_wall_ms_per_step"] for kind in ("cut", "uncut")]
+        print(f"{task}: kernels per reset, cut (first) against uncut (second); wall {walls[0]:.3f} / {walls[1]:.3f} "
+              "ms (profiled)")
+        diff_profiles(profiles["cut"], profiles["uncut"], top=15)
     return {
         "task": task, "num_envs": num_envs, "repeats": repeats, "steps_before_each_reset": expert_steps,
         "uncut_reset_ms": 1e3 * statistics.median(uncut), "cut_reset_ms": 1e3 * statistics.median(cut),
@@ -98,12 +133,14 @@ def main(argv: list[str] | None = None) -> int:
                         help="config overrides (JSON values); a task that ends at its first cut needs more cuts to "
                              "leave cut envs standing, e.g. RopeCutting num_ropes_to_cut=3")
     parser.add_argument("--out", default=None, help="JSON output path")
+    parser.add_argument("--profile", default=None, metavar="DIR",
+                        help="also profile one reset of each kind kernel by kernel into DIR (see above)")
     args = parser.parse_args(argv)
     wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)
     overrides = parse_overrides(args.set)
     results = []
     for task in args.tasks:
-        r = bench_task(task, args.num_envs, args.device, args.repeats, args.expert_steps, overrides)
+        r = bench_task(task, args.num_envs, args.device, args.repeats, args.expert_steps, overrides, args.profile)
         r["overrides"] = overrides
         results.append(r)
         print(f"{task:<18} uncut {r['uncut_reset_ms']:.3f} ms  cut {r['cut_reset_ms']:.3f} ms  "

@@ -31,6 +31,16 @@ from lapwarp.cli import parse_overrides, positive_int
 from lapwarp.experts import make_expert
 
 
+def kernel_rows(timing_results, count: int) -> list[tuple[str, float, float]]:
+    """``wp.ScopedTimer`` kernel records summed by kernel name: (name, launches per unit, ms per unit) over ``count``
+    units (env steps, resets), the most time first."""
+    per_kernel = collections.defaultdict(lambda: [0, 0.0])
+    for r in timing_results:
+        per_kernel[r.name][0] += 1
+        per_kernel[r.name][1] += r.elapsed
+    return sorted(((name, n / count, ms / count) for name, (n, ms) in per_kernel.items()), key=lambda row: -row[2])
+
+
 def diff_profiles(first: dict, second: dict, top: int) -> list[tuple[str, float, float, float, float]]:
     """Per kernel name of either profile: (name, ms per step in ``first``, in ``second``, launches per step in each),
     largest absolute difference in ms first; printed with the totals."""
@@ -104,12 +114,7 @@ def main(argv: list[str] | None = None) -> int:
         for a in actions:
             env.step(a)
     wall_ms = 1e3 * (time.perf_counter() - start) / args.steps
-    per_kernel = collections.defaultdict(lambda: [0, 0.0])
-    for r in timer.timing_results:
-        per_kernel[r.name][0] += 1
-        per_kernel[r.name][1] += r.elapsed
-    rows = sorted(((name, n / args.steps, ms / args.steps) for name, (n, ms) in per_kernel.items()),
-                  key=lambda row: -row[2])
+    rows = kernel_rows(timer.timing_results, args.steps)
     total = sum(row[2] for row in rows)
     if not env.wp_device.is_cuda:
         print("note: Warp records kernel times only on CUDA devices; on the CPU only the wall time is measured")

@@ -27,8 +27,10 @@ Outputs (device arrays, valid after ``cut()``):
 Removal rule: an element goes when it lies within ``tool_radius[k] + carving_distance`` of tool capsule ``k``
 (segment ``tool_a`` -> ``tool_b``) while the env's ``tool_active`` is set: with ``removal="centroid"`` (the default)
 a tet or triangle is measured at its centroid, with ``removal="touch"`` at its nearest point (a tet's nearest face),
-which is what SOFA's CarvingManager does (its proximity query runs against the carved surface's triangles, so a tool
-touching an element anywhere removes it); rod segments are always measured at their nearest point. Connectivity
+which is what SOFA's CarvingManager does on a carved surface (its proximity query runs against the surface's
+triangles, so a tool touching an element anywhere removes it), and with ``removal="vertex"`` at its vertices, what
+the CarvingManager does on a carved point model (sofa_env's PrecisionCutting cloth: a point within reach is removed
+with every triangle around it); rod segments are always measured at their nearest point. Connectivity
 (union-find over the lanes of a thread block per env, only for envs where something was cut or that were reset)
 joins tets across shared faces, triangles across shared edges, consecutive rod segments, plus links added with
 :meth:`add_links`.
@@ -80,11 +82,12 @@ class CuttingSystem:
         num_tools: capsules per env (hook: a few segments along the hook; scissors: the blade between the jaws).
         num_labels: element labels (at most 32), e.g. off / on a cutting path, flap / connective tissue.
         tool_radius: scalar or ``(num_tools,)`` capsule radii, m.
-        removal: ``"centroid"`` (a tet or triangle is measured at its centroid) or ``"touch"`` (at its nearest point,
-            SOFA's CarvingManager); see the module docstring.
+        removal: ``"centroid"`` (a tet or triangle is measured at its centroid), ``"touch"`` (at its nearest point,
+            SOFA's CarvingManager on a surface) or ``"vertex"`` (at its vertices, SOFA's CarvingManager on a point
+            model); see the module docstring.
     """
 
-    REMOVALS = ("centroid", "touch")
+    REMOVALS = ("centroid", "touch", "vertex")  # CutTools.touch: the index
 
     def __init__(self, world, carving_distance: float = 1.2e-3, num_tools: int = 1, num_labels: int = 1,
                  tool_radius=0.0, removal: str = "centroid"):
@@ -210,7 +213,7 @@ class CuttingSystem:
                                      label=self._label, obj=self._obj, pairs=self._pairs, label_total=self._label_total)
         self._tools = make_struct(ck.CutTools, a=self.tool_a, b=self.tool_b, radius=self.tool_radius,
                                   active=self.tool_active, carving_distance=self.carving_distance,
-                                  touch=int(self.removal == "touch"))
+                                  touch=self.REMOVALS.index(self.removal))
         self._mask_state = make_struct(
             ck.CutMaskState, tet_active=mask(s.tet_active), tri_active=mask(s.tri_active),
             segment_active=mask(s.segment_active), tet_face_active=mask(s.tet_face_active),

@@ -299,6 +299,59 @@ def test_touch_removal_of_random_tool_segments_matches_a_reference(device):
     np.testing.assert_array_equal(cut.removed.numpy()[:, 0], removed)
 
 
+def _point_segment_distance(p, a, b):
+    d = b - a
+    t = np.clip(float((p - a) @ d) / max(float(d @ d), 1e-300), 0.0, 1.0)
+    return float(np.linalg.norm(p - (a + t * d)))
+
+
+def test_vertex_removal_of_random_tool_segments_matches_a_reference(device):
+    """By vertex (SOFA's CarvingManager on a point model, sofa_env's PrecisionCutting cloth) a triangle goes when one of
+    its vertices is within reach of a tool's axis. 16 envs, each with a random segment tool over a 7 x 7 cloth grid of
+    2 mm cells (PrecisionCutting's 1.9 mm), against a NumPy reference of the vertex-to-segment distance (cases within
+    1e-6 m of the reach redrawn); the same draws by touch remove a superset (a triangle with a vertex within reach is
+    within reach), and at least one draw shows the difference (a tool over a cell's middle touches it with no vertex
+    in reach)."""
+    rng = np.random.default_rng(11)
+    v, t = cloth_grid(7, 7, 0.012, 0.012, plane="xy")
+    num_envs, reach = 16, 1.0e-3
+    worlds = {}
+    for removal in ("vertex", "touch"):
+        b = SceneBuilder(gravity=(0.0, 0.0, 0.0))
+        cloth = b.add_cloth(v, t, areal_density=0.2, stretch_stiffness=1e3, bend_stiffness=1e-6, damping=1.0,
+                            fixed=np.arange(len(v)), cuttable=True)
+        world = b.finalize(num_envs, device, substeps=1)
+        cut = CuttingSystem(world, carving_distance=2e-4, num_tools=1, tool_radius=reach - 2e-4, removal=removal)
+        cut.add_object(cloth)
+        cut.finalize()
+        worlds[removal] = (world, cut)
+    lo, hi = v.min(axis=0), v.max(axis=0)
+    starts, ends, expect = [], [], []
+    while len(starts) < num_envs:
+        p0 = rng.uniform(lo - 0.002, hi + 0.002) + np.array([0.0, 0.0, rng.uniform(-0.0015, 0.0015)])
+        direction = rng.normal(size=3)
+        if len(starts) % 4 == 1:
+            direction[2] = 0.0  # in the cloth's plane, at a height: over cell middles without reaching a vertex
+        p1 = p0 + direction / np.linalg.norm(direction) * (0.0 if len(starts) % 8 == 5 else rng.uniform(0.001, 0.01))
+        d = np.array([_point_segment_distance(x, p0, p1) for x in v])
+        if np.any(np.abs(d - reach) < 1e-6):
+            continue
+        starts.append(p0)
+        ends.append(p1)
+        expect.append((d[t] > reach).all(axis=1).astype(np.int32))
+    expect = np.array(expect)
+    masks = {}
+    for removal, (world, cut) in worlds.items():
+        cut.set_tools(np.array(starts)[:, None, :], np.array(ends)[:, None, :], active=np.ones(num_envs))
+        cut.cut()
+        masks[removal] = world.state.tri_active.numpy()
+    np.testing.assert_array_equal(masks["vertex"], expect)
+    removed = (expect == 0).sum(axis=1)
+    assert (removed == 0).sum() >= 2 and (removed > 0).sum() >= 6
+    np.testing.assert_array_equal(worlds["vertex"][1].removed.numpy()[:, 0], removed)
+    assert np.all(masks["touch"] <= masks["vertex"]) and (masks["touch"] < masks["vertex"]).any()
+
+
 def test_removal_rule_is_checked(device):
     world, rope = _rope(device, 1)
     with pytest.raises(ValueError, match="removal must be one of"):

@@ -137,6 +137,7 @@ def test_random_lines_stay_on_the_cloth(device):
     (dict(path_function="zigzag"), "path_function"),
     (dict(ratio_to_cut=0.0), "ratio_to_cut"),
     (dict(path_depth=1.5), "path_depth"),
+    (dict(cut_removal="nearest"), "cut_removal"),
 ])
 def test_invalid_configurations_raise(bad, message):
     with pytest.raises(ValueError, match=message):
@@ -161,9 +162,12 @@ def test_blades_cut_only_while_closing_when_asked(device):
     assert cuts[False] > 0 and cuts[True] == 0
 
 
+@pytest.mark.parametrize("removal", ["centroid", "vertex"])
 @pytest.mark.parametrize("function", ["line", "sine"])
-def test_expert_solves_the_fixed_path(device, function):
-    env = lapwarp.make("PrecisionCutting", num_envs=4, device=device, seed=3, path_function=function)
+def test_expert_solves_the_fixed_path(device, function, removal):
+    """By lapwarp's centroid rule and by sofa_env's vertex rule (``cut_removal``)."""
+    env = lapwarp.make("PrecisionCutting", num_envs=4, device=device, seed=3, path_function=function,
+                       cut_removal=removal)
     expert = make_expert(env)
     obs = env.get_observations()
     episodes = successes = 0

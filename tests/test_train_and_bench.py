@@ -95,15 +95,23 @@ def test_bench_env_writes_json(device, tmp_path):
 
 def test_bench_reset_times_cut_and_uncut_resets_after_as_many_steps(device, tmp_path):
     """Both resets follow the same number of steps (idle before the uncut one, the expert before the cut one), and
-    the JSON says how many elements each found removed: none after the idle steps, some after the expert's."""
+    the JSON says how many elements each found removed: none after the idle steps, some after the expert's.
+    ``--profile`` writes one profiled reset of each kind in profile_step's format (kernel records come only on CUDA:
+    on the CPU the list is empty and the wall time is measured)."""
     out = tmp_path / "reset.json"
     assert bench_reset.main(["--tasks", "TissueDissection", "--device", device, "--num-envs", "2", "--repeats", "1",
-                             "--expert-steps", "30", "--out", str(out)]) == 0
+                             "--expert-steps", "30", "--out", str(out), "--profile", str(tmp_path / "prof")]) == 0
     result = json.loads(out.read_text())["results"][0]
     assert result["steps_before_each_reset"] == 30
     assert result["removed_elements_per_env_at_uncut_reset"] == 0.0
     assert result["removed_elements_per_env_at_cut_reset"] > 0.0
     assert result["uncut_reset_ms"] > 0.0 and result["cut_reset_ms"] > 0.0
+    profiles = {kind: json.loads((tmp_path / "prof" / f"TissueDissection_reset_{kind}.json").read_text())
+                for kind in ("uncut", "cut")}
+    assert profiles["uncut"]["removed_elements_per_env"] == 0.0 and profiles["cut"]["removed_elements_per_env"] > 0.0
+    for p in profiles.values():
+        assert p["profiled_wall_ms_per_step"] > 0.0 and isinstance(p["kernels"], list)
+        assert p["kernel_ms_per_step"] == pytest.approx(sum(k["ms_per_step"] for k in p["kernels"]))
 
 
 def test_bench_env_applies_and_records_the_contact_settings(device, tmp_path):

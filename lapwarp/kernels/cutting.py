@@ -120,7 +120,9 @@ class CutTools:
     radius: wp.array(dtype=float)
     active: wp.array(dtype=wp.int32)
     carving_distance: float
-    touch: int  # 1: tets and triangles measured at their nearest point (SOFA's rule), 0: at their centroid
+    touch: int  # tets and triangles measured at: 0 their centroid, 1 their nearest point (SOFA's CarvingManager on a
+    # triangle or tet surface), 2 their vertices (SOFA's CarvingManager on a point model: a point within reach goes
+    # with every element around it)
 
 
 @wp.struct
@@ -231,9 +233,10 @@ def element_alive_in(env: int, e: int, el: CutElements, ms: CutMaskState):
 def cut_element(env: int, e: int, el: CutElements, tools: CutTools, q: wp.array2d(dtype=wp.vec3), ms: CutMaskState,
                 out: CutCounters):
     """Remove element ``e`` if it lies within ``radius + carving_distance`` of a tool capsule: tets and triangles by
-    their centroid (``tools.touch`` 0) or their nearest point (1: SOFA's rule), rod segments by their closest point
-    (SOFA carves line models along their length; a rope's 5 mm segments would otherwise need the tool at their
-    midpoint, where contact may never let it go)."""
+    their centroid (``tools.touch`` 0), their nearest point (1: SOFA's rule for a carved surface) or one of their
+    vertices (2: SOFA's rule for a carved point model, which removes the point and the elements around it), rod
+    segments by their closest point (SOFA carves line models along their length; a rope's 5 mm segments would
+    otherwise need the tool at their midpoint, where contact may never let it go)."""
     kind = el.kind[e]
     col = el.col[e]
     if element_alive(env, kind, col, ms.tet_active, ms.tri_active, ms.segment_active) == 0:
@@ -266,11 +269,19 @@ def cut_element(env: int, e: int, el: CutElements, tools: CutTools, q: wp.array2
             b = q[env, nd[1]]
             st = closest_segment_segment(a, b, ta, tb)
             hit = wp.where(wp.length((a + (b - a) * st[0]) - (ta + (tb - ta) * st[1])) <= reach, 1, 0)
+        elif tools.touch == 2:
+            # vertices: only within the bounding sphere can one of them be within reach (a near centroid alone is no
+            # hit: the vertices of a large element may all lie farther)
+            if point_segment_distance(c, ta, tb) <= reach + bound:
+                for i in range(4):
+                    if nd[i] >= 0:
+                        if point_segment_distance(q[env, nd[i]], ta, tb) <= reach:
+                            hit = 1
         else:
             d = point_segment_distance(c, ta, tb)
             if d <= reach:
                 hit = 1
-            elif tools.touch != 0 and d <= reach + bound:
+            elif tools.touch == 1 and d <= reach + bound:
                 x3 = q[env, nd[0]]
                 if nd[3] >= 0:
                     x3 = q[env, nd[3]]
