@@ -412,9 +412,11 @@ def _dissection_study_rows() -> list[Row]:
     potential-based pull towards the border point; and sofa_env's cut rule (the hook removes what it touches,
     ``"touch"``), with which the observation's border point lies within cutting reach. Touch freed the flap (97.7 %
     with the paper's learner, 100 % with the privileged critic; every centroid variant 0 %, twenty-fifth session) and
-    is now the default, so the centroid rows name their rule."""
+    is now the default, so the centroid rows name their rule. And PrecisionCutting's fixed line by sofa_env's cut
+    rule for its cloth (``cut_removal="vertex"``)."""
     base = {row.name: row for row in _dissection_rows()}["td-r2-state"]
     rgb = {row.name: row for row in _dissection_image_rows()}["td-r2-rgb"]
+    pc_line = {row.name: row for row in _dissection_rows()}["pc-line-fixed-state"]
     centroid = {**base.config, "cut_removal": "centroid"}
     private = dataclasses.replace(base, name="td-r2-priv-state", config=centroid, critic="state")
     private_norm = _with_obs_normalization(private, "td-r2-priv-norm-state")
@@ -444,7 +446,12 @@ def _dissection_study_rows() -> list[Row]:
             dataclasses.replace(rgb, name="td-r2-rgb-asym-i300", critic="state"),
             # the state critic normalised: from state the privileged normalised critic broke through at iteration ~85
             # (the paper's learner at ~210)
-            _with_obs_normalization(rgb, "td-r2-rgb-asym-norm-i300", critic="state")]
+            _with_obs_normalization(rgb, "td-r2-rgb-asym-norm-i300", critic="state"),
+            # PrecisionCutting by sofa_env's rule (its CarvingManager carves the cloth's point model: a vertex within
+            # reach of a blade goes with its six triangles, ``cut_removal="vertex"``) against lapwarp's centroid rule
+            # of the learned row (99.6 %); the scripted expert solves both (CPU)
+            dataclasses.replace(pc_line, name="pc-line-fixed-vertex-state",
+                                config={**pc_line.config, "cut_removal": "vertex"})]
 
 
 EXPERIMENTS: dict[str, Experiment] = {
@@ -464,7 +471,8 @@ EXPERIMENTS: dict[str, Experiment] = {
         "state-normalization-study", "State rows retrained with normalised observations", _normalization_study_rows()),
     "dissection-study": Experiment(
         "dissection-study",
-        "TissueDissection: a privileged critic, normalisation, entropy (state); a state critic (RGB)",
+        "TissueDissection: a privileged critic, normalisation, entropy (state); a state critic (RGB); "
+        "PrecisionCutting by sofa_env's cut rule",
         _dissection_study_rows()),
     "deformable-state": Experiment("deformable-state", "Deformable Manipulation track from state", _deformable_rows()),
     "deformable-rgb": Experiment("deformable-rgb", "Deformable Manipulation track from 64x64 RGB",

@@ -1,0 +1,26 @@
+#!/usr/bin/env bash
+# GPU 1 of the next lease (next_lease.md; GPU 3 on an x4 machine: DEVICE=cuda:3 JOBS=.../next_jobs_gpu3.txt):
+# RopeCutting's reset profiled kernel by kernel, cut against uncut (its cut reset cost 1.13x the uncut one on an H200 in
+# the twenty-seventh session, 0.91x on the CPU; bench_reset.py --profile); PrecisionCutting's step with the scissors
+# expert by lapwarp's centroid rule and by sofa_env's vertex rule (cut_removal, new); then a learning queue until
+# DEADLINE seconds after this script started. Run from the code copy (queue.sh's BESIDE).
+# DEVICE (cuda:1), NUM_ENVS (4096), JOBS (next_jobs_gpu1.txt) and DEADLINE (1400) override.
+set -u
+t0=$(date +%s)
+dev=${DEVICE:-cuda:1}
+n=${NUM_ENVS:-4096}
+out=/tmp/r/beside27
+mkdir -p "$out"
+python3 benchmarks/bench_reset.py --tasks RopeCutting --device "$dev" --num-envs "$n" --set num_ropes_to_cut=3 \
+  --profile "$out/reset_profile" --out "$out/reset_rc.json" > "$out/reset_rc.txt" 2>&1
+echo "reset_rc rc=$?"; cat "$out/reset_rc.txt" | grep -v Warning | tail -20
+for rule in centroid vertex; do
+  python3 benchmarks/bench_env.py --task PrecisionCutting --device "$dev" --num-envs "$n" --seconds 3 --obs STATE \
+    --policy expert --set "cut_removal=$rule" --out "$out/pc_$rule.json" > "$out/pc_$rule.txt" 2>&1
+  echo "pc_$rule rc=$? $(tail -1 "$out/pc_$rule.txt")"
+done
+left=$((${DEADLINE:-1400} + t0 - $(date +%s)))
+[ "$left" -gt 0 ] || { echo "no time left for the queue"; exit 0; }
+python3 train/experiments.py --queue "${JOBS:-benchmarks/results/session27/next_jobs_gpu1.txt}" --devices "$dev" \
+  --fast-pixels --shared-encoder --skip-done --no-plots --deadline "$left" --out /tmp/r/learning \
+  --log-dir /tmp/queue_runs_beside
