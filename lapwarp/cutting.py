@@ -87,7 +87,7 @@ class CuttingSystem:
             model); see the module docstring.
     """
 
-    REMOVALS = ("centroid", "touch", "vertex")  # CutTools.touch: the index
+    REMOVALS = ("centroid", "touch", "vertex")  # CutTools.removal: the index (kernels.cutting.REMOVAL_*)
 
     def __init__(self, world, carving_distance: float = 1.2e-3, num_tools: int = 1, num_labels: int = 1,
                  tool_radius=0.0, removal: str = "centroid"):
@@ -213,7 +213,7 @@ class CuttingSystem:
                                      label=self._label, obj=self._obj, pairs=self._pairs, label_total=self._label_total)
         self._tools = make_struct(ck.CutTools, a=self.tool_a, b=self.tool_b, radius=self.tool_radius,
                                   active=self.tool_active, carving_distance=self.carving_distance,
-                                  touch=self.REMOVALS.index(self.removal))
+                                  removal=self.REMOVALS.index(self.removal))
         self._mask_state = make_struct(
             ck.CutMaskState, tet_active=mask(s.tet_active), tri_active=mask(s.tri_active),
             segment_active=mask(s.segment_active), tet_face_active=mask(s.tet_face_active),

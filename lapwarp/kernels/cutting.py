@@ -111,6 +111,12 @@ class CutElements:
     label_total: wp.array(dtype=wp.int32)  # elements per label before any cut
 
 
+# CutTools.removal: the index of lapwarp.cutting.CuttingSystem.REMOVALS
+REMOVAL_CENTROID = wp.constant(0)
+REMOVAL_TOUCH = wp.constant(1)
+REMOVAL_VERTEX = wp.constant(2)
+
+
 @wp.struct
 class CutTools:
     """Tool capsules per env (env frame) and whether each env's tool cuts."""
@@ -120,9 +126,9 @@ class CutTools:
     radius: wp.array(dtype=float)
     active: wp.array(dtype=wp.int32)
     carving_distance: float
-    touch: int  # tets and triangles measured at: 0 their centroid, 1 their nearest point (SOFA's CarvingManager on a
-    # triangle or tet surface), 2 their vertices (SOFA's CarvingManager on a point model: a point within reach goes
-    # with every element around it)
+    removal: int  # tets and triangles measured at: REMOVAL_CENTROID their centroid, REMOVAL_TOUCH their nearest point
+    # (SOFA's CarvingManager on a triangle or tet surface), REMOVAL_VERTEX their vertices (SOFA's CarvingManager on a
+    # point model: a point within reach goes with every element around it)
 
 
 @wp.struct
@@ -233,10 +239,10 @@ def element_alive_in(env: int, e: int, el: CutElements, ms: CutMaskState):
 def cut_element(env: int, e: int, el: CutElements, tools: CutTools, q: wp.array2d(dtype=wp.vec3), ms: CutMaskState,
                 out: CutCounters):
     """Remove element ``e`` if it lies within ``radius + carving_distance`` of a tool capsule: tets and triangles by
-    their centroid (``tools.touch`` 0), their nearest point (1: SOFA's rule for a carved surface) or one of their
-    vertices (2: SOFA's rule for a carved point model, which removes the point and the elements around it), rod
-    segments by their closest point (SOFA carves line models along their length; a rope's 5 mm segments would
-    otherwise need the tool at their midpoint, where contact may never let it go)."""
+    their centroid (``tools.removal`` REMOVAL_CENTROID), their nearest point (REMOVAL_TOUCH: SOFA's rule for a carved
+    surface) or one of their vertices (REMOVAL_VERTEX: SOFA's rule for a carved point model, which removes the point
+    and the elements around it), rod segments by their closest point (SOFA carves line models along their length; a
+    rope's 5 mm segments would otherwise need the tool at their midpoint, where contact may never let it go)."""
     kind = el.kind[e]
     col = el.col[e]
     if element_alive(env, kind, col, ms.tet_active, ms.tri_active, ms.segment_active) == 0:
@@ -253,7 +259,7 @@ def cut_element(env: int, e: int, el: CutElements, tools: CutTools, q: wp.array2
     c = c / cnt
     # touch: the element's bounding sphere about the centroid rejects far tools before the face tests
     bound = float(0.0)
-    if tools.touch != 0 and kind != KIND_SEG:
+    if tools.removal != REMOVAL_CENTROID and kind != KIND_SEG:
         for i in range(4):
             if nd[i] >= 0:
                 bound = wp.max(bound, wp.length(q[env, nd[i]] - c))
@@ -269,7 +275,7 @@ def cut_element(env: int, e: int, el: CutElements, tools: CutTools, q: wp.array2
             b = q[env, nd[1]]
             st = closest_segment_segment(a, b, ta, tb)
             hit = wp.where(wp.length((a + (b - a) * st[0]) - (ta + (tb - ta) * st[1])) <= reach, 1, 0)
-        elif tools.touch == 2:
+        elif tools.removal == REMOVAL_VERTEX:
             # vertices: only within the bounding sphere can one of them be within reach (a near centroid alone is no
             # hit: the vertices of a large element may all lie farther)
             if point_segment_distance(c, ta, tb) <= reach + bound:
@@ -281,7 +287,7 @@ def cut_element(env: int, e: int, el: CutElements, tools: CutTools, q: wp.array2
             d = point_segment_distance(c, ta, tb)
             if d <= reach:
                 hit = 1
-            elif tools.touch == 1 and d <= reach + bound:
+            elif tools.removal == REMOVAL_TOUCH and d <= reach + bound:
                 x3 = q[env, nd[0]]
                 if nd[3] >= 0:
                     x3 = q[env, nd[3]]
