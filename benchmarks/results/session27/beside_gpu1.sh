@@ -2,7 +2,8 @@
 # GPU 1 of the next lease (next_lease.md; GPU 3 on an x4 machine: DEVICE=cuda:3 JOBS=.../next_jobs_gpu3.txt):
 # RopeCutting's reset profiled kernel by kernel, cut against uncut (its cut reset cost 1.13x the uncut one on an H200 in
 # the twenty-seventh session, 0.91x on the CPU; bench_reset.py --profile); PrecisionCutting's step with the scissors
-# expert by lapwarp's centroid rule and by sofa_env's vertex rule (cut_removal, new); then a learning queue until
+# expert by lapwarp's centroid rule and by sofa_env's vertex rule (cut_removal, new); kernel profiles of RopeCutting's
+# step and of TissueDissection's RGB against its STATE step (~3 min in all); then a learning queue until
 # DEADLINE seconds after this script started. Run from the code copy (queue.sh's BESIDE).
 # DEVICE (cuda:1), NUM_ENVS (4096), JOBS (next_jobs_gpu1.txt) and DEADLINE (1400) override.
 set -u
@@ -19,6 +20,16 @@ for rule in centroid vertex; do
     --policy expert --set "cut_removal=$rule" --out "$out/pc_$rule.json" > "$out/pc_$rule.txt" 2>&1
   echo "pc_$rule rc=$? $(tail -1 "$out/pc_$rule.txt")"
 done
+# where the step's time goes now (the profiles on record are many sessions old): RopeCutting STATE, and TissueDissection
+# 64x64 RGB against STATE (the renderer's share of the 2.8 ms between its RGB and STATE steps; RGB target 200k)
+python3 benchmarks/profile_step.py --task RopeCutting --device "$dev" --num-envs "$n" --warmup 20 --steps 10 \
+  --out "$out/profile_rc.json" > "$out/profile_rc.txt" 2>&1; echo "profile_rc rc=$?"; head -12 "$out/profile_rc.txt"
+for obs in STATE RGB; do
+  python3 benchmarks/profile_step.py --task TissueDissection --device "$dev" --num-envs "$n" --warmup 60 --steps 20 \
+    --set observation_type=$obs image_shape=[64,64] --out "$out/profile_td_$obs.json" > "$out/profile_td_$obs.txt" 2>&1
+  echo "profile_td_$obs rc=$?"
+done
+python3 benchmarks/profile_step.py --diff "$out/profile_td_RGB.json" "$out/profile_td_STATE.json" --top 20
 left=$((${DEADLINE:-1400} + t0 - $(date +%s)))
 [ "$left" -gt 0 ] || { echo "no time left for the queue"; exit 0; }
 python3 train/experiments.py --queue "${JOBS:-benchmarks/results/session27/next_jobs_gpu1.txt}" --devices "$dev" \
