@@ -20,6 +20,15 @@ for rule in centroid vertex; do
     --policy expert --set "cut_removal=$rule" --out "$out/pc_$rule.json" > "$out/pc_$rule.txt" 2>&1
   echo "pc_$rule rc=$? $(tail -1 "$out/pc_$rule.txt")"
 done
+# PrecisionCutting's scripted expert in every configuration by both cut rules, 256 envs (the continuous expert gives
+# up a target it stands at for 15 steps since the twenty-seventh session, as the discrete one did)
+for rule in centroid vertex; do
+  python3 benchmarks/expert_success.py --task PrecisionCutting --device "$dev" --num-envs 256 --episodes 256 \
+    --max-steps 520 --config cut_removal=$rule path_function=line --config cut_removal=$rule path_function=line \
+    randomize_path=true --config cut_removal=$rule path_function=sine --config cut_removal=$rule path_function=sine \
+    randomize_path=true --out "$out/pc_expert_$rule.jsonl" > "$out/pc_expert_$rule.txt" 2>&1
+  echo "pc_expert_$rule rc=$?"; grep -o '"overrides".*"success_rate": [0-9.]*' "$out/pc_expert_$rule.jsonl" || true
+done
 # where the step's time goes now (the profiles on record are many sessions old): RopeCutting STATE, and TissueDissection
 # 64x64 RGB against STATE (the renderer's share of the 2.8 ms between its RGB and STATE steps; RGB target 200k)
 python3 benchmarks/profile_step.py --task RopeCutting --device "$dev" --num-envs "$n" --warmup 20 --steps 10 \
