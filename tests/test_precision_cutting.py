@@ -218,3 +218,34 @@ def test_rendering_shows_the_path_and_holes(device):
     env.update_visuals()
     path = next(o for o in scene.objects if o.name == "cutting_path").face_active.numpy()
     assert path[0].sum() == on.sum() - 5
+
+
+def test_continuous_expert_gives_up_a_target_it_stands_at(device):
+    """``expert_continuous_patience``: with the hinge at its goal (no error) and the same target, the 15th step gives
+    the target up (``skip`` = its sample + 1); a hinge 5 mm from its goal never does; a new target restarts the count;
+    an episode's first step clears ``skip``."""
+    from lapwarp.tasks.dissection.precision_cutting import expert_continuous_patience
+
+    n, dev = 2, device
+    ptsd = wp.array([[wp.vec4(0.0, 1.3, 0.0, 0.05)]] * n, dtype=wp.vec4, device=dev)
+    rcm = wp.array([[wp.transform((0.0, -0.06, 0.01), (0.0, 0.0, 0.0, 1.0))]] * n, dtype=wp.transform, device=dev)
+    error = wp.array(np.array([[0.0] * 5, [0.0, 0.0, 0.0, 0.005, 0.0]], dtype=np.float32), dtype=float, device=dev)
+    length = wp.array([1, 1], dtype=wp.int32, device=dev)
+    target = wp.array([5, 5], dtype=wp.int32, device=dev)
+    last, stall, skip = (wp.full(n, v, dtype=wp.int32, device=dev) for v in (5, 0, 0))
+
+    def call(times=1):
+        for _ in range(times):
+            wp.launch(expert_continuous_patience, dim=n, inputs=[ptsd, rcm, error, length, 15, target],
+                      outputs=[last, stall, skip], device=dev)
+
+    call(14)
+    assert skip.numpy().tolist() == [0, 0] and stall.numpy().tolist() == [14, 0]
+    call()
+    assert skip.numpy().tolist() == [6, 0] and stall.numpy()[0] == 0
+    target.assign(np.array([7, 7], dtype=np.int32))
+    call(14)
+    assert skip.numpy().tolist() == [6, 0]  # the new target's count started over
+    length.assign(np.array([0, 0], dtype=np.int32))
+    call()
+    assert skip.numpy().tolist() == [0, 0]
