@@ -182,6 +182,13 @@ def test_tet_slab_carving_surface_and_reset(device):
     np.testing.assert_array_equal(cut.cut_ratio.numpy()[:, 0], [0.0, 0.0])
 
 
+def _point_segment_distance(p, a, b):
+    """Reference: distance from p to segment ab."""
+    d = b - a
+    t = np.clip(float((p - a) @ d) / max(float(d @ d), 1e-300), 0.0, 1.0)
+    return float(np.linalg.norm(p - (a + t * d)))
+
+
 def _point_triangle_distance(p, a, b, c):
     """Reference: distance from p to triangle abc (projection if it falls inside, else the nearest edge)."""
     n = np.cross(b - a, c - a)
@@ -190,12 +197,7 @@ def _point_triangle_distance(p, a, b, c):
     inside = all(np.dot(np.cross(y - x, proj - x), n) >= 0 for x, y in ((a, b), (b, c), (c, a)))
     if inside:
         return abs(np.dot(p - a, n))
-
-    def seg(x, y):
-        t = np.clip(np.dot(p - x, y - x) / np.dot(y - x, y - x), 0.0, 1.0)
-        return np.linalg.norm(p - (x + t * (y - x)))
-
-    return min(seg(a, b), seg(b, c), seg(c, a))
+    return min(_point_segment_distance(p, a, b), _point_segment_distance(p, b, c), _point_segment_distance(p, c, a))
 
 
 @pytest.mark.parametrize("removal", ["centroid", "touch"])
@@ -297,12 +299,6 @@ def test_touch_removal_of_random_tool_segments_matches_a_reference(device):
     removed = (expect == 0).sum(axis=1)
     assert (removed == 0).sum() >= 3 and (removed > 0).sum() >= 6  # misses, near misses and hits among the draws
     np.testing.assert_array_equal(cut.removed.numpy()[:, 0], removed)
-
-
-def _point_segment_distance(p, a, b):
-    d = b - a
-    t = np.clip(float((p - a) @ d) / max(float(d @ d), 1e-300), 0.0, 1.0)
-    return float(np.linalg.norm(p - (a + t * d)))
 
 
 def test_vertex_removal_of_random_tool_segments_matches_a_reference(device):

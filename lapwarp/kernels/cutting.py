@@ -275,17 +275,17 @@ def cut_element(env: int, e: int, el: CutElements, tools: CutTools, q: wp.array2
             b = q[env, nd[1]]
             st = closest_segment_segment(a, b, ta, tb)
             hit = wp.where(wp.length((a + (b - a) * st[0]) - (ta + (tb - ta) * st[1])) <= reach, 1, 0)
-        elif tools.removal == REMOVAL_VERTEX:
-            # vertices: only within the bounding sphere can one of them be within reach (a near centroid alone is no
-            # hit: the vertices of a large element may all lie farther)
-            if point_segment_distance(c, ta, tb) <= reach + bound:
-                for i in range(4):
-                    if nd[i] >= 0:
-                        if point_segment_distance(q[env, nd[i]], ta, tb) <= reach:
-                            hit = 1
         else:
             d = point_segment_distance(c, ta, tb)
-            if d <= reach:
+            if tools.removal == REMOVAL_VERTEX:
+                # only within the bounding sphere can a vertex be within reach (a near centroid alone is no hit: the
+                # vertices of a large element may all lie farther)
+                if d <= reach + bound:
+                    for i in range(4):
+                        if nd[i] >= 0:
+                            if point_segment_distance(q[env, nd[i]], ta, tb) <= reach:
+                                hit = 1
+            elif d <= reach:
                 hit = 1
             elif tools.removal == REMOVAL_TOUCH and d <= reach + bound:
                 x3 = q[env, nd[0]]
