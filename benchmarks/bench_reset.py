@@ -11,6 +11,10 @@ rebuild, no reallocation), so a cut env should cost what an uncut one costs. Mea
 * ``cut``: ``env.reset()`` of every env after ``--expert-steps`` steps of the scripted expert (which cuts),
   median over ``--repeats``.
 
+Each repeat times one reset of each kind, in alternating order (uncut first in even repeats, cut first in odd ones);
+the JSON keeps every sample and the quartiles of the ratio within each repeat (``cut_over_uncut_paired``), so a
+ratio off 1 can be told from the spread between resets.
+
 Both follow the same number of steps, so both resets meet the caches as a step leaves them (timing an uncut reset
 right after another reset, as this script did before the twenty-sixth session, met warm caches and favoured it: on
 the CPU that alone made TissueDissection's cut reset 1.2x the uncut one). The removed elements per env at the moment
@@ -62,6 +66,15 @@ def timed_reset(env) -> float:
     return time.perf_counter() - start
 
 
+def paired_ratio_quartiles(cut: list[float], uncut: list[float]) -> dict:
+    """Quartiles (25 / 50 / 75 %) of ``cut[i] / uncut[i]``, the ratio within each repeat."""
+    ratios = sorted(c / u for c, u in zip(cut, uncut, strict=True))
+    if len(ratios) == 1:
+        return {"q25": ratios[0], "median": ratios[0], "q75": ratios[0]}
+    q25, q50, q75 = statistics.quantiles(ratios, n=4, method="inclusive")
+    return {"q25": q25, "median": q50, "q75": q75}
+
+
 def profiled_reset(env) -> dict:
     """One reset under ``wp.ScopedTimer`` kernel timing: per-kernel ms and launches, and the reset's wall time."""
     sync(env.device)
@@ -87,15 +100,24 @@ def bench_task(task: str, num_envs: int, device: str, repeats: int, expert_steps
     else:
         idle = torch.zeros(num_envs, env.num_actions, device=env.device)
     uncut, removed_uncut, cut, removed = [], [], [], []
-    for _ in range(repeats):
+
+    def uncut_reset():
         for _ in range(expert_steps):
             env.step(idle)
         removed_uncut.append(removed_elements(env))
         uncut.append(timed_reset(env))
+
+    def cut_reset():
         for _ in range(expert_steps):
             env.step(expert())
         removed.append(removed_elements(env))
         cut.append(timed_reset(env))
+
+    for repeat in range(repeats):
+        # the order alternates, so neither kind always follows the other (what one leaves in the caches, the
+        # allocator or the clocks meets the other kind as often)
+        for reset in ((uncut_reset, cut_reset) if repeat % 2 == 0 else (cut_reset, uncut_reset)):
+            reset()
     profiles = {}
     if profile_dir is not None:
         for kind, act in (("uncut", lambda: idle), ("cut", expert)):
@@ -116,6 +138,9 @@ def bench_task(task: str, num_envs: int, device: str, repeats: int, expert_steps
         "task": task, "num_envs": num_envs, "repeats": repeats, "steps_before_each_reset": expert_steps,
         "uncut_reset_ms": 1e3 * statistics.median(uncut), "cut_reset_ms": 1e3 * statistics.median(cut),
         "cut_over_uncut": statistics.median(cut) / statistics.median(uncut),
+        # the ratio within each repeat (its two resets close in time), and its spread over the repeats
+        "cut_over_uncut_paired": paired_ratio_quartiles(cut, uncut),
+        "uncut_reset_ms_all": [1e3 * t for t in uncut], "cut_reset_ms_all": [1e3 * t for t in cut],
         "removed_elements_per_env_at_cut_reset": statistics.mean(removed),
         "removed_elements_per_env_at_uncut_reset": statistics.mean(removed_uncut),
     }
@@ -143,8 +168,10 @@ def main(argv: list[str] | None = None) -> int:
         r = bench_task(task, args.num_envs, args.device, args.repeats, args.expert_steps, overrides, args.profile)
         r["overrides"] = overrides
         results.append(r)
+        paired = r["cut_over_uncut_paired"]
         print(f"{task:<18} uncut {r['uncut_reset_ms']:.3f} ms  cut {r['cut_reset_ms']:.3f} ms  "
-              f"ratio {r['cut_over_uncut']:.3f}  removed/env {r['removed_elements_per_env_at_cut_reset']:.1f} "
+              f"ratio {r['cut_over_uncut']:.3f} (within repeats: median {paired['median']:.3f}, quartiles "
+              f"{paired['q25']:.3f}-{paired['q75']:.3f})  removed/env {r['removed_elements_per_env_at_cut_reset']:.1f} "
               f"(uncut {r['removed_elements_per_env_at_uncut_reset']:.1f})",
               flush=True)
     report = {"benchmark": "reset_cost", "device": args.device, "device_name": device_name(args.device),

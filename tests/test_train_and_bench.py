@@ -99,13 +99,20 @@ def test_bench_reset_times_cut_and_uncut_resets_after_as_many_steps(device, tmp_
     ``--profile`` writes one profiled reset of each kind in profile_step's format (kernel records come only on CUDA:
     on the CPU the list is empty and the wall time is measured)."""
     out = tmp_path / "reset.json"
-    assert bench_reset.main(["--tasks", "TissueDissection", "--device", device, "--num-envs", "2", "--repeats", "1",
+    assert bench_reset.main(["--tasks", "TissueDissection", "--device", device, "--num-envs", "2", "--repeats", "2",
                              "--expert-steps", "30", "--out", str(out), "--profile", str(tmp_path / "prof")]) == 0
     result = json.loads(out.read_text())["results"][0]
     assert result["steps_before_each_reset"] == 30
+    # the second repeat runs the cut reset first, then the idle steps and the uncut reset, which must find nothing
+    # removed: the cut reset restored every cut env
     assert result["removed_elements_per_env_at_uncut_reset"] == 0.0
     assert result["removed_elements_per_env_at_cut_reset"] > 0.0
     assert result["uncut_reset_ms"] > 0.0 and result["cut_reset_ms"] > 0.0
+    assert len(result["uncut_reset_ms_all"]) == len(result["cut_reset_ms_all"]) == 2
+    ratios = sorted(c / u for c, u in zip(result["cut_reset_ms_all"], result["uncut_reset_ms_all"], strict=True))
+    paired = result["cut_over_uncut_paired"]
+    assert paired["q25"] == pytest.approx(ratios[0] + 0.25 * (ratios[1] - ratios[0]))
+    assert paired["median"] == pytest.approx(sum(ratios) / 2) and paired["q75"] <= ratios[1]
     profiles = {kind: json.loads((tmp_path / "prof" / f"TissueDissection_reset_{kind}.json").read_text())
                 for kind in ("uncut", "cut")}
     assert profiles["uncut"]["removed_elements_per_env"] == 0.0 and profiles["cut"]["removed_elements_per_env"] > 0.0
