@@ -22,6 +22,7 @@ import bench_env  # noqa: E402
 import bench_fused  # noqa: E402
 import bench_reset  # noqa: E402
 import border_follower  # noqa: E402
+import cloth_sag  # noqa: E402
 import expert_success  # noqa: E402
 import ppo  # noqa: E402
 import profile_learner  # noqa: E402
@@ -667,3 +668,19 @@ def test_proprio_group_beside_images(tmp_path, capsys):
                          **{"observation_type": "RGB", **bad}, proprioception=True)
     with pytest.raises(ValueError, match="gymnasium adapters"):
         LapwarpVectorEnv("DeflectSpheres", num_envs=1, observation_type="RGB", proprioception=True)
+
+
+def test_cloth_sag_reports_a_hanging_cloth_per_second(device, tmp_path, capsys):
+    """One record per simulated second per setting: the cloth hangs below its flat rest plane (z = 0) and not by more
+    than its 75 mm side; a malformed setting is a usage error."""
+    out = tmp_path / "sag.jsonl"
+    assert cloth_sag.main(["--device", device, "--settings", "2x1", "--seconds", "1", "--out", str(out)]) == 0
+    (row,) = [json.loads(line) for line in out.read_text().splitlines()]
+    assert (row["physics_substeps"], row["cloth_newton_steps"]) == (2, 1)
+    assert len(row["centre_z_m"]) == len(row["lowest_z_m"]) == 1
+    assert -0.075 < row["lowest_z_m"][0] <= row["centre_z_m"][0] < 0.0
+    for bad in ("8", "8x0", "ax2"):
+        with pytest.raises(SystemExit):
+            cloth_sag.main(["--settings", bad])
+        err = capsys.readouterr().err
+        assert "SUBSTEPSxNEWTON" in err or "must be positive" in err

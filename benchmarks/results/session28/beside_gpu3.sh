@@ -1,0 +1,44 @@
+#!/usr/bin/env bash
+# GPU 3 of the next x4 lease (GPU 1 of an x2 lease: DEVICE=cuda:1), from the code copy (queue.sh's BESIDE):
+# 1. RopeCutting's cut reset against its uncut one (1.155 on an H200 in the twenty-eighth session, with kernel sums
+#    0.512 / 0.460 ms and the profiled walls the other way round, 1.578 / 1.706 ms): 30 repeats in alternating order
+#    (bench_reset.py since the twenty-eighth session), with sofa_env's layout rule and with min_rope_distance=0 (every
+#    rope's first draw accepted: the layout's rejection draws, whose cost is the slowest of 4,096 envs, drop out);
+# 2. PrecisionCutting's step (expert, STATE) over the cloth's substeps x Newton steps (steady centre sag, CPU, 5 s
+#    after reset: converged 7.6 mm; 8 x 2, the default, 9.7; 8 x 1 10.4; 16 x 1 8.5; 12 x 1 9.3; 4 x 2 11.4; 32 x 1
+#    7.8): what each costs against the 100k target;
+# 3. kernel profiles of ThreadInHole, RopeThreading and LigatingLoop (issue #18's speeds; the profiles on record are
+#    many sessions old);
+# then the learning queue JOBS until DEADLINE seconds after this script started.
+# DEVICE (cuda:3), NUM_ENVS (4096), JOBS (next_jobs_gpu3.txt) and DEADLINE (1400) override.
+set -u
+t0=$(date +%s)
+dev=${DEVICE:-cuda:3}
+n=${NUM_ENVS:-4096}
+d=benchmarks/results/session28
+out=/tmp/r/beside28
+mkdir -p "$out"
+for layout in sofa free; do
+  extra=""
+  [ "$layout" = free ] && extra="min_rope_distance=0"
+  python3 benchmarks/bench_reset.py --tasks RopeCutting --device "$dev" --num-envs "$n" --repeats 30 \
+    --set num_ropes_to_cut=3 $extra --out "$out/reset_rc_$layout.json" > "$out/reset_rc_$layout.txt" 2>&1
+  echo "reset_rc_$layout rc=$? $(tail -1 "$out/reset_rc_$layout.txt")"
+done
+for cfg in 8x2 8x1 16x1 12x1 4x2 32x1; do
+  sub=${cfg%x*}; newton=${cfg#*x}
+  python3 benchmarks/bench_env.py --task PrecisionCutting --device "$dev" --num-envs "$n" --seconds 3 --obs STATE \
+    --policy expert --set physics_substeps=$sub cloth_newton_steps=$newton --out "$out/pc_$cfg.json" \
+    > "$out/pc_$cfg.txt" 2>&1
+  echo "pc_$cfg rc=$? $(tail -1 "$out/pc_$cfg.txt")"
+done
+for task in ThreadInHole RopeThreading LigatingLoop; do
+  python3 benchmarks/profile_step.py --task $task --device "$dev" --num-envs "$n" --warmup 20 --steps 10 \
+    --out "$out/profile_$task.json" > "$out/profile_$task.txt" 2>&1
+  echo "profile_$task rc=$?"; head -8 "$out/profile_$task.txt"
+done
+left=$((${DEADLINE:-1400} + t0 - $(date +%s)))
+[ "$left" -gt 0 ] || { echo "no time left for the queue"; exit 0; }
+python3 train/experiments.py --queue "${JOBS:-$d/next_jobs_gpu3.txt}" --devices "$dev" \
+  --fast-pixels --shared-encoder --skip-done --no-plots --deadline "$left" --out /tmp/r/learning \
+  --log-dir /tmp/queue_runs_beside
