@@ -27,6 +27,7 @@ import torch
 import warp as wp
 
 import lapwarp
+from lapwarp import launching
 from lapwarp.cli import default_device, non_negative_int, parse_overrides, positive_float, positive_int
 from lapwarp.experts import make_expert
 
@@ -60,6 +61,19 @@ def apply_contact_settings(env, surface_refit_interval: int | None = None, trian
             contact.triangle_block_threads = triangle_block_threads
 
 
+def parse_register_caps(items: list[str]) -> dict[str, int]:
+    """``KERNEL=N`` items as ``{kernel function name: cap}``; a ``ValueError`` for a malformed item or cap (a name the
+    step does not launch is caught when the world records its step)."""
+    caps = {}
+    for item in items:
+        name, sep, value = item.partition("=")
+        if not sep or not name or not value.strip().isdigit():
+            raise ValueError(f"--max-registers takes KERNEL=N items, got {item!r}")
+        caps[name] = int(value)
+        launching.check_register_cap(caps[name])
+    return caps
+
+
 def record_expert_actions(env, steps: int) -> list[torch.Tensor]:
     """The scripted expert's actions over ``steps`` steps of ``env`` (which they advance), one tensor per step."""
     expert = make_expert(env)
@@ -73,12 +87,14 @@ def record_expert_actions(env, steps: int) -> list[torch.Tensor]:
 def bench_one(task: str, num_envs: int, device: str, seconds: float, invalid_actions: str, overrides: dict,
               policy: str = "random", tet_solver: str | None = None, cuda_graph: bool = True,
               surface_refit_interval: int | None = None, triangle_sweep: str | None = None,
-              triangle_block_threads: int | None = None, replay_steps: int = 600) -> dict:
+              triangle_block_threads: int | None = None, replay_steps: int = 600,
+              max_registers: dict[str, int] | None = None) -> dict:
     def make_env():
         env = lapwarp.make(task, num_envs=num_envs, device=device, invalid_actions=invalid_actions,
                            use_cuda_graph=cuda_graph, **overrides)
         if tet_solver is not None:
             env.world.tet_solver = tet_solver  # before the first step records (and the env captures) the launches
+        env.world.max_registers = dict(max_registers or {})
         apply_contact_settings(env, surface_refit_interval, triangle_sweep, triangle_block_threads)
         return env
 
@@ -136,6 +152,7 @@ def bench_one(task: str, num_envs: int, device: str, seconds: float, invalid_act
         "surface_refit_interval": next((c.surface_refit_interval for c in contact_systems(env)), None),
         "triangle_block_threads": next((c.triangle_block_threads for c in contact_systems(env)), None),
         "tet_solver": ("fused" if env.world.fused_tets else "colored") if env.world.model.tet_count else None,
+        "max_registers": dict(env.world.max_registers),
     }
     env.close()
     return result
@@ -167,6 +184,9 @@ def main(argv: list[str] | None = None) -> int:
                         help="the contact system's triangle sweep (default: its own)")
     parser.add_argument("--triangle-block-threads", type=positive_int, default=None,
                         help="threads per env block of the fused triangle sweep (default: the contact system's own)")
+    parser.add_argument("--max-registers", nargs="*", default=[], metavar="KERNEL=N",
+                        help="register caps of the world step's kernels by function name, e.g. "
+                             "collide_triangle_colors=64 (launching.register_capped; CUDA only has an effect)")
     parser.add_argument("--no-graph", action="store_true",
                         help="launch the step's kernels one by one instead of replaying a CUDA graph")
     parser.add_argument("--out", default=None, help="JSON output path")
@@ -180,6 +200,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.obs != "STATE":
         overrides["image_shape"] = (args.image_size, args.image_size)
     try:  # every point's configuration before the first one is timed
+        max_registers = parse_register_caps(args.max_registers)
         overrides.update(parse_overrides(args.set))
         for mode in modes:
             lapwarp.check_config(args.task, invalid_actions=mode, **overrides)
@@ -192,7 +213,7 @@ def main(argv: list[str] | None = None) -> int:
             r = bench_one(args.task, n, args.device, args.seconds, mode, overrides, args.policy, args.tet_solver,
                           cuda_graph=not args.no_graph, surface_refit_interval=args.surface_refit_interval,
                           triangle_sweep=args.triangle_sweep, triangle_block_threads=args.triangle_block_threads,
-                          replay_steps=args.replay_steps)
+                          replay_steps=args.replay_steps, max_registers=max_registers)
             results.append(r)
             print(f"{r['task']:<10} {n:>9} {mode:>8} {r['env_steps_per_s']:>14,.0f} {r['step_ms']:>9.3f}", flush=True)
     regime = "the expert's recorded actions replayed" if args.policy == "replay" else f"{args.policy} actions"

@@ -158,6 +158,10 @@ class World:
         # block within 0.3 % of the converged sag, where XPBD needs ~300), else "xpbd" (the per-vertex solve moves a
         # free body as a whole only slowly). Tasks name theirs (measured speeds and expert rates depend on it)
         self.tet_method = "auto"
+        # register caps of the recorded step's kernels by their function's name (``{"collide_triangle_colors": 64}``;
+        # launching.register_capped): for measuring what a cap does to a latency-bound kernel (bench_env.py
+        # --max-registers); a name no kernel of the step has is an error when the step is recorded
+        self.max_registers: dict[str, int] = {}
         self.rng = wp.empty(self.num_envs, dtype=wp.uint32, device=self.device)
         self.unstable = wp.zeros(self.num_envs, dtype=wp.int32, device=self.device)
         self._unstable_now = wp.zeros(self.num_envs, dtype=wp.int32, device=self.device)
@@ -375,7 +379,7 @@ class World:
             return
         key = (float(dt), self.substeps_for(float(dt)), self.iterations, self.rod_newton_steps, self.chain_newton_steps,
                self.tet_rotation_iterations, self.chain_block_links, self.tet_solver, self.tet_block_threads,
-               self.tet_method_in_use,
+               self.tet_method_in_use, self._register_caps_key(),
                *(solver.record_key() for solver in self.solvers if hasattr(solver, "record_key")))
         if self._cmd_key != key:
             if self.tet_method not in TET_METHODS:
@@ -396,6 +400,14 @@ class World:
         for cmd in self._cmds:
             cmd()
 
+    def _register_caps_key(self) -> tuple:
+        """``max_registers`` checked (kernel function names to caps CUDA takes) and as a sorted tuple."""
+        for name, cap in self.max_registers.items():
+            if not isinstance(name, str):
+                raise ValueError(f"world.max_registers maps kernel function names to caps, got key {name!r}")
+            launching.check_register_cap(cap)
+        return tuple(sorted(self.max_registers.items()))
+
     def _record_step(self, dt: float) -> list:
         from lapwarp.kernels import xpbd
 
@@ -403,6 +415,8 @@ class World:
         cmds: list = []
 
         sm_count = dev.sm_count if dev.is_cuda else 0
+        caps = self.max_registers
+        capped = set()
 
         def launch(kernel, dim=None, inputs=(), outputs=(), block_dim=None):
             # A plain callable (e.g. ``mesh.refit``) is recorded as is: it must only launch device work.
@@ -410,6 +424,10 @@ class World:
                 cmds.append(kernel)
                 return
             block = block_dim or launching.block_dim_for(dim, sm_count, 64 if kernel in _REGISTER_HEAVY else 256)
+            name = kernel.func.__name__
+            if name in caps:
+                kernel = launching.register_capped(kernel, caps[name])
+                capped.add(name)
             rec = wp.launch(kernel, dim=dim, inputs=inputs, outputs=list(outputs), device=dev, record_cmd=True,
                             block_dim=block)
             cmds.append(rec.launch)
@@ -454,6 +472,9 @@ class World:
             bq, bqp = s.body_q, self._body_q_prev
             cmds.append(lambda: wp.copy(bqp, bq))
         cmds.append(self.check_stability)
+        unknown = sorted(set(caps) - capped)
+        if unknown:
+            raise ValueError(f"world.max_registers names kernels this world's step does not launch: {unknown}")
         return cmds
 
     def _record_sweep(self, launch, xpbd, inv_dt2: float, use_lam: int, sweep: Sweep) -> None:

@@ -192,3 +192,30 @@ def test_block_dim_spreads_small_grids_over_the_gpu():
         block = block_dim_for(threads, 132)
         assert block in (32, 64, 128, 256)
         assert block == 32 or threads >= 4 * 132 * block
+
+
+def _pendulum_world(device, max_registers=None):
+    b = SceneBuilder()
+    b.add_particles([[0.0, 0.0, 0.0], [0.3, 0.0, -0.4]], mass=1.0, fixed=[0])
+    b.add_distance(0, 1)
+    world = b.finalize(2, device, substeps=5)
+    world.max_registers = dict(max_registers or {})
+    return world
+
+
+def test_register_caps_keep_the_results_and_reject_bad_caps(device):
+    """A register cap (``World.max_registers``, by kernel function name) recompiles the kernel in its own module and
+    must not change what it computes: the capped step matches the plain one to float32 round-off (on the CPU the cap
+    is ignored and the results are identical). A cap CUDA's compilers refuse, a non-string name, or a name the step
+    does not launch raise ``ValueError``s when the step is recorded."""
+    plain, capped = _pendulum_world(device), _pendulum_world(device, {"integrate_particles": 32})
+    for _ in range(20):
+        plain.step(0.01)
+        capped.step(0.01)
+    np.testing.assert_allclose(capped.positions(), plain.positions(), rtol=0, atol=1e-6)
+    for caps, message in (({"integrate_particles": 8}, r"register cap must be an int in \[16, 255\]"),
+                          ({"integrate_particles": True}, "register cap must be an int"),
+                          ({3: 64}, "maps kernel function names"),
+                          ({"no_such_kernel": 64}, r"does not launch: \['no_such_kernel'\]")):
+        with pytest.raises(ValueError, match=message):
+            _pendulum_world(device, caps).step(0.01)

@@ -135,6 +135,21 @@ def test_bench_env_applies_and_records_the_contact_settings(device, tmp_path):
     assert r["env_steps_per_s"] > 0
 
 
+def test_bench_env_applies_and_records_register_caps(device, tmp_path, capsys):
+    """``--max-registers KERNEL=N`` caps a kernel of the world's step (recorded with the result); a malformed item or
+    a cap out of range is a usage error before anything runs."""
+    out = tmp_path / "bench.json"
+    assert bench_env.main(["--device", device, "--task", "ThreadInHole", "--num-envs", "1", "--seconds", "0.05",
+                           "--max-registers", "collide_triangle_colors=64", "--out", str(out)]) == 0
+    (r,) = json.loads(out.read_text())["results"]
+    assert r["max_registers"] == {"collide_triangle_colors": 64} and r["env_steps_per_s"] > 0
+    for bad, message in (("collide_triangle_colors", "KERNEL=N"), ("collide_triangle_colors=x", "KERNEL=N"),
+                         ("collide_triangle_colors=300", "register cap must be an int")):
+        with pytest.raises(SystemExit) as exc:
+            bench_env.main(["--device", device, "--task", "ThreadInHole", "--max-registers", bad])
+        assert exc.value.code == 2 and message in capsys.readouterr().err
+
+
 def test_bench_env_replayed_expert_actions_reproduce_the_expert_run(device):
     """``--policy replay`` times the expert's regime without the expert: its recorded actions must take a fresh env
     of the same seed through the same states, cuts included (RopeCutting: the expert cuts ropes and the cut envs

@@ -7,7 +7,9 @@
 # 2. PrecisionCutting's step (expert, STATE) over the cloth's substeps x Newton steps (steady centre sag, CPU, 5 s
 #    after reset: converged 7.6 mm; 8 x 2, the default, 9.7; 8 x 1 10.4; 16 x 1 8.5; 12 x 1 9.3; 4 x 2 11.4; 32 x 1
 #    7.8): what each costs against the 100k target;
-# 3. kernel profiles of ThreadInHole, RopeThreading and LigatingLoop (issue #18's speeds; the profiles on record are
+# 3. register caps of the kernels that lead the step profiles (TissueDissection, PrecisionCutting, ThreadInHole,
+#    LigatingLoop; expert, STATE, each against its baseline in the same call);
+# 4. kernel profiles of ThreadInHole, RopeThreading and LigatingLoop (issue #18's speeds; the profiles on record are
 #    many sessions old);
 # then the learning queue JOBS until DEADLINE seconds after this script started.
 # DEVICE (cuda:3), NUM_ENVS (4096), JOBS (next_jobs_gpu3.txt) and DEADLINE (1400) override.
@@ -31,6 +33,24 @@ for cfg in 8x2 8x1 16x1 12x1 4x2 32x1; do
     --policy expert --set physics_substeps=$sub cloth_newton_steps=$newton --out "$out/pc_$cfg.json" \
     > "$out/pc_$cfg.txt" 2>&1
   echo "pc_$cfg rc=$? $(tail -1 "$out/pc_$cfg.txt")"
+done
+# register caps (World.max_registers, bench_env.py --max-registers; launching.register_capped) of the latency-bound
+# kernels that lead the profiles: TissueDissection's triangle contact (7.28 ms of its 21.13 ms STATE step: 46 colours
+# in series, one 32-lane block per env), its fused tet sweep (5.85) and particle contact (1.94); PrecisionCutting's
+# cloth chains (capped at 96 since the twelfth session's measurement); ThreadInHole's and LigatingLoop's triangle
+# contact. "none" is each task's baseline in the same call
+for spec in "TissueDissection none" "TissueDissection collide_triangle_colors=64" \
+    "TissueDissection collide_triangle_colors=96" "TissueDissection solve_tets_fused=96" \
+    "TissueDissection solve_tets_fused=64" "TissueDissection collide_particles=64" \
+    "PrecisionCutting solve_chains=64" "ThreadInHole none" "ThreadInHole collide_triangle_colors=64" \
+    "LigatingLoop none" "LigatingLoop collide_triangle_colors=64"; do
+  set -- $spec
+  caps=""
+  [ "$2" = none ] || caps="--max-registers $2"
+  name="caps_$1_${2%%=*}_${2#*=}"  # no "=" in the file names (the device tool returns plain names only)
+  python3 benchmarks/bench_env.py --task $1 --device "$dev" --num-envs "$n" --seconds 3 --obs STATE --policy expert \
+    $caps --out "$out/$name.json" > "$out/$name.txt" 2>&1
+  echo "caps $1 $2 rc=$? $(tail -1 "$out/$name.txt")"
 done
 for task in ThreadInHole RopeThreading LigatingLoop; do
   python3 benchmarks/profile_step.py --task $task --device "$dev" --num-envs "$n" --warmup 20 --steps 10 \
