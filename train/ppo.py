@@ -59,6 +59,7 @@ from rank_setup import (
     single_process_settings,
     sum_over_ranks,
 )
+from reward_normalization import ReturnScaler
 from rsl_rl.algorithms import PPO
 from rsl_rl.runners import OnPolicyRunner
 
@@ -71,11 +72,15 @@ class ScheduledPPO(PPO):
     (``decay_rate``, the paper's lin(x)), and a cap on the actor's action noise falling from its initial standard
     deviation to ``final_noise_std`` at the last update (``ppo.py --final-noise-std``: late in training the mean
     action has to do what the noise did, so the deterministic policy is the one that was trained; rsl-rl's learned
-    std is clamped to the cap, its parameter left alone)."""
+    std is clamped to the cap, its parameter left alone); and, with ``reward_normalization``, the rewards it stores
+    scaled by the running discounted return's spread (``train/reward_normalization.py``)."""
 
     def __init__(self, *args, total_updates: int = 1, decay_rate: bool = True, final_noise_std: float | None = None,
-                 **kwargs):
+                 reward_normalization: bool = False, **kwargs):
         super().__init__(*args, **kwargs)
+        # rewards scaled by the running return's spread before they are stored (ppo.py --reward-normalization); the
+        # runner's logs keep the env's own rewards
+        self.return_scaler = ReturnScaler(self.gamma) if reward_normalization else None
         self.total_updates = max(1, int(total_updates))
         self.decay_rate = decay_rate
         self.final_noise_std = final_noise_std
@@ -109,6 +114,11 @@ class ScheduledPPO(PPO):
     def update(self) -> dict:
         self.apply_schedules()
         return super().update()
+
+    def process_env_step(self, obs, rewards, dones, extras) -> None:
+        if self.return_scaler is not None:
+            rewards = self.return_scaler.scale(rewards, dones)
+        super().process_env_step(obs, rewards, dones, extras)
 
 
 class LinearSchedulePPO(ScheduledPPO):
@@ -472,6 +482,10 @@ def build_parser() -> argparse.ArgumentParser:
                         help="normalise the state observations of the MLP models (actor and critic, or an image run's "
                              "state critic) by running mean and standard deviation (rsl-rl's empirical "
                              "normalisation): for tasks whose success needs millimetres out of observations in metres")
+    parser.add_argument("--reward-normalization", action="store_true",
+                        help="scale the rewards PPO learns from by the running discounted return's standard deviation, "
+                             "clipped to +-10 (sb3's VecNormalize, which the paper's runs used; the logs keep the "
+                             "env's rewards)")
     parser.add_argument("--verbose", action="store_true", help="print rsl-rl's full block per iteration")
     return parser
 
@@ -554,6 +568,10 @@ def training_config(args: argparse.Namespace, parser: argparse.ArgumentParser, d
         else:
             alg.update(class_name=ScheduledPPO, total_updates=iterations, decay_rate=False,
                        final_noise_std=args.final_noise_std)
+    if args.reward_normalization:
+        if alg.get("class_name") not in (LinearSchedulePPO, ScheduledPPO):
+            alg.update(class_name=ScheduledPPO, total_updates=iterations, decay_rate=False)
+        alg["reward_normalization"] = True
     if args.entropy_coef is not None:
         if not 0.0 <= args.entropy_coef <= 1.0:  # NaN fails the comparison too
             parser.error(f"--entropy-coef must be in [0, 1], got {args.entropy_coef}")
