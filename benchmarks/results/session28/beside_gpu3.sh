@@ -38,12 +38,12 @@ done
 # kernels that lead the profiles: TissueDissection's triangle contact (7.28 ms of its 21.13 ms STATE step: 46 colours
 # in series, one 32-lane block per env), its fused tet sweep (5.85) and particle contact (1.94); PrecisionCutting's
 # cloth chains (capped at 96 since the twelfth session's measurement); ThreadInHole's and LigatingLoop's triangle
-# contact. "none" is each task's baseline in the same call
+# contact and LigatingLoop's surface contact. "none" is each task's baseline in the same call
 for spec in "TissueDissection none" "TissueDissection collide_triangle_colors=64" \
     "TissueDissection collide_triangle_colors=96" "TissueDissection solve_tets_fused=96" \
     "TissueDissection solve_tets_fused=64" "TissueDissection collide_particles=64" \
     "PrecisionCutting solve_chains=64" "ThreadInHole none" "ThreadInHole collide_triangle_colors=64" \
-    "LigatingLoop none" "LigatingLoop collide_triangle_colors=64"; do
+    "LigatingLoop none" "LigatingLoop collide_surface=64"; do
   set -- $spec
   caps=""
   [ "$2" = none ] || caps="--max-registers $2"
