@@ -37,7 +37,7 @@ done
 # register caps (World.max_registers, bench_env.py --max-registers; launching.register_capped) of the latency-bound
 # kernels that lead the profiles: TissueDissection's triangle contact (7.28 ms of its 21.13 ms STATE step: 46 colours
 # in series, one 32-lane block per env), its fused tet sweep (5.85) and particle contact (1.94); PrecisionCutting's
-# cloth chains (capped at 96 since the twelfth session's measurement); ThreadInHole's and LigatingLoop's triangle
+# cloth chains (capped at 96 since the twelfth session's measurement); ThreadInHole's triangle
 # contact and LigatingLoop's surface contact. "none" is each task's baseline in the same call
 for spec in "TissueDissection none" "TissueDissection collide_triangle_colors=64" \
     "TissueDissection collide_triangle_colors=96" "TissueDissection solve_tets_fused=96" \
