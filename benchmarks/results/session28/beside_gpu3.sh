@@ -34,6 +34,14 @@ for cfg in 8x2 8x1 16x1 12x1 4x2 32x1; do
     > "$out/pc_$cfg.txt" 2>&1
   echo "pc_$cfg rc=$? $(tail -1 "$out/pc_$cfg.txt")"
 done
+# RopeCutting's rope solve at 6 Newton steps per sweep (the default) against 4 and 5: on the CPU (one rope, 40
+# substeps) 4 and more settle to the taut-string closed form within 0.2 % after 5-20 mm bumps in y and z, 3 does not
+# after 20 mm (the chain solve is 63 % of RopeCutting's step)
+for newton in 6 5 4; do
+  python3 benchmarks/bench_env.py --task RopeCutting --device "$dev" --num-envs "$n" --seconds 3 --obs STATE \
+    --policy expert --set rope_newton_steps=$newton --out "$out/rc_newton$newton.json" > "$out/rc_newton$newton.txt" 2>&1
+  echo "rc_newton$newton rc=$? $(tail -1 "$out/rc_newton$newton.txt")"
+done
 # register caps (World.max_registers, bench_env.py --max-registers; launching.register_capped) of the latency-bound
 # kernels that lead the profiles: TissueDissection's triangle contact (7.28 ms of its 21.13 ms STATE step: 46 colours
 # in series, one 32-lane block per env), its fused tet sweep (5.85) and particle contact (1.94); PrecisionCutting's

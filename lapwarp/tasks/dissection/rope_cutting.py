@@ -129,8 +129,10 @@ class RopeCuttingConfig(EnvConfig):
         physics_substeps: XPBD substeps per physics step (40: see ``rope_newton_steps``).
         rope_newton_steps: Newton steps of each rope's stretch solve per sweep. A rope pre-stretched to 5x its rest
             length is strongly nonlinear: with one or two steps its transverse response overshoots and a pushed
-            rope never settles (measured: chaotic at 10-80 substeps with 1-4 steps); 6 steps at 40 substeps
-            recover the taut-string sag to 1 % after a 20 mm push.
+            rope never settles (measured when the task was built: chaotic at 10-80 substeps with 1-4 steps); 6 steps
+            at 40 substeps recover the taut-string sag to 1 % after a 20 mm push. Re-measured with
+            ``benchmarks/rope_settle.py`` (one rope, middle third bumped 5-20 mm sideways or down): at 40 substeps 4
+            steps settle within 0.2 % too, 3 do not after 20 mm, and 30 substeps need 6; 6 keep a margin.
         contact_capacity: contact records kept per env per step (counted when exceeded, never silent).
         max_episode_steps: time limit; ``None`` = max(400, 200 C) (Table C).
     """
