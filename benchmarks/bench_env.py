@@ -29,6 +29,7 @@ import warp as wp
 import lapwarp
 from lapwarp import launching
 from lapwarp.cli import default_device, non_negative_int, parse_overrides, positive_float, positive_int
+from lapwarp.contact import ContactSystem
 from lapwarp.experts import make_expert
 
 
@@ -180,7 +181,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--surface-refit-interval", type=non_negative_int, default=None,
                         help="substeps between refits of deforming contact surfaces' BVHs (0: once per world step; "
                              "default: the contact system's own)")
-    parser.add_argument("--triangle-sweep", choices=["colored", "fused"], default=None,
+    parser.add_argument("--triangle-sweep", choices=ContactSystem.TRIANGLE_SWEEPS, default=None,
                         help="the contact system's triangle sweep (default: its own)")
     parser.add_argument("--triangle-block-threads", type=positive_int, default=None,
                         help="threads per env block of the fused triangle sweep (default: the contact system's own)")

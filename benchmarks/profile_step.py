@@ -28,6 +28,7 @@ from bench_env import apply_contact_settings
 
 import lapwarp
 from lapwarp.cli import parse_overrides, positive_int
+from lapwarp.contact import ContactSystem
 from lapwarp.experts import make_expert
 
 
@@ -68,7 +69,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--warmup", type=positive_int, default=3, help="untimed steps first (state develops)")
     parser.add_argument("--timing", choices=["kernel", "all"], default="kernel",
                         help="kernels only, or kernels, memcpys and memsets")
-    parser.add_argument("--triangle-sweep", choices=["colored", "fused"], default=None,
+    parser.add_argument("--triangle-sweep", choices=ContactSystem.TRIANGLE_SWEEPS, default=None,
                         help="the contact system's triangle sweep (default: its own)")
     parser.add_argument("--top", type=positive_int, default=25, help="kernels printed")
     parser.add_argument("--out", default=None)

@@ -133,7 +133,9 @@ class ContactSystem:
         self.report_margin = float(report_margin)
         # triangle contact: "colored" = one launch per colour of triangles; "fused" = every colour in one launch, a
         # thread block of triangle_block_threads per env with a barrier between colours (ck.collide_triangle_colors);
-        # read when the World records a step (record_key)
+        # "outcodes" = the fused sweep with the box cull read from per-particle outcodes in shared memory (the same
+        # contacts, fewer loads in series: ck.collide_triangle_outcodes_kernel); read when the World records a step
+        # (record_key)
         self.triangle_sweep = "fused"
         self.triangle_block_threads = 32
         # deforming surfaces: refit their BVH every surface_refit_interval substeps (0: once per world.step, at its
@@ -472,6 +474,8 @@ class ContactSystem:
                                           hi=wp.zeros(n, dtype=wp.vec3, device=dev))
             self._tri_pad = float(np.concatenate(trad).max())
             self._tri_color_table = arr(np.asarray(self.tri_color_offsets, dtype=np.int32), wp.int32)
+            # the particles the triangles' nodes span (the outcode sweep's shared window)
+            self._tri_window = (int(tri_all.min()), int(tri_all.max() - tri_all.min() + 1))
         self.tri_col = self._no_col
         if tris and any(g.tri_col is not None for g in self.groups if g.triangles is not None):
             cols = [g.tri_col if g.tri_col is not None else np.full(len(g.triangles), -1)
@@ -597,12 +601,17 @@ class ContactSystem:
         return self._solves[key]
 
     #: the triangle sweeps ``triangle_sweep`` may name
-    TRIANGLE_SWEEPS = ("colored", "fused")
+    TRIANGLE_SWEEPS = ("colored", "fused", "outcodes")
 
     def record_key(self) -> tuple:
         """The settings the recorded launches depend on (the World records a step again when they change)."""
         if self.triangle_sweep not in self.TRIANGLE_SWEEPS:
             raise ValueError(f"triangle_sweep must be one of {self.TRIANGLE_SWEEPS}, got {self.triangle_sweep!r}")
+        if (self.triangle_sweep == "outcodes" and len(self.tri_color_offsets) > 1
+                and self._tri_window[1] > ck.OUTCODE_MAX_PARTICLES):
+            raise ValueError(f"triangle_sweep 'outcodes' keeps an int per particle of the triangles' window in shared "
+                             f"memory: this scene's window of {self._tri_window[1]} particles exceeds "
+                             f"{ck.OUTCODE_MAX_PARTICLES}; use 'fused'")
         if not 1 <= int(self.triangle_block_threads) <= 1024:
             raise ValueError(f"triangle_block_threads must be in [1, 1024] (threads of one env's block), "
                              f"got {self.triangle_block_threads!r}")
@@ -645,6 +654,12 @@ class ContactSystem:
             threads = launching.block_lanes(self.device, self.triangle_block_threads)
             launch(ck.collide_triangle_colors, (n, threads),
                    [self._triangles, self._tri_color_table, shapes, self._tool_axes, solve, ignore, masks],
+                   [q, reports], block_dim=threads)
+        elif has_triangles and self.triangle_sweep == "outcodes":
+            threads = launching.block_lanes(self.device, self.triangle_block_threads)
+            first, window = self._tri_window
+            launch(ck.collide_triangle_outcodes_kernel(window), (n, threads),
+                   [self._triangles, self._tri_color_table, first, shapes, self._tool_axes, solve, ignore, masks],
                    [q, reports], block_dim=threads)
         elif has_triangles:
             for c in range(len(off) - 1):

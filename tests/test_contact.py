@@ -174,23 +174,62 @@ def test_capsule_never_tunnels_through_cloth(device, speed):
 
 
 def test_fused_triangle_sweep_matches_one_launch_per_colour(device):
-    """``triangle_sweep = "fused"`` (every colour in one launch, a block per env, a barrier between colours) projects
-    the same triangles in the same order as one launch per colour: the same cloth, bit for bit on the CPU (one lane
-    per block), within float32 rounding on the GPU; and it still stops the tool at 0.1 m/s."""
+    """``triangle_sweep = "fused"`` (every colour in one launch, a block per env, a barrier between colours) and
+    ``"outcodes"`` (the same with the box cull read from per-particle outcodes in shared memory, updated where a
+    contact moves a node) project the same triangles in the same order as one launch per colour: the same cloth, bit
+    for bit on the CPU (one lane per block), within float32 rounding on the GPU; and they still stop the tool at
+    0.1 m/s."""
     x = {}
-    for sweep in ("colored", "fused"):
+    for sweep in ("colored", "fused", "outcodes"):
         out = []
         gap, ahead = _push_capsule(device, 0.1, kind="cloth", triangle_sweep=sweep, positions=out)
         assert gap > -1.0e-4 and ahead
         x[sweep] = out[0]
-    if device == "cpu":
-        np.testing.assert_array_equal(x["fused"], x["colored"])
-    else:
-        np.testing.assert_allclose(x["fused"], x["colored"], atol=1e-6)
+    assert np.abs(x["colored"][:, 2] - 0.005).max() > 1.0e-3  # the tool carried the cloth: contacts were projected
+    for sweep in ("fused", "outcodes"):
+        if device == "cpu":
+            np.testing.assert_array_equal(x[sweep], x["colored"])
+        else:
+            np.testing.assert_allclose(x[sweep], x["colored"], atol=1e-6)
+
+
+def test_outcode_sweep_matches_the_fused_sweep_in_a_cutting_task(device):
+    """TissueDissection (tissue surfaces of tet faces masked as the hook cuts, four tool shapes): 40 steps of the
+    scripted expert give the same particles, cut tets and contact reports under ``"outcodes"`` as under
+    ``"fused"`` (bit for bit on the CPU; float32 rounding on the GPU, where the reports are summed atomically)."""
+    import lapwarp
+    from lapwarp.experts import make_expert
+
+    out = {}
+    for sweep in ("fused", "outcodes"):
+        env = lapwarp.make("TissueDissection", num_envs=2, device=device, seed=3)
+        env.contact.triangle_sweep = sweep
+        expert = make_expert(env)
+        env.reset()
+        for _ in range(40):
+            env.step(expert())
+        out[sweep] = (env.world.state.particle_q.numpy(), env.world.state.tet_active.numpy(),
+                      env.contact.reports.report_force.numpy())
+        env.close()
+    assert (out["fused"][1] == 0).any()  # the hook cut: masked faces were in play
+    assert np.abs(out["fused"][2]).max() > 0.0  # and touched the tissue
+    for a, b in zip(out["outcodes"], out["fused"], strict=True):
+        if device == "cpu":
+            np.testing.assert_array_equal(a, b)
+        else:
+            np.testing.assert_allclose(a, b, atol=1e-6)
+
+
+def test_outcode_sweep_refuses_a_window_beyond_shared_memory(device, monkeypatch):
+    from lapwarp.kernels import contact as ck
+
+    monkeypatch.setattr(ck, "OUTCODE_MAX_PARTICLES", 100)
+    with pytest.raises(ValueError, match="window of .* particles exceeds 100; use 'fused'"):
+        _push_capsule(device, 0.1, kind="cloth", triangle_sweep="outcodes")
 
 
 def test_unknown_triangle_sweep_is_rejected(device):
-    with pytest.raises(ValueError, match="colored.*fused"):
+    with pytest.raises(ValueError, match="colored.*fused.*outcodes"):
         _push_capsule(device, 0.1, kind="cloth", triangle_sweep="jacobi")
 
 

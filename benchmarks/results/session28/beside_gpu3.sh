@@ -7,7 +7,8 @@
 # 2. PrecisionCutting's step (expert, STATE) over the cloth's substeps x Newton steps (steady centre sag, CPU, 5 s
 #    after reset: converged 7.6 mm; 8 x 2, the default, 9.7; 8 x 1 10.4; 16 x 1 8.5; 12 x 1 9.3; 4 x 2 11.4; 32 x 1
 #    7.8): what each costs against the 100k target;
-# 3. register caps of the kernels that lead the step profiles (TissueDissection, PrecisionCutting, ThreadInHole,
+# 3. the outcode triangle sweep against the fused one (GPU tests, then TissueDissection, PrecisionCutting,
+#    ThreadInHole STATE and TissueDissection RGB); register caps of the kernels that lead the step profiles (TissueDissection, PrecisionCutting, ThreadInHole,
 #    LigatingLoop; expert, STATE, each against its baseline in the same call);
 # 4. kernel profiles of ThreadInHole, RopeThreading and LigatingLoop (issue #18's speeds; the profiles on record are
 #    many sessions old);
@@ -42,6 +43,26 @@ for newton in 6 5 4; do
     --policy expert --set rope_newton_steps=$newton --out "$out/rc_newton$newton.json" > "$out/rc_newton$newton.txt" 2>&1
   echo "rc_newton$newton rc=$? $(tail -1 "$out/rc_newton$newton.txt")"
 done
+# the outcode triangle sweep (ContactSystem.triangle_sweep = "outcodes", new: the fused sweep's box cull read from
+# per-particle outcodes in shared memory, bit-identical on the CPU) against the fused one, on the GPU tests first
+python3 -m pytest -q -p no:cacheprovider tests/test_contact.py tests/test_physics_basic.py \
+  -k "fused or outcode or register" --device "$dev" > "$out/pytest_cuda.txt" 2>&1
+echo "pytest rc=$? $(tail -1 "$out/pytest_cuda.txt")"
+for task in TissueDissection PrecisionCutting ThreadInHole; do
+  for sweep in fused outcodes; do
+    python3 benchmarks/bench_env.py --task $task --device "$dev" --num-envs "$n" --seconds 3 --obs STATE \
+      --policy expert --triangle-sweep $sweep --out "$out/sweep_${task}_$sweep.json" > "$out/sweep_${task}_$sweep.txt" 2>&1
+    echo "sweep $task $sweep rc=$? $(tail -1 "$out/sweep_${task}_$sweep.txt")"
+  done
+done
+for sweep in fused outcodes; do
+  python3 benchmarks/bench_env.py --task TissueDissection --device "$dev" --num-envs "$n" --seconds 3 --obs RGB \
+    --policy expert --triangle-sweep $sweep --out "$out/sweep_td_rgb_$sweep.json" > "$out/sweep_td_rgb_$sweep.txt" 2>&1
+  echo "sweep TissueDissection RGB $sweep rc=$? $(tail -1 "$out/sweep_td_rgb_$sweep.txt")"
+done
+python3 benchmarks/profile_step.py --task TissueDissection --device "$dev" --num-envs "$n" --warmup 60 --steps 20 \
+  --triangle-sweep outcodes --out "$out/profile_td_outcodes.json" > "$out/profile_td_outcodes.txt" 2>&1
+echo "profile_td_outcodes rc=$?"; head -8 "$out/profile_td_outcodes.txt"
 # register caps (World.max_registers, bench_env.py --max-registers; launching.register_capped) of the latency-bound
 # kernels that lead the profiles: TissueDissection's triangle contact (7.28 ms of its 21.13 ms STATE step: 46 colours
 # in series, one 32-lane block per env), its fused tet sweep (5.85) and particle contact (1.94); PrecisionCutting's
