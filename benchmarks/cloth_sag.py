@@ -34,6 +34,13 @@ def parse_setting(text: str) -> tuple[int, int]:
     return substeps, newton
 
 
+def write_rows(path: str, device: str, rows: list[dict]) -> None:
+    """``rows`` as JSON lines, each with the device it ran on."""
+    with open(path, "w") as f:
+        for row in rows:
+            f.write(json.dumps({"device": device, **row}) + "\n")
+
+
 def sag_series(substeps: int, newton: int, seconds: int, device: str) -> dict:
     env = lapwarp.make("PrecisionCutting", num_envs=1, device=device, physics_substeps=substeps,
                        cloth_newton_steps=newton, ptsd_noise=[0.0, 0.0, 0.0, 0.0])
@@ -71,9 +78,7 @@ def main(argv: list[str] | None = None) -> int:
               + " ".join(f"{1e3 * z:6.2f}" for z in row["centre_z_m"])
               + f"; lowest {1e3 * row['lowest_z_m'][-1]:.2f}", flush=True)
     if args.out:
-        with open(args.out, "w") as f:
-            for row in rows:
-                f.write(json.dumps({"device": args.device, **row}) + "\n")
+        write_rows(args.out, args.device, rows)
     return 0
 
 

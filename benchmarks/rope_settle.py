@@ -14,11 +14,10 @@ end.
 from __future__ import annotations
 
 import argparse
-import json
 
 import numpy as np
 import warp as wp
-from cloth_sag import parse_setting
+from cloth_sag import parse_setting, write_rows
 
 from lapwarp.builder import SceneBuilder
 from lapwarp.cli import default_device
@@ -35,18 +34,26 @@ def taut_string_sag() -> float:
     return load / h * (SPAN / 2 - h / 2) * (SPAN / 2 + h / 2) / (2.0 * tension)
 
 
-def bumped_rope(device: str, substeps: int, newton: int, push: float, axis: int):
+def task_rope(device: str, substeps: int, newton: int, cuttable: bool = False):
+    """One rope of the task, stretched straight between (-50, 0, 0) and (50, 0, 0) mm at rest: (world, rope)."""
     cfg = RopeCuttingConfig()
     b = SceneBuilder()
     x = np.stack([np.linspace(-SPAN / 2, SPAN / 2, NODES), np.zeros(NODES), np.zeros(NODES)], axis=1)
     area = np.pi * cfg.rope_radius**2
     rope = b.add_rod(x, radius=cfg.rope_radius, density=MASS / (area * SPAN),
                      youngs_modulus=SPRING * (SPAN / SEGMENTS) / area, fixed=[0, NODES - 1], damping=cfg.rope_damping,
-                     stretch_rest_scale=1.0 - CONTRACTION)
+                     cuttable=cuttable, stretch_rest_scale=1.0 - CONTRACTION)
     world = b.finalize(num_envs=1, device=device, substeps=substeps)
     world.rod_newton_steps = newton
+    return world, rope
+
+
+def bumped_rope(device: str, substeps: int, newton: int, push: float, axis: int):
+    """``task_rope`` with its middle third displaced by ``push`` along ``axis``, tapering to the walls."""
+    world, rope = task_rope(device, substeps, newton)
     q = world.state.particle_q.numpy()
-    q[0, :NODES, axis] += push * np.clip(1.5 * (1.0 - np.abs(x[:, 0]) / (SPAN / 2)), 0.0, 1.0)
+    x = q[0, :NODES, 0]
+    q[0, :NODES, axis] += push * np.clip(1.5 * (1.0 - np.abs(x) / (SPAN / 2)), 0.0, 1.0)
     world.state.particle_q.assign(q)
     return world, rope
 
@@ -83,9 +90,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{substeps:3d} x {newton:2d}: sag / closed form after {args.seconds:g} s  " + "  ".join(cells),
               flush=True)
     if args.out:
-        with open(args.out, "w") as f:
-            for row in rows:
-                f.write(json.dumps({"device": args.device, **row}) + "\n")
+        write_rows(args.out, args.device, rows)
     return 0
 
 

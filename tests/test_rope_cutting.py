@@ -13,28 +13,23 @@ import torch
 import warp as wp
 
 import lapwarp
-from lapwarp.builder import SceneBuilder
 from lapwarp.cutting import CuttingSystem
 from lapwarp.experts import make_expert
 from lapwarp.tasks.dissection.rope_cutting import NODES, SEGMENTS, TRACKED
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+import rope_settle  # noqa: E402
 
 K, CONTRACTION, MASS = 1.0e4, 0.8, 0.01  # the env's rope: spring constant (N/m), rest-length ratio, kg per rope
 
 
 def one_rope(device, cuttable=False):
-    """The env's rope (same construction) stretched horizontally between (-50, 0, 0) and (50, 0, 0) mm."""
+    """The env's rope (same construction, ``benchmarks/rope_settle.py``) stretched horizontally between (-50, 0, 0)
+    and (50, 0, 0) mm, at the env's substeps and Newton steps."""
     from lapwarp.tasks.dissection.rope_cutting import RopeCuttingConfig
 
     cfg = RopeCuttingConfig()
-    b = SceneBuilder()
-    x = np.stack([np.linspace(-0.05, 0.05, NODES), np.zeros(NODES), np.zeros(NODES)], axis=1)
-    area = np.pi * cfg.rope_radius**2
-    rope = b.add_rod(x, radius=cfg.rope_radius, density=MASS / (area * 0.1), youngs_modulus=K * (0.1 / SEGMENTS) / area,
-                     fixed=[0, NODES - 1], damping=cfg.rope_damping, cuttable=cuttable,
-                     stretch_rest_scale=1.0 - CONTRACTION)
-    world = b.finalize(num_envs=1, device=device, substeps=cfg.physics_substeps)
-    world.rod_newton_steps = cfg.rope_newton_steps
-    return world, rope
+    return rope_settle.task_rope(device, cfg.physics_substeps, cfg.rope_newton_steps, cuttable=cuttable)
 
 
 def test_pretensioned_rope_sags_like_a_taut_string(device):
@@ -60,9 +55,6 @@ def test_bumped_rope_settles_on_the_taut_string(device, newton, settles):
     setting (40 substeps, 6 Newton steps per sweep) it settles on the taut-string closed form within 3 % and stays in
     its vertical plane; with 3 Newton steps the tension's transverse response overshoots and it is still swinging
     after 3 s (the setting's margin: 4 steps settle too, benchmarks/rope_settle.py)."""
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-    import rope_settle
-
     from lapwarp.tasks.dissection.rope_cutting import RopeCuttingConfig
 
     cfg = RopeCuttingConfig()

@@ -61,8 +61,9 @@ class ReturnScaler:
                              f"{tuple(dones.shape)}")
         if self.returns is None or self.returns.shape != rewards.shape or self.returns.device != rewards.device:
             self._start(rewards)
-        self.returns = self.returns * self.gamma + rewards.to(torch.float64)
+        r = rewards.to(torch.float64)
+        self.returns = self.returns * self.gamma + r
         self.update(self.returns)
-        scaled = (rewards.to(torch.float64) / torch.sqrt(self.var + self.epsilon)).clamp(-self.clip, self.clip)
+        scaled = (r / torch.sqrt(self.var + self.epsilon)).clamp(-self.clip, self.clip)
         self.returns = torch.where(dones.bool(), torch.zeros_like(self.returns), self.returns)
         return scaled.to(rewards.dtype)
