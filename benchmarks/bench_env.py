@@ -149,7 +149,7 @@ def bench_one(task: str, num_envs: int, device: str, seconds: float, invalid_act
         "time_step": env.cfg.time_step,
         "observation_type": env.cfg.observation_type, "cuda_graph": env._use_cuda_graph,
         "resolution": list(env.cfg.image_shape) if env.uses_images else None,
-        "triangle_sweep": next((c.triangle_sweep for c in contact_systems(env)), None),
+        "triangle_sweep": next((c.resolved_triangle_sweep() for c in contact_systems(env)), None),
         "surface_refit_interval": next((c.surface_refit_interval for c in contact_systems(env)), None),
         "triangle_block_threads": next((c.triangle_block_threads for c in contact_systems(env)), None),
         "tet_solver": ("fused" if env.world.fused_tets else "colored") if env.world.model.tet_count else None,

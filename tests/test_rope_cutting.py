@@ -52,9 +52,9 @@ def test_pretensioned_rope_sags_like_a_taut_string(device):
 @pytest.mark.parametrize("newton, settles", [(None, True), (3, False)])
 def test_bumped_rope_settles_on_the_taut_string(device, newton, settles):
     """The rope with its middle third pushed 20 mm down (tapering to the walls), released at rest: at the env's solver
-    setting (40 substeps, 6 Newton steps per sweep) it settles on the taut-string closed form within 3 % and stays in
+    setting (40 substeps, 4 Newton steps per sweep) it settles on the taut-string closed form within 3 % and stays in
     its vertical plane; with 3 Newton steps the tension's transverse response overshoots and it is still swinging
-    after 3 s (the setting's margin: 4 steps settle too, benchmarks/rope_settle.py)."""
+    after 3 s (benchmarks/rope_settle.py sweeps the settings)."""
     from lapwarp.tasks.dissection.rope_cutting import RopeCuttingConfig
 
     cfg = RopeCuttingConfig()
