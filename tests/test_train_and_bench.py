@@ -140,11 +140,11 @@ def test_bench_env_applies_and_records_register_caps(device, tmp_path, capsys):
     a cap out of range is a usage error before anything runs."""
     out = tmp_path / "bench.json"
     assert bench_env.main(["--device", device, "--task", "ThreadInHole", "--num-envs", "1", "--seconds", "0.05",
-                           "--max-registers", "collide_triangle_colors=64", "--out", str(out)]) == 0
+                           "--max-registers", "collide_particles=64", "--out", str(out)]) == 0
     (r,) = json.loads(out.read_text())["results"]
-    assert r["max_registers"] == {"collide_triangle_colors": 64} and r["env_steps_per_s"] > 0
-    for bad, message in (("collide_triangle_colors", "KERNEL=N"), ("collide_triangle_colors=x", "KERNEL=N"),
-                         ("collide_triangle_colors=300", "register cap must be an int")):
+    assert r["max_registers"] == {"collide_particles": 64} and r["env_steps_per_s"] > 0
+    for bad, message in (("collide_particles", "KERNEL=N"), ("collide_particles=x", "KERNEL=N"),
+                         ("collide_particles=300", "register cap must be an int")):
         with pytest.raises(SystemExit) as exc:
             bench_env.main(["--device", device, "--task", "ThreadInHole", "--max-registers", bad])
         assert exc.value.code == 2 and message in capsys.readouterr().err
