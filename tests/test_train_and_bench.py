@@ -664,7 +664,8 @@ def test_proprio_group_beside_images(tmp_path, capsys):
     assert "--proprio applies to image observations" in capsys.readouterr().err
     assert ppo.main(["--task", "DeflectSpheres", "--device", "cpu", "--preset", "cpu", "--obs", "rgb", "--num-envs",
                      "4", "--max-iterations", "1", "--eval-envs", "2", "--log-dir", str(tmp_path), "--proprio",
-                     "--critic", "state", "--set", "single_instrument=False"]) == 0
+                     "--critic", "state", "--set", "single_instrument=False",
+                     "max_episode_steps=40"]) == 0  # a short evaluation (Table C's 2,500 steps took ~40 s on the CPU)
     checkpoint = torch.load(sorted(tmp_path.glob("DeflectSpheres/*/model_*.pt"))[-1], weights_only=False)
     # the MLP reads the 64x64 NatureCNN's 64 x 4 x 4 features and the two instruments' 2 x 4 PTSD values
     assert checkpoint["actor_state_dict"]["mlp.0.weight"].shape[1] == 64 * 4 * 4 + 8
