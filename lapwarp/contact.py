@@ -605,6 +605,8 @@ class ContactSystem:
 
     #: the triangle sweeps ``triangle_sweep`` may name
     TRIANGLE_SWEEPS = ("auto", "colored", "fused", "outcodes", "outcodes_skip")
+    #: the sweeps that keep the outcodes in shared memory (ck.collide_triangle_outcodes_kernel)
+    OUTCODE_SWEEPS = ("outcodes", "outcodes_skip")
 
     def _outcode_window_fits(self) -> bool:
         return len(self.tri_color_offsets) <= 1 or self._tri_window[1] <= ck.OUTCODE_MAX_PARTICLES
@@ -619,7 +621,7 @@ class ContactSystem:
         """The settings the recorded launches depend on (the World records a step again when they change)."""
         if self.triangle_sweep not in self.TRIANGLE_SWEEPS:
             raise ValueError(f"triangle_sweep must be one of {self.TRIANGLE_SWEEPS}, got {self.triangle_sweep!r}")
-        if self.triangle_sweep.startswith("outcodes") and not self._outcode_window_fits():
+        if self.triangle_sweep in self.OUTCODE_SWEEPS and not self._outcode_window_fits():
             raise ValueError(f"triangle_sweep {self.triangle_sweep!r} keeps an int per particle of the triangles' "
                              f"window in shared memory: this scene's window of {self._tri_window[1]} particles exceeds "
                              f"{ck.OUTCODE_MAX_PARTICLES}; use 'fused'")
@@ -667,7 +669,7 @@ class ContactSystem:
             launch(ck.collide_triangle_colors, (n, threads),
                    [self._triangles, self._tri_color_table, shapes, self._tool_axes, solve, ignore, masks],
                    [q, reports], block_dim=threads)
-        elif has_triangles and sweep_kind in ("outcodes", "outcodes_skip"):
+        elif has_triangles and sweep_kind in self.OUTCODE_SWEEPS:
             threads = launching.block_lanes(self.device, self.triangle_block_threads)
             first, window = self._tri_window
             launch(ck.collide_triangle_outcodes_kernel(window, skip_idle=sweep_kind == "outcodes_skip"), (n, threads),
