@@ -80,6 +80,8 @@ class ParticleGroup:
     # <= -2 tet face -2 - col of tet_face_active), None when the object is not cuttable
     seg_col: np.ndarray | None = None
     tri_col: np.ndarray | None = None
+    # a tet mesh's face shared by two tets: the other tet's face column (-1: a boundary face or not a tet face)
+    tri_col2: np.ndarray | None = None
 
 
 def _bounding_radius(shape: Shape) -> float:
@@ -174,7 +176,7 @@ class ContactSystem:
             The group id.
         """
         self._check_open()
-        seg = tri = seg_col = tri_col = None
+        seg = tri = seg_col = tri_col = tri_col2 = None
         if hasattr(particles, "particle_start"):
             obj = particles
             name = name or obj.name
@@ -185,9 +187,10 @@ class ContactSystem:
             if triangles is True:
                 tri = np.asarray(obj.surface_tris, dtype=np.int64).reshape(-1, 3)
                 if obj.cuttable:
-                    tri, tri_col = self._cut_faces(obj)
+                    tri, tri_col, tri_col2 = self._contact_faces(obj)
                     if obj.kind == "tet_mesh":
                         tri_col = -2 - tri_col
+                        tri_col2 = tri_col2.astype(np.int64)
             idx = np.arange(obj.particle_start, obj.particle_start + obj.particle_count)
         elif isinstance(particles, slice):
             idx = np.arange(particles.start, particles.stop)
@@ -198,7 +201,7 @@ class ContactSystem:
         if tri is None and triangles is not None and triangles is not True and triangles is not False:
             tri = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
         self.groups.append(ParticleGroup(name or f"group{len(self.groups)}", idx, float(radius), seg, tri, seg_col,
-                                         tri_col))
+                                         tri_col, tri_col2))
         return len(self.groups) - 1
 
     def add_shape(self, kind: str, params=(0.0, 0.0, 0.0), body: int = -1, transform=None, thickness: float = 0.0,
@@ -301,6 +304,30 @@ class ContactSystem:
             a, b = 4 * obj.element_start, 4 * (obj.element_start + len(obj.tets))
             return self.world.model.tet_face_indices.numpy()[a:b].astype(np.int64), np.arange(a, b)
         raise ValueError(f"{obj.kind} objects have no triangles")
+
+    def _contact_faces(self, obj) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        """``_cut_faces`` for the triangle sweeps, a tet mesh's faces merged: every *distinct* face of its ``4 T``
+        tet faces, its first tet face's column and the other tet's (-1 on the boundary; no partners for a cloth).
+
+        A face two tets share is one contact triangle: it collides while either column is on (one tet present, the
+        other cut), as the two coincident tet faces did one at a time. Contact pushes a triangle to the side its
+        tool came from, so the winding (the first tet's) does not matter. Half the interior faces and fewer graph
+        colours (TissueDissection's flap: 1,080 tet faces in 46 colours, 658 distinct faces in 28): the fused and
+        outcode sweeps take their colours in series, one block barrier each."""
+        faces, cols = self._cut_faces(obj)
+        if obj.kind != "tet_mesh":
+            return faces, cols, None
+        _, first, inverse, count = np.unique(np.sort(faces, axis=1), axis=0, return_index=True, return_inverse=True,
+                                             return_counts=True)
+        if count.max() > 2:
+            raise ValueError(f"{obj.name!r}: a face is shared by {int(count.max())} tets (a valid tet mesh shares "
+                             "each face between at most two)")
+        inverse = inverse.reshape(-1)
+        keep = np.sort(first)  # the distinct faces in the order of their first tet face
+        last = np.full(len(count), -1, dtype=np.int64)
+        np.maximum.at(last, inverse, np.arange(len(faces)))
+        second = last[inverse[keep]]  # the face's other occurrence (itself on the boundary)
+        return faces[keep], cols[keep], np.where(second != keep, cols[second], -1)
 
     def add_particle_contact(self, members, skip_links: int = 2, mu_static: float = 0.3,
                              mu_kinetic: float | None = None, name: str = "self", method: str = "auto",
@@ -457,9 +484,10 @@ class ContactSystem:
             if max(np.diff(self.tri_color_offsets)) > lanes:
                 # the fused sweep takes a colour in chunks of its block's lanes, one colour after another: where
                 # colours no larger than the block come without an extra colour, every colour is one chunk
-                # (TissueDissection: 46 colours either way, 49 chunks of 32 lanes uncapped, 46 capped). More
-                # colours would mean more stages in series (a 40x40 cloth: 10 colours become 97) and another
-                # Gauss-Seidel order. A block size set after finalize keeps these colours.
+                # (TissueDissection: 28 colours either way, one chunk of 32 lanes each when capped; 46 before its
+                # tet faces were merged, ``_contact_faces``). More colours would mean more stages in series (a
+                # 40x40 cloth: 10 colours become 97) and another Gauss-Seidel order. A block size set after
+                # finalize keeps these colours.
                 capped, capped_offsets = color_graph(tri_all, max_size=lanes)
                 if len(capped_offsets) == len(self.tri_color_offsets):
                     order, self.tri_color_offsets = capped, capped_offsets
@@ -484,9 +512,14 @@ class ContactSystem:
             cols = [g.tri_col if g.tri_col is not None else np.full(len(g.triangles), -1)
                     for g in self.groups if g.triangles is not None]
             self.tri_col = arr(np.concatenate(cols)[order].astype(np.int32), wp.int32)
+        self.tri_col2 = self._no_col
+        if tris and any(g.tri_col2 is not None for g in self.groups if g.triangles is not None):
+            cols = [g.tri_col2 if g.tri_col2 is not None else np.full(len(g.triangles), -1)
+                    for g in self.groups if g.triangles is not None]
+            self.tri_col2 = arr(np.concatenate(cols)[order].astype(np.int32), wp.int32)
         self._cut_masks = make_struct(ck.CutMasks, particle_active=self.particle_active, seg_col=self.seg_col,
-                                      segment_active=self.seg_mask, tri_col=self.tri_col, tri_active=self.tri_mask,
-                                      tet_face_active=self.face_mask)
+                                      segment_active=self.seg_mask, tri_col=self.tri_col, tri_col2=self.tri_col2,
+                                      tri_active=self.tri_mask, tet_face_active=self.face_mask)
 
         # deforming surfaces: one grouped wp.Mesh each over the flat (num_envs * particle_count) view of
         # particle_q, so refit reads the live positions with no gather; BVH group = env

@@ -121,6 +121,7 @@ class CutMasks:
     seg_col: wp.array(dtype=wp.int32)  # segment_active column of each contact segment, -1: never removed
     segment_active: wp.array2d(dtype=wp.int32)
     tri_col: wp.array(dtype=wp.int32)  # >= 0 tri_active column, <= -2 tet face -2 - col, -1 always collides
+    tri_col2: wp.array(dtype=wp.int32)  # a face two tets share: the other tet's face column (-1 none); may be empty
     tri_active: wp.array2d(dtype=wp.int32)
     tet_face_active: wp.array2d(dtype=wp.int32)
 
@@ -589,7 +590,13 @@ def collide_triangle_at(
             if masks.tri_active[env, tc] == 0:
                 return x0, x1, x2, touched
         elif tc <= -2:
-            if masks.tet_face_active[env, -2 - tc] == 0:
+            # a face two tets share is on the surface while either tet's face is (one tet present, one cut)
+            on = masks.tet_face_active[env, -2 - tc]
+            if on == 0 and masks.tri_col2.shape[0] > 0:
+                partner = masks.tri_col2[k]
+                if partner >= 0:
+                    on = masks.tet_face_active[env, partner]
+            if on == 0:
                 return x0, x1, x2, touched
     pe = env % solve.inv_mass.shape[0]
     w0 = solve.inv_mass[pe, tri[0]]
@@ -715,7 +722,7 @@ def collide_triangle_colors(
 ):
     """Every colour in one launch: a thread block per env takes each colour's triangles in chunks of ``block_dim``,
     with a block barrier between colours (Gauss-Seidel across them, as one launch per colour). A colour is small
-    (TissueDissection's tissue surfaces are 46 colours per sweep) and most of its triangles are culled at once, so the
+    (TissueDissection's flap faces are 28 colours per sweep) and most of its triangles are culled at once, so the
     per-colour launches were nearly all fixed cost. On the CPU a block has one lane: the same triangles in order."""
     env, lane = wp.tid()
     lanes = wp.block_dim()
@@ -739,14 +746,14 @@ def collide_triangle_outcodes_kernel(window: int, skip_idle: bool = False) -> wp
     shape is a compile-time constant, so one kernel per window size, cached): the same contacts in the same order,
     with the box cull read from shared memory.
 
-    The fused sweep pays, per colour, a load of each lane's triangle and then of its three positions before the cull
-    can reject it (TissueDissection: 46 colours in series, 2 % of the triangles past the cull). Here the block first
-    computes every window particle's outcode against the env's tool box (``outcode``: a particle load each, in
-    parallel), then each colour tests its triangles by the AND of three shared codes, loading positions only for the
-    triangles that pass; a triangle a tool pushed rewrites its three nodes' codes (a block barrier), so a later
-    colour's test sees the moved nodes, as the fused sweep's position test does. Exact: a triangle's box misses the
-    tool box iff its vertices' codes share a bit, and positions change within a launch only where a contact moves
-    them (bit-identical to the fused sweep on the CPU, where a block has one lane).
+    The fused sweep pays, per colour, a load of each lane's triangle and then of its three positions before the cull can
+    reject it (TissueDissection: 28 colours in series, 46 before its tet faces were merged; 2 % of the triangles past
+    the cull). Here the block first computes every window particle's outcode against the env's tool box (``outcode``: a
+    particle load each, in parallel), then each colour tests its triangles by the AND of three shared codes, loading
+    positions only for the triangles that pass; a triangle a tool pushed rewrites its three nodes' codes (a block
+    barrier), so a later colour's test sees the moved nodes, as the fused sweep's position test does. Exact: a
+    triangle's box misses the tool box iff its vertices' codes share a bit, and positions change within a launch only
+    where a contact moves them (bit-identical to the fused sweep on the CPU, where a block has one lane).
 
     ``skip_idle``: before the colours, the block finds the first triangle (they are stored colour by colour) past the
     cull with the codes at the sweep's start, and starts at its colour; with none it skips the env's sweep. Exact too:
