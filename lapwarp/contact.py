@@ -139,8 +139,8 @@ class ContactSystem:
         # contacts, fewer loads in series: ck.collide_triangle_outcodes_kernel); "auto" = "outcodes" where the
         # triangles' particle window fits its shared memory, else "fused" (the outcode sweep was 4.5 % faster on
         # TissueDissection's STATE step and 2.6 % on PrecisionCutting's, 4,096 envs on an H200, twenty-ninth session;
-        # never slower); "outcodes_skip" = the outcode sweep starting at the first colour with a triangle past the
-        # cull, skipping an env with none (exact; not timed yet). Read when the World records a step (record_key)
+        # never slower; a variant starting each env's sweep at its first triangle past the cull gained <= 0.2 %,
+        # thirtieth session, and was dropped). Read when the World records a step (record_key)
         self.triangle_sweep = "auto"
         self.triangle_block_threads = 32
         # deforming surfaces: refit their BVH every surface_refit_interval substeps (0: once per world.step, at its
@@ -637,9 +637,7 @@ class ContactSystem:
         return self._solves[key]
 
     #: the triangle sweeps ``triangle_sweep`` may name
-    TRIANGLE_SWEEPS = ("auto", "colored", "fused", "outcodes", "outcodes_skip")
-    #: the sweeps that keep the outcodes in shared memory (ck.collide_triangle_outcodes_kernel)
-    OUTCODE_SWEEPS = ("outcodes", "outcodes_skip")
+    TRIANGLE_SWEEPS = ("auto", "colored", "fused", "outcodes")
 
     def _outcode_window_fits(self) -> bool:
         return len(self.tri_color_offsets) <= 1 or self._tri_window[1] <= ck.OUTCODE_MAX_PARTICLES
@@ -654,7 +652,7 @@ class ContactSystem:
         """The settings the recorded launches depend on (the World records a step again when they change)."""
         if self.triangle_sweep not in self.TRIANGLE_SWEEPS:
             raise ValueError(f"triangle_sweep must be one of {self.TRIANGLE_SWEEPS}, got {self.triangle_sweep!r}")
-        if self.triangle_sweep in self.OUTCODE_SWEEPS and not self._outcode_window_fits():
+        if self.triangle_sweep == "outcodes" and not self._outcode_window_fits():
             raise ValueError(f"triangle_sweep {self.triangle_sweep!r} keeps an int per particle of the triangles' "
                              f"window in shared memory: this scene's window of {self._tri_window[1]} particles exceeds "
                              f"{ck.OUTCODE_MAX_PARTICLES}; use 'fused'")
@@ -702,10 +700,10 @@ class ContactSystem:
             launch(ck.collide_triangle_colors, (n, threads),
                    [self._triangles, self._tri_color_table, shapes, self._tool_axes, solve, ignore, masks],
                    [q, reports], block_dim=threads)
-        elif has_triangles and sweep_kind in self.OUTCODE_SWEEPS:
+        elif has_triangles and sweep_kind == "outcodes":
             threads = launching.block_lanes(self.device, self.triangle_block_threads)
             first, window = self._tri_window
-            launch(ck.collide_triangle_outcodes_kernel(window, skip_idle=sweep_kind == "outcodes_skip"), (n, threads),
+            launch(ck.collide_triangle_outcodes_kernel(window), (n, threads),
                    [self._triangles, self._tri_color_table, first, shapes, self._tool_axes, solve, ignore, masks],
                    [q, reports], block_dim=threads)
         elif has_triangles:

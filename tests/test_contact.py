@@ -180,13 +180,13 @@ def test_fused_triangle_sweep_matches_one_launch_per_colour(device):
     for bit on the CPU (one lane per block), within float32 rounding on the GPU; and they still stop the tool at
     0.1 m/s."""
     x = {}
-    for sweep in ("colored", "fused", "outcodes", "outcodes_skip"):
+    for sweep in ("colored", "fused", "outcodes"):
         out = []
         gap, ahead = _push_capsule(device, 0.1, kind="cloth", triangle_sweep=sweep, positions=out)
         assert gap > -1.0e-4 and ahead
         x[sweep] = out[0]
     assert np.abs(x["colored"][:, 2] - 0.005).max() > 1.0e-3  # the tool carried the cloth: contacts were projected
-    for sweep in ("fused", "outcodes", "outcodes_skip"):
+    for sweep in ("fused", "outcodes"):
         if device == "cpu":
             np.testing.assert_array_equal(x[sweep], x["colored"])
         else:
@@ -196,39 +196,28 @@ def test_fused_triangle_sweep_matches_one_launch_per_colour(device):
 def test_outcode_sweep_matches_the_fused_sweep_in_a_cutting_task(device):
     """TissueDissection (tissue surfaces of tet faces masked as the hook cuts, four tool shapes): 40 steps of the
     scripted expert give the same particles, cut tets and contact reports under ``"outcodes"`` as under
-    ``"fused"``, and so does ``"outcodes_skip"`` (which starts each env's sweep at its first triangle past the cull
-    and skips an env with none) (bit for bit on the CPU; float32 rounding on the GPU, where the reports are summed
-    atomically)."""
+    ``"fused"`` (bit for bit on the CPU; float32 rounding on the GPU, where the reports are summed atomically)."""
     import lapwarp
     from lapwarp.experts import make_expert
 
     out = {}
-    past_cull = []  # per step and env: triangles past the cull at the step's end (the skip's both branches occur)
-    for sweep in ("fused", "outcodes", "outcodes_skip"):
+    for sweep in ("fused", "outcodes"):
         env = lapwarp.make("TissueDissection", num_envs=2, device=device, seed=3)
         env.contact.triangle_sweep = sweep
         expert = make_expert(env)
         env.reset()
-        nodes = env.contact._triangles.nodes.numpy()
         for _ in range(40):
             env.step(expert())
-            if sweep == "outcodes_skip":
-                x = env.world.state.particle_q.numpy()[:, nodes]
-                lo, hi = env.contact._tool_axes.lo.numpy()[:, None], env.contact._tool_axes.hi.numpy()[:, None]
-                culled = (x.max(axis=2) < lo).any(-1) | (x.min(axis=2) > hi).any(-1)
-                past_cull.append((~culled).sum(axis=1))
         out[sweep] = (env.world.state.particle_q.numpy(), env.world.state.tet_active.numpy(),
                       env.contact.reports.report_force.numpy())
         env.close()
     assert (out["fused"][1] == 0).any()  # the hook cut: masked faces were in play
-    assert (np.array(past_cull) == 0).any() and (np.array(past_cull) > 0).any()
     assert np.abs(out["fused"][2]).max() > 0.0  # and touched the tissue
-    for sweep in ("outcodes", "outcodes_skip"):
-        for a, b in zip(out[sweep], out["fused"], strict=True):
-            if device == "cpu":
-                np.testing.assert_array_equal(a, b)
-            else:
-                np.testing.assert_allclose(a, b, atol=1e-6)
+    for a, b in zip(out["outcodes"], out["fused"], strict=True):
+        if device == "cpu":
+            np.testing.assert_array_equal(a, b)
+        else:
+            np.testing.assert_allclose(a, b, atol=1e-6)
 
 
 def test_outcode_sweep_refuses_a_window_beyond_shared_memory(device, monkeypatch):
@@ -255,7 +244,7 @@ def test_auto_triangle_sweep_takes_outcodes_where_the_window_fits(device, monkey
 
 
 def test_unknown_triangle_sweep_is_rejected(device):
-    with pytest.raises(ValueError, match="auto.*colored.*fused.*outcodes.*outcodes_skip"):
+    with pytest.raises(ValueError, match="auto.*colored.*fused.*outcodes"):
         _push_capsule(device, 0.1, kind="cloth", triangle_sweep="jacobi")
 
 

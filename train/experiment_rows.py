@@ -310,6 +310,10 @@ def _asymmetric_rows(rows: list[Row]) -> list[Row]:
             for row in rows if "frame_stack" not in row.config]
 
 
+# PrecisionCutting's cloth setting since the thirtieth session, named in the rows trained at it
+PC_12X1 = {"physics_substeps": 12, "cloth_newton_steps": 1}
+
+
 def _with_obs_normalization(row: Row, name: str, **changes: Any) -> Row:
     """``row`` renamed (and otherwise ``changes``d), trained with ``ppo.py --obs-normalization`` besides its own
     options."""
@@ -505,7 +509,24 @@ def _dissection_study_rows() -> list[Row]:
             # learned at 6): the harder R = 5 configurations again, the setting named
             *[dataclasses.replace(rc, name=rc.name.replace("-state", "-newton4-state"),
                                   config={**rc.config, "rope_newton_steps": 4})
-              for rc in _dissection_rows() if rc.name in ("rc-r5-c1-state", "rc-r5-c3-state")]]
+              for rc in _dissection_rows() if rc.name in ("rc-r5-c1-state", "rc-r5-c3-state")],
+            # thirtieth session: PrecisionCutting steps at 12 substeps x 1 Newton step by default (14 % faster than the
+            # 8 x 2 of every row above, and nearer the converged sag). The fixed line's learned row again at it; the
+            # random line's best row (16x the optimiser steps: 3.9 %, sampled 32.8 %, training success rising to 38 %
+            # at 120 iterations) for 150 with the action noise falling to 0.2, so that the deterministic policy is the
+            # one trained (evaluation trailed the sampled success 3.9 against 32.8 %); the fixed sine (0 % with the
+            # paper's learner and the privileged critic, cutting ~45 % of its path and stalling) as the paper's runs
+            # were rewarded: sofa_zoo's key for the off-path penalty matches no feature, so they cut off the path free
+            dataclasses.replace(pc_line, name="pc-line-fixed-12x1-state",
+                                config={**pc_line.config, **PC_12X1}),
+            dataclasses.replace(pc_random_private, name="pc-line-random-priv-norm-mb64-std02-i150-state",
+                                config={**pc_random_private.config, **PC_12X1}, iterations=150,
+                                train_args=(*pc_random_private.train_args, "--mini-batches", "64",
+                                            "--final-noise-std", "0.2")),
+            _with_obs_normalization(dataclasses.replace(pc_sine, train_args=(*pc_sine.train_args, "--mini-batches",
+                                                                             "64")),
+                                    "pc-sine-fixed-zoo-priv-norm-mb64-i150-state", critic="state", iterations=150,
+                                    config={**pc_sine.config, **PC_12X1, "reward_weights": {"cut_off_path": 0.0}})]
 
 
 EXPERIMENTS: dict[str, Experiment] = {

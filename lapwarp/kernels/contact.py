@@ -738,10 +738,10 @@ def collide_triangle_colors(
 
 # the outcode sweep keeps one int per particle of the triangles' window in shared memory
 OUTCODE_MAX_PARTICLES = 8192
-_OUTCODE_KERNELS: dict[tuple[int, bool], wp.Kernel] = {}
+_OUTCODE_KERNELS: dict[int, wp.Kernel] = {}
 
 
-def collide_triangle_outcodes_kernel(window: int, skip_idle: bool = False) -> wp.Kernel:
+def collide_triangle_outcodes_kernel(window: int) -> wp.Kernel:
     """``collide_triangle_colors`` for a triangle set whose nodes lie in a window of ``window`` particles (a tile's
     shape is a compile-time constant, so one kernel per window size, cached): the same contacts in the same order,
     with the box cull read from shared memory.
@@ -753,19 +753,12 @@ def collide_triangle_outcodes_kernel(window: int, skip_idle: bool = False) -> wp
     positions only for the triangles that pass; a triangle a tool pushed rewrites its three nodes' codes (a block
     barrier), so a later colour's test sees the moved nodes, as the fused sweep's position test does. Exact: a
     triangle's box misses the tool box iff its vertices' codes share a bit, and positions change within a launch only
-    where a contact moves them (bit-identical to the fused sweep on the CPU, where a block has one lane).
-
-    ``skip_idle``: before the colours, the block finds the first triangle (they are stored colour by colour) past the
-    cull with the codes at the sweep's start, and starts at its colour; with none it skips the env's sweep. Exact too:
-    a node moves only in a contact and a contact needs a triangle past the cull, so before that triangle nothing moves
-    and every earlier triangle stays culled. (TissueDissection with the expert, CPU, 8 envs: no triangle past the cull
-    in 54 % of the env-steps.)"""
-    key = (int(window), bool(skip_idle))
+    where a contact moves them (bit-identical to the fused sweep on the CPU, where a block has one lane)."""
+    key = int(window)
     kernel = _OUTCODE_KERNELS.get(key)
     if kernel is not None:
         return kernel
     P = int(window)
-    SKIP = bool(skip_idle)
 
     def collide_triangle_outcodes(
         triangles: ContactTriangles,
@@ -788,23 +781,7 @@ def collide_triangle_outcodes_kernel(window: int, skip_idle: bool = False) -> wp
             i = wp.min(base + lane, P - 1)
             wp.tile_scatter_masked(codes, i, outcode(q[env, first + i], lo, hi), base + lane < P)
         colors = color_offsets.shape[0] - 1
-        c_first = int(0)
-        if wp.static(SKIP):
-            all_end = color_offsets[colors]
-            first_k = all_end
-            for base in range(color_offsets[0], all_end, lanes):
-                k = base + lane
-                if k < all_end:
-                    tri = triangles.nodes[k]
-                    shared = wp.tile_extract(codes, tri[0] - first) & wp.tile_extract(codes, tri[1] - first)
-                    if (shared & wp.tile_extract(codes, tri[2] - first)) == 0:
-                        first_k = wp.min(first_k, k)
-            first_k = wp.tile_extract(wp.tile_min(wp.tile(first_k)), 0)  # the block's first (every lane reads it)
-            if first_k == all_end:
-                return
-            while color_offsets[c_first + 1] <= first_k:
-                c_first += 1
-        for c in range(c_first, colors):
+        for c in range(colors):
             start = color_offsets[c]
             end = color_offsets[c + 1]
             for base in range(start, end, lanes):

@@ -1,0 +1,52 @@
+#!/usr/bin/env bash
+# GPU 3 of the next x4 lease (GPU 1 of an x2 lease: DEVICE=cuda:1), from the code copy (queue.sh's BESIDE), ~7 min:
+# 1. the GPU tests of triangle contact on cut tet meshes (a cuttable tet mesh collides through its distinct faces
+#    since the thirtieth session: TissueDissection's flap 658 triangles in 28 colours instead of 1,080 in 46);
+# 2. TissueDissection's step (expert, 4,096 envs, STATE and RGB 64x64) with the code before that change (6260a14's
+#    lapwarp, copied to /tmp/old by the install call from .device/small/old) and after it, alternating old / new
+#    twice in this one call (twenty-ninth session: 200.3k STATE, 175.9k RGB; the targets are 200k each);
+# 3. PrecisionCutting at its new default 12 substeps x 1 Newton step against the 8 x 2 before (same code);
+# 4. TissueDissection's kernel profile with the new faces (the triangle contact was 7.28 ms of 21.13, H200);
+# then the learning queue JOBS until DEADLINE seconds after this script started.
+# DEVICE (cuda:3), NUM_ENVS (4096), JOBS (next_jobs_gpu3.txt) and DEADLINE (1400) override.
+set -u
+t0=$(date +%s)
+dev=${DEVICE:-cuda:3}
+n=${NUM_ENVS:-4096}
+d=benchmarks/results/session30
+out=/tmp/r/beside30
+mkdir -p "$out"
+python3 -m pytest -q -p no:cacheprovider tests/test_cutting_contact.py tests/test_contact.py -k "cut or sweep or outcode" \
+  --device "$dev" > "$out/pytest_cuda.txt" 2>&1
+echo "pytest rc=$? $(tail -1 "$out/pytest_cuda.txt")"
+bench() {  # NAME PYTHONPATH TASK OBS [bench_env.py options...]
+  local name=$1 path=$2 task=$3 obs=$4
+  shift 4
+  PYTHONPATH=$path python3 benchmarks/bench_env.py --task "$task" --device "$dev" --num-envs "$n" --seconds 3 \
+    --obs "$obs" --policy expert "$@" --out "$out/$name.json" > "$out/$name.txt" 2>&1
+  echo "$name rc=$? $(tail -1 "$out/$name.txt")"
+}
+new=/tmp/site:$PWD
+old=/tmp/site:/tmp/old
+if [ -d /tmp/old/lapwarp ]; then
+  for rep in 1 2; do
+    bench "td_state_old_$rep" "$old" TissueDissection STATE
+    bench "td_state_new_$rep" "$new" TissueDissection STATE
+    bench "td_rgb_old_$rep" "$old" TissueDissection RGB
+    bench "td_rgb_new_$rep" "$new" TissueDissection RGB
+  done
+else
+  echo "no /tmp/old/lapwarp: the new code alone"
+  bench td_state_new_1 "$new" TissueDissection STATE
+  bench td_rgb_new_1 "$new" TissueDissection RGB
+fi
+bench pc_12x1 "$new" PrecisionCutting STATE
+bench pc_8x2 "$new" PrecisionCutting STATE --set physics_substeps=8 cloth_newton_steps=2
+PYTHONPATH=$new python3 benchmarks/profile_step.py --task TissueDissection --device "$dev" --num-envs "$n" --steps 10 --out "$out/td_profile_new.json" \
+  > "$out/td_profile_new.txt" 2>&1
+echo "td_profile_new rc=$? $(grep -m1 "kernel time per env step" "$out/td_profile_new.txt")"
+left=$((${DEADLINE:-1400} + t0 - $(date +%s)))
+[ "$left" -gt 0 ] || { echo "no time left for the queue"; exit 0; }
+PYTHONPATH=$new python3 train/experiments.py --queue "${JOBS:-$d/next_jobs_gpu3.txt}" --devices "$dev" \
+  --fast-pixels --shared-encoder --skip-done --no-plots --deadline "$left" --out /tmp/r/learning \
+  --log-dir /tmp/queue_runs_beside
