@@ -6,7 +6,8 @@
 #    lapwarp, copied to /tmp/old by the install call from .device/small/old) and after it, alternating old / new
 #    twice in this one call (twenty-ninth session: 200.3k STATE, 175.9k RGB; the targets are 200k each);
 # 3. PrecisionCutting at its new default 12 substeps x 1 Newton step against the 8 x 2 before (same code);
-# 4. TissueDissection's kernel profile with the new faces (the triangle contact was 7.28 ms of 21.13, H200);
+# 4. PrecisionCutting's scripted experts at 12 x 1 on 256 first episodes per configuration (~2 min);
+# 5. TissueDissection's kernel profile with the new faces (the triangle contact was 7.28 ms of 21.13, H200);
 # then the learning queue JOBS until DEADLINE seconds after this script started.
 # DEVICE (cuda:3), NUM_ENVS (4096), JOBS (next_jobs_gpu3.txt) and DEADLINE (1400) override.
 set -u
@@ -42,6 +43,12 @@ else
 fi
 bench pc_12x1 "$new" PrecisionCutting STATE
 bench pc_8x2 "$new" PrecisionCutting STATE --set physics_substeps=8 cloth_newton_steps=2
+# PrecisionCutting's experts at the new default 12 x 1 (CPU: 16 / 16 first episodes in each configuration), 256 first
+# episodes per configuration and action type (#17 asks >= 90 %; at 8 x 2 every one was >= 94.5 %, twenty-eighth session)
+PYTHONPATH=$new python3 benchmarks/expert_success.py --task PrecisionCutting --device "$dev" --num-envs 256 \
+  --config path_function=line --config path_function=line randomize_path=true --config path_function=sine \
+  --config path_function=sine randomize_path=true --out "$out/pc_expert_12x1.jsonl" > "$out/pc_expert_12x1.txt" 2>&1
+echo "pc_expert_12x1 rc=$? $(tail -8 "$out/pc_expert_12x1.txt" | tr '\n' ' ')"
 PYTHONPATH=$new python3 benchmarks/profile_step.py --task TissueDissection --device "$dev" --num-envs "$n" --steps 10 --out "$out/td_profile_new.json" \
   > "$out/td_profile_new.txt" 2>&1
 echo "td_profile_new rc=$? $(grep -m1 "kernel time per env step" "$out/td_profile_new.txt")"
