@@ -143,6 +143,7 @@ class BatchedEnv(VecEnv):
         with wp.ScopedDevice(self.wp_device):
             self.world: World = self._build()
             self.world.chain_block_links = self.chain_block_links
+            self.world.chain_solver = cfg.chain_solver
             self.obs_layout: ObservationLayout = self._observation_layout()
             # built even without the critic group: kernels take its columns as an argument of their declared type
             self.critic_layout: ObservationLayout = self._critic_layout()

@@ -28,7 +28,7 @@ import warp as wp
 
 from lapwarp import launching
 from lapwarp.config import check_seed, rng_seed32
-from lapwarp.kernels import chains, chains_partitioned, geodesic, world_kernels
+from lapwarp.kernels import chains, chains_block, chains_partitioned, geodesic, world_kernels
 from lapwarp.model import Control, Model, State
 from lapwarp.vbd import tet_components, vertex_layout
 
@@ -40,6 +40,12 @@ TET_SOLVERS = ("auto", "colored", "fused")
 #: the tet methods ``World.tet_method`` may name: XPBD constraint projection, per-vertex descent (kernels/vbd.py), or
 #: "auto": per vertex where every tet mesh has a pinned particle in every env, else XPBD
 TET_METHODS = ("auto", "xpbd", "vbd")
+#: the direct chain solves ``World.chain_solver`` may name: "thomas" = a thread walks each chain (kernels/chains.py;
+#: partitioned where ``chain_block_links`` > 1), "pcr" = a thread block per chain, parallel cyclic reduction in shared
+#: memory (kernels/chains_block.py)
+CHAIN_SOLVERS = ("thomas", "pcr")
+#: the longest chain (links) the "pcr" solve takes: its block keeps ~27 floats per link in shared memory (~27 KB)
+PCR_MAX_LINKS = 256
 #: the largest tet particle window the fused sweep keeps in shared memory (12 B each: 48 KB, the static limit)
 FUSED_TET_MAX_PARTICLES = 4096
 
@@ -143,6 +149,11 @@ class World:
         # chain (kernels/chains.py); B > 1 = the partitioned solve (kernels/chains_partitioned.py), blocks of B links
         # side by side plus a serial pass over the m / B separators, for few long chains (a rope per env on the GPU)
         self.chain_block_links = 0
+        # CHAIN_SOLVERS: "pcr" solves each chain with a thread block (one launch per family and sweep, every Newton
+        # step in it; same systems, round-off aside); lanes per block: chain_pcr_threads (0 = the chains' longest
+        # node count rounded up to a warp, at most 128)
+        self.chain_solver = "thomas"
+        self.chain_pcr_threads = 0
         # tets' rotation: warm-started extraction iterations per projection (0 = SVD polar decomposition)
         self.tet_rotation_iterations = 2
         # tet sweep (TET_SOLVERS): "colored" = one launch per graph colour; "fused" = one launch per sweep, a thread
@@ -378,7 +389,8 @@ class World:
         if self.model.particle_count == 0:
             return
         key = (float(dt), self.substeps_for(float(dt)), self.iterations, self.rod_newton_steps, self.chain_newton_steps,
-               self.tet_rotation_iterations, self.chain_block_links, self.tet_solver, self.tet_block_threads,
+               self.tet_rotation_iterations, self.chain_block_links, self.chain_solver, self.chain_pcr_threads,
+               self.tet_solver, self.tet_block_threads,
                self.tet_method_in_use, self._register_caps_key(),
                *(solver.record_key() for solver in self.solvers if hasattr(solver, "record_key")))
         if self._cmd_key != key:
@@ -389,6 +401,18 @@ class World:
                 raise ValueError(f"world.tet_method 'vbd' moves a stiff body as a whole only slowly, so it takes only "
                                  f"tet meshes with a pinned particle in every env; the mesh of particles "
                                  f"{first}..{last} has none: use 'xpbd' (docs/physics.md)")
+            if self.chain_solver not in CHAIN_SOLVERS:
+                raise ValueError(f"world.chain_solver must be one of {CHAIN_SOLVERS}, got {self.chain_solver!r}")
+            if self.chain_solver == "pcr":
+                longest = max([int(cs.lengths.max()) for cs in (self.model.rod_chains, self.model.edge_chains)
+                               if cs is not None and cs.count], default=0)
+                if longest > PCR_MAX_LINKS:
+                    raise ValueError(f"world.chain_solver 'pcr' keeps a chain in one block's shared memory: this "
+                                     f"scene's longest chain has {longest} links, more than {PCR_MAX_LINKS}; use "
+                                     f"'thomas'")
+            if not 0 <= int(self.chain_pcr_threads) <= 1024:
+                raise ValueError(f"world.chain_pcr_threads must be in [0, 1024] (0: automatic), got "
+                                 f"{self.chain_pcr_threads!r}")
             if self.tet_solver not in TET_SOLVERS:
                 raise ValueError(f"world.tet_solver must be one of {TET_SOLVERS}, got {self.tet_solver!r}")
             if self.tet_solver == "fused" and self._tet_window[1] > FUSED_TET_MAX_PARTICLES:
@@ -492,6 +516,18 @@ class World:
         seg_mask = s.segment_active if s.segment_active is not None else self._no_mask
 
         def solve_chains(cs, rest, compliance, lam_arr, scratch, mask, newton_steps, kernel):
+            if self.chain_solver == "pcr":
+                # a thread block per (env, chain), one launch per family with every Newton step in it
+                longest = int(cs.lengths.max())
+                lanes = int(self.chain_pcr_threads) or min(128, 32 * ((longest + 1 + 31) // 32))
+                lanes = launching.block_lanes(self.device, lanes)
+                pcr = chains_block.block_chain_kernel(longest)
+                for first, count, link_base, node_base in cs.families:
+                    launch(pcr, (n, count, lanes),
+                           [first, count, link_base, node_base, cs.edge_count, cs.closed, cs.node, cs.constraint,
+                            rest, compliance, w_eff, inv_dt2, use_lam, newton_steps, lam_arr, mask],
+                           [s.particle_q], block_dim=lanes)
+                return
             if self.chain_block_links > 1:
                 # partitioned, family after family: per Newton step five launches, blocks of chain_block_links links
                 # side by side

@@ -6,6 +6,8 @@
 #    lapwarp, copied to /tmp/old by the install call from .device/small/old) and after it, alternating old / new
 #    twice in this one call (twenty-ninth session: 200.3k STATE, 175.9k RGB; the targets are 200k each);
 # 3. PrecisionCutting at its new default 12 substeps x 1 Newton step against the 8 x 2 before (same code);
+# 3b. the new block (PCR) chain solve (World.chain_solver="pcr", kernels/chains_block.py): its GPU tests, then the steps of
+#    RopeCutting, PrecisionCutting, RopeThreading and LigatingLoop with it against their defaults (~4 min);
 # 4. PrecisionCutting's scripted experts at 12 x 1 on 256 first episodes per configuration (~2 min);
 # 5. TissueDissection's kernel profile with the new faces (the triangle contact was 7.28 ms of 21.13, H200);
 # then the learning queue JOBS until DEADLINE seconds after this script started.
@@ -20,6 +22,11 @@ mkdir -p "$out"
 python3 -m pytest -q -p no:cacheprovider tests/test_cutting_contact.py tests/test_contact.py -k "cut or sweep or outcode" \
   --device "$dev" > "$out/pytest_cuda.txt" 2>&1
 echo "pytest rc=$? $(tail -1 "$out/pytest_cuda.txt")"
+# the block (PCR) chain solve's GPU tests: blocks of many lanes (the CPU runs one), so its barriers are tested here
+python3 -m pytest -q -p no:cacheprovider tests/test_chains_block.py tests/test_chains_partitioned.py --device "$dev" \
+  > "$out/pytest_chains_cuda.txt" 2>&1
+pcr_ok=$?
+echo "pytest chains rc=$pcr_ok $(tail -1 "$out/pytest_chains_cuda.txt")"
 bench() {  # NAME PYTHONPATH TASK OBS [bench_env.py options...]
   local name=$1 path=$2 task=$3 obs=$4
   shift 4
@@ -43,6 +50,16 @@ else
 fi
 bench pc_12x1 "$new" PrecisionCutting STATE
 bench pc_8x2 "$new" PrecisionCutting STATE --set physics_substeps=8 cloth_newton_steps=2
+# the block (PCR) chain solve against each task's default (one thread per chain; RopeThreading and LigatingLoop blocks
+# of 8 links, kernels/chains_partitioned.py), where the chain solve leads the profile: RopeCutting (63 % at 6 Newton
+# steps), PrecisionCutting's cloth (~80 %), RopeThreading's rope (~27 of 49 ms), LigatingLoop's loop; only if its GPU
+# tests passed
+if [ "$pcr_ok" -eq 0 ]; then
+  for task in RopeCutting PrecisionCutting RopeThreading LigatingLoop; do
+    bench "chains_default_$task" "$new" $task STATE
+    bench "chains_pcr_$task" "$new" $task STATE --set chain_solver=pcr
+  done
+fi
 # PrecisionCutting's experts at the new default 12 x 1 (CPU: 16 / 16 first episodes in each configuration), 256 first
 # episodes per configuration and action type (#17 asks >= 90 %; at 8 x 2 every one was >= 94.5 %, twenty-eighth session)
 PYTHONPATH=$new python3 benchmarks/expert_success.py --task PrecisionCutting --device "$dev" --num-envs 256 \

@@ -1,0 +1,306 @@
+"""Direct XPBD solve of chains of distance constraints, one thread block per (env, chain): the systems of
+``kernels/chains.py`` (read its docstring first) solved by parallel cyclic reduction (PCR) in shared memory.
+
+``chains.solve_chains`` walks a chain with one thread (Thomas), a chain of ``m`` links taking ~4 m dependent global
+loads and stores per Newton step; ``chains_partitioned`` splits the walk over blocks of links but passes its
+intermediate values through global scratch over five launches. Here the lanes of one block take the links (and
+then the nodes) of one chain side by side and keep every intermediate value in shared memory, in one launch per
+family and sweep, all Newton steps included:
+
+1. each lane assembles the rows of its links from the positions (the same linearisation, pinned nodes, removed
+   links, compliance and multipliers as the serial kernel);
+2. PCR: ``ceil(log2 m)`` rounds in which every row eliminates its neighbours at distance ``s`` (``s = 1, 2, 4, ..``),
+   from one pair of shared buffers into the other, a block barrier between rounds; after the last round every row
+   holds one unknown. A closed loop keeps the serial kernel's Sherman-Morrison form (the open tridiagonal part ``T``
+   with the two right-hand sides ``(r, u)``, then ``dl = y - f z``), so that both kernels solve the same system;
+3. the multipliers' Newton bookkeeping in a shared buffer, then the transverse filter's rows over the nodes
+   (``chains.node_row``, the same open-chain filter, ``vec3`` right-hand side) and a second PCR;
+4. ``q = par + y`` where ``w > 0``, a barrier, and the next Newton step.
+
+PCR needs no pivoting where Thomas needs none: its rounds keep a diagonally dominant system dominant. It does
+``O(m log m)`` work instead of ``O(m)``, in ``log m`` steps in series instead of ``m``. Round-off differs from the
+serial kernel (another elimination order), nothing else (``tests/test_chains_block.py``).
+
+On the CPU a block has one lane, which takes every element of each round in order; the double buffers keep a
+round's reads of the previous round's values intact.
+"""
+
+# no ``from __future__ import annotations``: the tile arguments' annotations name the kernel's tile length, a local of
+# the factory, which Warp can evaluate only as objects
+import warp as wp
+
+from lapwarp.kernels.chains import node_row, segment_dir
+
+wp.set_module_options({"enable_backward": False})
+
+# the kernels by tile length (the longest chain's links, a compile-time constant of the shared tiles)
+_KERNELS: dict[int, wp.Kernel] = {}
+# a link row (sub-diagonal, diagonal, super-diagonal, right-hand side, loop vector u) and a filter row (sub-, main,
+# super-diagonal, vec3 right-hand side): one shared element each, so a PCR round writes a row with one scatter (and
+# one block barrier)
+vec5 = wp.types.vector(length=5, dtype=float)
+vec6 = wp.types.vector(length=6, dtype=float)
+
+
+def block_chain_kernel(max_links: int) -> wp.Kernel:
+    """The block solve for chains of at most ``max_links`` links (cached per length): launch ``(num_envs, chains,
+    lanes)`` with ``block_dim=lanes`` (``launching.block_lanes``), one family at a time, with the arguments of
+    ``chains.solve_chains`` less its scratch."""
+    L = max(int(max_links), 1)
+    cached = _KERNELS.get(L)
+    if cached is not None:
+        return cached
+    N = L + 1  # nodes of an open chain of L links
+
+    @wp.func
+    def pcr_links(src: wp.tile(dtype=vec5, shape=(L,), storage="shared"),
+                  dst: wp.tile(dtype=vec5, shape=(L,), storage="shared"), s: int, n: int, lane: int, lanes: int):
+        """One PCR round at distance ``s`` over the ``n`` link rows ``(a, b, c, r, u)`` (two right-hand sides),
+        ``src`` -> ``dst``."""
+        for base in range(0, n, lanes):
+            k = wp.min(base + lane, n - 1)
+            row = wp.tile_extract(src, k)
+            a = float(0.0)
+            c = float(0.0)
+            b = row[1]
+            r = row[3]
+            u = row[4]
+            if k - s >= 0:  # a coupling reaching before the first row is zero already
+                lo = wp.tile_extract(src, k - s)
+                alpha = -row[0] / lo[1]
+                a = alpha * lo[0]
+                b = b + alpha * lo[2]
+                r = r + alpha * lo[3]
+                u = u + alpha * lo[4]
+            if k + s < n:
+                hi = wp.tile_extract(src, k + s)
+                gamma = -row[2] / hi[1]
+                c = gamma * hi[2]
+                b = b + gamma * hi[0]
+                r = r + gamma * hi[3]
+                u = u + gamma * hi[4]
+            wp.tile_scatter_masked(dst, k, vec5(a, b, c, r, u), base + lane < n)
+
+    @wp.func
+    def pcr_nodes(src: wp.tile(dtype=vec6, shape=(N,), storage="shared"),
+                  dst: wp.tile(dtype=vec6, shape=(N,), storage="shared"), s: int, n: int, lane: int, lanes: int):
+        """One PCR round at distance ``s`` over the ``n`` filter rows ``(a, b, c, d_x, d_y, d_z)``, ``src`` ->
+        ``dst``."""
+        for base in range(0, n, lanes):
+            k = wp.min(base + lane, n - 1)
+            row = wp.tile_extract(src, k)
+            a = float(0.0)
+            c = float(0.0)
+            b = row[1]
+            d = wp.vec3(row[3], row[4], row[5])
+            if k - s >= 0:
+                lo = wp.tile_extract(src, k - s)
+                alpha = -row[0] / lo[1]
+                a = alpha * lo[0]
+                b = b + alpha * lo[2]
+                d = d + wp.vec3(lo[3], lo[4], lo[5]) * alpha
+            if k + s < n:
+                hi = wp.tile_extract(src, k + s)
+                gamma = -row[2] / hi[1]
+                c = gamma * hi[2]
+                b = b + gamma * hi[0]
+                d = d + wp.vec3(hi[3], hi[4], hi[5]) * gamma
+            wp.tile_scatter_masked(dst, k, vec6(a, b, c, d[0], d[1], d[2]), base + lane < n)
+
+    def solve_chains_block(
+        family_start: int,
+        stride: int,
+        link_base: int,
+        node_base: int,
+        chain_edge_count: wp.array(dtype=wp.int32),
+        chain_closed: wp.array(dtype=wp.int32),
+        chain_node: wp.array(dtype=wp.int32),
+        chain_constraint: wp.array(dtype=wp.int32),
+        rest: wp.array(dtype=float),
+        compliance: wp.array2d(dtype=float),
+        inv_mass: wp.array2d(dtype=float),
+        inv_dt2: float,
+        use_lambda: int,
+        newton_steps: int,
+        lam: wp.array2d(dtype=float),
+        active: wp.array2d(dtype=wp.int32),
+        q: wp.array2d(dtype=wp.vec3),
+    ):
+        env, i, lane = wp.tid()
+        lanes = wp.block_dim()
+        r = family_start + i
+        s0 = link_base + i  # link k of this chain at s0 + k * stride, node j at nb + j * stride (kernels/chains.py)
+        nb = node_base + i
+        m = chain_edge_count[r]
+        nodes = m + 1
+        closed3 = int(0)
+        if chain_closed[r] != 0:
+            nodes = m
+            if m >= 3:
+                closed3 = 1
+        wraps = closed3
+        pe = env % inv_mass.shape[0]
+        ce = env % compliance.shape[0]
+        masked = active.shape[1] > 0
+        if masked and closed3 != 0:
+            if active[env, chain_constraint[s0]] == 0 or active[env, chain_constraint[s0 + (m - 1) * stride]] == 0:
+                closed3 = 0
+        rows0 = wp.tile_zeros(shape=L, dtype=vec5, storage="shared")  # link rows (a, b, c, r, u), PCR buffer 0
+        rows1 = wp.tile_zeros(shape=L, dtype=vec5, storage="shared")  # ... and 1
+        dl_acc = wp.tile_zeros(shape=L, dtype=wp.vec2, storage="shared")  # per link: dl, this sweep's multiplier so far
+        node0 = wp.tile_zeros(shape=N, dtype=vec6, storage="shared")  # filter rows (a, b, c, d), PCR buffer 0
+        node1 = wp.tile_zeros(shape=N, dtype=vec6, storage="shared")  # ... and 1
+        par_tile = wp.tile_zeros(shape=N, dtype=wp.vec3, storage="shared")  # the tangential part plus the position
+
+        for it in range(newton_steps):
+            cyclic = closed3
+            x_first = q[env, chain_node[nb]]
+            w_first = inv_mass[pe, chain_node[nb]]
+            g = float(0.0)
+            s = float(0.0)
+            if cyclic != 0:
+                # the corner A_{m-1,0} and Sherman-Morrison's g = -A_00 (every lane forms them)
+                n_first, len_first = segment_dir(x_first, q[env, chain_node[nb + (1 % nodes) * stride]])
+                n_last, len_last = segment_dir(q[env, chain_node[nb + (m - 1) * stride]], x_first)
+                s = -w_first * wp.dot(n_last, n_first)
+                if s == 0.0:
+                    cyclic = 0  # no corner coupling (node 0 pinned): a plain tridiagonal system
+                else:
+                    w1 = inv_mass[pe, chain_node[nb + (1 % nodes) * stride]]
+                    g = -(w_first + w1 + compliance[ce, chain_constraint[s0]] * inv_dt2)
+            # ---- rows of the link system (buffers 0)
+            for base in range(0, m, lanes):
+                k = wp.min(base + lane, m - 1)
+                k1 = k + 1
+                if k1 == nodes:
+                    k1 = 0
+                xk = q[env, chain_node[nb + k * stride]]
+                xk1 = q[env, chain_node[nb + k1 * stride]]
+                n_k, len_k = segment_dir(xk, xk1)
+                w_k = inv_mass[pe, chain_node[nb + k * stride]]
+                w_k1 = inv_mass[pe, chain_node[nb + k1 * stride]]
+                c_k = float(0.0)
+                if k + 1 < m:
+                    k2 = k + 2
+                    if k2 >= nodes:
+                        k2 = k2 - nodes
+                    n_next, len_next = segment_dir(xk1, q[env, chain_node[nb + k2 * stride]])
+                    c_k = -w_k1 * wp.dot(n_k, n_next)
+                a_k = float(0.0)
+                if k >= 1:
+                    n_prev, len_prev = segment_dir(q[env, chain_node[nb + (k - 1) * stride]], xk)
+                    a_k = -w_k * wp.dot(n_prev, n_k)
+                cons = chain_constraint[s0 + k * stride]
+                act_k = int(1)
+                if masked:
+                    act_k = active[env, cons]
+                    if k + 1 < m:
+                        if act_k == 0 or active[env, chain_constraint[s0 + (k + 1) * stride]] == 0:
+                            c_k = 0.0  # no coupling across a cut
+                    if k >= 1:
+                        if act_k == 0 or active[env, chain_constraint[s0 + (k - 1) * stride]] == 0:
+                            a_k = 0.0
+                alpha = compliance[ce, cons] * inv_dt2
+                b_k = w_k + w_k1 + alpha
+                rhs = rest[cons] - len_k  # -C_k
+                lam_k = wp.tile_extract(dl_acc, k)[1]  # earlier Newton steps of this sweep
+                if use_lambda != 0:
+                    lam_k = lam_k + lam[env, cons]
+                rhs = rhs - alpha * lam_k
+                u_k = float(0.0)
+                if cyclic != 0:
+                    if k == 0:
+                        b_k = b_k - g
+                        u_k = g
+                    if k == m - 1:
+                        b_k = b_k - s * s / g
+                        u_k = s
+                if b_k <= 0.0 or act_k == 0:
+                    # both nodes pinned and rigid (an empty row) or a removed link: dl = 0
+                    b_k = 1.0
+                    rhs = 0.0
+                wp.tile_scatter_masked(rows0, k, vec5(a_k, b_k, c_k, rhs, u_k), base + lane < m)
+            # ---- PCR, two rounds per pass (0 -> 1 -> 0); a round at a distance >= m copies
+            sd = int(1)
+            while sd < m:
+                pcr_links(rows0, rows1, sd, m, lane, lanes)
+                pcr_links(rows1, rows0, 2 * sd, m, lane, lanes)
+                sd = 4 * sd
+            f = float(0.0)
+            if cyclic != 0:
+                first_row = wp.tile_extract(rows0, 0)
+                last_row = wp.tile_extract(rows0, m - 1)
+                y0 = first_row[3] / first_row[1]
+                z0 = first_row[4] / first_row[1]
+                yl = last_row[3] / last_row[1]
+                zl = last_row[4] / last_row[1]
+                f = (y0 + (s / g) * yl) / (1.0 + z0 + (s / g) * zl)
+            for base in range(0, m, lanes):
+                k = wp.min(base + lane, m - 1)
+                row = wp.tile_extract(rows0, k)
+                dl = (row[3] - f * row[4]) / row[1]
+                total = wp.tile_extract(dl_acc, k)[1] + dl
+                write = base + lane < m
+                if write and use_lambda != 0 and it == newton_steps - 1:
+                    cons = chain_constraint[s0 + k * stride]
+                    lam[env, cons] = lam[env, cons] + total
+                wp.tile_scatter_masked(dl_acc, k, wp.vec2(dl, total), write)
+            # ---- the transverse filter's rows over the nodes (buffers 0), positions before this step's update
+            for base in range(0, nodes, lanes):
+                j = wp.min(base + lane, nodes - 1)
+                x_cur = q[env, chain_node[nb + j * stride]]
+                n_prev = wp.vec3(0.0)
+                dl_prev = float(0.0)
+                k_prev = float(0.0)
+                if j >= 1:
+                    n_prev, len_p = segment_dir(q[env, chain_node[nb + (j - 1) * stride]], x_cur)
+                    if masked:
+                        if active[env, chain_constraint[s0 + (j - 1) * stride]] == 0:
+                            n_prev = wp.vec3(0.0)
+                    dl_prev = wp.tile_extract(dl_acc, j - 1)[0]
+                    if len_p > 1.0e-12:
+                        k_prev = wp.max(-dl_prev, 0.0) / len_p
+                elif wraps != 0:
+                    # the closing link's correction (node 0 pinned: w_0 = 0 below); open-chain filter: no k_prev
+                    n_prev, len_p = segment_dir(q[env, chain_node[nb + (m - 1) * stride]], x_cur)
+                    if masked:
+                        if active[env, chain_constraint[s0 + (m - 1) * stride]] == 0:
+                            n_prev = wp.vec3(0.0)
+                    dl_prev = wp.tile_extract(dl_acc, m - 1)[0]
+                n_j = wp.vec3(0.0)
+                dl_j = float(0.0)
+                k_j = float(0.0)
+                if j < m:
+                    jn = j + 1
+                    if jn == nodes:
+                        jn = 0
+                    n_j, len_j = segment_dir(x_cur, q[env, chain_node[nb + jn * stride]])
+                    if masked:
+                        if active[env, chain_constraint[s0 + j * stride]] == 0:
+                            n_j = wp.vec3(0.0)
+                    dl_j = wp.tile_extract(dl_acc, j)[0]
+                    if j + 1 < nodes and len_j > 1.0e-12:
+                        k_j = wp.max(-dl_j, 0.0) / len_j
+                w_j = inv_mass[pe, chain_node[nb + j * stride]]
+                lo, diag, up, rhs_j, par = node_row(n_prev, dl_prev, k_prev, n_j, dl_j, k_j, w_j, j)
+                write = base + lane < nodes
+                wp.tile_scatter_masked(node0, j, vec6(lo, diag, up, rhs_j[0], rhs_j[1], rhs_j[2]), write)
+                wp.tile_scatter_masked(par_tile, j, par + x_cur, write)
+            sd = int(1)
+            while sd < nodes:
+                pcr_nodes(node0, node1, sd, nodes, lane, lanes)
+                pcr_nodes(node1, node0, 2 * sd, nodes, lane, lanes)
+                sd = 4 * sd
+            for base in range(0, nodes, lanes):
+                j = base + lane
+                if j < nodes:
+                    node = chain_node[nb + j * stride]
+                    if inv_mass[pe, node] > 0.0:
+                        frow = wp.tile_extract(node0, j)
+                        q[env, node] = wp.tile_extract(par_tile, j) + wp.vec3(frow[3], frow[4], frow[5]) / frow[1]
+            # nothing written: a block barrier, so the next Newton step reads the positions every lane wrote
+            wp.tile_scatter_masked(dl_acc, 0, wp.vec2(0.0), False)
+
+    kernel = wp.kernel(solve_chains_block, module="unique", enable_backward=False)
+    _KERNELS[L] = kernel
+    return kernel

@@ -1,0 +1,93 @@
+"""The block (PCR) chain solve (kernels/chains_block.py, ``World.chain_solver = "pcr"``) against the serial one
+(kernels/chains.py): the scenes of tests/test_chains_partitioned.py stepped both ways must end at the same positions.
+
+Both solve the same linear systems exactly (a loop in the same Sherman-Morrison form); only the elimination order
+differs, so the positions differ by float32 round-off. Tolerance: max |dx| <= 1e-5 x the chain's length, as for the
+partitioned solve.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from test_chains_partitioned import TOL, _cloth_world, _rod_world, _worst
+
+
+@pytest.mark.parametrize("newton_steps, iterations, rigid", [(1, 1, False), (2, 1, True), (2, 2, False)])
+@pytest.mark.parametrize("cuttable", [False, True])
+def test_pcr_rods_match_serial(device, newton_steps, iterations, rigid, cuttable, monkeypatch):
+    # open rods of 1-17 links and loops of 3-30, pinned first, last, inside, two adjacent nodes (an empty row when
+    # rigid); 3 envs of different positions (and cuts: loops cut at either corner or inside); 1 or 2 Newton steps,
+    # 1 sweep or 2 (the multipliers carried)
+    from lapwarp.kernels import chains_block
+
+    lengths = []  # the block kernels the "pcr" world records (by their tile length): the solve really ran
+    original = chains_block.block_chain_kernel
+    monkeypatch.setattr(chains_block, "block_chain_kernel", lambda links: lengths.append(links) or original(links))
+    out = []
+    for solver in ("thomas", "pcr"):
+        world, rods = _rod_world(device, 0, newton_steps, iterations, rigid, cuttable)
+        world.chain_solver = solver
+        start = world.positions()
+        world.simulate(0.04, 0.02)
+        assert world.unstable.numpy().sum() == 0
+        out.append(world.positions())
+    assert _worst(start, out[1], rods) > 100 * TOL  # the solves had work to do
+    assert _worst(out[0], out[1], rods) <= TOL
+    assert lengths and set(lengths) == {30}  # the longest chain: the loop of 30 links
+
+
+@pytest.mark.parametrize("newton_steps, cuttable", [(1, False), (2, True)])
+def test_pcr_cloth_edge_chains_match_serial(device, newton_steps, cuttable):
+    # a 6 x 5 cloth: rows, columns and diagonals in 3 families; env 1 with every fourth edge removed
+    out = []
+    for solver in ("thomas", "pcr"):
+        world, objects = _cloth_world(device, 0, newton_steps, cuttable)
+        world.chain_solver = solver
+        world.simulate(0.04, 0.02)
+        out.append(world.positions())
+    assert _worst(out[0], out[1], objects) <= TOL
+
+
+def test_pcr_lanes_fewer_than_links(device):
+    # a block of 32 lanes over chains of up to 30 links and 31 nodes is the common case; 1 lane per block takes every
+    # row of each PCR round in turn (the CPU's case, forced here on any device): the same positions
+    out = []
+    for lanes in (0, 1):
+        world, rods = _rod_world(device, 0, 2, 1, False, True)
+        world.chain_solver = "pcr"
+        world.chain_pcr_threads = lanes
+        world.simulate(0.04, 0.02)
+        out.append(world.positions())
+    assert _worst(out[0], out[1], rods) <= TOL
+
+
+def test_pcr_setting_is_checked(device):
+    world, _ = _rod_world(device, 0, 1, 1, False, False)
+    world.chain_solver = "cholesky"
+    with pytest.raises(ValueError, match="chain_solver must be one of"):
+        world.step(0.02)
+    world.chain_solver = "pcr"
+    world.chain_pcr_threads = -1
+    with pytest.raises(ValueError, match="chain_pcr_threads"):
+        world.step(0.02)
+
+
+def test_pcr_refuses_a_chain_beyond_shared_memory(device, monkeypatch):
+    import lapwarp.world as world_module
+
+    monkeypatch.setattr(world_module, "PCR_MAX_LINKS", 10)
+    world, _ = _rod_world(device, 0, 1, 1, False, False)
+    world.chain_solver = "pcr"
+    with pytest.raises(ValueError, match="longest chain has 30 links, more than 10"):
+        world.step(0.02)
+
+
+def test_env_config_selects_the_pcr_solve():
+    import lapwarp
+
+    env = lapwarp.make("RopeCutting", num_envs=1, device="cpu", chain_solver="pcr")
+    assert env.world.chain_solver == "pcr"
+    env.step(np.zeros((1, env.action_dim), dtype=np.float32))
+    with pytest.raises(ValueError, match="chain_solver"):
+        lapwarp.make("Reach", num_envs=1, device="cpu", chain_solver="jacobi")
