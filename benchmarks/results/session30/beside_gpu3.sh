@@ -59,6 +59,12 @@ if [ "$pcr_ok" -eq 0 ]; then
     bench "chains_default_$task" "$new" $task STATE
     bench "chains_pcr_$task" "$new" $task STATE --set chain_solver=pcr
   done
+  # where RopeCutting's and RopeThreading's steps go with it (RopeCutting: 63 % in the chain solve at 6 Newton steps)
+  for task in RopeCutting RopeThreading; do
+    PYTHONPATH=$new python3 benchmarks/profile_step.py --task $task --device "$dev" --num-envs "$n" --steps 10 \
+      --set chain_solver=pcr --out "$out/profile_pcr_$task.json" > "$out/profile_pcr_$task.txt" 2>&1
+    echo "profile_pcr_$task rc=$? $(grep -m1 "kernel time per env step" "$out/profile_pcr_$task.txt")"
+  done
 fi
 # PrecisionCutting's experts at the new default 12 x 1 (CPU: 16 / 16 first episodes in each configuration), 256 first
 # episodes per configuration and action type (#17 asks >= 90 %; at 8 x 2 every one was >= 94.5 %, twenty-eighth session)
