@@ -59,6 +59,11 @@ if [ "$pcr_ok" -eq 0 ]; then
     bench "chains_default_$task" "$new" $task STATE
     bench "chains_pcr_$task" "$new" $task STATE --set chain_solver=pcr
   done
+  # physics alone (bench_physics.py, 4,096 envs, 20 substeps): a hanging 100-segment rod and the free 40 x 40 cloth
+  # (PrecisionCutting's grid), one thread per chain, blocks of 8 links, and the block solve
+  PYTHONPATH=$new python3 benchmarks/bench_physics.py --device "$dev" --num-envs "$n" --scene rod cloth_free \
+    --chain-block-links 0 8 --chain-solver thomas pcr --out "$out/physics_chains.jsonl" > "$out/physics_chains.txt" 2>&1
+  echo "physics_chains rc=$?"; grep "env-steps/s" "$out/physics_chains.txt"
   # where RopeCutting's and RopeThreading's steps go with it (RopeCutting: 63 % in the chain solve at 6 Newton steps)
   for task in RopeCutting RopeThreading; do
     PYTHONPATH=$new python3 benchmarks/profile_step.py --task $task --device "$dev" --num-envs "$n" --steps 10 \
