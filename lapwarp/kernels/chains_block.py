@@ -53,6 +53,12 @@ def block_chain_kernel(max_links: int) -> wp.Kernel:
     N = L + 1  # nodes of an open chain of L links
 
     @wp.func
+    def node_x(xw: wp.tile(dtype=wp.vec4, shape=(N,), storage="shared"), j: int):
+        """Node ``j``'s position from the block's shared (position, inverse mass) rows."""
+        v = wp.tile_extract(xw, j)
+        return wp.vec3(v[0], v[1], v[2])
+
+    @wp.func
     def pcr_links(src: wp.tile(dtype=vec5, shape=(L,), storage="shared"),
                   dst: wp.tile(dtype=vec5, shape=(L,), storage="shared"), s: int, n: int, lane: int, lanes: int):
         """One PCR round at distance ``s`` over the ``n`` link rows ``(a, b, c, r, u)`` (two right-hand sides),
@@ -151,22 +157,29 @@ def block_chain_kernel(max_links: int) -> wp.Kernel:
         node0 = wp.tile_zeros(shape=N, dtype=vec6, storage="shared")  # filter rows (a, b, c, d), PCR buffer 0
         node1 = wp.tile_zeros(shape=N, dtype=vec6, storage="shared")  # ... and 1
         par_tile = wp.tile_zeros(shape=N, dtype=wp.vec3, storage="shared")  # the tangential part plus the position
+        # the nodes' positions and inverse masses, loaded once: the rows read each node up to four times
+        xw = wp.tile_zeros(shape=N, dtype=wp.vec4, storage="shared")
+        for base in range(0, nodes, lanes):
+            j = wp.min(base + lane, nodes - 1)
+            node = chain_node[nb + j * stride]
+            x = q[env, node]
+            wp.tile_scatter_masked(xw, j, wp.vec4(x[0], x[1], x[2], inv_mass[pe, node]), base + lane < nodes)
 
         for it in range(newton_steps):
             cyclic = closed3
-            x_first = q[env, chain_node[nb]]
-            w_first = inv_mass[pe, chain_node[nb]]
+            x_first = node_x(xw, 0)
+            w_first = wp.tile_extract(xw, 0)[3]
             g = float(0.0)
             s = float(0.0)
             if cyclic != 0:
                 # the corner A_{m-1,0} and Sherman-Morrison's g = -A_00 (every lane forms them)
-                n_first, len_first = segment_dir(x_first, q[env, chain_node[nb + (1 % nodes) * stride]])
-                n_last, len_last = segment_dir(q[env, chain_node[nb + (m - 1) * stride]], x_first)
+                n_first, len_first = segment_dir(x_first, node_x(xw, 1 % nodes))
+                n_last, len_last = segment_dir(node_x(xw, m - 1), x_first)
                 s = -w_first * wp.dot(n_last, n_first)
                 if s == 0.0:
                     cyclic = 0  # no corner coupling (node 0 pinned): a plain tridiagonal system
                 else:
-                    w1 = inv_mass[pe, chain_node[nb + (1 % nodes) * stride]]
+                    w1 = wp.tile_extract(xw, 1 % nodes)[3]
                     g = -(w_first + w1 + compliance[ce, chain_constraint[s0]] * inv_dt2)
             # ---- rows of the link system (buffers 0)
             for base in range(0, m, lanes):
@@ -174,21 +187,21 @@ def block_chain_kernel(max_links: int) -> wp.Kernel:
                 k1 = k + 1
                 if k1 == nodes:
                     k1 = 0
-                xk = q[env, chain_node[nb + k * stride]]
-                xk1 = q[env, chain_node[nb + k1 * stride]]
+                xk = node_x(xw, k)
+                xk1 = node_x(xw, k1)
                 n_k, len_k = segment_dir(xk, xk1)
-                w_k = inv_mass[pe, chain_node[nb + k * stride]]
-                w_k1 = inv_mass[pe, chain_node[nb + k1 * stride]]
+                w_k = wp.tile_extract(xw, k)[3]
+                w_k1 = wp.tile_extract(xw, k1)[3]
                 c_k = float(0.0)
                 if k + 1 < m:
                     k2 = k + 2
                     if k2 >= nodes:
                         k2 = k2 - nodes
-                    n_next, len_next = segment_dir(xk1, q[env, chain_node[nb + k2 * stride]])
+                    n_next, len_next = segment_dir(xk1, node_x(xw, k2))
                     c_k = -w_k1 * wp.dot(n_k, n_next)
                 a_k = float(0.0)
                 if k >= 1:
-                    n_prev, len_prev = segment_dir(q[env, chain_node[nb + (k - 1) * stride]], xk)
+                    n_prev, len_prev = segment_dir(node_x(xw, k - 1), xk)
                     a_k = -w_k * wp.dot(n_prev, n_k)
                 cons = chain_constraint[s0 + k * stride]
                 act_k = int(1)
@@ -248,12 +261,12 @@ def block_chain_kernel(max_links: int) -> wp.Kernel:
             # ---- the transverse filter's rows over the nodes (buffers 0), positions before this step's update
             for base in range(0, nodes, lanes):
                 j = wp.min(base + lane, nodes - 1)
-                x_cur = q[env, chain_node[nb + j * stride]]
+                x_cur = node_x(xw, j)
                 n_prev = wp.vec3(0.0)
                 dl_prev = float(0.0)
                 k_prev = float(0.0)
                 if j >= 1:
-                    n_prev, len_p = segment_dir(q[env, chain_node[nb + (j - 1) * stride]], x_cur)
+                    n_prev, len_p = segment_dir(node_x(xw, j - 1), x_cur)
                     if masked:
                         if active[env, chain_constraint[s0 + (j - 1) * stride]] == 0:
                             n_prev = wp.vec3(0.0)
@@ -262,7 +275,7 @@ def block_chain_kernel(max_links: int) -> wp.Kernel:
                         k_prev = wp.max(-dl_prev, 0.0) / len_p
                 elif wraps != 0:
                     # the closing link's correction (node 0 pinned: w_0 = 0 below); open-chain filter: no k_prev
-                    n_prev, len_p = segment_dir(q[env, chain_node[nb + (m - 1) * stride]], x_cur)
+                    n_prev, len_p = segment_dir(node_x(xw, m - 1), x_cur)
                     if masked:
                         if active[env, chain_constraint[s0 + (m - 1) * stride]] == 0:
                             n_prev = wp.vec3(0.0)
@@ -274,14 +287,14 @@ def block_chain_kernel(max_links: int) -> wp.Kernel:
                     jn = j + 1
                     if jn == nodes:
                         jn = 0
-                    n_j, len_j = segment_dir(x_cur, q[env, chain_node[nb + jn * stride]])
+                    n_j, len_j = segment_dir(x_cur, node_x(xw, jn))
                     if masked:
                         if active[env, chain_constraint[s0 + j * stride]] == 0:
                             n_j = wp.vec3(0.0)
                     dl_j = wp.tile_extract(dl_acc, j)[0]
                     if j + 1 < nodes and len_j > 1.0e-12:
                         k_j = wp.max(-dl_j, 0.0) / len_j
-                w_j = inv_mass[pe, chain_node[nb + j * stride]]
+                w_j = wp.tile_extract(xw, j)[3]
                 lo, diag, up, rhs_j, par = node_row(n_prev, dl_prev, k_prev, n_j, dl_j, k_j, w_j, j)
                 write = base + lane < nodes
                 wp.tile_scatter_masked(node0, j, vec6(lo, diag, up, rhs_j[0], rhs_j[1], rhs_j[2]), write)
@@ -292,14 +305,16 @@ def block_chain_kernel(max_links: int) -> wp.Kernel:
                 pcr_nodes(node1, node0, 2 * sd, nodes, lane, lanes)
                 sd = 4 * sd
             for base in range(0, nodes, lanes):
-                j = base + lane
-                if j < nodes:
-                    node = chain_node[nb + j * stride]
-                    if inv_mass[pe, node] > 0.0:
-                        frow = wp.tile_extract(node0, j)
-                        q[env, node] = wp.tile_extract(par_tile, j) + wp.vec3(frow[3], frow[4], frow[5]) / frow[1]
-            # nothing written: a block barrier, so the next Newton step reads the positions every lane wrote
-            wp.tile_scatter_masked(dl_acc, 0, wp.vec2(0.0), False)
+                j = wp.min(base + lane, nodes - 1)
+                xwj = wp.tile_extract(xw, j)
+                moved = base + lane < nodes and xwj[3] > 0.0
+                x = wp.vec3(0.0)
+                if moved:
+                    frow = wp.tile_extract(node0, j)
+                    x = wp.tile_extract(par_tile, j) + wp.vec3(frow[3], frow[4], frow[5]) / frow[1]
+                    q[env, chain_node[nb + j * stride]] = x
+                # the shared copy too (its scatter is the barrier before the next Newton step reads it)
+                wp.tile_scatter_masked(xw, j, wp.vec4(x[0], x[1], x[2], xwj[3]), moved)
 
     kernel = wp.kernel(solve_chains_block, module="unique", enable_backward=False)
     _KERNELS[L] = kernel
