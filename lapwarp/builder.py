@@ -884,6 +884,8 @@ class SceneBuilder:
                                     dtype=wp.transform, device=dev)
         cap = max(int(attachment_capacity), len(self._attachments))
         model.attachment_capacity = cap
+        static_particles = [a[0] for a in self._attachments]
+        model.attachments_distinct = cap == len(static_particles) and len(set(static_particles)) == cap
         if cap:
             ap = np.full((N, cap), -1, dtype=np.int32)
             ab = np.full((N, cap), -1, dtype=np.int32)

@@ -66,6 +66,7 @@ class GraspSystem:
             raise ValueError(f"slots [{slot_start}, {slot_start + slots}) exceed attachment_capacity {cap}")
         if max(instrument.bodies) >= 31:
             raise ValueError("the ignore mask holds bodies 0..30")
+        world.model.attachments_distinct = False  # its slots change at run time (one thread walks an env's slots)
         self.contact, self.world, self.instrument = contact, world, instrument
         self.jaw_angle = jaw_angle_deg
         self.grasp_threshold, self.release_threshold = float(grasp_threshold), float(release_threshold)

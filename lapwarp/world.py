@@ -390,7 +390,7 @@ class World:
             return
         key = (float(dt), self.substeps_for(float(dt)), self.iterations, self.rod_newton_steps, self.chain_newton_steps,
                self.tet_rotation_iterations, self.chain_block_links, self.chain_solver, self.chain_pcr_threads,
-               self.tet_solver, self.tet_block_threads,
+               self.tet_solver, self.tet_block_threads, self.model.attachments_distinct,
                self.tet_method_in_use, self._register_caps_key(),
                *(solver.record_key() for solver in self.solvers if hasattr(solver, "record_key")))
         if self._cmd_key != key:
@@ -553,12 +553,20 @@ class World:
             bqp = self._body_q_prev if self._body_q_prev is not None else bq
             attachment_args = [s.attach_particle, s.attach_body, s.attach_offset, s.attach_compliance, bqp, bq, blend,
                                m.particle_inv_mass, inv_dt2]
+
+            def solve_attachments(stiff_only: int):
+                if m.attachments_distinct:
+                    # distinct static slots: a thread each (the order is immaterial)
+                    launch(xpbd.solve_attachment_slots, (n, m.attachment_capacity), [*attachment_args, stiff_only],
+                           [s.particle_q])
+                else:
+                    launch(xpbd.solve_attachments, n, [*attachment_args, stiff_only], [s.particle_q])
             if m.geo_particles is not None:
                 # held points first where their bodies hold them, so that the tethers see their anchors there, not
                 # one substep of gravity below (stiff attachments only: a soft one projected twice per sweep would be
                 # stiffer than its compliance); every attachment again at the end. Only with tethers: elsewhere it
                 # was not needed and cost TissueManipulation 12 % (H100)
-                launch(xpbd.solve_attachments, n, [*attachment_args, 1], [s.particle_q])
+                solve_attachments(1)
         if m.geo_particles is not None:
             solve_tethers()
         if m.edge_chains is None:
@@ -612,7 +620,7 @@ class World:
             solve_chains(m.rod_chains, m.rod_stretch_rest, m.rod_stretch_compliance, lam.get("rod", self._dummy_f),
                          self._rod_scratch, seg_mask, self.rod_newton_steps, chains.solve_chains)
         if m.attachment_capacity:
-            launch(xpbd.solve_attachments, n, [*attachment_args, 0], [s.particle_q])
+            solve_attachments(0)
 
     def _prediction_masks(self) -> tuple:
         """``(active, use_active, force, use_force)`` of the prediction (``xpbd.integrate_particles``) and of what

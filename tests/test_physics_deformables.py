@@ -262,3 +262,44 @@ def test_attachment_slots_pull_in_slot_order(device):
                     expect[env, i] += (target - expect[env, i]) * (w / (w + alpha))
         assert np.abs(expect - q0).max() > 1e-3  # the slots moved their particles
         np.testing.assert_allclose(q.numpy(), expect, atol=1e-6)
+
+
+def test_distinct_attachment_slots_solve_a_thread_each(device):
+    """A world whose slots are all static attachments of distinct particles (``Model.attachments_distinct``) runs a
+    thread per slot (``xpbd.solve_attachment_slots``): the same positions as one thread walking an env's slots (bit
+    for bit on the CPU), here a cloth held at its far edge by soft world points and at two corners by a moving body.
+    Free slots (a grasper may fill them) or a particle held twice keep the walk."""
+    from lapwarp.assets import cloth_grid
+
+    def build(capacity=0, twice=False):
+        b = SceneBuilder(gravity=(0.0, 0.0, -G))
+        v, t = cloth_grid(6, 6, 0.05, 0.05, plane="xy")
+        cloth = b.add_cloth(v, t, areal_density=0.2, stretch_stiffness=1e3, bend_stiffness=1e-6, damping=1.0)
+        body = b.add_body("holder")
+        far = np.nonzero(v[:, 1] > 0.05 - 1e-9)[0]
+        for k in far:
+            b.add_attachment(cloth.particle_start + int(k), -1, compliance=1e-4)
+        for k in (0, 5):
+            b.add_attachment(cloth.particle_start + k, body, compliance=0.0)
+        if twice:
+            b.add_attachment(cloth.particle_start + 0, -1, compliance=1e-3)
+        return b.finalize(2, device, substeps=4, attachment_capacity=capacity), cloth
+
+    out = []
+    for distinct in (True, False):
+        world, cloth = build()
+        assert world.model.attachments_distinct
+        world.model.attachments_distinct = distinct
+        pose = world.state.body_q.numpy()
+        for k in range(5):
+            pose[1, 0, 2] = -0.004 * (k + 1)  # env 1's body drags the near corners down
+            world.state.body_q.assign(pose)
+            world.step(0.02)
+        out.append(world.positions(cloth))
+    assert np.abs(out[0][1] - out[0][0]).max() > 1e-3  # the body moved env 1's corners
+    if device == "cpu":
+        np.testing.assert_array_equal(out[0], out[1])
+    else:
+        np.testing.assert_allclose(out[0], out[1], atol=1e-6)
+    assert not build(capacity=20)[0].model.attachments_distinct  # free slots: grasping may fill them
+    assert not build(twice=True)[0].model.attachments_distinct

@@ -200,6 +200,7 @@ class LoopClosure:
             raise ValueError(f"the loop's {N} nodes need {N} attachment slots, the World has "
                              f"{world.model.attachment_capacity}")
         self.world, self.rod, self.nodes = world, rod, N
+        world.model.attachments_distinct = False  # its slots change at run time (one thread walks an env's slots)
         seg_q = world.state.segment_q.numpy()[0, rod.segment_start:rod.segment_start + rod.segment_count]
         inv_tip = np.asarray(tip_rotation, np.float64) * np.array([-1.0, -1.0, -1.0, 1.0])
         rel_first = _quat_mul(inv_tip, seg_q[0])
