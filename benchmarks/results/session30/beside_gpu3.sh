@@ -2,9 +2,10 @@
 # GPU 3 of the next x4 lease (GPU 1 of an x2 lease: DEVICE=cuda:1), from the code copy (queue.sh's BESIDE), ~7 min:
 # 1. the GPU tests of triangle contact on cut tet meshes (a cuttable tet mesh collides through its distinct faces
 #    since the thirtieth session: TissueDissection's flap 658 triangles in 28 colours instead of 1,080 in 46);
-# 2. TissueDissection's step (expert, 4,096 envs, STATE and RGB 64x64) with the code before that change (6260a14's
-#    lapwarp, copied to /tmp/old by the install call from .device/small/old) and after it, alternating old / new
-#    twice in this one call (twenty-ninth session: 200.3k STATE, 175.9k RGB; the targets are 200k each);
+# 2. TissueDissection's step (expert, 4,096 envs, STATE and RGB 64x64) with the code before that change and the
+#    thread-per-slot attachments (6260a14's lapwarp, copied to /tmp/old by the install call from .device/small/old)
+#    and after them, alternating old / new twice in this one call (twenty-ninth session: 200.3k STATE, 175.9k RGB;
+#    the targets are 200k each);
 # 3. PrecisionCutting at its new default 12 substeps x 1 Newton step against the 8 x 2 before (same code);
 # 3b. the new block (PCR) chain solve (World.chain_solver="pcr", kernels/chains_block.py): its GPU tests, then the steps of
 #    RopeCutting, PrecisionCutting, RopeThreading and LigatingLoop with it against their defaults (~4 min);
