@@ -682,7 +682,9 @@ class ContactSystem:
         ignore, masks, reports = self.ignore, self._cut_masks, self.reports
         has_triangles = len(self.tri_color_offsets) > 1
         if has_triangles:  # the triangle passes' tool axes with the shape poses
-            launch(ck.pose_shapes_and_tools, n, [shapes, motion, self._tri_pad], [self._shape_poses, self._tool_axes])
+            lanes = launching.block_lanes(self.device, 32)  # a block per env, its lanes over the shapes
+            launch(ck.pose_shapes_and_tools, (n, lanes), [shapes, motion, self._tri_pad],
+                   [self._shape_poses, self._tool_axes], block_dim=lanes)
         elif len(self.shapes):
             launch(ck.pose_shapes, (n, len(self.shapes)), [shapes, motion], [self._shape_poses])
         if len(self.cp_particle):

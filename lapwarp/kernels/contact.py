@@ -524,12 +524,16 @@ class ToolAxes:
 
 @wp.kernel
 def pose_shapes_and_tools(shapes: ShapeTable, motion: BodyMotion, pad: float, poses: ShapePoses, axes: ToolAxes):
-    """``pose_shapes`` and the tool axes of the triangle passes in one launch per env (a system with contact
-    triangles): both are a few transforms per env, nearly all launch cost when apart."""
-    env = wp.tid()
+    """``pose_shapes`` and the tool axes of the triangle passes in one launch (a system with contact triangles): both
+    are a few transforms per env, nearly all launch cost when apart. A thread block per env (launch ``(num_envs,
+    lanes)``), its lanes over the shapes, then the env's tool box as a block-wide minimum and maximum: one thread
+    walking the shapes was latency-bound (TissueDissection: 0.525 ms of its 21.1 ms step, H200). On the CPU one lane
+    walks them in order."""
+    env, lane = wp.tid()
+    lanes = wp.block_dim()
     lo = wp.vec3(1.0e30)
     hi = wp.vec3(-1.0e30)
-    for s in range(shapes.kind.shape[0]):
+    for s in range(lane, shapes.kind.shape[0], lanes):
         tf = shape_pose(shapes, s, env, motion, motion.blend)
         poses.tf[env, s] = tf
         poses.tf_inv[env, s] = wp.transform_inverse(tf)
@@ -545,8 +549,13 @@ def pose_shapes_and_tools(shapes: ShapeTable, motion: BodyMotion, pad: float, po
         r = wp.vec3(shapes.params[s][0] + shapes.thickness[s])
         lo = wp.min(lo, wp.min(a, b) - r)
         hi = wp.max(hi, wp.max(a, b) + r)
-    axes.lo[env] = lo - wp.vec3(pad)
-    axes.hi[env] = hi + wp.vec3(pad)
+    box_lo = wp.vec3(wp.tile_extract(wp.tile_min(wp.tile(lo[0])), 0), wp.tile_extract(wp.tile_min(wp.tile(lo[1])), 0),
+                     wp.tile_extract(wp.tile_min(wp.tile(lo[2])), 0))
+    box_hi = wp.vec3(wp.tile_extract(wp.tile_max(wp.tile(hi[0])), 0), wp.tile_extract(wp.tile_max(wp.tile(hi[1])), 0),
+                     wp.tile_extract(wp.tile_max(wp.tile(hi[2])), 0))
+    if lane == 0:
+        axes.lo[env] = box_lo - wp.vec3(pad)
+        axes.hi[env] = box_hi + wp.vec3(pad)
 
 
 @wp.func

@@ -20,7 +20,7 @@ n=${NUM_ENVS:-4096}
 d=benchmarks/results/session30
 out=/tmp/r/beside30
 mkdir -p "$out"
-python3 -m pytest -q -p no:cacheprovider tests/test_cutting_contact.py tests/test_contact.py -k "cut or sweep or outcode" \
+python3 -m pytest -q -p no:cacheprovider tests/test_cutting_contact.py tests/test_contact.py -k "cut or sweep or outcode or tunnel" \
   --device "$dev" > "$out/pytest_cuda.txt" 2>&1
 echo "pytest rc=$? $(tail -1 "$out/pytest_cuda.txt")"
 # the block (PCR) chain solve's GPU tests: blocks of many lanes (the CPU runs one), so its barriers are tested here
