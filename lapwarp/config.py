@@ -282,6 +282,12 @@ def check_seed(seed: Any, name: str = "seed") -> int:
         raise ValueError(f"{name}={seed!r} is invalid ({exc}): expected an integer") from None
 
 
+def numpy_rng(seed: int) -> np.random.Generator:
+    """A numpy generator for any integer seed (numpy refuses negative ones): ``default_rng(seed)`` for seeds in
+    ``[0, 2**31)`` as before, and the unsigned form of ``rng_seed32(seed)`` for every other integer."""
+    return np.random.default_rng(rng_seed32(seed) & 0xFFFFFFFF)
+
+
 def rng_seed32(seed: int) -> int:
     """The int32 seed of Warp's per-env RNG streams (``wp.rand_init(seed, env)``) for any Python integer.
 

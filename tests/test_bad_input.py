@@ -252,3 +252,23 @@ def test_usd_paths_are_checked_before_recording(tmp_path, device):
     recorder = UsdRecorder(env, tmp_path / "made" / "x.usda", make_dirs=True)
     recorder.record()
     assert recorder.close().is_file()
+
+
+def test_any_integer_seed_seeds_the_numpy_streams():
+    """Tasks that draw from numpy at build (GraspLiftAndTouch's tracking points, PickAndPlace's layout) take any
+    integer seed, as the Warp streams do: numpy refused a negative one with an error naming no field (found by the
+    fuzz test above). Seeds in [0, 2**31) draw what ``default_rng(seed)`` drew before."""
+    from lapwarp.config import numpy_rng
+
+    assert numpy_rng(7).integers(1 << 30) == np.random.default_rng(7).integers(1 << 30)
+    draws = {s: int(numpy_rng(s).integers(1 << 62)) for s in (-1, 1, -(2**63), 2**40)}
+    assert len(set(draws.values())) == 4
+
+
+def test_equal_state_limits_read_zero(device):
+    """A PTSD component held fixed by equal state limits (allowed: low <= high) is observed as 0, not 0 / 0 = NaN
+    (ThreadInHole with state_high = start = state_low in depth, found by the fuzz test above)."""
+    env = lapwarp.make("ThreadInHole", num_envs=2, device=device, start_ptsd=(0.0, 0.0, 0.0, 0.0),
+                       state_low=(-90.0, -90.0, -32767.0, 0.0), state_high=(90.0, 90.0, 32767.0, 0.0))
+    step_once(env)
+    assert np.all(env.get_observations()["policy"].cpu().numpy()[:, 3] == 0.0)

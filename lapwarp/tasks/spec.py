@@ -93,7 +93,10 @@ def tracking_nodes(num_nodes: int, count: int) -> np.ndarray:
 
 @wp.func
 def to_unit(x: float, low: float, high: float) -> float:
-    """``x`` in [low, high] mapped to [-1, 1] (how observations normalise positions and instrument states)."""
+    """``x`` in [low, high] mapped to [-1, 1] (how observations normalise positions and instrument states); a range
+    of zero width (a component held fixed by equal limits, which configs allow) reads 0, not 0 / 0."""
+    if high <= low:
+        return 0.0
     return 2.0 * (x - low) / (high - low) - 1.0
 
 

@@ -83,7 +83,7 @@ import warp as wp
 from lapwarp import launching
 from lapwarp.assets import box_tets, ellipsoid_tets, tet_surface
 from lapwarp.builder import SceneBuilder
-from lapwarp.config import PTSD, Count, EnvConfig, NonNegative, Positive, PositiveInt, Range
+from lapwarp.config import PTSD, Count, EnvConfig, NonNegative, Positive, PositiveInt, Range, numpy_rng
 from lapwarp.contact import ContactSystem
 from lapwarp.env import BatchedEnv
 from lapwarp.experts import Expert
@@ -881,7 +881,7 @@ class GraspLiftAndTouchEnv(BatchedEnv):
                             ("last_activation", float)):
             setattr(t, name, wp.zeros(n, dtype=dtype, device=dev))
         surface = np.unique(self.gallbladder.surface_tris) - gfirst
-        tracking = tracking_vertices(surface, gb["vertices"], n, _TRACK, np.random.default_rng(cfg.seed))
+        tracking = tracking_vertices(surface, gb["vertices"], n, _TRACK, numpy_rng(cfg.seed))
         t.tracking = wp.array(tracking, dtype=wp.int32, device=dev)
         t.ray_clear = wp.zeros((n, NUM_RAYS), dtype=wp.int32, device=dev)
         t.last_velocity = wp.zeros((n, gcount), dtype=wp.vec3, device=dev)

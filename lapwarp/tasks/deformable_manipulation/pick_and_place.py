@@ -74,7 +74,7 @@ import warp as wp
 from lapwarp import launching
 from lapwarp.assets import rod_circle
 from lapwarp.builder import SceneBuilder
-from lapwarp.config import PTSD, Count, EnvConfig, NonNegative, Positive, PositiveInt, Range
+from lapwarp.config import PTSD, Count, EnvConfig, NonNegative, Positive, PositiveInt, Range, numpy_rng
 from lapwarp.contact import ContactSystem
 from lapwarp.env import BatchedEnv
 from lapwarp.experts import Expert
@@ -1038,7 +1038,7 @@ class PickAndPlaceEnv(BatchedEnv):
         noise-free start; a drop still moving faster than 25 mm/s is dropped again (sofa_env's rule)."""
         cfg, n, dev = self.cfg, self.num_envs, self.wp_device
         size = max(cfg.torus_bank_size, n) if cfg.randomize_torus_position else 1
-        rng = np.random.default_rng(cfg.seed)
+        rng = numpy_rng(cfg.seed)
         all_envs = wp.ones(n, dtype=wp.int32, device=dev)
         self.rig.reset(all_envs, None)  # the noise-free start
         self._bank_tip = wp.transform(*self.rig.instruments.pose.numpy()[0, 0])
