@@ -7,15 +7,17 @@ intermediate values through global scratch over five launches. Here the lanes of
 then the nodes) of one chain side by side and keep every intermediate value in shared memory, in one launch per
 family and sweep, all Newton steps included:
 
-1. each lane assembles the rows of its links from the positions (the same linearisation, pinned nodes, removed
-   links, compliance and multipliers as the serial kernel);
+0. the lanes load the chain's node positions and inverse masses into shared memory (each row reads up to four);
+1. each lane assembles the rows of its links from them (the same linearisation, pinned nodes, removed links,
+   compliance and multipliers as the serial kernel);
 2. PCR: ``ceil(log2 m)`` rounds in which every row eliminates its neighbours at distance ``s`` (``s = 1, 2, 4, ..``),
    from one pair of shared buffers into the other, a block barrier between rounds; after the last round every row
    holds one unknown. A closed loop keeps the serial kernel's Sherman-Morrison form (the open tridiagonal part ``T``
    with the two right-hand sides ``(r, u)``, then ``dl = y - f z``), so that both kernels solve the same system;
 3. the multipliers' Newton bookkeeping in a shared buffer, then the transverse filter's rows over the nodes
    (``chains.node_row``, the same open-chain filter, ``vec3`` right-hand side) and a second PCR;
-4. ``q = par + y`` where ``w > 0``, a barrier, and the next Newton step.
+4. ``q = par + y`` where ``w > 0``, written to global memory and to the shared copy (its scatter is the barrier
+   before the next Newton step).
 
 PCR needs no pivoting where Thomas needs none: its rounds keep a diagonally dominant system dominant. It does
 ``O(m log m)`` work instead of ``O(m)``, in ``log m`` steps in series instead of ``m``. Round-off differs from the
