@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import warp as wp
+from test_contact import _quat_axis_angle
 
 from lapwarp.assets import box_tets, cloth_grid
 from lapwarp.builder import SceneBuilder
@@ -115,11 +116,6 @@ def _slab_with_tool(device, reverse=False):
     cs.add_capsule(1e-3, 2e-3, body=body)
     cs.finalize()
     return world, cs, slab, tv, tt
-
-
-def _quat_axis_angle(axis, angle):
-    q = wp.quat_from_axis_angle(wp.vec3(*axis), angle)
-    return tuple(float(c) for c in q)
 
 
 def test_tet_contact_triangles_are_the_distinct_faces(device):

@@ -68,6 +68,29 @@ def segment_dir(a: wp.vec3, b: wp.vec3):
 
 
 @wp.func
+def link_row_terms(w_k: float, w_k1: float, alpha: float, residual: float, lam: float, k: int, m: int, cyclic: int,
+                   g: float, s: float, active: int):
+    """Diagonal and right-hand sides ``(-C - alpha lambda, u)`` of link ``k``'s row (``residual = -C_k``, ``lam`` the
+    multiplier so far), given the loop's Sherman-Morrison ``g`` and corner ``s`` when ``cyclic``; a removed link or an
+    empty row (both nodes pinned, rigid) becomes the identity with a zero right-hand side. For the solves that form
+    ``g`` before the sweep (kernels/chains_partitioned.py, kernels/chains_block.py)."""
+    b = w_k + w_k1 + alpha
+    rhs = residual - alpha * lam
+    u = float(0.0)
+    if cyclic != 0:
+        if k == 0:
+            b = b - g
+            u = g
+        if k == m - 1:
+            b = b - s * s / g
+            u = s
+    if b <= 0.0 or active == 0:
+        b = 1.0
+        rhs = 0.0
+    return b, rhs, u
+
+
+@wp.func
 def node_row(n_prev: wp.vec3, dl_prev: float, k_prev: float, n_j: wp.vec3, dl_j: float, k_j: float, w_j: float,
              j: int):
     """Filter row of a node: sub-diagonal, diagonal, super-diagonal, right-hand side (the transverse part of

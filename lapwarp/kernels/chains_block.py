@@ -31,16 +31,15 @@ round's reads of the previous round's values intact.
 # the factory, which Warp can evaluate only as objects
 import warp as wp
 
-from lapwarp.kernels.chains import node_row, segment_dir
+from lapwarp.kernels.chains import link_row_terms, node_row, segment_dir
 
 wp.set_module_options({"enable_backward": False})
 
 # the kernels by tile length (the longest chain's links, a compile-time constant of the shared tiles)
 _KERNELS: dict[int, wp.Kernel] = {}
-# a link row (sub-diagonal, diagonal, super-diagonal, right-hand side, loop vector u) and a filter row (sub-, main,
-# super-diagonal, vec3 right-hand side): one shared element each, so a PCR round writes a row with one scatter (and
-# one block barrier)
-vec5 = wp.types.vector(length=5, dtype=float)
+# a row of either system, one shared element (so a PCR round writes it with one scatter and one block barrier): sub-,
+# main and super-diagonal, then the right-hand sides: a link row's (-C - alpha lambda, loop vector u, 0), a filter
+# row's vec3
 vec6 = wp.types.vector(length=6, dtype=float)
 
 
@@ -61,39 +60,10 @@ def block_chain_kernel(max_links: int) -> wp.Kernel:
         return wp.vec3(v[0], v[1], v[2])
 
     @wp.func
-    def pcr_links(src: wp.tile(dtype=vec5, shape=(L,), storage="shared"),
-                  dst: wp.tile(dtype=vec5, shape=(L,), storage="shared"), s: int, n: int, lane: int, lanes: int):
-        """One PCR round at distance ``s`` over the ``n`` link rows ``(a, b, c, r, u)`` (two right-hand sides),
-        ``src`` -> ``dst``."""
-        for base in range(0, n, lanes):
-            k = wp.min(base + lane, n - 1)
-            row = wp.tile_extract(src, k)
-            a = float(0.0)
-            c = float(0.0)
-            b = row[1]
-            r = row[3]
-            u = row[4]
-            if k - s >= 0:  # a coupling reaching before the first row is zero already
-                lo = wp.tile_extract(src, k - s)
-                alpha = -row[0] / lo[1]
-                a = alpha * lo[0]
-                b = b + alpha * lo[2]
-                r = r + alpha * lo[3]
-                u = u + alpha * lo[4]
-            if k + s < n:
-                hi = wp.tile_extract(src, k + s)
-                gamma = -row[2] / hi[1]
-                c = gamma * hi[2]
-                b = b + gamma * hi[0]
-                r = r + gamma * hi[3]
-                u = u + gamma * hi[4]
-            wp.tile_scatter_masked(dst, k, vec5(a, b, c, r, u), base + lane < n)
-
-    @wp.func
-    def pcr_nodes(src: wp.tile(dtype=vec6, shape=(N,), storage="shared"),
+    def pcr_round(src: wp.tile(dtype=vec6, shape=(N,), storage="shared"),
                   dst: wp.tile(dtype=vec6, shape=(N,), storage="shared"), s: int, n: int, lane: int, lanes: int):
-        """One PCR round at distance ``s`` over the ``n`` filter rows ``(a, b, c, d_x, d_y, d_z)``, ``src`` ->
-        ``dst``."""
+        """One PCR round at distance ``s`` over ``n`` rows ``(a, b, c, d_0, d_1, d_2)`` (sub-, main, super-diagonal and
+        up to three right-hand sides), ``src`` -> ``dst``."""
         for base in range(0, n, lanes):
             k = wp.min(base + lane, n - 1)
             row = wp.tile_extract(src, k)
@@ -101,7 +71,7 @@ def block_chain_kernel(max_links: int) -> wp.Kernel:
             c = float(0.0)
             b = row[1]
             d = wp.vec3(row[3], row[4], row[5])
-            if k - s >= 0:
+            if k - s >= 0:  # a coupling reaching before the first row is zero already
                 lo = wp.tile_extract(src, k - s)
                 alpha = -row[0] / lo[1]
                 a = alpha * lo[0]
@@ -153,8 +123,8 @@ def block_chain_kernel(max_links: int) -> wp.Kernel:
         if masked and closed3 != 0:
             if active[env, chain_constraint[s0]] == 0 or active[env, chain_constraint[s0 + (m - 1) * stride]] == 0:
                 closed3 = 0
-        rows0 = wp.tile_zeros(shape=L, dtype=vec5, storage="shared")  # link rows (a, b, c, r, u), PCR buffer 0
-        rows1 = wp.tile_zeros(shape=L, dtype=vec5, storage="shared")  # ... and 1
+        rows0 = wp.tile_zeros(shape=N, dtype=vec6, storage="shared")  # link rows (a, b, c, r, u, 0), PCR buffer 0
+        rows1 = wp.tile_zeros(shape=N, dtype=vec6, storage="shared")  # ... and 1
         dl_acc = wp.tile_zeros(shape=L, dtype=wp.vec2, storage="shared")  # per link: dl, this sweep's multiplier so far
         node0 = wp.tile_zeros(shape=N, dtype=vec6, storage="shared")  # filter rows (a, b, c, d), PCR buffer 0
         node1 = wp.tile_zeros(shape=N, dtype=vec6, storage="shared")  # ... and 1
@@ -215,31 +185,17 @@ def block_chain_kernel(max_links: int) -> wp.Kernel:
                     if k >= 1:
                         if act_k == 0 or active[env, chain_constraint[s0 + (k - 1) * stride]] == 0:
                             a_k = 0.0
-                alpha = compliance[ce, cons] * inv_dt2
-                b_k = w_k + w_k1 + alpha
-                rhs = rest[cons] - len_k  # -C_k
                 lam_k = wp.tile_extract(dl_acc, k)[1]  # earlier Newton steps of this sweep
                 if use_lambda != 0:
                     lam_k = lam_k + lam[env, cons]
-                rhs = rhs - alpha * lam_k
-                u_k = float(0.0)
-                if cyclic != 0:
-                    if k == 0:
-                        b_k = b_k - g
-                        u_k = g
-                    if k == m - 1:
-                        b_k = b_k - s * s / g
-                        u_k = s
-                if b_k <= 0.0 or act_k == 0:
-                    # both nodes pinned and rigid (an empty row) or a removed link: dl = 0
-                    b_k = 1.0
-                    rhs = 0.0
-                wp.tile_scatter_masked(rows0, k, vec5(a_k, b_k, c_k, rhs, u_k), base + lane < m)
+                b_k, rhs, u_k = link_row_terms(w_k, w_k1, compliance[ce, cons] * inv_dt2, rest[cons] - len_k, lam_k,
+                                               k, m, cyclic, g, s, act_k)
+                wp.tile_scatter_masked(rows0, k, vec6(a_k, b_k, c_k, rhs, u_k, 0.0), base + lane < m)
             # ---- PCR, two rounds per pass (0 -> 1 -> 0); a round at a distance >= m copies
             sd = int(1)
             while sd < m:
-                pcr_links(rows0, rows1, sd, m, lane, lanes)
-                pcr_links(rows1, rows0, 2 * sd, m, lane, lanes)
+                pcr_round(rows0, rows1, sd, m, lane, lanes)
+                pcr_round(rows1, rows0, 2 * sd, m, lane, lanes)
                 sd = 4 * sd
             f = float(0.0)
             if cyclic != 0:
@@ -303,8 +259,8 @@ def block_chain_kernel(max_links: int) -> wp.Kernel:
                 wp.tile_scatter_masked(par_tile, j, par + x_cur, write)
             sd = int(1)
             while sd < nodes:
-                pcr_nodes(node0, node1, sd, nodes, lane, lanes)
-                pcr_nodes(node1, node0, 2 * sd, nodes, lane, lanes)
+                pcr_round(node0, node1, sd, nodes, lane, lanes)
+                pcr_round(node1, node0, 2 * sd, nodes, lane, lanes)
                 sd = 4 * sd
             for base in range(0, nodes, lanes):
                 j = wp.min(base + lane, nodes - 1)

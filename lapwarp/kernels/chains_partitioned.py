@@ -58,7 +58,7 @@ from typing import Any
 import numpy as np
 import warp as wp
 
-from lapwarp.kernels.chains import node_row, segment_dir
+from lapwarp.kernels.chains import link_row_terms, node_row, segment_dir
 
 wp.set_module_options({"enable_backward": False})
 
@@ -242,26 +242,14 @@ def link_row(fam: Family, sc: Scratch, env: int, i: int, k: int, m: int, len_k: 
     slot = link_slot(fam, i, k)
     c = fam.constraint[slot]
     alpha = fam.compliance[env % fam.compliance.shape[0], c] * fam.inv_dt2
-    b = w_k + w_k1 + alpha
-    rhs = fam.rest[c] - len_k
     # lambda of this sweep so far: earlier sweeps (iterations > 1) plus the earlier Newton steps
     lam = float(0.0)
     if fam.use_lambda != 0:
         lam = fam.lam[env, c]
     if step > 0:
         lam = lam + sc.newton_dl[env, slot]
-    rhs = rhs - alpha * lam
-    u = float(0.0)
-    if cyclic != 0:
-        if k == 0:
-            b = b - g
-            u = g
-        if k == m - 1:
-            b = b - s * s / g
-            u = s
-    if b <= 0.0 or link_active(fam, env, i, k) == 0:
-        b = 1.0
-        rhs = 0.0
+    b, rhs, u = link_row_terms(w_k, w_k1, alpha, fam.rest[c] - len_k, lam, k, m, cyclic, g, s,
+                               link_active(fam, env, i, k))
     return b, wp.vec2(rhs, u)
 
 
