@@ -44,7 +44,7 @@ TET_METHODS = ("auto", "xpbd", "vbd")
 #: partitioned where ``chain_block_links`` > 1), "pcr" = a thread block per chain, parallel cyclic reduction in shared
 #: memory (kernels/chains_block.py)
 CHAIN_SOLVERS = ("thomas", "pcr")
-#: the longest chain (links) the "pcr" solve takes: its block keeps ~27 floats per link in shared memory (~27 KB)
+#: the longest chain (links) the "pcr" solve takes: its block keeps ~33 floats per link in shared memory (~34 KB)
 PCR_MAX_LINKS = 256
 #: the largest tet particle window the fused sweep keeps in shared memory (12 B each: 48 KB, the static limit)
 FUSED_TET_MAX_PARTICLES = 4096
