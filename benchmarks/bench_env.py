@@ -89,13 +89,15 @@ def bench_one(task: str, num_envs: int, device: str, seconds: float, invalid_act
               policy: str = "random", tet_solver: str | None = None, cuda_graph: bool = True,
               surface_refit_interval: int | None = None, triangle_sweep: str | None = None,
               triangle_block_threads: int | None = None, replay_steps: int = 600,
-              max_registers: dict[str, int] | None = None) -> dict:
+              max_registers: dict[str, int] | None = None, pcr_rows: int | None = None) -> dict:
     def make_env():
         env = lapwarp.make(task, num_envs=num_envs, device=device, invalid_actions=invalid_actions,
                            use_cuda_graph=cuda_graph, **overrides)
         if tet_solver is not None:
             env.world.tet_solver = tet_solver  # before the first step records (and the env captures) the launches
         env.world.max_registers = dict(max_registers or {})
+        if pcr_rows is not None:
+            env.world.chain_pcr_rows = pcr_rows
         apply_contact_settings(env, surface_refit_interval, triangle_sweep, triangle_block_threads)
         return env
 
@@ -154,6 +156,8 @@ def bench_one(task: str, num_envs: int, device: str, seconds: float, invalid_act
         "triangle_block_threads": next((c.triangle_block_threads for c in contact_systems(env)), None),
         "tet_solver": ("fused" if env.world.fused_tets else "colored") if env.world.model.tet_count else None,
         "max_registers": dict(env.world.max_registers),
+        "chain_solver": env.world.chain_solver,
+        "chain_pcr_rows": env.world.chain_pcr_rows if env.world.chain_solver == "pcr" else None,
     }
     env.close()
     return result
@@ -188,6 +192,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--max-registers", nargs="*", default=[], metavar="KERNEL=N",
                         help="register caps of the world step's kernels by function name, e.g. "
                              "collide_triangle_colors=64 (launching.register_capped; CUDA only has an effect)")
+    parser.add_argument("--pcr-rows", type=non_negative_int, default=None,
+                        help="rows per pack of the 'pcr' chain solve (--set chain_solver=pcr; 0: the world's default, "
+                             "1: a chain per block)")
     parser.add_argument("--no-graph", action="store_true",
                         help="launch the step's kernels one by one instead of replaying a CUDA graph")
     parser.add_argument("--out", default=None, help="JSON output path")
@@ -214,7 +221,7 @@ def main(argv: list[str] | None = None) -> int:
             r = bench_one(args.task, n, args.device, args.seconds, mode, overrides, args.policy, args.tet_solver,
                           cuda_graph=not args.no_graph, surface_refit_interval=args.surface_refit_interval,
                           triangle_sweep=args.triangle_sweep, triangle_block_threads=args.triangle_block_threads,
-                          replay_steps=args.replay_steps, max_registers=max_registers)
+                          replay_steps=args.replay_steps, max_registers=max_registers, pcr_rows=args.pcr_rows)
             results.append(r)
             print(f"{r['task']:<10} {n:>9} {mode:>8} {r['env_steps_per_s']:>14,.0f} {r['step_ms']:>9.3f}", flush=True)
     regime = "the expert's recorded actions replayed" if args.policy == "replay" else f"{args.policy} actions"

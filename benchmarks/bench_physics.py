@@ -174,7 +174,8 @@ def timed_steps(world, device: str, steps: int) -> float:
 
 def run(scene: str, num_envs: int, device: str, substeps: int, iterations: int, edge_solver: str, steps: int,
         settle: int, newton_steps: int | None = None, block_links: int = 0, tet_solver: str | None = None,
-        tet_method: str | None = None, tether_passes: int | None = None, chain_solver: str = "thomas") -> dict:
+        tet_method: str | None = None, tether_passes: int | None = None, chain_solver: str = "thomas",
+        pcr_rows: int = 0) -> dict:
     wp.synchronize_device(device)
     world, obj, rest, drag = SCENES[scene](num_envs, device, substeps or None, iterations, edge_solver)
     if tet_solver is not None:
@@ -185,6 +186,7 @@ def run(scene: str, num_envs: int, device: str, substeps: int, iterations: int, 
         world.chain_newton_steps = newton_steps
     world.chain_block_links = block_links
     world.chain_solver = chain_solver
+    world.chain_pcr_rows = pcr_rows
     if tether_passes is not None:
         world.tether_passes = tether_passes
     dev = wp.get_device(device)
@@ -202,6 +204,7 @@ def run(scene: str, num_envs: int, device: str, substeps: int, iterations: int, 
         "chain_newton_steps": world.chain_newton_steps if m.edge_chains is not None else None,
         "chain_block_links": world.chain_block_links,
         "chain_solver": world.chain_solver,
+        "chain_pcr_rows": world.chain_pcr_rows if world.chain_solver == "pcr" else None,
         "chain_families": m.edge_chains.num_families if m.edge_chains is not None else None,
         "tet_solver": ("fused" if world.fused_tets else "colored") if m.tet_count else None,
         "tet_method": world.tet_method_in_use if m.tet_count else None,
@@ -233,6 +236,9 @@ def main() -> None:
     p.add_argument("--chain-solver", nargs="+", default=["thomas"], choices=list(CHAIN_SOLVERS),
                    help="one run per value: thomas = a thread walks each chain (or its blocks, --chain-block-links), "
                         "pcr = a thread block per chain (kernels/chains_block.py)")
+    p.add_argument("--pcr-rows", type=non_negative_int, nargs="+", default=[0],
+                   help="rows per pack of the 'pcr' chain solve, one run per value (0: the world's default, 1: a chain "
+                        "per block)")
     p.add_argument("--tet-solver", nargs="+", default=[None], choices=["auto", "colored", "fused"],
                    help="one run per value (tet scenes; default: the world's own choice)")
     p.add_argument("--tet-method", nargs="+", default=[None], choices=["auto", "xpbd", "vbd"],
@@ -256,14 +262,18 @@ def main() -> None:
                     tet_solvers = args.tet_solver if scene.startswith("tet") else [None]
                     tet_methods = args.tet_method if scene.startswith("tet") else [None]
                     passes = args.tether_passes if "tethers" in scene or scene == "cloth" else [None]
-                    for n, block, chain, tets, method, tp in itertools.product(
-                            args.num_envs, args.chain_block_links, args.chain_solver, tet_solvers, tet_methods, passes):
+                    for n, block, chain, rows, tets, method, tp in itertools.product(
+                            args.num_envs, args.chain_block_links, args.chain_solver, args.pcr_rows, tet_solvers,
+                            tet_methods, passes):
+                        if chain != "pcr" and rows != args.pcr_rows[0]:
+                            continue  # the packs are the "pcr" solve's alone
                         rec = run(scene, n, args.device, sub, it, solver, args.steps, args.settle_steps,
-                                  args.newton_steps, block, tets, method, tp, chain)
+                                  args.newton_steps, block, tets, method, tp, chain, rows)
                         quality_text = (f"sag={rec['sag_m']:.3e} m" if "sag_m" in rec else
                                         f"stretch mean={rec['stretch_mean']:.4f} max={rec['stretch_max']:.3f}")
                         print(f"{scene:12s} {str(rec['edge_solver']):8s} envs={n:6d} substeps={rec['substeps']:4d} "
-                              f"iters={it} block={block} chains={chain} tets={rec['tet_solver']}/{rec['tet_method']} "
+                              f"iters={it} block={block} chains={chain}/{rows} "
+                              f"tets={rec['tet_solver']}/{rec['tet_method']} "
                               f"tether_passes={rec['tether_passes']} "
                               f"{rec['env_steps_per_s']:12.1f} env-steps/s  {quality_text}  "
                               f"unstable={rec['unstable_envs']}", flush=True)

@@ -33,6 +33,8 @@ class ChainSet:
         families: host list of ``(first chain, chains, link_base, node_base)``; the chains of one family share no node.
         link_slots, node_slots: sizes of the slot arrays (the per-env scratch has the same layout).
         lengths: host array of the chain lengths (links), for reports.
+        closed_host, node_host, constraint_host: host copies of ``closed``, ``node`` and ``constraint`` (the block
+            solve's packs are laid out from them, see :func:`pack_chains`).
     """
 
     count: int
@@ -45,6 +47,9 @@ class ChainSet:
     link_slots: int = 0
     node_slots: int = 0
     lengths: np.ndarray | None = None
+    closed_host: np.ndarray | None = None
+    node_host: np.ndarray | None = None
+    constraint_host: np.ndarray | None = None
 
     @property
     def num_families(self) -> int:
@@ -171,4 +176,75 @@ def build_chain_set(chains: list[tuple[list, list, bool]], num_nodes: int, devic
     node = np.concatenate(node_slots) if node_slots else np.zeros(0, np.int64)
     return ChainSet(count=len(chains), edges=int(sum(edge_count)), edge_count=arr(edge_count), closed=arr(closed),
                     node=arr(node), constraint=arr(link), families=families, link_slots=len(link),
-                    node_slots=len(node), lengths=np.asarray(edge_count))
+                    node_slots=len(node), lengths=np.asarray(edge_count), closed_host=np.asarray(closed, np.int32),
+                    node_host=node.astype(np.int32), constraint_host=link.astype(np.int32))
+
+
+@dataclass
+class ChainPacks:
+    """The chains of a :class:`ChainSet` packed into the thread blocks of the block (PCR) solve
+    (``kernels/chains_block.py``), family by family.
+
+    A pack is a run of consecutive chains of one family laid end to end as one row sequence: an open chain of ``m``
+    links takes ``m + 1`` rows, row ``t`` holding node ``t`` and the link from it to node ``t + 1`` (the chain's last
+    row has no link: an identity row of the link system, which with the zero couplings at the chain's ends keeps the
+    chains of a pack independent, one tridiagonal system for all of them). A closed chain (a loop, solved in
+    Sherman-Morrison form) takes a pack of its own, ``m`` rows.
+
+    Attributes:
+        rows: ``(R,)`` vec3i per row: (global particle of the node, constraint id of the link from it or -1, 1 where a
+            chain starts); packs one after another.
+        pack_start, pack_rows, pack_closed: ``(P,)`` int32 per pack: first row, row count, 1 for a loop.
+        families: host list of ``(first pack, packs)``, in the chain set's family order.
+        max_rows: the most rows of a pack (the kernel's shared tile length).
+        capacity: the row budget the packs were laid out for.
+    """
+
+    rows: wp.array
+    pack_start: wp.array
+    pack_rows: wp.array
+    pack_closed: wp.array
+    families: list
+    max_rows: int
+    capacity: int
+
+
+def pack_chains(cs: ChainSet, capacity: int, device) -> ChainPacks:
+    """Pack each family's open chains, longest first, into runs of at most ``capacity`` rows (next fit; a chain
+    longer than that alone); ``capacity <= 1``: one chain per pack. Host work from the chain set's host copies, once
+    per layout."""
+    rows, starts, counts, closed_flags, families = [], [], [], [], []
+    total = 0  # rows so far: the packs' rows follow each other (a chain joins the last pack or opens one)
+    for first, count, link_base, node_base in cs.families:
+        pack_base = len(starts)
+        current = None  # the open pack being filled: index into starts
+        for i in range(count):
+            r = first + i
+            m = int(cs.lengths[r])
+            loop = bool(cs.closed_host[r])
+            n = m if loop else m + 1
+            nodes = cs.node_host[node_base + i + count * np.arange(n)]
+            links = np.full(n, -1, np.int32)
+            links[:m] = cs.constraint_host[link_base + i + count * np.arange(m)]
+            chain_rows = np.stack([nodes, links, np.zeros(n, np.int32)], 1)
+            chain_rows[0, 2] = 1
+            if loop or current is None or capacity <= 1 or counts[current] + n > capacity:
+                starts.append(total)
+                counts.append(0)
+                closed_flags.append(int(loop))
+                current = None if loop else len(starts) - 1
+                target = len(starts) - 1
+            else:
+                target = current
+            rows.append(chain_rows)
+            counts[target] += n
+            total += n
+        families.append((pack_base, len(starts) - pack_base))
+    flat = np.concatenate(rows).astype(np.int32) if rows else np.zeros((0, 3), np.int32)
+
+    def arr(values, dtype=wp.int32):
+        return wp.array(np.asarray(values, dtype=np.int32), dtype=dtype, device=device)
+
+    return ChainPacks(rows=arr(flat, wp.vec3i), pack_start=arr(starts), pack_rows=arr(counts),
+                      pack_closed=arr(closed_flags), families=families, max_rows=max(counts, default=1),
+                      capacity=int(capacity))

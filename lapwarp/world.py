@@ -27,6 +27,7 @@ import numpy as np
 import warp as wp
 
 from lapwarp import launching
+from lapwarp.chains import ChainPacks, pack_chains
 from lapwarp.config import check_seed, rng_seed32
 from lapwarp.kernels import chains, chains_block, chains_partitioned, geodesic, world_kernels
 from lapwarp.model import Control, Model, State
@@ -44,8 +45,11 @@ TET_METHODS = ("auto", "xpbd", "vbd")
 #: partitioned where ``chain_block_links`` > 1), "pcr" = a thread block per chain, parallel cyclic reduction in shared
 #: memory (kernels/chains_block.py)
 CHAIN_SOLVERS = ("thomas", "pcr")
-#: the longest chain (links) the "pcr" solve takes: its block keeps ~33 floats per link in shared memory (~34 KB)
+#: the longest chain (links) the "pcr" solve takes: its block keeps ~33 floats per row in shared memory (~34 KB)
 PCR_MAX_LINKS = 256
+#: rows of the "pcr" solve's packs by default: the open chains of a family laid end to end in blocks of up to this
+#: many rows (chains.pack_chains), so that short chains (a cloth's diagonals, a few short ropes) fill a block's lanes
+PCR_PACK_ROWS = 128
 #: the largest tet particle window the fused sweep keeps in shared memory (12 B each: 48 KB, the static limit)
 FUSED_TET_MAX_PARTICLES = 4096
 
@@ -149,11 +153,13 @@ class World:
         # chain (kernels/chains.py); B > 1 = the partitioned solve (kernels/chains_partitioned.py), blocks of B links
         # side by side plus a serial pass over the m / B separators, for few long chains (a rope per env on the GPU)
         self.chain_block_links = 0
-        # CHAIN_SOLVERS: "pcr" solves each chain with a thread block (one launch per family and sweep, every Newton
-        # step in it; same systems, round-off aside); lanes per block: chain_pcr_threads (0 = the chains' longest
-        # node count rounded up to a warp, at most 128)
+        # CHAIN_SOLVERS: "pcr" solves packs of chains with a thread block each (one launch per family and sweep,
+        # every Newton step in it; same systems, round-off aside): the open chains of a family end to end in packs of
+        # up to chain_pcr_rows rows (0 = PCR_PACK_ROWS; 1 = a chain per block; a loop always alone); lanes per
+        # block: chain_pcr_threads (0 = the largest pack's rows rounded up to a warp, at most 128)
         self.chain_solver = "thomas"
         self.chain_pcr_threads = 0
+        self.chain_pcr_rows = 0
         # tets' rotation: warm-started extraction iterations per projection (0 = SVD polar decomposition)
         self.tet_rotation_iterations = 2
         # tet sweep (TET_SOLVERS): "colored" = one launch per graph colour; "fused" = one launch per sweep, a thread
@@ -209,6 +215,8 @@ class World:
         self._edge_scratch = self._chain_scratch(m.edge_chains)
         # the partitioned chain solve's extra scratch per chain set, allocated on first use (_chain_partition)
         self._partitions = {}
+        # the block (PCR) solve's packs per chain set (_chain_packs)
+        self._packs = {}
         if self.state.body_q is not None:
             self._body_q_prev = wp.clone(self.state.body_q)
         self._dummy_f = wp.zeros((1, 1), dtype=float, device=dev)
@@ -257,6 +265,15 @@ class World:
         return (*(wp.zeros((n, links), dtype=float, device=dev) for _ in range(4)),
                 wp.zeros((n, nodes), dtype=float, device=dev), wp.zeros((n, nodes), dtype=wp.vec3, device=dev),
                 wp.zeros((n, nodes), dtype=wp.vec3, device=dev))
+
+    def _chain_packs(self, chains) -> ChainPacks:
+        """The block solve's packs of a chain set at ``chain_pcr_rows`` (laid out on first use, again for another
+        row budget; host work from the chain set's host copies)."""
+        capacity = int(self.chain_pcr_rows) or PCR_PACK_ROWS
+        cached = self._packs.get(id(chains))
+        if cached is None or cached.capacity != capacity:
+            cached = self._packs[id(chains)] = pack_chains(chains, capacity, self.device)
+        return cached
 
     def _chain_partition(self, chains, scratch: tuple) -> tuple[list, object]:
         """Block layout and scratch of the partitioned solve of a chain set at ``chain_block_links`` (allocated on
@@ -390,6 +407,7 @@ class World:
             return
         key = (float(dt), self.substeps_for(float(dt)), self.iterations, self.rod_newton_steps, self.chain_newton_steps,
                self.tet_rotation_iterations, self.chain_block_links, self.chain_solver, self.chain_pcr_threads,
+               self.chain_pcr_rows,
                self.tet_solver, self.tet_block_threads, self.model.attachments_distinct,
                self.tet_method_in_use, self._register_caps_key(),
                *(solver.record_key() for solver in self.solvers if hasattr(solver, "record_key")))
@@ -410,6 +428,9 @@ class World:
                     raise ValueError(f"world.chain_solver 'pcr' keeps a chain in one block's shared memory: this "
                                      f"scene's longest chain has {longest} links, more than {PCR_MAX_LINKS}; use "
                                      f"'thomas'")
+            if not 0 <= int(self.chain_pcr_rows) <= 4 * PCR_PACK_ROWS:
+                raise ValueError(f"world.chain_pcr_rows must be in [0, {4 * PCR_PACK_ROWS}] (0: {PCR_PACK_ROWS}, 1: a "
+                                 f"chain per block), got {self.chain_pcr_rows!r}")
             if not 0 <= int(self.chain_pcr_threads) <= 1024:
                 raise ValueError(f"world.chain_pcr_threads must be in [0, 1024] (0: automatic), got "
                                  f"{self.chain_pcr_threads!r}")
@@ -517,15 +538,15 @@ class World:
 
         def solve_chains(cs, rest, compliance, lam_arr, scratch, mask, newton_steps, kernel):
             if self.chain_solver == "pcr":
-                # a thread block per (env, chain), one launch per family with every Newton step in it
-                longest = int(cs.lengths.max())
-                lanes = int(self.chain_pcr_threads) or min(128, 32 * ((longest + 1 + 31) // 32))
+                # a thread block per (env, pack of chains), one launch per family with every Newton step in it
+                packs = self._chain_packs(cs)
+                lanes = int(self.chain_pcr_threads) or min(128, 32 * ((packs.max_rows + 31) // 32))
                 lanes = launching.block_lanes(self.device, lanes)
-                pcr = chains_block.block_chain_kernel(longest)
-                for first, count, link_base, node_base in cs.families:
+                pcr = chains_block.block_chain_kernel(packs.max_rows)
+                for pack_base, count in packs.families:
                     launch(pcr, (n, count, lanes),
-                           [first, count, link_base, node_base, cs.edge_count, cs.closed, cs.node, cs.constraint,
-                            rest, compliance, w_eff, inv_dt2, use_lam, newton_steps, lam_arr, mask],
+                           [pack_base, packs.pack_start, packs.pack_rows, packs.pack_closed, packs.rows, rest,
+                            compliance, w_eff, inv_dt2, use_lam, newton_steps, lam_arr, mask],
                            [s.particle_q], block_dim=lanes)
                 return
             if self.chain_block_links > 1:
