@@ -232,9 +232,11 @@ class EnvConfig:
             side (``kernels/chains_partitioned.py``; same results up to round-off, more parallel work for few long
             chains per env on a GPU); -1 (default) = the task's measured best on CUDA devices
             (``BatchedEnv.gpu_chain_block_links``) and 0 on the CPU (one thread runs every kernel there anyway).
-        chain_solver: ``"thomas"`` (default: the chain solve above) or ``"pcr"``: a thread block per chain solves
-            it by parallel cyclic reduction in shared memory, every Newton step in one launch per family
-            (``kernels/chains_block.py``; the same systems, round-off aside; not yet timed on a GPU).
+        chain_solver: ``"thomas"`` (the chain solve above), ``"pcr"`` (thread blocks solve packs of a family's
+            chains by parallel cyclic reduction in shared memory, every Newton step in one launch per family;
+            ``kernels/chains_block.py``, the same systems, round-off aside) or ``"auto"`` (default): the task's
+            measured best on CUDA devices (``BatchedEnv.gpu_chain_solver``: "pcr" for RopeThreading and LigatingLoop)
+            and "thomas" on the CPU.
     """
 
     observation_type: str = "STATE"
@@ -252,7 +254,7 @@ class EnvConfig:
         = (64, 64)
     seed: int = 0
     chain_block_links: Annotated[int, Range(ge=-1, le=4096)] = -1
-    chain_solver: Literal["thomas", "pcr"] = "thomas"
+    chain_solver: Literal["auto", "thomas", "pcr"] = "auto"
 
     def validate(self, reward_features: tuple[str, ...], supported_observations: tuple[str, ...]) -> None:
         """Check (and coerce) every field; raise ``ValueError`` naming the offending field. Task configs extend it

@@ -110,6 +110,9 @@ class BatchedEnv(VecEnv):
     #: ``chain_block_links`` that ``-1`` (automatic) means on CUDA devices: blocks of this many links when the task's
     #: few long rods per env leave the one-thread-per-chain solve latency-bound (benchmarks/RESULTS.md), else 0.
     gpu_chain_block_links: ClassVar[int] = 0
+    #: ``chain_solver`` that ``"auto"`` means on CUDA devices: ``"pcr"`` (a thread block per pack of chains,
+    #: kernels/chains_block.py) where the task's step measured faster with it, else ``"thomas"`` (benchmarks/RESULTS.md)
+    gpu_chain_solver: ClassVar[str] = "thomas"
 
     @classmethod
     def from_overrides(cls, num_envs: int = 1, device: str = "cpu", use_cuda_graph: bool = True,
@@ -143,7 +146,7 @@ class BatchedEnv(VecEnv):
         with wp.ScopedDevice(self.wp_device):
             self.world: World = self._build()
             self.world.chain_block_links = self.chain_block_links
-            self.world.chain_solver = cfg.chain_solver
+            self.world.chain_solver = self.chain_solver
             self.obs_layout: ObservationLayout = self._observation_layout()
             # built even without the critic group: kernels take its columns as an argument of their declared type
             self.critic_layout: ObservationLayout = self._critic_layout()
@@ -491,6 +494,14 @@ class BatchedEnv(VecEnv):
         if self.cfg.chain_block_links >= 0:
             return self.cfg.chain_block_links
         return self.gpu_chain_block_links if self.wp_device.is_cuda else 0
+
+    @property
+    def chain_solver(self) -> str:
+        """The chain solve in use: ``cfg.chain_solver``, with ``"auto"`` resolved per device (the CPU runs one thread
+        per block, so there the serial solve)."""
+        if self.cfg.chain_solver != "auto":
+            return self.cfg.chain_solver
+        return self.gpu_chain_solver if self.wp_device.is_cuda else "thomas"
 
     def _step_launches(self) -> None:
         """Every launch of one env step, in order; captured as one CUDA graph on CUDA devices."""

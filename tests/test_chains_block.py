@@ -132,6 +132,8 @@ def test_pcr_refuses_a_chain_beyond_shared_memory(device, monkeypatch):
 def test_env_config_selects_the_pcr_solve():
     import lapwarp
 
+    env = lapwarp.make("RopeCutting", num_envs=1, device="cpu")
+    assert env.cfg.chain_solver == "auto" and env.world.chain_solver == "thomas"  # "auto": the serial solve on a CPU
     env = lapwarp.make("RopeCutting", num_envs=1, device="cpu", chain_solver="pcr")
     assert env.world.chain_solver == "pcr"
     env.step(np.zeros((1, env.action_dim), dtype=np.float32))

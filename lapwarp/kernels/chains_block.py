@@ -16,8 +16,9 @@ block per chain would leave idle):
    compliance and multipliers as the serial kernel);
 2. PCR: ``ceil(log2 n)`` rounds over the pack's ``n`` rows, in which every row eliminates its neighbours at distance
    ``s`` (``s = 1, 2, 4, ..``), from one pair of shared buffers into the other, a block barrier between rounds; after
-   the last round every row holds one unknown. A closed loop keeps the serial kernel's Sherman-Morrison form (the open tridiagonal part ``T``
-   with the two right-hand sides ``(r, u)``, then ``dl = y - f z``), so that both kernels solve the same system;
+   the last round every row holds one unknown. A closed loop keeps the serial kernel's Sherman-Morrison form (the open
+   tridiagonal part ``T`` with the two right-hand sides ``(r, u)``, then ``dl = y - f z``), so that both kernels solve
+   the same system;
 3. the multipliers' Newton bookkeeping in a shared buffer, then the transverse filter's rows over the nodes
    (``chains.node_row``, the same open-chain filter, ``vec3`` right-hand side) and a second PCR;
 4. ``q = par + y`` where ``w > 0``, written to global memory and to the shared copy (its scatter is the barrier
