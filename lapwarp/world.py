@@ -27,7 +27,7 @@ import numpy as np
 import warp as wp
 
 from lapwarp import launching
-from lapwarp.chains import ChainPacks, pack_chains
+from lapwarp.chains import pack_chains
 from lapwarp.config import check_seed, rng_seed32
 from lapwarp.kernels import chains, chains_block, chains_partitioned, geodesic, world_kernels
 from lapwarp.model import Control, Model, State
@@ -159,7 +159,7 @@ class World:
         # block: chain_pcr_threads (0 = the largest pack's rows rounded up to a warp, at most 128)
         self.chain_solver = "thomas"
         self.chain_pcr_threads = 0
-        self.chain_pcr_rows = 0
+        self._chain_pcr_rows = 0
         # tets' rotation: warm-started extraction iterations per projection (0 = SVD polar decomposition)
         self.tet_rotation_iterations = 2
         # tet sweep (TET_SOLVERS): "colored" = one launch per graph colour; "fused" = one launch per sweep, a thread
@@ -215,8 +215,10 @@ class World:
         self._edge_scratch = self._chain_scratch(m.edge_chains)
         # the partitioned chain solve's extra scratch per chain set, allocated on first use (_chain_partition)
         self._partitions = {}
-        # the block (PCR) solve's packs per chain set (_chain_packs)
+        # the block (PCR) solve's packs per chain set, laid out here and whenever chain_pcr_rows changes: their
+        # device arrays are copied from the host, which a step recorded inside a CUDA graph capture must not do
         self._packs = {}
+        self._lay_out_chain_packs()
         if self.state.body_q is not None:
             self._body_q_prev = wp.clone(self.state.body_q)
         self._dummy_f = wp.zeros((1, 1), dtype=float, device=dev)
@@ -266,14 +268,25 @@ class World:
                 wp.zeros((n, nodes), dtype=float, device=dev), wp.zeros((n, nodes), dtype=wp.vec3, device=dev),
                 wp.zeros((n, nodes), dtype=wp.vec3, device=dev))
 
-    def _chain_packs(self, chains) -> ChainPacks:
-        """The block solve's packs of a chain set at ``chain_pcr_rows`` (laid out on first use, again for another
-        row budget; host work from the chain set's host copies)."""
-        capacity = int(self.chain_pcr_rows) or PCR_PACK_ROWS
-        cached = self._packs.get(id(chains))
-        if cached is None or cached.capacity != capacity:
-            cached = self._packs[id(chains)] = pack_chains(chains, capacity, self.device)
-        return cached
+    @property
+    def chain_pcr_rows(self) -> int:
+        """Rows per pack of the block (PCR) chain solve: 0 = ``PCR_PACK_ROWS``, 1 = a chain per block, else at most
+        this many rows (a longer chain alone). Setting it lays the packs out again (host work, outside any step)."""
+        return self._chain_pcr_rows
+
+    @chain_pcr_rows.setter
+    def chain_pcr_rows(self, rows: int) -> None:
+        if isinstance(rows, bool) or not isinstance(rows, (int, np.integer)) or not 0 <= rows <= 4 * PCR_PACK_ROWS:
+            raise ValueError(f"world.chain_pcr_rows must be an int in [0, {4 * PCR_PACK_ROWS}] (0: {PCR_PACK_ROWS}, "
+                             f"1: a chain per block), got {rows!r}")
+        self._chain_pcr_rows = int(rows)
+        self._lay_out_chain_packs()
+
+    def _lay_out_chain_packs(self) -> None:
+        capacity = self._chain_pcr_rows or PCR_PACK_ROWS
+        for cs in (self.model.rod_chains, self.model.edge_chains):
+            if cs is not None and cs.count:
+                self._packs[id(cs)] = pack_chains(cs, capacity, self.device)
 
     def _chain_partition(self, chains, scratch: tuple) -> tuple[list, object]:
         """Block layout and scratch of the partitioned solve of a chain set at ``chain_block_links`` (allocated on
@@ -428,9 +441,6 @@ class World:
                     raise ValueError(f"world.chain_solver 'pcr' keeps a chain in one block's shared memory: this "
                                      f"scene's longest chain has {longest} links, more than {PCR_MAX_LINKS}; use "
                                      f"'thomas'")
-            if not 0 <= int(self.chain_pcr_rows) <= 4 * PCR_PACK_ROWS:
-                raise ValueError(f"world.chain_pcr_rows must be in [0, {4 * PCR_PACK_ROWS}] (0: {PCR_PACK_ROWS}, 1: a "
-                                 f"chain per block), got {self.chain_pcr_rows!r}")
             if not 0 <= int(self.chain_pcr_threads) <= 1024:
                 raise ValueError(f"world.chain_pcr_threads must be in [0, 1024] (0: automatic), got "
                                  f"{self.chain_pcr_threads!r}")
@@ -539,7 +549,7 @@ class World:
         def solve_chains(cs, rest, compliance, lam_arr, scratch, mask, newton_steps, kernel):
             if self.chain_solver == "pcr":
                 # a thread block per (env, pack of chains), one launch per family with every Newton step in it
-                packs = self._chain_packs(cs)
+                packs = self._packs[id(cs)]
                 lanes = int(self.chain_pcr_threads) or min(128, 32 * ((packs.max_rows + 31) // 32))
                 lanes = launching.block_lanes(self.device, lanes)
                 pcr = chains_block.block_chain_kernel(packs.max_rows)

@@ -117,6 +117,24 @@ def test_pcr_setting_is_checked(device):
     world.chain_pcr_threads = -1
     with pytest.raises(ValueError, match="chain_pcr_threads"):
         world.step(0.02)
+    for rows in (-1, 4096, 2.5, True):
+        with pytest.raises(ValueError, match="chain_pcr_rows"):
+            world.chain_pcr_rows = rows
+
+
+def test_pcr_packs_are_laid_out_outside_the_step(monkeypatch):
+    # the packs' device arrays are copied from the host, which a step recorded inside a CUDA graph capture (an env's
+    # first step on a GPU) must not do: the World lays them out when built and when chain_pcr_rows is set, and a step
+    # only reads them (a layout during the captured step replayed garbage rows on the GPU: PrecisionCutting's expert
+    # failed every episode, RopeCutting at 64 rows accessed memory out of bounds)
+    import lapwarp.world as world_module
+
+    world, _ = _rod_world("cpu", 0, 1, 1, False, False)
+    world.chain_solver = "pcr"
+    world.chain_pcr_rows = 12
+    monkeypatch.setattr(world_module, "pack_chains", lambda *a, **k: pytest.fail("packs laid out inside a step"))
+    world.simulate(0.04, 0.02)
+    assert world.unstable.numpy().sum() == 0
 
 
 def test_pcr_refuses_a_chain_beyond_shared_memory(device, monkeypatch):
