@@ -501,13 +501,26 @@ class World:
         iters = max(1, self.iterations)
         use_lam = 1 if iters > 1 else 0
         lam = self._lam
+        # a substep's velocity update and the next one's prediction run as one kernel where nothing comes between
+        # them (a solver's record_substep_end would): one launch and one pass over the particles fewer per substep
+        fuse = not any(hasattr(solver, "record_substep_end") for solver in self.solvers)
         for sub in range(substeps):
-            launch(xpbd.integrate_particles, (n, m.particle_count),
-                   [m.particle_inv_mass, m.particle_damping, m.gravity, h, *self._prediction_masks(), s.particle_q,
-                    s.particle_qd], [self._q_pred])
+            if sub > 0 and fuse:
+                launch(xpbd.finish_and_integrate_particles, (n, m.particle_count),
+                       [1.0 / h, m.particle_inv_mass, m.particle_damping, m.gravity, h, *self._prediction_masks(),
+                        s.particle_q, s.particle_qd], [self._q_pred])
+            else:
+                launch(xpbd.integrate_particles, (n, m.particle_count),
+                       [m.particle_inv_mass, m.particle_damping, m.gravity, h, *self._prediction_masks(), s.particle_q,
+                        s.particle_qd], [self._q_pred])
             if m.segment_count:
-                launch(xpbd.integrate_segments, (n, m.segment_count),
-                       [m.segment_inv_inertia, m.segment_damping, h, s.segment_q, s.segment_qd], [self._sq_prev])
+                if sub > 0 and fuse:
+                    launch(xpbd.finish_and_integrate_segments, (n, m.segment_count),
+                           [1.0 / h, m.segment_inv_inertia, m.segment_damping, h, s.segment_q, s.segment_qd],
+                           [self._sq_prev])
+                else:
+                    launch(xpbd.integrate_segments, (n, m.segment_count),
+                           [m.segment_inv_inertia, m.segment_damping, h, s.segment_q, s.segment_qd], [self._sq_prev])
             for arr in lam.values():
                 cmds.append(arr.zero_)
             for it in range(iters):
@@ -515,11 +528,12 @@ class World:
                 self._record_sweep(launch, xpbd, inv_dt2, use_lam, sweep)
                 for solver in self.solvers:
                     solver.record_sweep(self, launch, sweep)
-            launch(xpbd.update_particle_velocities, (n, m.particle_count), [s.particle_q, self._q_pred, 1.0 / h],
-                   [s.particle_qd])
-            if m.segment_count:
-                launch(xpbd.update_segment_velocities, (n, m.segment_count), [s.segment_q, self._sq_prev, 1.0 / h],
-                       [s.segment_qd])
+            if sub == substeps - 1 or not fuse:
+                launch(xpbd.update_particle_velocities, (n, m.particle_count), [s.particle_q, self._q_pred, 1.0 / h],
+                       [s.particle_qd])
+                if m.segment_count:
+                    launch(xpbd.update_segment_velocities, (n, m.segment_count),
+                           [s.segment_q, self._sq_prev, 1.0 / h], [s.segment_qd])
             for solver in self.solvers:
                 if hasattr(solver, "record_substep_end"):
                     solver.record_substep_end(self, launch, Sweep(sub, iters - 1, substeps, iters, h))
