@@ -494,7 +494,8 @@ class World:
             # attachments change only between steps (grasping updates them after the last sweep)
             lanes = launching.block_lanes(dev, 64)  # a block per env (world_kernels.attachment_inverse_masses)
             launch(world_kernels.attachment_inverse_masses, (n, lanes),
-                   [m.particle_inv_mass, s.attach_particle, s.attach_compliance, inv_dt2], [self._w_eff],
+                   [m.particle_inv_mass, s.attach_particle, s.attach_compliance, inv_dt2,
+                    int(m.attachments_distinct)], [self._w_eff],
                    block_dim=lanes)
         if m.geo_particles is not None:
             self._record_geodesic_refresh(launch)

@@ -266,7 +266,8 @@ def test_attachment_slots_pull_in_slot_order(device):
 
 def test_distinct_attachment_slots_solve_a_thread_each(device):
     """A world whose slots are all static attachments of distinct particles (``Model.attachments_distinct``) runs a
-    thread per slot (``xpbd.solve_attachment_slots``): the same positions as one thread walking an env's slots (bit
+    thread per slot (``xpbd.solve_attachment_slots``; and its inverse masses for the deformables without a slot scanning
+    the others): the same positions as one thread walking an env's slots (bit
     for bit on the CPU), here a cloth held at its far edge by soft world points and at two corners by a moving body.
     Free slots (a grasper may fill them) or a particle held twice keep the walk."""
     from lapwarp.assets import cloth_grid

@@ -180,7 +180,7 @@ def reciprocal(values: wp.array(dtype=float), out: wp.array(dtype=float)):
 
 @wp.kernel
 def attachment_inverse_masses(inv_mass: wp.array2d(dtype=float), attach_particle: wp.array2d(dtype=wp.int32),
-                              attach_compliance: wp.array2d(dtype=float), inv_dt2: float,
+                              attach_compliance: wp.array2d(dtype=float), inv_dt2: float, distinct: int,
                               w_out: wp.array2d(dtype=float)):
     """Inverse mass of each particle as the deformables' constraints see it: a particle held by attachments of
     compliances alpha_s counts as ``1 / (1 / w + sum h^2 / alpha_s)``, i.e. the attachment springs' resistance
@@ -191,7 +191,8 @@ def attachment_inverse_masses(inv_mass: wp.array2d(dtype=float), attach_particle
     A thread block per env: its lanes copy the true inverse masses, then (after a block barrier) each attachment
     slot rewrites its particle's from every slot that holds it (slots sharing a particle store the same value). One
     thread per (env, particle) scanning every slot cost TissueDissection's 36 slots x 144 particles ~0.4 ms per env
-    step at 4,096 envs. On the CPU a block has one lane."""
+    step at 4,096 envs. ``distinct`` (``Model.attachments_distinct``: no particle in two slots): each slot is its
+    particle's only one, so no slot scans the others. On the CPU a block has one lane."""
     env, lane = wp.tid()
     lanes = wp.block_dim()
     barrier = wp.tile_zeros(shape=1, dtype=int, storage="shared")
@@ -207,7 +208,12 @@ def attachment_inverse_masses(inv_mass: wp.array2d(dtype=float), attach_particle
         w = inv_mass[row, i]
         if w > 0.0:
             resistance = float(0.0)
-            for s in range(slots):
+            first = int(0)
+            last = slots
+            if distinct != 0:
+                first = s0
+                last = s0 + 1
+            for s in range(first, last):
                 if attach_particle[env, s] == i:
                     a = attach_compliance[env, s] * inv_dt2
                     if a <= 0.0:
