@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The GPU beside the next lease's learning queue (queue.sh's BESIDE; x4: GPU 3, x2: GPU 1 with DEVICE=cuda:1), ~16 min:
+# The GPU beside the next lease's learning queue (queue.sh's BESIDE; x4: GPU 3, x2: GPU 1 with DEVICE=cuda:1), ~20 min:
 # 1. the GPU tests of the block (PCR) chain solve since its packs (a family's open chains end to end in one block; laid
 #    out outside the step since the thirty-first session's fix: a layout inside the env's captured first step replayed
 #    garbage rows), of the fused velocity update + prediction and of the distinct-slot inverse masses;
@@ -11,7 +11,7 @@
 # 3. the code before this session's step changes (7304414, /tmp/old: the velocity update fused into the next
 #    substep's prediction, the distinct-slot inverse masses) against the new: TissueDissection STATE and RGB 64x64
 #    (218.6k / 193.9k at 6260a14 + the thirtieth session's changes; RGB needs 200k), RopeCutting, ThreadInHole;
-# 4. TissueDissection's kernel profile;
+# 4. TissueDissection's kernel profile (RGB); 5. RopeThreading's and LigatingLoop's soaks with the block solve;
 # then the learning queue JOBS until DEADLINE seconds after this script started.
 # DEVICE (cuda:3), NUM_ENVS (4096), JOBS (next_jobs_gpu3.txt) and DEADLINE (1400) override.
 set -u
@@ -71,6 +71,13 @@ fi
 PYTHONPATH=$new python3 benchmarks/profile_step.py --task TissueDissection --device "$dev" --num-envs "$n" --steps 10 \
   --set observation_type=RGB --out "$out/td_rgb_profile.json" > "$out/td_rgb_profile.txt" 2>&1
 echo "td_rgb_profile rc=$? $(grep -m1 "kernel time per env step" "$out/td_rgb_profile.txt")"
+# RopeThreading and LigatingLoop on their new GPU default (the block chain solve): a random-action soak of 10^7
+# env-steps each, continuous actions (~100 + ~140 s), if the packs' tests passed
+if [ "$pcr_ok" -eq 0 ]; then
+  PYTHONPATH=$new python3 benchmarks/soak.py --device "$dev" --num-envs "$n" --env-steps 1e7 \
+    --tasks RopeThreading LigatingLoop --action-types CONTINUOUS --out "$out/soak_pcr.jsonl" > "$out/soak_pcr.txt" 2>&1
+  echo "soak_pcr rc=$? $(tail -2 "$out/soak_pcr.txt" | tr '\n' ' ' | cut -c1-300)"
+fi
 left=$((${DEADLINE:-1400} + t0 - $(date +%s)))
 [ "$left" -gt 0 ] || { echo "no time left for the queue"; exit 0; }
 PYTHONPATH=$new python3 train/experiments.py --queue "${JOBS:-$d/next_jobs_gpu3.txt}" --devices "$dev" \
