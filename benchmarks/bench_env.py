@@ -31,6 +31,7 @@ from lapwarp import launching
 from lapwarp.cli import default_device, non_negative_int, parse_overrides, positive_float, positive_int
 from lapwarp.contact import ContactSystem
 from lapwarp.experts import make_expert
+from lapwarp.world import ROD_SOLVERS
 
 
 def device_name(device: str) -> str:
@@ -89,7 +90,8 @@ def bench_one(task: str, num_envs: int, device: str, seconds: float, invalid_act
               policy: str = "random", tet_solver: str | None = None, cuda_graph: bool = True,
               surface_refit_interval: int | None = None, triangle_sweep: str | None = None,
               triangle_block_threads: int | None = None, replay_steps: int = 600,
-              max_registers: dict[str, int] | None = None, pcr_rows: int | None = None) -> dict:
+              max_registers: dict[str, int] | None = None, pcr_rows: int | None = None,
+              rod_solver: str | None = None) -> dict:
     def make_env():
         env = lapwarp.make(task, num_envs=num_envs, device=device, invalid_actions=invalid_actions,
                            use_cuda_graph=cuda_graph, **overrides)
@@ -98,6 +100,8 @@ def bench_one(task: str, num_envs: int, device: str, seconds: float, invalid_act
         env.world.max_registers = dict(max_registers or {})
         if pcr_rows is not None:
             env.world.chain_pcr_rows = pcr_rows
+        if rod_solver is not None:
+            env.world.rod_solver = rod_solver
         apply_contact_settings(env, surface_refit_interval, triangle_sweep, triangle_block_threads)
         return env
 
@@ -157,6 +161,7 @@ def bench_one(task: str, num_envs: int, device: str, seconds: float, invalid_act
         "tet_solver": ("fused" if env.world.fused_tets else "colored") if env.world.model.tet_count else None,
         "max_registers": dict(env.world.max_registers),
         "chain_solver": env.world.chain_solver,
+        "rod_solver": env.world.rod_solver if env.world.model.segment_count else None,
         "chain_pcr_rows": env.world.chain_pcr_rows if env.world.chain_solver == "pcr" else None,
     }
     env.close()
@@ -195,6 +200,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--pcr-rows", type=non_negative_int, default=None,
                         help="rows per pack of the 'pcr' chain solve (--set chain_solver=pcr; 0: the world's default, "
                              "1: a chain per block)")
+    parser.add_argument("--rod-solver", choices=list(ROD_SOLVERS), default=None,
+                        help="the world's rod sweep: one launch per colour or all colours in one (default: its own)")
     parser.add_argument("--no-graph", action="store_true",
                         help="launch the step's kernels one by one instead of replaying a CUDA graph")
     parser.add_argument("--out", default=None, help="JSON output path")
@@ -221,7 +228,8 @@ def main(argv: list[str] | None = None) -> int:
             r = bench_one(args.task, n, args.device, args.seconds, mode, overrides, args.policy, args.tet_solver,
                           cuda_graph=not args.no_graph, surface_refit_interval=args.surface_refit_interval,
                           triangle_sweep=args.triangle_sweep, triangle_block_threads=args.triangle_block_threads,
-                          replay_steps=args.replay_steps, max_registers=max_registers, pcr_rows=args.pcr_rows)
+                          replay_steps=args.replay_steps, max_registers=max_registers, pcr_rows=args.pcr_rows,
+                          rod_solver=args.rod_solver)
             results.append(r)
             print(f"{r['task']:<10} {n:>9} {mode:>8} {r['env_steps_per_s']:>14,.0f} {r['step_ms']:>9.3f}", flush=True)
     regime = "the expert's recorded actions replayed" if args.policy == "replay" else f"{args.policy} actions"

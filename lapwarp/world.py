@@ -38,6 +38,9 @@ from lapwarp.vbd import tet_components, vertex_layout
 # threads per block, 3.08 ms at 256)
 #: the tet sweeps ``World.tet_solver`` may name
 TET_SOLVERS = ("auto", "colored", "fused")
+#: the rod sweeps ``World.rod_solver`` may name: a launch per colour of the stretch-shear and bend-twist constraints, or
+#: one launch for all of them ("fused", a thread block per env, xpbd.solve_rods_fused; "auto" = "fused")
+ROD_SOLVERS = ("auto", "colored", "fused")
 #: the tet methods ``World.tet_method`` may name: XPBD constraint projection, per-vertex descent (kernels/vbd.py), or
 #: "auto": per vertex where every tet mesh has a pinned particle in every env, else XPBD
 TET_METHODS = ("auto", "xpbd", "vbd")
@@ -160,6 +163,10 @@ class World:
         self.chain_solver = "thomas"
         self.chain_pcr_threads = 0
         self._chain_pcr_rows = 0
+        # ROD_SOLVERS: the rods' stretch-shear and bend-twist colours in one launch per sweep (a block of
+        # rod_block_threads lanes per env) or a launch each
+        self.rod_solver = "auto"
+        self.rod_block_threads = 32
         # tets' rotation: warm-started extraction iterations per projection (0 = SVD polar decomposition)
         self.tet_rotation_iterations = 2
         # tet sweep (TET_SOLVERS): "colored" = one launch per graph colour; "fused" = one launch per sweep, a thread
@@ -208,6 +215,11 @@ class World:
         # the fused tet sweep's colour table and particle window (the tets' lowest particle and the window's length)
         self._tet_color_offsets = wp.array(np.asarray(m.tet_color_offsets, dtype=np.int32), dtype=wp.int32,
                                            device=dev)
+        # the fused rod sweep's colour tables (device copies made here: never while a step is recorded, see _packs)
+        self._segment_color_offsets = wp.array(np.asarray(m.segment_color_offsets, dtype=np.int32), dtype=wp.int32,
+                                               device=dev)
+        self._bend_color_offsets = wp.array(np.asarray(m.bend_color_offsets, dtype=np.int32), dtype=wp.int32,
+                                            device=dev)
         self._tet_window = (0, 0)
         if m.tet_count:
             idx = m.tet_indices.numpy()
@@ -421,7 +433,8 @@ class World:
         key = (float(dt), self.substeps_for(float(dt)), self.iterations, self.rod_newton_steps, self.chain_newton_steps,
                self.tet_rotation_iterations, self.chain_block_links, self.chain_solver, self.chain_pcr_threads,
                self.chain_pcr_rows,
-               self.tet_solver, self.tet_block_threads, self.model.attachments_distinct,
+               self.tet_solver, self.tet_block_threads, self.model.attachments_distinct, self.rod_solver,
+               self.rod_block_threads,
                self.tet_method_in_use, self._register_caps_key(),
                *(solver.record_key() for solver in self.solvers if hasattr(solver, "record_key")))
         if self._cmd_key != key:
@@ -444,6 +457,11 @@ class World:
             if not 0 <= int(self.chain_pcr_threads) <= 1024:
                 raise ValueError(f"world.chain_pcr_threads must be in [0, 1024] (0: automatic), got "
                                  f"{self.chain_pcr_threads!r}")
+            if self.rod_solver not in ROD_SOLVERS:
+                raise ValueError(f"world.rod_solver must be one of {ROD_SOLVERS}, got {self.rod_solver!r}")
+            if isinstance(self.rod_block_threads, bool) or not isinstance(self.rod_block_threads, int) \
+                    or not 1 <= self.rod_block_threads <= 1024:
+                raise ValueError(f"world.rod_block_threads must be an int in [1, 1024], got {self.rod_block_threads!r}")
             if self.tet_solver not in TET_SOLVERS:
                 raise ValueError(f"world.tet_solver must be one of {TET_SOLVERS}, got {self.tet_solver!r}")
             if self.tet_solver == "fused" and self._tet_window[1] > FUSED_TET_MAX_PARTICLES:
@@ -650,17 +668,26 @@ class World:
             # they undo what the chains' Gauss-Seidel across families moved too far (a held sheet at 10 substeps:
             # mean stretch 2.50 with the first projection only, 1.059 with both; CPU, one env)
             solve_tethers()
-        off = m.segment_color_offsets
-        for c in range(len(off) - 1):
-            launch(xpbd.solve_stretch_shear, (n, off[c + 1] - off[c]),
-                   [off[c], m.segment_particles, m.segment_rest, m.segment_compliance, m.segment_inv_inertia,
-                    w_eff, inv_dt2, use_lam, lam.get("segment", self._dummy_v3), seg_mask],
-                   [s.particle_q, s.segment_q])
-        off = m.bend_color_offsets
-        for c in range(len(off) - 1):
-            launch(xpbd.solve_bend_twist, (n, off[c + 1] - off[c]),
-                   [off[c], m.bend_segments, m.bend_rest, m.bend_compliance, m.segment_inv_inertia, inv_dt2, use_lam,
-                    lam.get("bend", self._dummy_v3), seg_mask], [s.segment_q])
+        if m.segment_count and self.rod_solver in ("auto", "fused"):
+            # every colour of both groups in one launch, a block per env (on the CPU one lane: the same order)
+            lanes = launching.block_lanes(self.device, self.rod_block_threads)
+            launch(xpbd.solve_rods_fused, (n, lanes),
+                   [self._segment_color_offsets, m.segment_particles, m.segment_rest, m.segment_compliance,
+                    self._bend_color_offsets, m.bend_segments, m.bend_rest, m.bend_compliance, m.segment_inv_inertia,
+                    w_eff, inv_dt2, use_lam, lam.get("segment", self._dummy_v3), lam.get("bend", self._dummy_v3),
+                    seg_mask], [s.particle_q, s.segment_q], block_dim=lanes)
+        elif m.segment_count:
+            off = m.segment_color_offsets
+            for c in range(len(off) - 1):
+                launch(xpbd.solve_stretch_shear, (n, off[c + 1] - off[c]),
+                       [off[c], m.segment_particles, m.segment_rest, m.segment_compliance, m.segment_inv_inertia,
+                        w_eff, inv_dt2, use_lam, lam.get("segment", self._dummy_v3), seg_mask],
+                       [s.particle_q, s.segment_q])
+            off = m.bend_color_offsets
+            for c in range(len(off) - 1):
+                launch(xpbd.solve_bend_twist, (n, off[c + 1] - off[c]),
+                       [off[c], m.bend_segments, m.bend_rest, m.bend_compliance, m.segment_inv_inertia, inv_dt2,
+                        use_lam, lam.get("bend", self._dummy_v3), seg_mask], [s.segment_q])
         if m.rod_count:
             # after shear and bend-twist so every sweep ends with the rods at their length
             solve_chains(m.rod_chains, m.rod_stretch_rest, m.rod_stretch_compliance, lam.get("rod", self._dummy_f),

@@ -202,3 +202,41 @@ def test_rod_batch_invariance(device):
     many = run(3)
     assert np.abs(one).max() > 0.0 and np.abs(one - run(1)).max() == 0.0
     assert np.array_equal(many, np.repeat(one, 3, axis=0))
+
+
+@pytest.mark.parametrize("iterations, cuttable", [(1, False), (2, True)])
+def test_fused_rod_sweep_matches_the_per_colour_launches(device, iterations, cuttable):
+    # xpbd.solve_rods_fused runs every stretch-shear colour, then every bend-twist colour, in one launch (a block per
+    # env, a barrier between colours): the same constraint functions in the same order, so open rods and loops of
+    # many lengths and pins (3 envs perturbed differently, cut in the cuttable case; 1 sweep, or 2 with the
+    # multipliers carried) end at the same positions and orientations as with a launch per colour (bit for bit on the
+    # CPU, where a block has one lane; to float32 round-off on a GPU)
+    from test_chains_partitioned import _rod_world
+
+    out = []
+    for solver in ("fused", "colored"):
+        world, rods = _rod_world(device, 0, 1, iterations, False, cuttable)
+        world.rod_solver = solver
+        start = world.state.segment_q.numpy().copy()
+        world.simulate(0.04, 0.02)
+        assert world.unstable.numpy().sum() == 0
+        out.append((world.state.particle_q.numpy().copy(), world.state.segment_q.numpy().copy()))
+    assert np.abs(out[0][1] - start).max() > 1e-3  # the frames turned
+    for fused, colored in zip(out[0], out[1], strict=True):
+        if device == "cpu":
+            np.testing.assert_array_equal(fused, colored)
+        else:
+            np.testing.assert_allclose(fused, colored, atol=1e-6)
+
+
+def test_rod_solver_settings_are_checked(device):
+    from test_chains_partitioned import _rod_world
+
+    world, _ = _rod_world(device, 0, 1, 1, False, False)
+    world.rod_solver = "jacobi"
+    with pytest.raises(ValueError, match="rod_solver must be one of"):
+        world.step(0.02)
+    world.rod_solver = "fused"
+    world.rod_block_threads = 0
+    with pytest.raises(ValueError, match="rod_block_threads"):
+        world.step(0.02)

@@ -776,9 +776,10 @@ def quat_add_scaled(a: wp.quat, b: wp.quat, s: float):
     return wp.quat(a[0] + b[0] * s, a[1] + b[1] * s, a[2] + b[2] * s, a[3] + b[3] * s)
 
 
-@wp.kernel
-def solve_stretch_shear(
-    start: int,
+@wp.func
+def stretch_shear_constraint(
+    env: int,
+    c: int,
     particles: wp.array(dtype=wp.vec3i),
     rest: wp.array(dtype=float),
     compliance: wp.array2d(dtype=wp.vec3),
@@ -791,8 +792,7 @@ def solve_stretch_shear(
     q: wp.array2d(dtype=wp.vec3),
     sq: wp.array2d(dtype=wp.quat),
 ):
-    env, t = wp.tid()
-    c = start + t
+    """Stretch-shear constraint ``c`` of env ``env`` (a segment's Gamma, Kugelstadt & Schoemer 2016)."""
     ij = particles[c]
     s = ij[2]
     # segment_active is (N, S) with cutting masks and (1, 0) without
@@ -848,9 +848,10 @@ def solve_stretch_shear(
         sq[env, s] = wp.normalize(quat_add_scaled(r, dq, 2.0 * wq))
 
 
-@wp.kernel
-def solve_bend_twist(
-    start: int,
+@wp.func
+def bend_twist_constraint(
+    env: int,
+    b: int,
     segments: wp.array(dtype=wp.vec2i),
     rest: wp.array(dtype=wp.quat),
     compliance: wp.array2d(dtype=wp.vec3),
@@ -861,8 +862,7 @@ def solve_bend_twist(
     segment_active: wp.array2d(dtype=wp.int32),
     sq: wp.array2d(dtype=wp.quat),
 ):
-    env, t = wp.tid()
-    b = start + t
+    """Bend-twist constraint ``b`` of env ``env`` (the Darboux quaternion of two adjacent segments)."""
     ab = segments[b]
     if segment_active.shape[1] > 0:
         # bend-twist couples two segments: gone with either of them
@@ -899,3 +899,84 @@ def solve_bend_twist(
     oc = wp.quat(-dl[0], -dl[1], -dl[2], 0.0)
     sq[env, ab[0]] = wp.normalize(quat_add_scaled(qa, qb * oc, wa))
     sq[env, ab[1]] = wp.normalize(quat_add_scaled(qb, qa * oc, -wb))
+
+
+@wp.kernel
+def solve_stretch_shear(
+    start: int,
+    particles: wp.array(dtype=wp.vec3i),
+    rest: wp.array(dtype=float),
+    compliance: wp.array2d(dtype=wp.vec3),
+    inv_inertia: wp.array2d(dtype=float),
+    inv_mass: wp.array2d(dtype=float),
+    inv_dt2: float,
+    use_lambda: int,
+    lam: wp.array2d(dtype=wp.vec3),
+    segment_active: wp.array2d(dtype=wp.int32),
+    q: wp.array2d(dtype=wp.vec3),
+    sq: wp.array2d(dtype=wp.quat),
+):
+    """One colour of stretch-shear constraints from ``start``, a thread each."""
+    env, t = wp.tid()
+    stretch_shear_constraint(env, start + t, particles, rest, compliance, inv_inertia, inv_mass, inv_dt2, use_lambda,
+                             lam, segment_active, q, sq)
+
+
+@wp.kernel
+def solve_bend_twist(
+    start: int,
+    segments: wp.array(dtype=wp.vec2i),
+    rest: wp.array(dtype=wp.quat),
+    compliance: wp.array2d(dtype=wp.vec3),
+    inv_inertia: wp.array2d(dtype=float),
+    inv_dt2: float,
+    use_lambda: int,
+    lam: wp.array2d(dtype=wp.vec3),
+    segment_active: wp.array2d(dtype=wp.int32),
+    sq: wp.array2d(dtype=wp.quat),
+):
+    """One colour of bend-twist constraints from ``start``, a thread each."""
+    env, t = wp.tid()
+    bend_twist_constraint(env, start + t, segments, rest, compliance, inv_inertia, inv_dt2, use_lambda, lam,
+                          segment_active, sq)
+
+
+@wp.kernel
+def solve_rods_fused(
+    segment_offsets: wp.array(dtype=wp.int32),
+    particles: wp.array(dtype=wp.vec3i),
+    segment_rest: wp.array(dtype=float),
+    segment_compliance: wp.array2d(dtype=wp.vec3),
+    bend_offsets: wp.array(dtype=wp.int32),
+    bend_segments: wp.array(dtype=wp.vec2i),
+    bend_rest: wp.array(dtype=wp.quat),
+    bend_compliance: wp.array2d(dtype=wp.vec3),
+    inv_inertia: wp.array2d(dtype=float),
+    inv_mass: wp.array2d(dtype=float),
+    inv_dt2: float,
+    use_lambda: int,
+    segment_lam: wp.array2d(dtype=wp.vec3),
+    bend_lam: wp.array2d(dtype=wp.vec3),
+    segment_active: wp.array2d(dtype=wp.int32),
+    q: wp.array2d(dtype=wp.vec3),
+    sq: wp.array2d(dtype=wp.quat),
+):
+    """Every colour of the stretch-shear constraints, then every colour of the bend-twist ones, in one launch: a
+    thread block per env whose lanes take a colour's constraints side by side, a block barrier between colours (the
+    positions and orientations stay in global memory, which a barrier makes visible to the block). The same
+    ``wp.func`` per constraint as the per-colour kernels, in the same order on the CPU (one lane there): bit-identical.
+    Why: a rod task's colours are small (RopeCutting's 95 segments per env in 2 colours, RopeThreading's 100), so its
+    four launches per sweep were mostly fixed cost."""
+    env, lane = wp.tid()
+    lanes = wp.block_dim()
+    barrier = wp.tile_zeros(shape=1, dtype=int, storage="shared")
+    for color in range(segment_offsets.shape[0] - 1):
+        for c in range(segment_offsets[color] + lane, segment_offsets[color + 1], lanes):
+            stretch_shear_constraint(env, c, particles, segment_rest, segment_compliance, inv_inertia, inv_mass,
+                                     inv_dt2, use_lambda, segment_lam, segment_active, q, sq)
+        wp.tile_scatter_masked(barrier, 0, 0, False)  # a block barrier (nothing written)
+    for color in range(bend_offsets.shape[0] - 1):
+        for b in range(bend_offsets[color] + lane, bend_offsets[color + 1], lanes):
+            bend_twist_constraint(env, b, bend_segments, bend_rest, bend_compliance, inv_inertia, inv_dt2, use_lambda,
+                                  bend_lam, segment_active, sq)
+        wp.tile_scatter_masked(barrier, 0, 0, False)

@@ -9,7 +9,8 @@
 #    (partitioned) / packs; the free cloth and a rod in physics alone; then the experts with the packs on the GPU
 #    (the broken layout made PrecisionCutting's fail every episode while its step looked 2.4x faster);
 # 3. the code before this session's step changes (7304414, /tmp/old: the velocity update fused into the next
-#    substep's prediction, the distinct-slot inverse masses) against the new: TissueDissection STATE and RGB 64x64
+#    substep's prediction, the rods' colours in one launch (also alone above: --rod-solver colored), the distinct-slot
+#    inverse masses) against the new: TissueDissection STATE and RGB 64x64
 #    (218.6k / 193.9k at 6260a14 + the thirtieth session's changes; RGB needs 200k), RopeCutting, ThreadInHole;
 # 4. TissueDissection's kernel profile (RGB); 5. RopeThreading's and LigatingLoop's soaks with the block solve;
 # then the learning queue JOBS until DEADLINE seconds after this script started.
@@ -25,7 +26,7 @@ new=/tmp/site:$PWD
 old=/tmp/site:/tmp/old
 PYTHONPATH=$new python3 -m pytest -q -p no:cacheprovider tests/test_chains_block.py tests/test_chains_partitioned.py \
   "tests/test_physics_basic.py::test_fused_velocity_update_and_prediction_match_the_separate_kernels" \
-  tests/test_physics_deformables.py -k "pcr or pack or partitioned or fused or distinct" --device "$dev" \
+  tests/test_physics_deformables.py tests/test_physics_rods.py -k "pcr or pack or partitioned or fused or distinct" --device "$dev" \
   > "$out/pytest_cuda.txt" 2>&1
 pcr_ok=$?
 echo "pytest rc=$pcr_ok $(tail -1 "$out/pytest_cuda.txt")"
@@ -40,10 +41,12 @@ if [ "$pcr_ok" -eq 0 ]; then
   bench rc_thomas "$new" RopeCutting STATE --set chain_solver=thomas
   bench rc_pcr "$new" RopeCutting STATE --set chain_solver=pcr
   bench rc_pcr_chain "$new" RopeCutting STATE --set chain_solver=pcr --pcr-rows 1
+  bench rc_rods_colored "$new" RopeCutting STATE --set chain_solver=thomas --rod-solver colored
   bench pc_thomas "$new" PrecisionCutting STATE --set chain_solver=thomas
   bench pc_pcr "$new" PrecisionCutting STATE --set chain_solver=pcr
   bench rt_thomas "$new" RopeThreading STATE --set chain_solver=thomas
   bench rt_auto "$new" RopeThreading STATE
+  bench rt_rods_colored "$new" RopeThreading STATE --rod-solver colored
   bench ll_thomas "$new" LigatingLoop STATE --set chain_solver=thomas
   bench ll_auto "$new" LigatingLoop STATE
   bench pp_auto "$new" PickAndPlace STATE
