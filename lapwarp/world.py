@@ -752,20 +752,21 @@ class World:
         return self._dummy_tf_arr
 
     def check_stability(self) -> None:
-        """Flag envs with NaN or speed above ``model.max_speed``; optionally reset just those envs."""
+        """Flag envs with NaN or speed above ``model.max_speed``; optionally reset just those envs. One launch
+        (``world_kernels.check_and_restore``, a block per env) at the end of every step."""
         m = self.model
         if m.particle_count == 0:
             return
-        from lapwarp.kernels import xpbd
-
-        self._unstable_now.zero_()
-        launching.launch(xpbd.check_particles, dim=(self.num_envs, m.particle_count),
-                         inputs=[self.state.particle_q, self.state.particle_qd, float(m.max_speed)],
-                         outputs=[self._unstable_now], device=self.device)
-        launching.launch(xpbd.merge_flags, dim=self.num_envs, inputs=[self._unstable_now], outputs=[self.unstable],
-                         device=self.device)
-        if self.auto_reset_unstable:
-            self._restore(self._unstable_now)
+        live, start, width = self._row_structs()
+        body_prev = self._body_q_prev if self._body_q_prev is not None else self._dummy_tf()
+        restore_prev = int(self.auto_reset_unstable and self._body_q_prev is not None)
+        rotations = ((self._start_tet_rotation, self._tet_rotation) if self._start_tet_rotation is not None
+                     else (self._no_rotation, self._no_rotation))
+        lanes = launching.block_lanes(self.device, self.ROW_COPY_LANES)
+        launching.launch(world_kernels.check_and_restore, dim=(self.num_envs, lanes),
+                         inputs=[float(m.max_speed), int(self.auto_reset_unstable), start, live, body_prev,
+                                 restore_prev, width, *rotations], outputs=[self._unstable_now, self.unstable],
+                         device=self.device, block_dim=lanes)
 
     # ------------------------------------------------------------------------------------------------
     def _state_rows(self, state: State) -> world_kernels.StateRows:
@@ -781,12 +782,16 @@ class World:
             setattr(rows, name, arr)
         return rows
 
-    def _copy_rows(self, env_mask: wp.array, src: State, dst: State, restore: bool) -> None:
+    def _row_structs(self) -> tuple:
+        """``(live, start, width)``: the state's and the start state's arrays as ``StateRows`` and their widest row."""
         if not hasattr(self, "_rows"):
             arrays = self.state.arrays().values()
             self._rows = (self._state_rows(self.state), self._state_rows(self._start_state),
                           max([a.shape[1] for a in arrays if a.ndim == 2] or [0]))
-        live, start, width = self._rows
+        return self._rows
+
+    def _copy_rows(self, env_mask: wp.array, src: State, dst: State, restore: bool) -> None:
+        live, start, width = self._row_structs()
         if width == 0:
             return
         body_prev = self._body_q_prev if self._body_q_prev is not None else self._dummy_tf()

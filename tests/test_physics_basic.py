@@ -259,3 +259,39 @@ def test_fused_velocity_update_and_prediction_match_the_separate_kernels(device)
     for fused, separate in zip(out[0], out[1], strict=True):
         np.testing.assert_allclose(fused, separate, rtol=1e-6, atol=1e-6 * np.abs(separate).max())
     assert moved.max() <= 1e-6
+
+
+def test_instability_restores_cut_masks_and_rotations(device):
+    # the stability check (world_kernels.check_and_restore, one launch per step) restores every state array of a
+    # failed env, its tet rotations and its cut masks, and marks its cut surfaces dirty; the other envs keep theirs
+    b = SceneBuilder()
+    v, t = box_tets((0.02, 0.02, 0.02), (2, 2, 2))
+    b.add_tet_mesh(v, t, density=1000.0, youngs_modulus=5e3, poisson_ratio=0.3,
+                   fixed=np.nonzero(v[:, 2] < 1e-9)[0], cuttable=True)
+    world = b.finalize(2, device, substeps=5, max_speed=10.0)
+    st = world.state
+    active0 = st.tet_active.numpy().copy()
+    rot0 = world._tet_rotation.numpy().copy()
+    for _ in range(3):
+        world.step(0.01)
+    st.cut_dirty.zero_()
+    active = active0.copy()
+    active[:, 0] = 0  # both envs "cut" their first tet
+    st.tet_active.assign(active)
+    rot = world._tet_rotation.numpy()
+    rot[:, 1] = (0.0, 0.0, 0.6, 0.8)
+    world._tet_rotation.assign(rot)
+    q = st.particle_q.numpy().copy()
+    q[1, 5] = np.nan
+    st.particle_q.assign(q)
+    world.check_stability()  # what every step ends with (called alone: the solves would rewrite the rotations)
+    assert world.unstable.numpy().tolist() == [0, 1]
+    assert st.tet_active.numpy()[1].tolist() == active0[1].tolist()  # env 1 restored
+    assert st.tet_active.numpy()[0, 0] == 0  # env 0 keeps its cut
+    assert st.cut_dirty.numpy()[:, 0].tolist() == [0, 1]
+    np.testing.assert_array_equal(world._tet_rotation.numpy()[1], rot0[1])
+    assert world._tet_rotation.numpy()[0, 1].tolist() == [0.0, 0.0, 0.6000000238418579, 0.800000011920929]
+    np.testing.assert_array_equal(st.particle_q.numpy()[0], q[0])  # env 0 untouched
+    assert np.all(np.isfinite(st.particle_q.numpy()))
+    world.step(0.01)
+    assert world.unstable.numpy().tolist() == [0, 1]  # sticky until the env is reset

@@ -96,16 +96,10 @@ def copy_element(env: int, i: int, src: wp.array2d(dtype=Any), dst: wp.array2d(d
         dst[env, i] = src[env, i]
 
 
-@wp.kernel
-def copy_state_rows(env_mask: wp.array(dtype=wp.int32), src: StateRows, dst: StateRows,
-                    body_q_prev: wp.array2d(dtype=wp.transform), write_body_q_prev: int, width: int, lanes: int):
-    """Every array's row of the masked envs, ``src`` -> ``dst`` (and the body poses at the start of the step when
-    restoring, so the next step does not sweep bodies from where they were). ``lanes`` threads per env stride the
-    rows' elements up to ``width`` (launch ``(num_envs, lanes)``): most envs of most steps are not reset, and one
-    thread per (env, element) cost TissueDissection ~0.4 ms per env step at 4,096 envs for nothing."""
-    env, lane = wp.tid()
-    if env_mask[env] == 0:
-        return
+@wp.func
+def copy_row_elements(env: int, lane: int, lanes: int, width: int, src: StateRows, dst: StateRows,
+                      body_q_prev: wp.array2d(dtype=wp.transform), write_body_q_prev: int):
+    """Lane ``lane`` of ``lanes``'s share of env ``env``'s rows of every state array, ``src`` -> ``dst``."""
     for i in range(lane, width, lanes):
         copy_element(env, i, src.particle_q, dst.particle_q)
         copy_element(env, i, src.particle_qd, dst.particle_qd)
@@ -131,6 +125,66 @@ def copy_state_rows(env_mask: wp.array(dtype=wp.int32), src: StateRows, dst: Sta
         copy_element(env, i, src.geo_status, dst.geo_status)
         if write_body_q_prev != 0:
             copy_element(env, i, src.body_q, body_q_prev)
+
+
+@wp.kernel
+def copy_state_rows(env_mask: wp.array(dtype=wp.int32), src: StateRows, dst: StateRows,
+                    body_q_prev: wp.array2d(dtype=wp.transform), write_body_q_prev: int, width: int, lanes: int):
+    """Every array's row of the masked envs, ``src`` -> ``dst`` (and the body poses at the start of the step when
+    restoring, so the next step does not sweep bodies from where they were). ``lanes`` threads per env stride the
+    rows' elements up to ``width`` (launch ``(num_envs, lanes)``): most envs of most steps are not reset, and one
+    thread per (env, element) cost TissueDissection ~0.4 ms per env step at 4,096 envs for nothing."""
+    env, lane = wp.tid()
+    if env_mask[env] == 0:
+        return
+    copy_row_elements(env, lane, lanes, width, src, dst, body_q_prev, write_body_q_prev)
+
+
+@wp.kernel
+def check_and_restore(
+    max_speed: float,
+    restore: int,
+    start: StateRows,
+    live: StateRows,
+    body_q_prev: wp.array2d(dtype=wp.transform),
+    write_body_q_prev: int,
+    width: int,
+    start_rotation: wp.array2d(dtype=wp.quat),
+    rotation: wp.array2d(dtype=wp.quat),
+    flags_now: wp.array(dtype=wp.int32),
+    unstable: wp.array(dtype=wp.int32),
+):
+    """``World.check_stability`` in one launch, a thread block per env: an env is unstable when a particle's position
+    or velocity is not finite, its speed exceeds ``max_speed`` or it is beyond 10^6 m (``flags_now``, and the sticky
+    ``unstable``); with ``restore`` its rows of every state array and its tet rotations go back to the start state
+    (the body poses at the start of the step too) and its cut surfaces are marked dirty. Replaces a memset and five
+    launches per world step (check, merge, three masked copies) that ran for every env whether or not it failed."""
+    env, lane = wp.tid()
+    lanes = wp.block_dim()
+    q = live.particle_q
+    qd = live.particle_qd
+    bad = int(0)
+    for i in range(lane, q.shape[1], lanes):
+        v2 = wp.length_sq(qd[env, i])
+        x2 = wp.length_sq(q[env, i])
+        # written so that NaN fails both comparisons and is flagged
+        if not (v2 <= max_speed * max_speed) or not (x2 < 1.0e12):
+            bad = 1
+    # a block-wide maximum: every lane reads the block's verdict
+    failed = wp.tile_max(wp.tile(bad))[0]
+    if lane == 0:
+        flags_now[env] = failed
+        if failed != 0:
+            unstable[env] = 1
+    if restore == 0 or failed == 0:
+        return
+    copy_row_elements(env, lane, lanes, width, start, live, body_q_prev, write_body_q_prev)
+    for i in range(lane, rotation.shape[1], lanes):
+        rotation[env, i] = start_rotation[env % start_rotation.shape[0], i]
+    if lane == 0 and live.cut_dirty.shape[1] > 0:
+        # after this lane's own copy of the flag: the restored masks differ from what the cutting system last
+        # counted, so its next update recomputes this env's surfaces, pieces and counters
+        live.cut_dirty[env, 0] = 1
 
 
 @wp.kernel

@@ -1,5 +1,6 @@
 """XPBD solver kernels: integration, constraint projection (distance, dihedral bending, stable
-co-rotated FEM tetrahedra, attachments, Cosserat rods), velocity update, stability check.
+co-rotated FEM tetrahedra, attachments, Cosserat rods), velocity update. (The stability check is
+``world_kernels.check_and_restore``.)
 
 Every kernel launches with the env first, ``dim=(num_envs, count)`` and ``env, i = wp.tid()``. Shared
 topology is indexed with the local constraint index ``i``; per-env parameters ``p`` with leading
@@ -124,25 +125,6 @@ def update_particle_velocities(
     # divided by h, so float32 rounding of large coordinates does not leak into the velocity
     env, i = wp.tid()
     qd[env, i] = qd[env, i] + (q[env, i] - q_pred[env, i]) * inv_dt
-
-
-@wp.kernel
-def check_particles(
-    q: wp.array2d(dtype=wp.vec3), qd: wp.array2d(dtype=wp.vec3), max_speed: float, flags_out: wp.array(dtype=wp.int32)
-):
-    env, i = wp.tid()
-    v2 = wp.length_sq(qd[env, i])
-    x2 = wp.length_sq(q[env, i])
-    # written so that NaN fails both comparisons and is flagged
-    if not (v2 <= max_speed * max_speed) or not (x2 < 1.0e12):
-        flags_out[env] = 1
-
-
-@wp.kernel
-def merge_flags(flags: wp.array(dtype=wp.int32), sticky_out: wp.array(dtype=wp.int32)):
-    env = wp.tid()
-    if flags[env] != 0:
-        sticky_out[env] = 1
 
 
 # ----------------------------------------------------------------------------------------------------
