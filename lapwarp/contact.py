@@ -675,18 +675,20 @@ class ContactSystem:
     def record_sweep(self, world, launch, sweep) -> None:
         """Record the contact projections of one sweep (called by the World while it records a step)."""
         n, q = self.num_envs, world.state.particle_q
-        if sweep.first:
-            launch(ck.clear_reports, n, [], [self.reports])
         report = 1 if sweep.last else 0
         shapes, motion, solve = self.shape_table, self.body_motion(world, sweep), self._particle_solve(world, sweep)
         ignore, masks, reports = self.ignore, self._cut_masks, self.reports
         has_triangles = len(self.tri_color_offsets) > 1
+        # a step's reports are cleared by its first sweep's pose kernel (or alone where there is none)
+        clear = 1 if sweep.first else 0
         if has_triangles:  # the triangle passes' tool axes with the shape poses
             lanes = launching.block_lanes(self.device, 32)  # a block per env, its lanes over the shapes
-            launch(ck.pose_shapes_and_tools, (n, lanes), [shapes, motion, self._tri_pad],
+            launch(ck.pose_shapes_and_tools, (n, lanes), [shapes, motion, self._tri_pad, clear, reports],
                    [self._shape_poses, self._tool_axes], block_dim=lanes)
         elif len(self.shapes):
-            launch(ck.pose_shapes, (n, len(self.shapes)), [shapes, motion], [self._shape_poses])
+            launch(ck.pose_shapes, (n, len(self.shapes)), [shapes, motion, clear, reports], [self._shape_poses])
+        elif clear:
+            launch(ck.clear_reports, n, [], [self.reports])
         if len(self.cp_particle):
             launch(ck.collide_particles, (n, len(self.cp_particle)),
                    [self._particles, shapes, motion, self._shape_poses, solve, ignore, masks, report,

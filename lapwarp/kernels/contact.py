@@ -347,10 +347,13 @@ class ShapePoses:
 
 
 @wp.kernel
-def pose_shapes(shapes: ShapeTable, motion: BodyMotion, poses: ShapePoses):
+def pose_shapes(shapes: ShapeTable, motion: BodyMotion, clear: int, reports: ContactReports, poses: ShapePoses):
     """The substep's shape poses, once per (env, shape) instead of once per (particle, shape): a pose interpolates
-    the body's motion (a slerp), which ``collide_particles`` did for every particle against every shape."""
+    the body's motion (a slerp), which ``collide_particles`` did for every particle against every shape. With
+    ``clear`` (a step's first sweep) shape 0's thread also clears the env's contact reports (a launch fewer)."""
     env, s = wp.tid()
+    if clear != 0 and s == 0:
+        clear_env_reports(env, reports)
     tf = shape_pose(shapes, s, env, motion, motion.blend)
     poses.tf[env, s] = tf
     poses.tf_inv[env, s] = wp.transform_inverse(tf)
@@ -523,14 +526,17 @@ class ToolAxes:
 
 
 @wp.kernel
-def pose_shapes_and_tools(shapes: ShapeTable, motion: BodyMotion, pad: float, poses: ShapePoses, axes: ToolAxes):
+def pose_shapes_and_tools(shapes: ShapeTable, motion: BodyMotion, pad: float, clear: int, reports: ContactReports,
+                          poses: ShapePoses, axes: ToolAxes):
     """``pose_shapes`` and the tool axes of the triangle passes in one launch (a system with contact triangles): both
     are a few transforms per env, nearly all launch cost when apart. A thread block per env (launch ``(num_envs,
     lanes)``), its lanes over the shapes, then the env's tool box as a block-wide minimum and maximum: one thread
     walking the shapes was latency-bound (TissueDissection: 0.525 ms of its 21.1 ms step, H200). On the CPU one lane
-    walks them in order."""
+    walks them in order. With ``clear`` (a step's first sweep) lane 0 also clears the env's contact reports."""
     env, lane = wp.tid()
     lanes = wp.block_dim()
+    if clear != 0 and lane == 0:
+        clear_env_reports(env, reports)
     lo = wp.vec3(1.0e30)
     hi = wp.vec3(-1.0e30)
     for s in range(lane, shapes.kind.shape[0], lanes):
