@@ -588,6 +588,10 @@ class ContactSystem:
         self.contact_normal = wp.zeros((n, cap), dtype=wp.vec3, device=dev)
         self.contact_depth = wp.zeros((n, cap), dtype=float, device=dev)
         self.overflow = wp.zeros(n, dtype=wp.int32, device=dev)
+        #: ``(num_envs,)`` int32 or None: where set (an env collecting overflow over its frame skip), each step's
+        #: last sweep also ORs ``overflow`` into it (instead of a launch of the env's after every world step)
+        self.overflow_sink = None
+        self._no_sink = wp.zeros(0, dtype=wp.int32, device=dev)
         self.reports = make_struct(ck.ContactReports, report_count=self.report_count, report_force=self.report_force,
                                    contact_count=self.contact_count, contact_particle=self.contact_particle,
                                    contact_shape=self.contact_shape, contact_normal=self.contact_normal,
@@ -662,7 +666,8 @@ class ContactSystem:
         if int(self.surface_refit_interval) < 0:
             raise ValueError(f"surface_refit_interval must be >= 0 (0: once per world.step), "
                              f"got {self.surface_refit_interval!r}")
-        return (self.resolved_triangle_sweep(), int(self.triangle_block_threads), int(self.surface_refit_interval))
+        return (self.resolved_triangle_sweep(), int(self.triangle_block_threads), int(self.surface_refit_interval),
+                id(self.overflow_sink))
 
     def _refits_surfaces(self, sweep) -> bool:
         """Whether this sweep refits the surfaces' BVHs (always the step's first sweep: bodies and resets move
@@ -744,7 +749,8 @@ class ContactSystem:
                 launch(ck.collide_particle_pairs, (n, m), [members, solve, report], [q, a["delta"], reports])
             launch(ck.apply_particle_deltas, (n, m), [members.particle, a["delta"]], [q])
         if report:
-            launch(ck.clamp_contact_count, n, [self.capacity], [reports])
+            sink = self.overflow_sink if self.overflow_sink is not None else self._no_sink
+            launch(ck.clamp_contact_count, n, [self.capacity], [reports, sink])
 
     def reset(self, env_mask: wp.array) -> None:
         """Clear the masked envs' reports (``World.reset`` calls it): a new episode starts with no contact."""

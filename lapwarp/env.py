@@ -288,11 +288,18 @@ class BatchedEnv(VecEnv):
               ("/action/nonfinite_fraction", "/action/clipped_fraction"))]
         self._state_rows = [float_rows(a) for a in self._checked_state()]
         # contact systems' record buffers (ContactSystem.overflow): a full buffer is counted, never silent
-        self._overflow_sources = [s.overflow for s in self.world.solvers if getattr(s, "overflow", None) is not None]
+        overflowing = [s for s in self.world.solvers if getattr(s, "overflow", None) is not None]
         #: ``(num_envs,)`` int32: 1 where a contact system of the env ran out of record capacity in the last step.
         self.contact_overflow = wp.zeros(n, dtype=wp.int32, device=dev)
+        self._collects_overflow = bool(overflowing)
+        # a system with an overflow sink (ContactSystem.overflow_sink) ORs its flags into contact_overflow itself at
+        # every world step's end; the others' flags are collected by a launch after every world step
+        for solver in overflowing:
+            if hasattr(solver, "overflow_sink"):
+                solver.overflow_sink = self.contact_overflow
+        self._overflow_sources = [s.overflow for s in overflowing if not hasattr(s, "overflow_sink")]
         self._overflow_term = -1
-        if self._overflow_sources:
+        if self._collects_overflow:
             self._overflow_term = len(self._log_keys)
             self._log_keys.append("/contact/overflow_fraction")
         self.log_values = wp.zeros(len(self._log_keys), dtype=wp.float32, device=dev)
@@ -515,7 +522,7 @@ class BatchedEnv(VecEnv):
                              inputs=[self.actions_in, int(self.cfg.clip_actions)],
                              outputs=[self.actions, self.nonfinite_actions, self.clipped_actions], device=dev)
         self._apply_actions(self.actions)
-        if self._overflow_sources:
+        if self._collects_overflow:
             self.contact_overflow.zero_()
         for _ in range(self.cfg.frame_skip):
             self._before_physics_step()

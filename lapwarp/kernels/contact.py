@@ -1218,6 +1218,11 @@ def clear_reports_masked(env_mask: wp.array(dtype=wp.int32), reports: ContactRep
 
 
 @wp.kernel
-def clamp_contact_count(capacity: int, reports: ContactReports):
+def clamp_contact_count(capacity: int, reports: ContactReports, overflow_sink: wp.array(dtype=wp.int32)):
+    """The step's record count within the buffer's capacity; where a sink is given (``ContactSystem.overflow_sink``)
+    an overflow is also ORed into it."""
     env = wp.tid()
     reports.contact_count[env] = wp.min(reports.contact_count[env], capacity)
+    if overflow_sink.shape[0] > 0:
+        if reports.overflow[env] != 0:
+            overflow_sink[env] = 1
