@@ -24,6 +24,7 @@ import bench_reset  # noqa: E402
 import border_follower  # noqa: E402
 import cloth_sag  # noqa: E402
 import expert_success  # noqa: E402
+import launch_counts  # noqa: E402
 import ppo  # noqa: E402
 import profile_learner  # noqa: E402
 import profile_step  # noqa: E402
@@ -700,3 +701,14 @@ def test_cloth_sag_reports_a_hanging_cloth_per_second(device, tmp_path, capsys):
             cloth_sag.main(["--settings", bad])
         err = capsys.readouterr().err
         assert "SUBSTEPSxNEWTON" in err or "must be positive" in err
+
+
+def test_launch_counts_sees_the_worlds_replayed_launches(tmp_path, capsys):
+    # the World replays recorded wp.Launch objects (not wp.launch): the count must include them; DeflectSpheres'
+    # world step (10 substeps of integration, contact and velocity update) is most of its operations
+    assert launch_counts.main(["--tasks", "DeflectSpheres", "--out", str(tmp_path / "c.json")]) == 0
+    row = json.loads((tmp_path / "c.json").read_text())["results"][0]
+    assert row["task"] == "DeflectSpheres" and row["ops_per_step"] == sum(row["by_name"].values())
+    replayed = sum(n for name, n in row["by_name"].items() if "integrate" in name or "collide" in name)
+    assert replayed >= 10 and row["kernels_per_step"] > 20
+    assert "device operations per env step" in capsys.readouterr().out

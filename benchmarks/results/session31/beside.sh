@@ -2,15 +2,18 @@
 # The GPU beside the next lease's learning queue (queue.sh's BESIDE; x4: GPU 3, x2: GPU 1 with DEVICE=cuda:1), ~20 min:
 # 1. the GPU tests of the block (PCR) chain solve since its packs (a family's open chains end to end in one block; laid
 #    out outside the step since the thirty-first session's fix: a layout inside the env's captured first step replayed
-#    garbage rows), of the fused velocity update + prediction and of the distinct-slot inverse masses;
+#    garbage rows), of the fused velocity update + prediction, the fused rod sweep, the one-launch stability check
+#    (a block-wide maximum on the GPU), the contact overflow sink and the distinct-slot inverse masses;
 # 2. the chain solves per task, expert, 4,096 envs: RopeCutting serial / packs of 128 rows / a chain per block,
 #    PrecisionCutting serial / packs, RopeThreading and LigatingLoop serial-or-partitioned / their new GPU default
 #    "pcr" (set from the old per-chain kernel's 113.3k vs 96.9k and 74.5k vs 71.7k), PickAndPlace's default
 #    (partitioned) / packs; the free cloth and a rod in physics alone; then the experts with the packs on the GPU
 #    (the broken layout made PrecisionCutting's fail every episode while its step looked 2.4x faster);
 # 3. the code before this session's step changes (7304414, /tmp/old: the velocity update fused into the next
-#    substep's prediction, the rods' colours in one launch (also alone above: --rod-solver colored), the distinct-slot
-#    inverse masses) against the new: TissueDissection STATE and RGB 64x64
+#    substep's prediction, the rods' colours in one launch (also alone above: --rod-solver colored), the stability
+#    check and restore in one launch, the contact reports' clear and overflow folded into other kernels, the
+#    distinct-slot inverse masses; ~100 of TissueDissection's 498 launches per env step, ~200 of RopeCutting's 558)
+#    against the new: TissueDissection STATE and RGB 64x64
 #    (218.6k / 193.9k at 6260a14 + the thirtieth session's changes; RGB needs 200k), RopeCutting, ThreadInHole;
 # 4. TissueDissection's kernel profile (RGB); 5. RopeThreading's and LigatingLoop's soaks with the block solve;
 # then the learning queue JOBS until DEADLINE seconds after this script started.
@@ -25,8 +28,8 @@ mkdir -p "$out"
 new=/tmp/site:$PWD
 old=/tmp/site:/tmp/old
 PYTHONPATH=$new python3 -m pytest -q -p no:cacheprovider tests/test_chains_block.py tests/test_chains_partitioned.py \
-  "tests/test_physics_basic.py::test_fused_velocity_update_and_prediction_match_the_separate_kernels" \
-  tests/test_physics_deformables.py tests/test_physics_rods.py -k "pcr or pack or partitioned or fused or distinct" --device "$dev" \
+  tests/test_physics_basic.py tests/test_physics_deformables.py tests/test_physics_rods.py tests/test_bad_input.py \
+  -k "pcr or pack or partitioned or fused or distinct or restores or instability or overflow" --device "$dev" \
   > "$out/pytest_cuda.txt" 2>&1
 pcr_ok=$?
 echo "pytest rc=$pcr_ok $(tail -1 "$out/pytest_cuda.txt")"
