@@ -159,6 +159,8 @@ def main(argv: list[str] | None = None) -> int:
         "iterations": args.iterations,
         "rollout_s_per_it": statistics.median(rollouts), "update_s_per_it": statistics.median(update.seconds),
         "env_step_ms": 1e3 * statistics.median(step.seconds), "act_ms": 1e3 * statistics.median(act.seconds),
+        # the timed iterations' totals: the env steps and actions ran inside the rollouts
+        "rollout_s_total": sum(rollouts), "env_step_s_total": sum(step.seconds), "act_s_total": sum(act.seconds),
         "env_steps_per_s": steps_per_it / statistics.median(per_it),
         "update_share": statistics.median(update.seconds) / statistics.median(per_it),
         "profile_iterations": args.profile_iterations, "ranges_ms": ranges, "top_operators": operators,

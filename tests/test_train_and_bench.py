@@ -222,8 +222,10 @@ def test_profile_learner_splits_iterations_and_lists_operators(device, tmp_path,
     report = json.loads(out.read_text())
     assert report["num_envs"] == 4 and report["steps_per_env"] == 32 and report["iterations"] == 2
     assert report["rollout_s_per_it"] > 0 and report["update_s_per_it"] > 0 and 0 < report["update_share"] < 1
-    # the rollout holds 32 env steps and 32 actions: each is timed within it
-    assert 32 * (report["env_step_ms"] + report["act_ms"]) / 1e3 < report["rollout_s_per_it"]
+    # the rollouts hold 32 env steps and 32 actions each, timed within them: the totals nest (the medians need not:
+    # a per-call median against a two-iteration median failed under load, 32 x 38.8 ms against 0.82 s)
+    assert report["env_step_s_total"] + report["act_s_total"] <= report["rollout_s_total"]
+    assert report["env_step_ms"] > 0 and report["act_ms"] > 0
     assert report["env_steps_per_s"] > 0 and 0 < len(report["top_operators"]) <= 5
     # the profiled iteration: one update, 32 env steps and actions
     assert report["ranges_ms"]["update"]["calls"] == 1 and report["ranges_ms"]["env.step"]["calls"] == 32
