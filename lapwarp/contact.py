@@ -454,6 +454,9 @@ class ContactSystem:
             self.seg_radius = arr(np.concatenate(srad)[order].astype(np.float32), float)
             self._segments = make_struct(ck.ContactSegments, nodes=self.seg_nodes, group=self.seg_group,
                                          radius=self.seg_radius)
+            # the fused sweep's colour table, copied here (never while a step is recorded: an env records its
+            # first step inside a CUDA graph capture)
+            self._seg_color_table = arr(np.asarray(self.seg_color_offsets, dtype=np.int32), wp.int32)
         # cutting masks of segments / triangles / particles: empty maps (one uniform branch) unless cuttable
         st = self.world.state
         self._no_col = wp.zeros(0, dtype=wp.int32, device=dev)
@@ -588,6 +591,8 @@ class ContactSystem:
         self.contact_normal = wp.zeros((n, cap), dtype=wp.vec3, device=dev)
         self.contact_depth = wp.zeros((n, cap), dtype=float, device=dev)
         self.overflow = wp.zeros(n, dtype=wp.int32, device=dev)
+        #: rod segments' contact colours in one launch per sweep (``ck.collide_segment_colors``) or a launch each
+        self.fuse_segment_colors = True
         #: ``(num_envs,)`` int32 or None: where set (an env collecting overflow over its frame skip), each step's
         #: last sweep also ORs ``overflow`` into it (instead of a launch of the env's after every world step)
         self.overflow_sink = None
@@ -667,7 +672,7 @@ class ContactSystem:
             raise ValueError(f"surface_refit_interval must be >= 0 (0: once per world.step), "
                              f"got {self.surface_refit_interval!r}")
         return (self.resolved_triangle_sweep(), int(self.triangle_block_threads), int(self.surface_refit_interval),
-                id(self.overflow_sink))
+                id(self.overflow_sink), bool(self.fuse_segment_colors))
 
     def _refits_surfaces(self, sweep) -> bool:
         """Whether this sweep refits the surfaces' BVHs (always the step's first sweep: bodies and resets move
@@ -699,9 +704,17 @@ class ContactSystem:
                    [self._particles, shapes, motion, self._shape_poses, solve, ignore, masks, report,
                     self.report_margin], [q, reports])
         off = self.seg_color_offsets
-        for c in range(len(off) - 1):
-            launch(ck.collide_segments, (n, off[c + 1] - off[c]),
-                   [self._segments, off[c], shapes, motion, self._shape_poses, solve, ignore, masks], [q, reports])
+        if len(off) > 2 and self.fuse_segment_colors:
+            # every colour in one launch, a block per env with barriers between colours
+            lanes = launching.block_lanes(self.device, 32)
+            launch(ck.collide_segment_colors, (n, lanes),
+                   [self._segments, self._seg_color_table, shapes, motion, self._shape_poses, solve, ignore, masks],
+                   [q, reports], block_dim=lanes)
+        else:
+            for c in range(len(off) - 1):
+                launch(ck.collide_segments, (n, off[c + 1] - off[c]),
+                       [self._segments, off[c], shapes, motion, self._shape_poses, solve, ignore, masks],
+                       [q, reports])
         off = self.tri_color_offsets
         sweep_kind = self.resolved_triangle_sweep()
         if has_triangles and sweep_kind == "fused":
