@@ -2,7 +2,8 @@
 # The GPU beside the next lease's learning queue (queue.sh's BESIDE; x4: GPU 3, x2: GPU 1 with DEVICE=cuda:1), ~20 min:
 # 1. the GPU tests of the block (PCR) chain solve since its packs (a family's open chains end to end in one block; laid
 #    out outside the step since the thirty-first session's fix: a layout inside the env's captured first step replayed
-#    garbage rows), of the fused velocity update + prediction, the fused rod sweep, the one-launch stability check
+#    garbage rows), of the fused velocity update + prediction, the fused rod sweep and segment contact colours, the
+#    one-launch stability check
 #    (a block-wide maximum on the GPU), the contact overflow sink and the distinct-slot inverse masses;
 # 2. the chain solves per task, expert, 4,096 envs: RopeCutting serial / packs of 128 rows / a chain per block,
 #    PrecisionCutting serial / packs, RopeThreading and LigatingLoop serial-or-partitioned / their new GPU default
@@ -29,6 +30,7 @@ new=/tmp/site:$PWD
 old=/tmp/site:/tmp/old
 PYTHONPATH=$new python3 -m pytest -q -p no:cacheprovider tests/test_chains_block.py tests/test_chains_partitioned.py \
   tests/test_physics_basic.py tests/test_physics_deformables.py tests/test_physics_rods.py tests/test_bad_input.py \
+  tests/test_contact.py \
   -k "pcr or pack or partitioned or fused or distinct or restores or instability or overflow" --device "$dev" \
   > "$out/pytest_cuda.txt" 2>&1
 pcr_ok=$?
