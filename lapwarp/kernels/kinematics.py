@@ -179,8 +179,10 @@ def is_inside_vec4(p: wp.vec4, low: wp.vec4, high: wp.vec4) -> bool:
 # ---------------------------------------------------------------------------------------------
 
 
-@wp.kernel
-def step_tpsd_instruments(
+@wp.func
+def step_tpsd_instrument(
+    env: int,
+    k: int,
     rcm_in: wp.array2d(dtype=wp.transform),
     state_low: wp.array(dtype=wp.vec4),
     state_high: wp.array(dtype=wp.vec4),
@@ -191,14 +193,13 @@ def step_tpsd_instruments(
     pose: wp.array2d(dtype=wp.transform),
     flags_out: wp.array2d(dtype=wp.int32),
 ):
-    """Advance every instrument by one sub-step with sofa_env's ``set_state`` semantics.
+    """Advance instrument ``k`` of env ``env`` by one sub-step with sofa_env's ``set_state`` semantics.
 
     Components of ``ptsd + delta`` outside the state limits keep their old value (each component on
     its own); if the resulting tip leaves the Cartesian workspace the whole update is rejected and
     ``ptsd`` / ``pose`` keep their old values. ``ptsd`` and ``pose`` are read and written in place.
     A NaN component counts as a violation, so a NaN action cannot poison the state.
     """
-    env, k = wp.tid()
     old = ptsd[env, k]
     proposed = old + delta_in[env, k]
     low = state_low[k]
@@ -217,6 +218,25 @@ def step_tpsd_instruments(
     else:
         flags = flags | WORKSPACE_VIOLATED
     flags_out[env, k] = flags
+
+
+@wp.kernel
+def step_tpsd_instruments(
+    rcm_in: wp.array2d(dtype=wp.transform),
+    state_low: wp.array(dtype=wp.vec4),
+    state_high: wp.array(dtype=wp.vec4),
+    workspace_low: wp.array(dtype=wp.vec3),
+    workspace_high: wp.array(dtype=wp.vec3),
+    delta_in: wp.array2d(dtype=wp.vec4),
+    ptsd: wp.array2d(dtype=wp.vec4),
+    pose: wp.array2d(dtype=wp.transform),
+    flags_out: wp.array2d(dtype=wp.int32),
+):
+    """Advance every instrument by one sub-step with sofa_env's ``set_state`` semantics (``step_tpsd_instrument``),
+    a thread per (env, instrument)."""
+    env, k = wp.tid()
+    step_tpsd_instrument(env, k, rcm_in, state_low, state_high, workspace_low, workspace_high, delta_in, ptsd, pose,
+                         flags_out)
 
 
 @wp.kernel

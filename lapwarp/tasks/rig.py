@@ -29,7 +29,7 @@ from lapwarp import launching
 from lapwarp.instrument_shapes import CAUTER_CUTTING_CENTER, InstrumentShape
 from lapwarp.instruments import STATE_LIMITS_VIOLATED, WORKSPACE_VIOLATED, TPSDConfig, TPSDInstruments
 from lapwarp.kernels.bodies import hinged_jaw_pose
-from lapwarp.kernels.kinematics import ptsd_to_transform
+from lapwarp.kernels.kinematics import ptsd_to_transform, step_tpsd_instrument
 from lapwarp.kernels.random import rand_uniform
 from lapwarp.tasks.spec import ActionBlock, ActionLayout, to_unit
 
@@ -216,6 +216,17 @@ def count_flag(flags: wp.array2d(dtype=wp.int32), env: int, bit: int) -> int:
     return count
 
 
+@wp.func
+def rig_body_pose(tip: wp.transform, jaw_angle_deg: float, role: int) -> wp.transform:
+    """A body riding on an instrument: the shaft on its tip frame, jaw A / B rotated by +angle / -angle about the
+    tip's local x (``lapwarp.instrument_shapes``)."""
+    if role == ROLE_SHAFT:
+        return tip
+    if role == ROLE_JAW_A:
+        return hinged_jaw_pose(tip, jaw_angle_deg)
+    return hinged_jaw_pose(tip, -jaw_angle_deg)
+
+
 @wp.kernel
 def pose_rig_bodies(
     tip_pose: wp.array2d(dtype=wp.transform),
@@ -224,18 +235,42 @@ def pose_rig_bodies(
     body_role: wp.array(dtype=wp.int32),
     poses_out: wp.array2d(dtype=wp.transform),
 ):
-    """Body ``b`` rides on instrument ``body_instrument[b]``: the shaft on its tip frame, jaw A / B rotated by
-    +angle / -angle about the tip's local x (``lapwarp.instrument_shapes``)."""
+    """Body ``b`` rides on instrument ``body_instrument[b]`` (``rig_body_pose``)."""
     env, b = wp.tid()
     k = body_instrument[b]
-    tip = tip_pose[env, k]
-    role = body_role[b]
-    if role == ROLE_SHAFT:
-        poses_out[env, b] = tip
-    elif role == ROLE_JAW_A:
-        poses_out[env, b] = hinged_jaw_pose(tip, jaw_angle_deg[env, k])
-    else:
-        poses_out[env, b] = hinged_jaw_pose(tip, -jaw_angle_deg[env, k])
+    poses_out[env, b] = rig_body_pose(tip_pose[env, k], jaw_angle_deg[env, k], body_role[b])
+
+
+@wp.kernel
+def step_and_pose_rig(
+    rcm: wp.array2d(dtype=wp.transform),
+    state_low: wp.array(dtype=wp.vec4),
+    state_high: wp.array(dtype=wp.vec4),
+    workspace_low: wp.array(dtype=wp.vec3),
+    workspace_high: wp.array(dtype=wp.vec3),
+    delta: wp.array2d(dtype=wp.vec4),
+    jaw_angle_deg: wp.array2d(dtype=float),
+    body_instrument: wp.array(dtype=wp.int32),
+    body_role: wp.array(dtype=wp.int32),
+    body_ids: wp.array(dtype=wp.int32),
+    ptsd: wp.array2d(dtype=wp.vec4),
+    pose: wp.array2d(dtype=wp.transform),
+    flags: wp.array2d(dtype=wp.int32),
+    poses_out: wp.array2d(dtype=wp.transform),
+    body_q: wp.array2d(dtype=wp.transform),
+):
+    """A rig without jaws to step, one physics step in one launch (a thread per env): every instrument's TPSD step
+    (``kinematics.step_tpsd_instrument``), then its bodies posed and written into the World's ``body_q`` (what
+    ``World.set_body_poses`` does outside a reset). Three launches per physics step were nearly all fixed cost."""
+    env = wp.tid()
+    for k in range(ptsd.shape[1]):
+        step_tpsd_instrument(env, k, rcm, state_low, state_high, workspace_low, workspace_high, delta, ptsd, pose,
+                             flags)
+    for b in range(body_ids.shape[0]):
+        k = body_instrument[b]
+        tf = rig_body_pose(pose[env, k], jaw_angle_deg[env, k], body_role[b])
+        poses_out[env, b] = tf
+        body_q[env, body_ids[b]] = tf
 
 
 @wp.kernel
@@ -307,6 +342,9 @@ class InstrumentRig:
             raise ValueError(f"duplicate instrument names {names}")
         self.names = names
         self.num_instruments = len(self.specs)
+        #: a rig without jaws steps its instruments and poses its bodies in one launch per physics step
+        #: (``step_and_pose_rig``); False keeps the three launches (the same results)
+        self.fuse_step = True
         order = list(action_order) if action_order is not None else names
         if sorted(order) != sorted(names):
             raise ValueError(f"action_order {order} must list every instrument of {names} once")
@@ -454,6 +492,16 @@ class InstrumentRig:
 
     def step(self) -> None:
         """One physics step: move the instruments (sofa_env's limit rules), the jaws, and pose the bodies."""
+        if self.fuse_step and not self._jaw_column and self.num_bodies:
+            # no jaw moves between the instruments and their bodies: one launch
+            ins, w = self.instruments, self.world
+            launching.launch(step_and_pose_rig, dim=w.num_envs,
+                             inputs=[ins.rcm, ins.state_low, ins.state_high, ins.workspace_low, ins.workspace_high,
+                                     ins.delta, self.jaw_angle, self._body_instrument_arr, self._body_role_arr,
+                                     self.body_ids],
+                             outputs=[ins.ptsd, ins.pose, ins.flags, self.body_poses, w.state.body_q],
+                             device=w.device)
+            return
         self.instruments.step()
         for name, col in self._jaw_column.items():
             k = self.names.index(name)
