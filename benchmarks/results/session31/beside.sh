@@ -30,8 +30,8 @@ new=/tmp/site:$PWD
 old=/tmp/site:/tmp/old
 PYTHONPATH=$new python3 -m pytest -q -p no:cacheprovider tests/test_chains_block.py tests/test_chains_partitioned.py \
   tests/test_physics_basic.py tests/test_physics_deformables.py tests/test_physics_rods.py tests/test_bad_input.py \
-  tests/test_contact.py \
-  -k "pcr or pack or partitioned or fused or distinct or restores or instability or overflow" --device "$dev" \
+  tests/test_contact.py tests/test_instruments.py \
+  -k "pcr or pack or partitioned or fused or distinct or restores or instability or overflow or rig" --device "$dev" \
   > "$out/pytest_cuda.txt" 2>&1
 pcr_ok=$?
 echo "pytest rc=$pcr_ok $(tail -1 "$out/pytest_cuda.txt")"
