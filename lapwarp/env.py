@@ -287,20 +287,16 @@ class BatchedEnv(VecEnv):
             *(("/action/invalid_fraction",) if self.is_discrete else
               ("/action/nonfinite_fraction", "/action/clipped_fraction"))]
         self._state_rows = [float_rows(a) for a in self._checked_state()]
-        # contact systems' record buffers (ContactSystem.overflow): a full buffer is counted, never silent
-        overflowing = [s for s in self.world.solvers if getattr(s, "overflow", None) is not None]
+        # contact systems' record buffers (ContactSystem.overflow): a full buffer is counted, never silent. Each ORs its
+        # flags into contact_overflow itself at every world step's end (ContactSystem.overflow_sink)
         #: ``(num_envs,)`` int32: 1 where a contact system of the env ran out of record capacity in the last step.
         self.contact_overflow = wp.zeros(n, dtype=wp.int32, device=dev)
-        self._collects_overflow = bool(overflowing)
-        # a system with an overflow sink (ContactSystem.overflow_sink) ORs its flags into contact_overflow itself at
-        # every world step's end; the others' flags are collected by a launch after every world step
-        for solver in overflowing:
+        self._overflow_term = -1
+        for solver in self.world.solvers:
             if hasattr(solver, "overflow_sink"):
                 solver.overflow_sink = self.contact_overflow
-        self._overflow_sources = [s.overflow for s in overflowing if not hasattr(s, "overflow_sink")]
-        self._overflow_term = -1
-        if self._collects_overflow:
-            self._overflow_term = len(self._log_keys)
+                self._overflow_term = len(self._log_keys)
+        if self._overflow_term >= 0:
             self._log_keys.append("/contact/overflow_fraction")
         self.log_values = wp.zeros(len(self._log_keys), dtype=wp.float32, device=dev)
         self._log_sums = wp.zeros(len(self._log_keys) + 1, dtype=wp.float32, device=dev)
@@ -522,15 +518,11 @@ class BatchedEnv(VecEnv):
                              inputs=[self.actions_in, int(self.cfg.clip_actions)],
                              outputs=[self.actions, self.nonfinite_actions, self.clipped_actions], device=dev)
         self._apply_actions(self.actions)
-        if self._collects_overflow:
+        if self._overflow_term >= 0:
             self.contact_overflow.zero_()
         for _ in range(self.cfg.frame_skip):
             self._before_physics_step()
             self.world.step(self.cfg.time_step)
-            for flags in self._overflow_sources:  # cleared by every world step: collect them per physics step
-                launching.launch(env_kernels.or_flags, dim=self.num_envs, inputs=[flags],
-                                 outputs=[self.contact_overflow],
-                                 device=dev)
         for rows in self._state_rows:
             launching.launch(env_kernels.flag_nonfinite_rows, dim=self.num_envs, inputs=[rows],
                              outputs=[self.world.unstable],

@@ -109,9 +109,8 @@ def block_chain_kernel(max_rows: int) -> wp.Kernel:
         p = pack_base + i
         r0 = pack_start[p]  # row t of this pack at rows[r0 + t]: (particle, link's constraint or -1, chain start)
         n = pack_rows[p]
-        # a loop has a pack of its own: m links over m nodes, link m - 1 closing it; open chains: n rows, the links
+        # a loop has a pack of its own: n links over n nodes, link n - 1 closing it; open chains: n rows, the links
         # those with a constraint
-        m = n
         closed3 = int(0)
         if pack_closed[p] != 0 and n >= 3:
             closed3 = 1
@@ -120,7 +119,7 @@ def block_chain_kernel(max_rows: int) -> wp.Kernel:
         ce = env % compliance.shape[0]
         masked = active.shape[1] > 0
         if masked and closed3 != 0:
-            if active[env, rows[r0][1]] == 0 or active[env, rows[r0 + m - 1][1]] == 0:
+            if active[env, rows[r0][1]] == 0 or active[env, rows[r0 + n - 1][1]] == 0:
                 closed3 = 0
         rows0 = wp.tile_zeros(shape=N, dtype=vec6, storage="shared")  # link rows (a, b, c, r, u, 0), PCR buffer 0
         rows1 = wp.tile_zeros(shape=N, dtype=vec6, storage="shared")  # ... and 1
@@ -143,9 +142,9 @@ def block_chain_kernel(max_rows: int) -> wp.Kernel:
             g = float(0.0)
             s = float(0.0)
             if cyclic != 0:
-                # the corner A_{m-1,0} and Sherman-Morrison's g = -A_00 (every lane forms them)
+                # the corner A_{n-1,0} and Sherman-Morrison's g = -A_00 (every lane forms them)
                 n_first, len_first = segment_dir(x_first, node_x(xw, 1 % n))
-                n_last, len_last = segment_dir(node_x(xw, m - 1), x_first)
+                n_last, len_last = segment_dir(node_x(xw, n - 1), x_first)
                 s = -w_first * wp.dot(n_last, n_first)
                 if s == 0.0:
                     cyclic = 0  # no corner coupling (node 0 pinned): a plain tridiagonal system
@@ -174,7 +173,7 @@ def block_chain_kernel(max_rows: int) -> wp.Kernel:
                     act_k = int(1)
                     if masked:
                         act_k = active[env, cons]
-                    if k + 1 < m:
+                    if k + 1 < n:
                         cons_next = rows[r0 + k + 1][1]  # -1: k + 1 is the chain's last node
                         if cons_next >= 0:
                             k2 = k + 2
@@ -195,7 +194,7 @@ def block_chain_kernel(max_rows: int) -> wp.Kernel:
                     if use_lambda != 0:
                         lam_k = lam_k + lam[env, cons]
                     b_k, rhs, u_k = link_row_terms(w_k, w_k1, compliance[ce, cons] * inv_dt2, rest[cons] - len_k,
-                                                   lam_k, k, m, cyclic, g, s, act_k)
+                                                   lam_k, k, n, cyclic, g, s, act_k)
                 wp.tile_scatter_masked(rows0, k, vec6(a_k, b_k, c_k, rhs, u_k, 0.0), base + lane < n)
             # ---- PCR, two rounds per pass (0 -> 1 -> 0); a round at a distance >= n copies
             sd = int(1)
@@ -206,7 +205,7 @@ def block_chain_kernel(max_rows: int) -> wp.Kernel:
             f = float(0.0)
             if cyclic != 0:
                 first_row = wp.tile_extract(rows0, 0)
-                last_row = wp.tile_extract(rows0, m - 1)
+                last_row = wp.tile_extract(rows0, n - 1)
                 y0 = first_row[3] / first_row[1]
                 z0 = first_row[4] / first_row[1]
                 yl = last_row[3] / last_row[1]
@@ -241,11 +240,11 @@ def block_chain_kernel(max_rows: int) -> wp.Kernel:
                         k_prev = wp.max(-dl_prev, 0.0) / len_p
                 elif wraps != 0:
                     # the closing link's correction (node 0 pinned: w_0 = 0 below); open-chain filter: no k_prev
-                    n_prev, len_p = segment_dir(node_x(xw, m - 1), x_cur)
+                    n_prev, len_p = segment_dir(node_x(xw, n - 1), x_cur)
                     if masked:
-                        if active[env, rows[r0 + m - 1][1]] == 0:
+                        if active[env, rows[r0 + n - 1][1]] == 0:
                             n_prev = wp.vec3(0.0)
-                    dl_prev = wp.tile_extract(dl_acc, m - 1)[0]
+                    dl_prev = wp.tile_extract(dl_acc, n - 1)[0]
                 n_j = wp.vec3(0.0)
                 dl_j = float(0.0)
                 k_j = float(0.0)

@@ -213,14 +213,6 @@ def flag_nonfinite_rows(values: wp.array2d(dtype=wp.float32), flags: wp.array(dt
 
 
 @wp.kernel
-def or_flags(flags: wp.array(dtype=wp.int32), out: wp.array(dtype=wp.int32)):
-    """``out[env] |= flags[env] != 0`` (per-env fault flags of several systems into one)."""
-    env = wp.tid()
-    if flags[env] != 0:
-        out[env] = 1
-
-
-@wp.kernel
 def finish_log_terms(sums: wp.array(dtype=wp.float32), num_features: int, num_envs: int, action_dim: int,
                      discrete: int, overflow_term: int, values: wp.array(dtype=wp.float32)):
     """Sums -> means: features and instability over all envs, episode statistics over the envs that finished one,
