@@ -91,7 +91,7 @@ def bench_one(task: str, num_envs: int, device: str, seconds: float, invalid_act
               surface_refit_interval: int | None = None, triangle_sweep: str | None = None,
               triangle_block_threads: int | None = None, replay_steps: int = 600,
               max_registers: dict[str, int] | None = None, pcr_rows: int | None = None,
-              rod_solver: str | None = None) -> dict:
+              rod_solver: str | None = None, lane_rows: int | None = None) -> dict:
     def make_env():
         env = lapwarp.make(task, num_envs=num_envs, device=device, invalid_actions=invalid_actions,
                            use_cuda_graph=cuda_graph, **overrides)
@@ -100,6 +100,8 @@ def bench_one(task: str, num_envs: int, device: str, seconds: float, invalid_act
         env.world.max_registers = dict(max_registers or {})
         if pcr_rows is not None:
             env.world.chain_pcr_rows = pcr_rows
+        if lane_rows is not None:
+            env.world.chain_lane_rows = lane_rows
         if rod_solver is not None:
             env.world.rod_solver = rod_solver
         apply_contact_settings(env, surface_refit_interval, triangle_sweep, triangle_block_threads)
@@ -162,7 +164,8 @@ def bench_one(task: str, num_envs: int, device: str, seconds: float, invalid_act
         "max_registers": dict(env.world.max_registers),
         "chain_solver": env.world.chain_solver,
         "rod_solver": env.world.rod_solver if env.world.model.segment_count else None,
-        "chain_pcr_rows": env.world.chain_pcr_rows if env.world.chain_solver == "pcr" else None,
+        "chain_pcr_rows": env.world.chain_pcr_rows if env.world.chain_solver in ("pcr", "hybrid") else None,
+        "chain_lane_rows": env.world.chain_lane_rows if env.world.chain_solver == "hybrid" else None,
     }
     env.close()
     return result
@@ -198,8 +201,11 @@ def main(argv: list[str] | None = None) -> int:
                         help="register caps of the world step's kernels by function name, e.g. "
                              "collide_triangle_colors=64 (launching.register_capped; CUDA only has an effect)")
     parser.add_argument("--pcr-rows", type=non_negative_int, default=None,
-                        help="rows per pack of the 'pcr' chain solve (--set chain_solver=pcr; 0: the world's default, "
-                             "1: a chain per block)")
+                        help="rows per pack of the 'pcr' and 'hybrid' chain solves (--set chain_solver=pcr; 0: the "
+                             "world's default, 1: a chain per block)")
+    parser.add_argument("--lane-rows", type=positive_int, default=None,
+                        help="rows per lane of the 'hybrid' chain solve (--set chain_solver=hybrid; default: the "
+                             "world's)")
     parser.add_argument("--rod-solver", choices=list(ROD_SOLVERS), default=None,
                         help="the world's rod sweep: one launch per colour or all colours in one (default: its own)")
     parser.add_argument("--no-graph", action="store_true",
@@ -208,6 +214,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
 
     wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)  # no per-module load lines
+    wp.config.enable_cpu_blocks = True  # the 'hybrid' chain solve's lanes as Warp's fibers on a CPU
     if args.policy == "replay" and args.replay_steps <= 5:
         parser.error(f"--replay-steps must exceed the 5 warm-up steps, got {args.replay_steps}")
     modes = ["zero", "raise"] if args.both_nan_modes else [args.invalid_actions]
@@ -229,7 +236,7 @@ def main(argv: list[str] | None = None) -> int:
                           cuda_graph=not args.no_graph, surface_refit_interval=args.surface_refit_interval,
                           triangle_sweep=args.triangle_sweep, triangle_block_threads=args.triangle_block_threads,
                           replay_steps=args.replay_steps, max_registers=max_registers, pcr_rows=args.pcr_rows,
-                          rod_solver=args.rod_solver)
+                          rod_solver=args.rod_solver, lane_rows=args.lane_rows)
             results.append(r)
             print(f"{r['task']:<10} {n:>9} {mode:>8} {r['env_steps_per_s']:>14,.0f} {r['step_ms']:>9.3f}", flush=True)
     regime = "the expert's recorded actions replayed" if args.policy == "replay" else f"{args.policy} actions"

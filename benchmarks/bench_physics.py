@@ -175,7 +175,7 @@ def timed_steps(world, device: str, steps: int) -> float:
 def run(scene: str, num_envs: int, device: str, substeps: int, iterations: int, edge_solver: str, steps: int,
         settle: int, newton_steps: int | None = None, block_links: int = 0, tet_solver: str | None = None,
         tet_method: str | None = None, tether_passes: int | None = None, chain_solver: str = "thomas",
-        pcr_rows: int = 0) -> dict:
+        pcr_rows: int = 0, lane_rows: int = 4) -> dict:
     wp.synchronize_device(device)
     world, obj, rest, drag = SCENES[scene](num_envs, device, substeps or None, iterations, edge_solver)
     if tet_solver is not None:
@@ -187,6 +187,7 @@ def run(scene: str, num_envs: int, device: str, substeps: int, iterations: int, 
     world.chain_block_links = block_links
     world.chain_solver = chain_solver
     world.chain_pcr_rows = pcr_rows
+    world.chain_lane_rows = lane_rows
     if tether_passes is not None:
         world.tether_passes = tether_passes
     dev = wp.get_device(device)
@@ -204,7 +205,8 @@ def run(scene: str, num_envs: int, device: str, substeps: int, iterations: int, 
         "chain_newton_steps": world.chain_newton_steps if m.edge_chains is not None else None,
         "chain_block_links": world.chain_block_links,
         "chain_solver": world.chain_solver,
-        "chain_pcr_rows": world.chain_pcr_rows if world.chain_solver == "pcr" else None,
+        "chain_pcr_rows": world.chain_pcr_rows if world.chain_solver in ("pcr", "hybrid") else None,
+        "chain_lane_rows": world.chain_lane_rows if world.chain_solver == "hybrid" else None,
         "chain_families": m.edge_chains.num_families if m.edge_chains is not None else None,
         "tet_solver": ("fused" if world.fused_tets else "colored") if m.tet_count else None,
         "tet_method": world.tet_method_in_use if m.tet_count else None,
@@ -235,10 +237,13 @@ def main() -> None:
                    help="one run per value: 0 = one thread per chain, B >= 2 = blocks of B links")
     p.add_argument("--chain-solver", nargs="+", default=["thomas"], choices=list(CHAIN_SOLVERS),
                    help="one run per value: thomas = a thread walks each chain (or its blocks, --chain-block-links), "
-                        "pcr = a thread block per chain (kernels/chains_block.py)")
+                        "pcr = a thread block per pack of chains (kernels/chains_block.py), hybrid = the same packs, "
+                        "a few rows per lane (kernels/chains_hybrid.py)")
     p.add_argument("--pcr-rows", type=non_negative_int, nargs="+", default=[0],
                    help="rows per pack of the 'pcr' chain solve, one run per value (0: the world's default, 1: a chain "
                         "per block)")
+    p.add_argument("--lane-rows", type=positive_int, nargs="+", default=[4],
+                   help="rows per lane of the 'hybrid' chain solve, one run per value")
     p.add_argument("--tet-solver", nargs="+", default=[None], choices=["auto", "colored", "fused"],
                    help="one run per value (tet scenes; default: the world's own choice)")
     p.add_argument("--tet-method", nargs="+", default=[None], choices=["auto", "xpbd", "vbd"],
@@ -252,6 +257,7 @@ def main() -> None:
     args = p.parse_args()
 
     wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)  # no per-module load lines
+    wp.config.enable_cpu_blocks = True  # the 'hybrid' chain solve's lanes as Warp's fibers on a CPU
     wp.init()
     scenes = list(SCENES) if "all" in args.scene else args.scene
     for scene in scenes:
@@ -262,17 +268,19 @@ def main() -> None:
                     tet_solvers = args.tet_solver if scene.startswith("tet") else [None]
                     tet_methods = args.tet_method if scene.startswith("tet") else [None]
                     passes = args.tether_passes if "tethers" in scene or scene == "cloth" else [None]
-                    for n, block, chain, rows, tets, method, tp in itertools.product(
-                            args.num_envs, args.chain_block_links, args.chain_solver, args.pcr_rows, tet_solvers,
-                            tet_methods, passes):
-                        if chain != "pcr" and rows != args.pcr_rows[0]:
-                            continue  # the packs are the "pcr" solve's alone
+                    for n, block, chain, rows, lane_rows, tets, method, tp in itertools.product(
+                            args.num_envs, args.chain_block_links, args.chain_solver, args.pcr_rows, args.lane_rows,
+                            tet_solvers, tet_methods, passes):
+                        if chain not in ("pcr", "hybrid") and rows != args.pcr_rows[0]:
+                            continue  # the packs are the block solves' alone
+                        if chain != "hybrid" and lane_rows != args.lane_rows[0]:
+                            continue  # rows per lane: the hybrid solve's alone
                         rec = run(scene, n, args.device, sub, it, solver, args.steps, args.settle_steps,
-                                  args.newton_steps, block, tets, method, tp, chain, rows)
+                                  args.newton_steps, block, tets, method, tp, chain, rows, lane_rows)
                         quality_text = (f"sag={rec['sag_m']:.3e} m" if "sag_m" in rec else
                                         f"stretch mean={rec['stretch_mean']:.4f} max={rec['stretch_max']:.3f}")
                         print(f"{scene:12s} {str(rec['edge_solver']):8s} envs={n:6d} substeps={rec['substeps']:4d} "
-                              f"iters={it} block={block} chains={chain}/{rows} "
+                              f"iters={it} block={block} chains={chain}/{rows}/{lane_rows} "
                               f"tets={rec['tet_solver']}/{rec['tet_method']} "
                               f"tether_passes={rec['tether_passes']} "
                               f"{rec['env_steps_per_s']:12.1f} env-steps/s  {quality_text}  "

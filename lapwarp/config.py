@@ -234,7 +234,9 @@ class EnvConfig:
             (``BatchedEnv.gpu_chain_block_links``) and 0 on the CPU (one thread runs every kernel there anyway).
         chain_solver: ``"thomas"`` (the chain solve above), ``"pcr"`` (thread blocks solve packs of a family's
             chains by parallel cyclic reduction in shared memory, every Newton step in one launch per family;
-            ``kernels/chains_block.py``, the same systems, round-off aside) or ``"auto"`` (default): the task's
+            ``kernels/chains_block.py``, the same systems, round-off aside), ``"hybrid"`` (the same packs, a few rows
+            per lane eliminated in registers and PCR over one row per lane, ``kernels/chains_hybrid.py``; on the CPU
+            it needs ``wp.config.enable_cpu_blocks``) or ``"auto"`` (default): the task's
             measured best on CUDA devices (``BatchedEnv.gpu_chain_solver``: "pcr" for RopeThreading and LigatingLoop)
             and "thomas" on the CPU.
     """
@@ -254,7 +256,7 @@ class EnvConfig:
         = (64, 64)
     seed: int = 0
     chain_block_links: Annotated[int, Range(ge=-1, le=4096)] = -1
-    chain_solver: Literal["auto", "thomas", "pcr"] = "auto"
+    chain_solver: Literal["auto", "thomas", "pcr", "hybrid"] = "auto"
 
     def validate(self, reward_features: tuple[str, ...], supported_observations: tuple[str, ...]) -> None:
         """Check (and coerce) every field; raise ``ValueError`` naming the offending field. Task configs extend it

@@ -29,7 +29,7 @@ import warp as wp
 from lapwarp import launching
 from lapwarp.chains import pack_chains
 from lapwarp.config import check_seed, rng_seed32
-from lapwarp.kernels import chains, chains_block, chains_partitioned, geodesic, world_kernels
+from lapwarp.kernels import chains, chains_block, chains_hybrid, chains_partitioned, geodesic, world_kernels
 from lapwarp.model import Control, Model, State
 from lapwarp.vbd import tet_components, vertex_layout
 
@@ -46,8 +46,9 @@ ROD_SOLVERS = ("auto", "colored", "fused")
 TET_METHODS = ("auto", "xpbd", "vbd")
 #: the direct chain solves ``World.chain_solver`` may name: "thomas" = a thread walks each chain (kernels/chains.py;
 #: partitioned where ``chain_block_links`` > 1), "pcr" = a thread block per chain, parallel cyclic reduction in shared
-#: memory (kernels/chains_block.py)
-CHAIN_SOLVERS = ("thomas", "pcr")
+#: memory (kernels/chains_block.py), "hybrid" = the same packs, each lane ``chain_lane_rows`` consecutive rows
+#: eliminated in registers and PCR over one interface row per lane (kernels/chains_hybrid.py)
+CHAIN_SOLVERS = ("thomas", "pcr", "hybrid")
 #: the longest chain (links) the "pcr" solve takes: its block keeps ~33 floats per row in shared memory (~34 KB)
 PCR_MAX_LINKS = 256
 #: rows of the "pcr" solve's packs by default: the open chains of a family laid end to end in blocks of up to this
@@ -162,6 +163,8 @@ class World:
         # block: chain_pcr_threads (0 = the largest pack's rows rounded up to a warp, at most 128)
         self.chain_solver = "thomas"
         self.chain_pcr_threads = 0
+        # "hybrid": rows per lane (compile-time, unrolled in registers); the lanes follow from the largest pack
+        self.chain_lane_rows = 4
         self._chain_pcr_rows = 0
         # ROD_SOLVERS: the rods' stretch-shear and bend-twist colours in one launch per sweep (a block of
         # rod_block_threads lanes per env) or a launch each
@@ -432,7 +435,7 @@ class World:
             return
         key = (float(dt), self.substeps_for(float(dt)), self.iterations, self.rod_newton_steps, self.chain_newton_steps,
                self.tet_rotation_iterations, self.chain_block_links, self.chain_solver, self.chain_pcr_threads,
-               self.chain_pcr_rows,
+               self.chain_pcr_rows, self.chain_lane_rows,
                self.tet_solver, self.tet_block_threads, self.model.attachments_distinct, self.rod_solver,
                self.rod_block_threads,
                self.tet_method_in_use, self._register_caps_key(),
@@ -447,11 +450,20 @@ class World:
                                  f"{first}..{last} has none: use 'xpbd' (docs/physics.md)")
             if self.chain_solver not in CHAIN_SOLVERS:
                 raise ValueError(f"world.chain_solver must be one of {CHAIN_SOLVERS}, got {self.chain_solver!r}")
-            if self.chain_solver == "pcr":
+            if self.chain_solver == "hybrid":
+                rows = self.chain_lane_rows
+                if isinstance(rows, bool) or not isinstance(rows, (int, np.integer)) or not 1 <= rows <= 16:
+                    raise ValueError(f"world.chain_lane_rows must be an int in [1, 16] (rows per lane, unrolled in "
+                                     f"registers), got {rows!r}")
+                if self.device.is_cpu and not wp.config.enable_cpu_blocks:
+                    raise ValueError("world.chain_solver 'hybrid' runs a block's lanes as threads: on the CPU set "
+                                     "wp.config.enable_cpu_blocks = True first (Warp's cooperative CPU blocks), or "
+                                     "use 'thomas'")
+            if self.chain_solver in ("pcr", "hybrid"):
                 longest = max([int(cs.lengths.max()) for cs in (self.model.rod_chains, self.model.edge_chains)
                                if cs is not None and cs.count], default=0)
                 if longest > PCR_MAX_LINKS:
-                    raise ValueError(f"world.chain_solver 'pcr' keeps a chain in one block's shared memory: this "
+                    raise ValueError(f"world.chain_solver {self.chain_solver!r} keeps a chain in one block: this "
                                      f"scene's longest chain has {longest} links, more than {PCR_MAX_LINKS}; use "
                                      f"'thomas'")
             if not 0 <= int(self.chain_pcr_threads) <= 1024:
@@ -496,7 +508,12 @@ class World:
             if dim is None and not isinstance(kernel, wp.Kernel):
                 cmds.append(kernel)
                 return
-            block = block_dim or launching.block_dim_for(dim, sm_count, 64 if kernel in _REGISTER_HEAVY else 256)
+            if dev.is_cuda:
+                block = block_dim or launching.block_dim_for(dim, sm_count, 64 if kernel in _REGISTER_HEAVY else 256)
+            else:
+                # a thread at a time on the CPU unless a kernel asks for lanes (then Warp's cooperative fibers, where
+                # wp.config.enable_cpu_blocks is set): plain kernels never run as fiber blocks
+                block = block_dim or 1
             name = kernel.func.__name__
             if name in caps:
                 kernel = launching.register_capped(kernel, caps[name])
@@ -588,6 +605,20 @@ class World:
                 pcr = chains_block.block_chain_kernel(packs.max_rows)
                 for pack_base, count in packs.families:
                     launch(pcr, (n, count, lanes),
+                           [pack_base, packs.pack_start, packs.pack_rows, packs.pack_closed, packs.rows, rest,
+                            compliance, w_eff, inv_dt2, use_lam, newton_steps, lam_arr, mask],
+                           [s.particle_q], block_dim=lanes)
+                return
+            if self.chain_solver == "hybrid":
+                # the same packs, chain_lane_rows rows per lane (a warp's multiple of lanes on the GPU; on the CPU
+                # exactly the lanes that hold rows, as Warp's cooperative fibers)
+                packs = self._packs[id(cs)]
+                rows_per_lane = int(self.chain_lane_rows)
+                held = chains_hybrid.lanes_for(packs.max_rows, rows_per_lane)
+                lanes = 32 * ((held + 31) // 32) if self.device.is_cuda else held
+                kernel = chains_hybrid.hybrid_chain_kernel(packs.max_rows, rows_per_lane)
+                for pack_base, count in packs.families:
+                    launch(kernel, (n, count, lanes),
                            [pack_base, packs.pack_start, packs.pack_rows, packs.pack_closed, packs.rows, rest,
                             compliance, w_eff, inv_dt2, use_lam, newton_steps, lam_arr, mask],
                            [s.particle_q], block_dim=lanes)

@@ -48,19 +48,15 @@ _KERNELS: dict[int, wp.Kernel] = {}
 vec6 = wp.types.vector(length=6, dtype=float)
 
 
-def block_chain_kernel(max_rows: int) -> wp.Kernel:
-    """The block solve for packs (``chains.ChainPacks``) of at most ``max_rows`` rows (cached per length): launch
-    ``(num_envs, packs, lanes)`` with ``block_dim=lanes`` (``launching.block_lanes``), one family at a time."""
-    N = max(int(max_rows), 1)
-    cached = _KERNELS.get(N)
+_PCR_ROUNDS: dict[int, wp.Function] = {}
+
+
+def pcr_round_func(N: int) -> wp.Function:
+    """One PCR round over shared tiles of ``N`` rows (cached per length; also kernels/chains_hybrid.py's reduced
+    system)."""
+    cached = _PCR_ROUNDS.get(N)
     if cached is not None:
         return cached
-
-    @wp.func
-    def node_x(xw: wp.tile(dtype=wp.vec4, shape=(N,), storage="shared"), j: int):
-        """Node ``j``'s position from the block's shared (position, inverse mass) rows."""
-        v = wp.tile_extract(xw, j)
-        return wp.vec3(v[0], v[1], v[2])
 
     @wp.func
     def pcr_round(src: wp.tile(dtype=vec6, shape=(N,), storage="shared"),
@@ -87,6 +83,26 @@ def block_chain_kernel(max_rows: int) -> wp.Kernel:
                 b = b + gamma * hi[0]
                 d = d + wp.vec3(hi[3], hi[4], hi[5]) * gamma
             wp.tile_scatter_masked(dst, k, vec6(a, b, c, d[0], d[1], d[2]), base + lane < n)
+
+    _PCR_ROUNDS[N] = pcr_round
+    return pcr_round
+
+
+def block_chain_kernel(max_rows: int) -> wp.Kernel:
+    """The block solve for packs (``chains.ChainPacks``) of at most ``max_rows`` rows (cached per length): launch
+    ``(num_envs, packs, lanes)`` with ``block_dim=lanes`` (``launching.block_lanes``), one family at a time."""
+    N = max(int(max_rows), 1)
+    cached = _KERNELS.get(N)
+    if cached is not None:
+        return cached
+
+    @wp.func
+    def node_x(xw: wp.tile(dtype=wp.vec4, shape=(N,), storage="shared"), j: int):
+        """Node ``j``'s position from the block's shared (position, inverse mass) rows."""
+        v = wp.tile_extract(xw, j)
+        return wp.vec3(v[0], v[1], v[2])
+
+    pcr_round = pcr_round_func(N)
 
     def solve_chains_block(
         pack_base: int,
