@@ -1,0 +1,119 @@
+"""Registers, spills and static shared memory of Warp kernels compiled for a GPU architecture on any machine.
+
+Warp's CPU wheels carry NVRTC, so ``wp.compile_aot_module`` builds a module's CUDA binary (cubin) without a GPU or a
+driver. This tool reads what ``ptxas`` decided from the cubin's ELF attributes (``.nv.info``: ``REGCOUNT`` and
+``FRAME_SIZE``, the per-thread local memory that spills and dynamically indexed arrays take) and the size of each
+kernel's ``.nv.shared`` section. Occupancy follows from them (65,536 registers per SM on sm_80 .. sm_90): a kernel at
+255 registers fits 256 threads per SM. No speed claim comes from here; it tells, before a GPU lease, whether a change
+spilled or doubled a kernel's registers.
+
+    python benchmarks/kernel_resources.py --modules lapwarp.kernels.chains lapwarp.kernels.xpbd
+    python benchmarks/kernel_resources.py --hybrid 128:4 128:2 --max-registers 128
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import json
+import struct
+import tempfile
+from pathlib import Path
+
+import warp as wp
+
+# .nv.info attributes (EIFMT_SVAL payloads: a symbol index, then the value)
+_ATTRS = {0x2F: "registers", 0x11: "frame_bytes"}
+
+
+def parse_cubin(path: str | Path) -> dict[str, dict[str, int]]:
+    """Per kernel symbol of a cubin (ELF64): ``registers``, ``frame_bytes`` and ``shared_bytes`` (static)."""
+    data = Path(path).read_bytes()
+    if data[:4] != b"\x7fELF" or data[4] != 2:
+        raise ValueError(f"{path} is not an ELF64 cubin")
+    shoff, = struct.unpack_from("<Q", data, 0x28)
+    shentsize, shnum, shstrndx = struct.unpack_from("<HHH", data, 0x3A)
+    sections = [struct.unpack_from("<IIQQQQ", data, shoff + i * shentsize) for i in range(shnum)]
+
+    def name_at(table_offset: int, offset: int) -> str:
+        return data[table_offset + offset:data.index(b"\0", table_offset + offset)].decode()
+
+    by_name = {name_at(sections[shstrndx][4], sec[0]): sec for sec in sections}
+    symtab, strtab = by_name[".symtab"], by_name[".strtab"][4]
+    symbols = [name_at(strtab, struct.unpack_from("<I", data, symtab[4] + 24 * i)[0])
+               for i in range(symtab[5] // 24)]
+    out: dict[str, dict[str, int]] = {}
+    info = by_name.get(".nv.info")
+    pos, end = (info[4], info[4] + info[5]) if info else (0, 0)
+    while pos < end:
+        fmt, attr = data[pos], data[pos + 1]
+        if fmt == 0x04:  # EIFMT_SVAL: a 16-bit size, then the payload
+            size, = struct.unpack_from("<H", data, pos + 2)
+            if attr in _ATTRS:
+                symbol, value = struct.unpack_from("<II", data, pos + 4)
+                out.setdefault(symbols[symbol], {})[_ATTRS[attr]] = value
+            pos += 4 + size
+        else:  # EIFMT_NVAL: 2 bytes; EIFMT_BVAL, EIFMT_HVAL: 4
+            pos += 2 if fmt == 0x01 else 4
+    for name, sec in by_name.items():
+        if name.startswith(".nv.shared.") and name[len(".nv.shared."):] in out:
+            out[name[len(".nv.shared."):]]["shared_bytes"] = sec[5]
+    return out
+
+
+def module_resources(module, arch: int = 90, block_dim: int | None = None) -> dict[str, dict[str, int]]:
+    """Compile a Warp module (a ``wp.Module``, or a Python module holding kernels) for ``sm_{arch}`` and return each
+    forward kernel's resources by kernel name (``block_dim``: the module's block size for tile kernels)."""
+    if not isinstance(module, wp.Module):
+        module = wp.get_module(module.__name__)
+    if block_dim is not None:
+        module.options["block_dim"] = int(block_dim)
+    with tempfile.TemporaryDirectory() as tmp:
+        paths = wp.compile_aot_module(module, arch=arch, module_dir=tmp, use_ptx=False)
+        found = {}
+        for path in paths:
+            for symbol, res in parse_cubin(path).items():
+                if symbol.endswith("_cuda_kernel_forward"):
+                    found[symbol[: -len("_cuda_kernel_forward")]] = res
+    return found
+
+
+def main(argv: list[str] | None = None) -> int:
+    from lapwarp import launching
+    from lapwarp.kernels import chains_hybrid
+
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--modules", nargs="*", default=[], help="Python modules of Warp kernels, e.g. lapwarp.kernels.xpbd")
+    p.add_argument("--hybrid", nargs="*", default=[], metavar="ROWS:PER_LANE",
+                   help="the hybrid chain kernel for packs of ROWS rows at PER_LANE rows per lane")
+    p.add_argument("--max-registers", type=int, default=None, help="compile the --hybrid kernels with this cap too")
+    p.add_argument("--arch", type=int, default=90)
+    p.add_argument("--out", default=None, help="JSON output path")
+    args = p.parse_args(argv)
+    wp.config.quiet = True
+    wp.init()
+    rows = []
+    for name in args.modules:
+        for kernel, res in module_resources(importlib.import_module(name), args.arch).items():
+            rows.append({"module": name, "kernel": kernel, **res})
+    for spec in args.hybrid:
+        n, per_lane = (int(v) for v in spec.split(":"))
+        kernel = chains_hybrid.hybrid_chain_kernel(n, per_lane)
+        lanes = chains_hybrid.lanes_for(n, per_lane)
+        block = 32 * ((lanes + 31) // 32)
+        caps = [None] + ([args.max_registers] if args.max_registers else [])
+        for cap in caps:
+            k = launching.register_capped(kernel, cap) if cap else kernel
+            for name, res in module_resources(k.module, args.arch, block).items():
+                rows.append({"module": f"hybrid {n}:{per_lane}", "kernel": name, "block_dim": block,
+                             "max_registers": cap, **res})
+    for r in rows:
+        print(f"{r['module'][:28]:28s} {r['kernel'][:60]:60s} regs={r.get('registers', '?'):>3} "
+              f"frame={r.get('frame_bytes', 0):>4} B shared={r.get('shared_bytes', 0):>5} B")
+    if args.out:
+        Path(args.out).write_text(json.dumps({"arch": args.arch, "warp": wp.__version__, "kernels": rows}, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
