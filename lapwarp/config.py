@@ -237,7 +237,8 @@ class EnvConfig:
             ``kernels/chains_block.py``, the same systems, round-off aside), ``"hybrid"`` (the same packs, a few rows
             per lane eliminated in registers and PCR over one row per lane, ``kernels/chains_hybrid.py``; on the CPU
             it needs ``wp.config.enable_cpu_blocks``) or ``"auto"`` (default): the task's
-            measured best on CUDA devices (``BatchedEnv.gpu_chain_solver``: "pcr" for RopeThreading and LigatingLoop)
+            measured best on CUDA devices (``BatchedEnv.gpu_chain_solver``: "pcr" for RopeThreading, LigatingLoop and
+            PickAndPlace)
             and "thomas" on the CPU.
     """
 

@@ -975,6 +975,9 @@ class PickAndPlaceEnv(BatchedEnv):
     supported_observations = ("STATE", "RGB", "RGBD", "DEPTH")
     expert = "lapwarp.tasks.deformable_manipulation.pick_and_place:PickAndPlaceExpert"
     gpu_chain_block_links = 16  # PickAndPlace 716k -> 851k env-steps/s (H100, 4,096 envs)
+    # the block (PCR) chain solve over packs (it takes precedence over the partitioned one): the expert's step
+    # 1,106,202 -> 1,785,039 env-steps/s (H200, 4,096 envs, same call, thirty-second session)
+    gpu_chain_solver = "pcr"
     cfg: PickAndPlaceConfig
 
     def _build(self) -> World:

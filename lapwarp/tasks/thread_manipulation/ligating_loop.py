@@ -653,7 +653,7 @@ class LigatingLoopEnv(BatchedEnv):
     expert = "lapwarp.tasks.thread_manipulation.ligating_loop:LigatingLoopExpert"
     gpu_chain_block_links = 8  # LigatingLoop 29.0k -> 32.7k env-steps/s (H100, 4,096 envs; 16: 32.0k)
     # the block (PCR) chain solve (it takes precedence over the partitioned one): the expert's step 71,734 -> 74,523
-    # env-steps/s (H200, 4,096 envs, same call, thirty-first session)
+    # env-steps/s (H200, 4,096 envs, same call, thirty-first session; with the packs 74,280 -> 77,153, thirty-second)
     gpu_chain_solver = "pcr"
     cfg: LigatingLoopConfig
 
