@@ -99,6 +99,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.first_episodes:
         args.episodes = args.num_envs
     wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)
+    wp.config.enable_cpu_blocks = True  # the 'hybrid' chain solve's lanes as Warp's fibers on a CPU
     try:  # every configuration before the first run takes device time
         configs = [parse_overrides(c) for c in (args.config or [[]])]
         for overrides in configs:
