@@ -38,9 +38,10 @@ def _step_both(make, device, simulate=(0.04, 0.02), **settings):
 
 
 @pytest.mark.parametrize("rows_per_lane", [1, 3, 4, 8])
-def test_partition_solve_matches_numpy(rows_per_lane):
+def test_partition_solve_matches_numpy(device, rows_per_lane):
     # random diagonally dominant tridiagonal systems of 1..33 rows with three right-hand sides: lanes holding a
-    # partial partition (padding), one lane, many lanes, the reduced system of 1..33 rows
+    # partial partition (padding), one lane, many lanes, the reduced system of 1..33 rows (on the GPU a warp's
+    # multiple of lanes, the extra ones idle)
     from lapwarp.kernels.chains_block import vec6
     from lapwarp.kernels.chains_hybrid import lanes_for, partition_solver
 
@@ -82,9 +83,11 @@ def test_partition_solve_matches_numpy(rows_per_lane):
     A = rng.uniform(-1.0, 1.0, (len(sizes), 33, 3))
     A[:, :, 1] = 2.0 + rng.uniform(0.0, 1.0, (len(sizes), 33))
     D = rng.normal(size=(len(sizes), 33, 3))
-    X = wp.zeros(D.shape, dtype=float, device="cpu")
-    wp.launch(solve_rows, dim=(len(sizes), L), inputs=[wp.array(A, dtype=float), wp.array(D, dtype=float),
-              wp.array(sizes, dtype=wp.int32)], outputs=[X], block_dim=L, device="cpu")
+    lanes = 32 * ((L + 31) // 32) if wp.get_device(device).is_cuda else L
+    X = wp.zeros(D.shape, dtype=float, device=device)
+    wp.launch(solve_rows, dim=(len(sizes), lanes), inputs=[wp.array(A, dtype=float, device=device),
+              wp.array(D, dtype=float, device=device), wp.array(sizes, dtype=wp.int32, device=device)], outputs=[X],
+              block_dim=lanes, device=device)
     for s, n in enumerate(sizes):
         M = np.diag(A[s, :n, 1]) + np.diag(A[s, 1:n, 0], -1) + np.diag(A[s, :n - 1, 2], 1)
         ref = np.linalg.solve(M, D[s, :n])
