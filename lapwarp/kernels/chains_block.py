@@ -48,6 +48,21 @@ _KERNELS: dict[int, wp.Kernel] = {}
 vec6 = wp.types.vector(length=6, dtype=float)
 
 
+@wp.func
+def pack_loop(closed: int, rows: wp.array(dtype=wp.vec3i), r0: int, n: int, masked: bool,
+              active: wp.array2d(dtype=wp.int32), env: int):
+    """Whether a pack (a loop has one of its own) is a loop still closed at its corner (``closed3``: a cyclic system)
+    and whether its node 0 ends the closing link (``wraps``: also once the loop is cut at a corner, an open chain)."""
+    closed3 = int(0)
+    if closed != 0 and n >= 3:
+        closed3 = 1
+    wraps = closed3
+    if masked and closed3 != 0:
+        if active[env, rows[r0][1]] == 0 or active[env, rows[r0 + n - 1][1]] == 0:
+            closed3 = 0
+    return closed3, wraps
+
+
 _PCR_ROUNDS: dict[int, wp.Function] = {}
 
 
@@ -127,16 +142,10 @@ def block_chain_kernel(max_rows: int) -> wp.Kernel:
         n = pack_rows[p]
         # a loop has a pack of its own: n links over n nodes, link n - 1 closing it; open chains: n rows, the links
         # those with a constraint
-        closed3 = int(0)
-        if pack_closed[p] != 0 and n >= 3:
-            closed3 = 1
-        wraps = closed3
         pe = env % inv_mass.shape[0]
         ce = env % compliance.shape[0]
         masked = active.shape[1] > 0
-        if masked and closed3 != 0:
-            if active[env, rows[r0][1]] == 0 or active[env, rows[r0 + n - 1][1]] == 0:
-                closed3 = 0
+        closed3, wraps = pack_loop(pack_closed[p], rows, r0, n, masked, active, env)
         rows0 = wp.tile_zeros(shape=N, dtype=vec6, storage="shared")  # link rows (a, b, c, r, u, 0), PCR buffer 0
         rows1 = wp.tile_zeros(shape=N, dtype=vec6, storage="shared")  # ... and 1
         dl_acc = wp.tile_zeros(shape=N, dtype=wp.vec2, storage="shared")  # per link: dl, this sweep's multiplier so far

@@ -37,7 +37,7 @@ lanes as fibers with real barriers, so the CPU tests run the GPU's partition, re
 import warp as wp
 
 from lapwarp.kernels.chains import link_row_terms, node_row, segment_dir
-from lapwarp.kernels.chains_block import pcr_round_func, vec6
+from lapwarp.kernels.chains_block import pack_loop, pcr_round_func, vec6
 
 wp.set_module_options({"enable_backward": False})
 
@@ -200,16 +200,10 @@ def hybrid_chain_kernel(max_rows: int, rows_per_lane: int) -> wp.Kernel:
         n = pack_rows[p]
         nl = (n + P - 1) // P  # lanes holding rows
         s_row = lane * P  # this lane's first row
-        closed3 = int(0)
-        if pack_closed[p] != 0 and n >= 3:
-            closed3 = 1
-        wraps = closed3
         pe = env % inv_mass.shape[0]
         ce = env % compliance.shape[0]
         masked = active.shape[1] > 0
-        if masked and closed3 != 0:
-            if active[env, rows[r0][1]] == 0 or active[env, rows[r0 + n - 1][1]] == 0:
-                closed3 = 0
+        closed3, wraps = pack_loop(pack_closed[p], rows, r0, n, masked, active, env)
         up = wp.tile_zeros(shape=L, dtype=vec6, storage="shared")
         red0 = wp.tile_zeros(shape=L, dtype=vec6, storage="shared")
         red1 = wp.tile_zeros(shape=L, dtype=vec6, storage="shared")
