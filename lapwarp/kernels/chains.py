@@ -164,7 +164,16 @@ def solve_chains(
         # ---- forward elimination (Thomas); for a loop also the second right-hand side u --------------------
         x_first = q[env, chain_node[nb]]
         w_first = inv_mass[pe, chain_node[nb]]
-        n_cur, len_cur = segment_dir(x_first, q[env, chain_node[nb + (1 % nodes) * stride]])
+        # the walk carries node k + 1 (index and position: the next link's start, loaded once), link k's constraint
+        # and whether it is active from one link to the next, so that a link loads one new node and one new
+        # constraint (a link loaded both its nodes' indices and positions and its constraint's index up to five times)
+        node_k1 = chain_node[nb + (1 % nodes) * stride]
+        x_k1 = q[env, node_k1]
+        n_cur, len_cur = segment_dir(x_first, x_k1)
+        cons_k = chain_constraint[s0]
+        act_k = int(1)
+        if masked:
+            act_k = active[env, cons_k]
         # closing segment m-1 (node m-1 -> node 0) and its coupling s = A_{m-1,0} for a loop
         n_last = wp.vec3(0.0)
         g = float(0.0)
@@ -180,34 +189,35 @@ def solve_chains(
         e_prev = float(0.0)  # modified second right-hand side (Sherman-Morrison u)
         a_k = float(0.0)  # sub-diagonal A_{k,k-1}
         for k in range(m):
-            k1 = k + 1
-            if k1 == nodes:
-                k1 = 0
-            w_k1 = inv_mass[pe, chain_node[nb + k1 * stride]]
+            w_k1 = inv_mass[pe, node_k1]
             # look one segment ahead for the super-diagonal A_{k,k+1}
             n_next = wp.vec3(0.0)
             len_next = float(0.0)
             c_k = float(0.0)
+            node_k2 = node_k1
+            x_k2 = x_k1
+            cons_next = cons_k
+            act_next = act_k
             if k + 1 < m:
                 k2 = k + 2
                 if k2 >= nodes:
                     k2 = k2 - nodes
-                n_next, len_next = segment_dir(q[env, chain_node[nb + k1 * stride]],
-                                               q[env, chain_node[nb + k2 * stride]])
+                node_k2 = chain_node[nb + k2 * stride]
+                x_k2 = q[env, node_k2]
+                n_next, len_next = segment_dir(x_k1, x_k2)
                 c_k = -w_k1 * wp.dot(n_cur, n_next)
-            act_k = int(1)
-            if masked:
-                act_k = active[env, chain_constraint[s0 + k * stride]]
-                if k + 1 < m:
-                    if act_k == 0 or active[env, chain_constraint[s0 + (k + 1) * stride]] == 0:
+                cons_next = chain_constraint[s0 + (k + 1) * stride]
+                if masked:
+                    act_next = active[env, cons_next]
+                    if act_k == 0 or act_next == 0:
                         c_k = 0.0  # no coupling across a cut
-            alpha = compliance[ce, chain_constraint[s0 + k * stride]] * inv_dt2
+            alpha = compliance[ce, cons_k] * inv_dt2
             b_k = w_k + w_k1 + alpha
-            rhs = rest[chain_constraint[s0 + k * stride]] - len_cur  # -C_k
+            rhs = rest[cons_k] - len_cur  # -C_k
             # lambda of this sweep so far: earlier sweeps (iterations > 1) plus the earlier Newton step
             lam_k = float(0.0)
             if use_lambda != 0:
-                lam_k = lam[env, chain_constraint[s0 + k * stride]]
+                lam_k = lam[env, cons_k]
             if it > 0:
                 lam_k = lam_k + scratch_l[env, s0 + k * stride]
             rhs = rhs - alpha * lam_k
@@ -237,6 +247,10 @@ def solve_chains(
             n_cur = n_next
             len_cur = len_next
             w_k = w_k1
+            node_k1 = node_k2
+            x_k1 = x_k2
+            cons_k = cons_next
+            act_k = act_next
 
         # ---- back substitution, dl overwrites scratch_d (and z overwrites scratch_e for a loop) --------------
         y_next = float(0.0)
@@ -281,20 +295,24 @@ def solve_chains(
             dl_prev = scratch_d[env, s0 + (m - 1) * stride]
         cn_prev = float(0.0)
         dn_prev = wp.vec3(0.0)
+        node_j = chain_node[nb]  # carried like the forward walk's
         for j in range(nodes):
             n_j = wp.vec3(0.0)
             dl_j = float(0.0)
             k_j = float(0.0)
             x_next = wp.vec3(0.0)
+            node_next = node_j
             if j < m:
                 jn = j + 1
                 if jn == nodes:
                     x_next = x_first  # closing segment of a loop: node 0 as it was before the update
                 else:
-                    x_next = q[env, chain_node[nb + jn * stride]]
+                    node_next = chain_node[nb + jn * stride]
+                    x_next = q[env, node_next]
                 n_j, len_j = segment_dir(x_cur, x_next)
+                cj = chain_constraint[s0 + j * stride]
                 if masked:
-                    if active[env, chain_constraint[s0 + j * stride]] == 0:
+                    if active[env, cj] == 0:
                         n_j = wp.vec3(0.0)  # a removed segment: the nodes beside it are free ends
                 dl_j = scratch_d[env, s0 + j * stride]
                 # multiplier of this sweep's Newton steps so far (kept in scratch_l for the next step)
@@ -304,11 +322,10 @@ def solve_chains(
                 if it < newton_steps - 1:
                     scratch_l[env, s0 + j * stride] = acc
                 if use_lambda != 0 and it == newton_steps - 1:
-                    cj = chain_constraint[s0 + j * stride]
                     lam[env, cj] = lam[env, cj] + acc
                 if j + 1 < nodes and len_j > 1.0e-12:
                     k_j = wp.max(-dl_j, 0.0) / len_j
-            w_j = inv_mass[pe, chain_node[nb + j * stride]]
+            w_j = inv_mass[pe, node_j]
             lo, diag, up, rhs_j, par = node_row(n_prev, dl_prev, k_prev, n_j, dl_j, k_j, w_j, j)
             inv = 1.0 / (diag - lo * cn_prev)
             cn_prev = up * inv
@@ -317,6 +334,7 @@ def solve_chains(
             node_d[env, nb + j * stride] = dn_prev
             node_par[env, nb + j * stride] = par + x_cur
             x_cur = x_next
+            node_j = node_next
             n_prev = n_j
             dl_prev = dl_j
             k_prev = k_j
