@@ -151,10 +151,10 @@ def test_hybrid_setting_is_checked(device, monkeypatch):
             world.step(0.02)
 
 
-def test_env_config_selects_the_hybrid_solve():
+def test_env_config_selects_the_hybrid_solve(device):
     import lapwarp
 
-    env = lapwarp.make("RopeCutting", num_envs=1, device="cpu", chain_solver="hybrid")
+    env = lapwarp.make("RopeCutting", num_envs=1, device=device, chain_solver="hybrid")
     assert env.world.chain_solver == "hybrid"
     env.step(np.zeros((1, env.action_dim), dtype=np.float32))
     assert env.world.unstable.numpy().sum() == 0
