@@ -7,7 +7,8 @@
 #    RopeCutting, PrecisionCutting, TissueDissection STATE and RGB 64x64 (198.7k with the expert: #17 needs 200k), the
 #    free cloth and a rod in physics alone;
 # 3. the hybrid solve against the packed PCR one on the same GPU (the short lease timed only the hybrid, on an H100):
-#    the rod, RopeThreading and LigatingLoop (their default is "pcr"), at 4 and 8 rows per lane;
+#    the rod, RopeThreading and LigatingLoop (their default is "pcr"), at 4 and 8 rows per lane; RopeCutting (its five
+#    ropes of 20 rows in one warp per env at 4 rows per lane; the serial walk has 5 threads per env, the PCR packs lost);
 # 4. TissueDissection RGB with the expert's actions replayed (the step alone, #17's regime) beside the expert timed;
 # 5. PickAndPlace's expert on its new GPU default (the packed block solve), 256 first episodes;
 # then the learning queue JOBS until DEADLINE seconds after this script started.
@@ -52,6 +53,8 @@ PYTHONPATH=$new python3 benchmarks/bench_physics.py --device "$dev" --num-envs "
   --chain-solver pcr hybrid --lane-rows 4 8 --steps 20 --settle-steps 5 --out "$out/physics_block.jsonl" \
   > "$out/physics_block.txt" 2>&1
 echo "physics_block rc=$?"; grep "env-steps/s" "$out/physics_block.txt"
+bench rc_hybrid4 new RopeCutting STATE --policy expert --set chain_solver=hybrid --lane-rows 4
+bench rc_hybrid8 new RopeCutting STATE --policy expert --set chain_solver=hybrid --lane-rows 8
 bench rt_pcr new RopeThreading STATE --policy expert
 bench rt_hybrid4 new RopeThreading STATE --policy expert --set chain_solver=hybrid --lane-rows 4
 bench ll_pcr new LigatingLoop STATE --policy expert
