@@ -142,6 +142,11 @@ class BatchedEnv(VecEnv):
         self._visual_scene = None
         if cfg.observation_type != "STATE":
             check_image_memory(num_envs, cfg, self.wp_device, self.keep_final_observations)
+        if self.chain_solver == "hybrid" and self.wp_device.is_cpu and not wp.config.enable_cpu_blocks:
+            # before the build: the World would refuse only at its first step
+            raise ValueError("chain_solver='hybrid' runs a thread block's lanes as threads: on the CPU set "
+                             "wp.config.enable_cpu_blocks = True first (Warp's cooperative CPU blocks), or use "
+                             "chain_solver='thomas'")
 
         with wp.ScopedDevice(self.wp_device):
             self.world: World = self._build()

@@ -158,3 +158,12 @@ def test_env_config_selects_the_hybrid_solve(device):
     assert env.world.chain_solver == "hybrid"
     env.step(np.zeros((1, env.action_dim), dtype=np.float32))
     assert env.world.unstable.numpy().sum() == 0
+
+
+def test_env_refuses_the_hybrid_solve_without_cpu_blocks(monkeypatch):
+    # at make, naming the field (the World alone would refuse only at its first step)
+    import lapwarp
+
+    monkeypatch.setattr(wp.config, "enable_cpu_blocks", False)
+    with pytest.raises(ValueError, match="chain_solver='hybrid'.*enable_cpu_blocks"):
+        lapwarp.make("RopeCutting", num_envs=1, device="cpu", chain_solver="hybrid")
