@@ -573,10 +573,8 @@ class World:
             for solver in self.solvers:
                 if hasattr(solver, "record_substep_end"):
                     solver.record_substep_end(self, launch, Sweep(sub, iters - 1, substeps, iters, h))
-        if self._body_q_prev is not None:
-            bq, bqp = s.body_q, self._body_q_prev
-            cmds.append(lambda: wp.copy(bqp, bq))
-        cmds.append(self.check_stability)
+        # the stability check also keeps the body poses as the next step's start (body_q_prev): one launch
+        cmds.append(lambda: self.check_stability(end_of_step=True))
         unknown = sorted(set(caps) - capped)
         if unknown:
             raise ValueError(f"world.max_registers names kernels this world's step does not launch: {unknown}")
@@ -782,9 +780,10 @@ class World:
             self._dummy_tf_arr = wp.zeros((1, 1), dtype=wp.transform, device=self.device)
         return self._dummy_tf_arr
 
-    def check_stability(self) -> None:
+    def check_stability(self, end_of_step: bool = False) -> None:
         """Flag envs with NaN or speed above ``model.max_speed``; optionally reset just those envs. One launch
-        (``world_kernels.check_and_restore``, a block per env) at the end of every step."""
+        (``world_kernels.check_and_restore``, a block per env) at the end of every step, which (``end_of_step``) also
+        keeps the body poses as the next step's start."""
         m = self.model
         if m.particle_count == 0:
             return
@@ -794,10 +793,11 @@ class World:
         rotations = ((self._start_tet_rotation, self._tet_rotation) if self._start_tet_rotation is not None
                      else (self._no_rotation, self._no_rotation))
         lanes = launching.block_lanes(self.device, self.ROW_COPY_LANES)
+        copy_body_q = int(end_of_step and self._body_q_prev is not None)
         launching.launch(world_kernels.check_and_restore, dim=(self.num_envs, lanes),
                          inputs=[float(m.max_speed), int(self.auto_reset_unstable), start, live, body_prev,
-                                 restore_prev, width, *rotations], outputs=[self._unstable_now, self.unstable],
-                         device=self.device, block_dim=lanes)
+                                 restore_prev, width, *rotations, copy_body_q],
+                         outputs=[self._unstable_now, self.unstable], device=self.device, block_dim=lanes)
 
     # ------------------------------------------------------------------------------------------------
     def _state_rows(self, state: State) -> world_kernels.StateRows:

@@ -151,6 +151,7 @@ def check_and_restore(
     width: int,
     start_rotation: wp.array2d(dtype=wp.quat),
     rotation: wp.array2d(dtype=wp.quat),
+    copy_body_q: int,
     flags_now: wp.array(dtype=wp.int32),
     unstable: wp.array(dtype=wp.int32),
 ):
@@ -158,9 +159,15 @@ def check_and_restore(
     or velocity is not finite, its speed exceeds ``max_speed`` or it is beyond 10^6 m (``flags_now``, and the sticky
     ``unstable``); with ``restore`` its rows of every state array and its tet rotations go back to the start state
     (the body poses at the start of the step too) and its cut surfaces are marked dirty. Replaces a memset and five
-    launches per world step (check, merge, three masked copies) that ran for every env whether or not it failed."""
+    launches per world step (check, merge, three masked copies) that ran for every env whether or not it failed.
+    With ``copy_body_q`` (the end of a world step) it first keeps the body poses as the next step's start
+    (``body_q_prev``), which was a copy of its own per world step."""
     env, lane = wp.tid()
     lanes = wp.block_dim()
+    if copy_body_q != 0:
+        # before the block-wide maximum below, whose barrier orders it before a restore's writes
+        for i in range(lane, body_q_prev.shape[1], lanes):
+            body_q_prev[env, i] = live.body_q[env, i]
     q = live.particle_q
     qd = live.particle_qd
     bad = int(0)
