@@ -295,3 +295,22 @@ def test_instability_restores_cut_masks_and_rotations(device):
     assert np.all(np.isfinite(st.particle_q.numpy()))
     world.step(0.01)
     assert world.unstable.numpy().tolist() == [0, 1]  # sticky until the env is reset
+
+
+def test_step_keeps_body_poses_as_next_start(device):
+    # a body moved between steps is swept from its pose at the step's start to the new one; the step's last launch
+    # (the stability check) then keeps the new pose as the next step's start (it was a copy of its own)
+    v, t = cloth_grid(3, 3, 0.02, 0.02, plane="xy")
+    b = SceneBuilder()
+    obj = b.add_cloth(v, t, areal_density=0.2, stretch_stiffness=1e3, bend_stiffness=1e-6, damping=1.0)
+    body = b.add_body("grasper", pose=(*v[0], 0.0, 0.0, 0.0, 1.0))
+    b.add_attachment(obj.particle_start, body, compliance=1e-6)
+    world = b.finalize(2, device, substeps=4)
+    pose = np.array([[[*(v[0] + (0.0, 0.0, -0.01)), 0.0, 0.0, 0.0, 1.0]]] * 2, np.float32)  # (envs, bodies, 7)
+    world.set_body_poses(wp.array(pose, dtype=wp.transform, device=device),
+                         wp.array([body], dtype=wp.int32, device=device))
+    assert not np.allclose(world.body_q_previous.numpy(), world.state.body_q.numpy())  # moved, not yet swept
+    world.step(0.02)
+    np.testing.assert_array_equal(world.body_q_previous.numpy(), world.state.body_q.numpy())
+    np.testing.assert_allclose(world.positions()[:, obj.particle_start], np.tile(v[0] + (0.0, 0.0, -0.01), (2, 1)),
+                               atol=1e-4)  # the held vertex followed the body
