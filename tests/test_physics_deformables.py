@@ -17,6 +17,7 @@ import warp as wp
 
 from lapwarp.assets import box_tets, cloth_grid
 from lapwarp.builder import SceneBuilder
+from lapwarp.kernels.xpbd import polar_rotation
 
 G = 9.81
 
@@ -304,3 +305,28 @@ def test_distinct_attachment_slots_solve_a_thread_each(device):
         np.testing.assert_allclose(out[0], out[1], atol=1e-6)
     assert not build(capacity=20)[0].model.attachments_distinct  # free slots: grasping may fill them
     assert not build(twice=True)[0].model.attachments_distinct
+
+
+@wp.kernel(module="unique")
+def _polar_rotations(F: wp.array(dtype=wp.mat33), R: wp.array(dtype=wp.mat33)):
+    i = wp.tid()
+    R[i] = polar_rotation(F[i])
+
+
+def test_polar_rotation_is_the_closest_proper_rotation():
+    # the SVD path of the tet rotation (tet_rotation_iterations = 0), inverted tets included: the rotation nearest F in
+    # the Frobenius norm among proper rotations is U diag(1, 1, det(U V^T)) V^T with the smallest singular value's
+    # direction flipped (numpy's SVD in float64 as the reference; Warp's float32 svd3 iterates to ~1e-3 on these
+    # random matrices, a wrong rotation would differ by O(1): tolerance 5e-3). Warp's svd3 gives an inverted F a
+    # negative smallest singular value with proper U and V, so polar_rotation's own flip is a guard this cannot reach
+    rng = np.random.default_rng(7)
+    F = rng.normal(size=(64, 3, 3)).astype(np.float32)
+    F[::2] *= -1.0  # half of them with det < 0 where the other half have det > 0
+    R = wp.zeros(64, dtype=wp.mat33, device="cpu")
+    wp.launch(_polar_rotations, dim=64, inputs=[wp.array(F, dtype=wp.mat33, device="cpu")], outputs=[R], device="cpu")
+    for f, r in zip(F.astype(np.float64), R.numpy(), strict=True):
+        u, s, vt = np.linalg.svd(f)
+        d = np.ones(3)
+        d[-1] = np.sign(np.linalg.det(u @ vt))  # numpy orders singular values descending: the last is the smallest
+        np.testing.assert_allclose(r, u @ np.diag(d) @ vt, atol=5e-3)
+        assert abs(np.linalg.det(r) - 1.0) < 1e-4

@@ -97,12 +97,18 @@ def tet_vertex_terms(
         tet_rotation[env, c] = qr
     p = params[env % params.shape[0], c]
     # d F / d x_corner = I (x) m, m the corner's row of Dm^-1 (corner 0: minus their sum): only this corner's gradients
-    m = wp.vec3(0.0)
+    # the rows picked by constant indices: a run-time row index (``Dm_inv[corner - 1, k]``) put the matrix in local
+    # memory (an 88-byte frame per thread in the fused kernel on sm_90, benchmarks/kernel_resources.py)
+    row0 = wp.vec3(Dm_inv[0, 0], Dm_inv[0, 1], Dm_inv[0, 2])
+    row1 = wp.vec3(Dm_inv[1, 0], Dm_inv[1, 1], Dm_inv[1, 2])
+    row2 = wp.vec3(Dm_inv[2, 0], Dm_inv[2, 1], Dm_inv[2, 2])
+    m = row2
     if corner == 0:
-        m = -(wp.vec3(Dm_inv[0, 0], Dm_inv[0, 1], Dm_inv[0, 2]) + wp.vec3(Dm_inv[1, 0], Dm_inv[1, 1], Dm_inv[1, 2])
-              + wp.vec3(Dm_inv[2, 0], Dm_inv[2, 1], Dm_inv[2, 2]))
-    else:
-        m = wp.vec3(Dm_inv[corner - 1, 0], Dm_inv[corner - 1, 1], Dm_inv[corner - 1, 2])
+        m = -(row0 + row1 + row2)
+    elif corner == 1:
+        m = row0
+    elif corner == 2:
+        m = row1
     d = DC * m
     g = cof * m
     inv_aD = 1.0 / p[0]

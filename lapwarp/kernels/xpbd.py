@@ -280,14 +280,26 @@ def polar_rotation(F: wp.mat33):
     V = wp.mat33()
     wp.svd3(F, U, sig, V)
     if wp.determinant(U) * wp.determinant(V) < 0.0:
-        # flip the direction of the smallest singular value
+        # flip the direction of the smallest singular value. A guard: Warp's svd3 returns proper U and V (an inverted
+        # F gets a negative smallest singular value instead), so this does not run there. Columns picked by constant
+        # indices: a run-time index reserved a stack frame for U and sig in every kernel that calls this
+        smallest = sig[0]
         k = int(0)
-        if sig[1] < sig[k]:
+        if sig[1] < smallest:
             k = 1
-        if sig[2] < sig[k]:
+            smallest = sig[1]
+        if sig[2] < smallest:
             k = 2
-        for r in range(3):
-            U[r, k] = -U[r, k]
+        c0 = mat_col(U, 0)
+        c1 = mat_col(U, 1)
+        c2 = mat_col(U, 2)
+        if k == 0:
+            c0 = -c0
+        elif k == 1:
+            c1 = -c1
+        else:
+            c2 = -c2
+        U = wp.matrix_from_cols(c0, c1, c2)
     return U * wp.transpose(V)
 
 
