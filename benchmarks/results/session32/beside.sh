@@ -5,7 +5,8 @@
 #    walk now loads each node and constraint once (bit-identical on the CPU);
 # 2. that serial walk against the code before it (/tmp/old = d4fe1b9 with its own benchmark scripts, same call):
 #    RopeCutting, PrecisionCutting, TissueDissection STATE and RGB 64x64 (198.7k with the expert: #17 needs 200k), the
-#    free cloth and a rod in physics alone;
+#    free cloth and a rod in physics alone; ThreadInHole (its per-vertex tet solve, 60 % of its step, no longer keeps
+#    Dm^-1 in local memory);
 # 3. the hybrid solve against the packed PCR one on the same GPU (the short lease timed only the hybrid, on an H100):
 #    the rod, RopeThreading and LigatingLoop (their default is "pcr"), at 4 and 8 rows per lane; RopeCutting (its five
 #    ropes of 20 rows in one warp per env at 4 rows per lane; the serial walk has 5 threads per env, the PCR packs lost);
@@ -40,6 +41,7 @@ if [ -d /tmp/old/lapwarp ]; then
     bench pc_$code $code PrecisionCutting STATE --policy expert
     bench td_state_$code $code TissueDissection STATE --policy expert
     bench td_rgb_$code $code TissueDissection RGB --policy expert
+    bench tih_$code $code ThreadInHole STATE --policy expert
   done
   for code in old new; do
     path=$new; script=benchmarks/bench_physics.py
