@@ -41,7 +41,7 @@ from lapwarp import launching
 from lapwarp.config import EnvConfig, build_config, check_num_envs, check_seed, resolve_device
 from lapwarp.kernels import env_kernels
 from lapwarp.tasks.spec import ActionLayout, ObservationLayout, RewardSpec
-from lapwarp.world import World
+from lapwarp.world import World, check_hybrid_lanes
 
 
 def float_rows(array: wp.array) -> wp.array:
@@ -142,11 +142,8 @@ class BatchedEnv(VecEnv):
         self._visual_scene = None
         if cfg.observation_type != "STATE":
             check_image_memory(num_envs, cfg, self.wp_device, self.keep_final_observations)
-        if self.chain_solver == "hybrid" and self.wp_device.is_cpu and not wp.config.enable_cpu_blocks:
-            # before the build: the World would refuse only at its first step
-            raise ValueError("chain_solver='hybrid' runs a thread block's lanes as threads: on the CPU set "
-                             "wp.config.enable_cpu_blocks = True first (Warp's cooperative CPU blocks), or use "
-                             "chain_solver='thomas'")
+        if self.chain_solver == "hybrid":
+            check_hybrid_lanes(self.wp_device)  # before the build: the World would refuse only at its first step
 
         with wp.ScopedDevice(self.wp_device):
             self.world: World = self._build()

@@ -57,6 +57,15 @@ PCR_PACK_ROWS = 128
 #: the largest tet particle window the fused sweep keeps in shared memory (12 B each: 48 KB, the static limit)
 FUSED_TET_MAX_PARTICLES = 4096
 
+def check_hybrid_lanes(device) -> None:
+    """A ``ValueError`` where the "hybrid" chain solve cannot run: on the CPU its lanes need Warp's cooperative CPU
+    blocks (``wp.config.enable_cpu_blocks``). The env calls it before building its World, the World at its step."""
+    if wp.get_device(device).is_cpu and not wp.config.enable_cpu_blocks:
+        raise ValueError("chain_solver='hybrid' runs a thread block's lanes as threads: on the CPU set "
+                         "wp.config.enable_cpu_blocks = True first (Warp's cooperative CPU blocks), or use "
+                         "chain_solver='thomas'")
+
+
 _REGISTER_HEAVY = frozenset({chains.solve_chains, chains.solve_cloth_chains, chains_partitioned.factor_link_blocks,
                              chains_partitioned.solve_link_separators, chains_partitioned.solve_link_blocks,
                              chains_partitioned.solve_node_separators, chains_partitioned.solve_node_blocks})
@@ -455,10 +464,7 @@ class World:
                 if isinstance(rows, bool) or not isinstance(rows, (int, np.integer)) or not 1 <= rows <= 16:
                     raise ValueError(f"world.chain_lane_rows must be an int in [1, 16] (rows per lane, unrolled in "
                                      f"registers), got {rows!r}")
-                if self.device.is_cpu and not wp.config.enable_cpu_blocks:
-                    raise ValueError("world.chain_solver 'hybrid' runs a block's lanes as threads: on the CPU set "
-                                     "wp.config.enable_cpu_blocks = True first (Warp's cooperative CPU blocks), or "
-                                     "use 'thomas'")
+                check_hybrid_lanes(self.device)
             if self.chain_solver in ("pcr", "hybrid"):
                 longest = max([int(cs.lengths.max()) for cs in (self.model.rod_chains, self.model.edge_chains)
                                if cs is not None and cs.count], default=0)
@@ -595,26 +601,19 @@ class World:
         seg_mask = s.segment_active if s.segment_active is not None else self._no_mask
 
         def solve_chains(cs, rest, compliance, lam_arr, scratch, mask, newton_steps, kernel):
-            if self.chain_solver == "pcr":
+            if self.chain_solver in ("pcr", "hybrid"):
                 # a thread block per (env, pack of chains), one launch per family with every Newton step in it
                 packs = self._packs[id(cs)]
-                lanes = int(self.chain_pcr_threads) or min(128, 32 * ((packs.max_rows + 31) // 32))
-                lanes = launching.block_lanes(self.device, lanes)
-                pcr = chains_block.block_chain_kernel(packs.max_rows)
-                for pack_base, count in packs.families:
-                    launch(pcr, (n, count, lanes),
-                           [pack_base, packs.pack_start, packs.pack_rows, packs.pack_closed, packs.rows, rest,
-                            compliance, w_eff, inv_dt2, use_lam, newton_steps, lam_arr, mask],
-                           [s.particle_q], block_dim=lanes)
-                return
-            if self.chain_solver == "hybrid":
-                # the same packs, chain_lane_rows rows per lane (a warp's multiple of lanes on the GPU; on the CPU
-                # exactly the lanes that hold rows, as Warp's cooperative fibers)
-                packs = self._packs[id(cs)]
-                rows_per_lane = int(self.chain_lane_rows)
-                held = chains_hybrid.lanes_for(packs.max_rows, rows_per_lane)
-                lanes = 32 * ((held + 31) // 32) if self.device.is_cuda else held
-                kernel = chains_hybrid.hybrid_chain_kernel(packs.max_rows, rows_per_lane)
+                if self.chain_solver == "pcr":  # a row per lane
+                    lanes = int(self.chain_pcr_threads) or min(128, 32 * ((packs.max_rows + 31) // 32))
+                    lanes = launching.block_lanes(self.device, lanes)
+                    kernel = chains_block.block_chain_kernel(packs.max_rows)
+                else:
+                    # chain_lane_rows rows per lane: a warp's multiple of lanes on the GPU; on the CPU exactly the
+                    # lanes that hold rows, as Warp's cooperative fibers
+                    held = chains_hybrid.lanes_for(packs.max_rows, int(self.chain_lane_rows))
+                    lanes = 32 * ((held + 31) // 32) if self.device.is_cuda else held
+                    kernel = chains_hybrid.hybrid_chain_kernel(packs.max_rows, int(self.chain_lane_rows))
                 for pack_base, count in packs.families:
                     launch(kernel, (n, count, lanes),
                            [pack_base, packs.pack_start, packs.pack_rows, packs.pack_closed, packs.rows, rest,
