@@ -236,7 +236,9 @@ class EnvConfig:
             chains by parallel cyclic reduction in shared memory, every Newton step in one launch per family;
             ``kernels/chains_block.py``, the same systems, round-off aside), ``"hybrid"`` (the same packs, a few rows
             per lane eliminated in registers and PCR over one row per lane, ``kernels/chains_hybrid.py``; on the CPU
-            it needs ``wp.config.enable_cpu_blocks``) or ``"auto"`` (default): the task's
+            it needs ``wp.config.enable_cpu_blocks``), ``"registers"`` (the thread per chain of ``"thomas"`` with the
+            whole chain in registers, its loops unrolled: families of open chains of at most 64 links,
+            ``kernels/chains_registers.py``; bit-identical to "thomas" on the CPU) or ``"auto"`` (default): the task's
             measured best on CUDA devices (``BatchedEnv.gpu_chain_solver``: "pcr" for RopeThreading, LigatingLoop and
             PickAndPlace)
             and "thomas" on the CPU.
@@ -257,7 +259,7 @@ class EnvConfig:
         = (64, 64)
     seed: int = 0
     chain_block_links: Annotated[int, Range(ge=-1, le=4096)] = -1
-    chain_solver: Literal["auto", "thomas", "pcr", "hybrid"] = "auto"
+    chain_solver: Literal["auto", "thomas", "pcr", "hybrid", "registers"] = "auto"
 
     def validate(self, reward_features: tuple[str, ...], supported_observations: tuple[str, ...]) -> None:
         """Check (and coerce) every field; raise ``ValueError`` naming the offending field. Task configs extend it

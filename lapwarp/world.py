@@ -29,7 +29,15 @@ import warp as wp
 from lapwarp import launching
 from lapwarp.chains import pack_chains
 from lapwarp.config import check_seed, rng_seed32
-from lapwarp.kernels import chains, chains_block, chains_hybrid, chains_partitioned, geodesic, world_kernels
+from lapwarp.kernels import (
+    chains,
+    chains_block,
+    chains_hybrid,
+    chains_partitioned,
+    chains_registers,
+    geodesic,
+    world_kernels,
+)
 from lapwarp.model import Control, Model, State
 from lapwarp.vbd import tet_components, vertex_layout
 
@@ -47,8 +55,10 @@ TET_METHODS = ("auto", "xpbd", "vbd")
 #: the direct chain solves ``World.chain_solver`` may name: "thomas" = a thread walks each chain (kernels/chains.py;
 #: partitioned where ``chain_block_links`` > 1), "pcr" = a thread block per chain, parallel cyclic reduction in shared
 #: memory (kernels/chains_block.py), "hybrid" = the same packs, each lane ``chain_lane_rows`` consecutive rows
-#: eliminated in registers and PCR over one interface row per lane (kernels/chains_hybrid.py)
-CHAIN_SOLVERS = ("thomas", "pcr", "hybrid")
+#: eliminated in registers and PCR over one interface row per lane (kernels/chains_hybrid.py), "registers" = the serial
+#: walk's thread per chain with the whole chain in registers (kernels/chains_registers.py; families of open chains of
+#: at most chains_registers.MAX_LINKS links, the serial walk elsewhere)
+CHAIN_SOLVERS = ("thomas", "pcr", "hybrid", "registers")
 #: the longest chain (links) the "pcr" solve takes: its block keeps ~33 floats per row in shared memory (~34 KB)
 PCR_MAX_LINKS = 256
 #: rows of the "pcr" solve's packs by default: the open chains of a family laid end to end in blocks of up to this
@@ -515,7 +525,8 @@ class World:
                 cmds.append(kernel)
                 return
             if dev.is_cuda:
-                block = block_dim or launching.block_dim_for(dim, sm_count, 64 if kernel in _REGISTER_HEAVY else 256)
+                heavy = kernel in _REGISTER_HEAVY or chains_registers.is_register_kernel(kernel)
+                block = block_dim or launching.block_dim_for(dim, sm_count, 64 if heavy else 256)
             else:
                 # a thread at a time on the CPU unless a kernel asks for lanes (then Warp's cooperative fibers, where
                 # wp.config.enable_cpu_blocks is set): plain kernels never run as fiber blocks
@@ -631,7 +642,10 @@ class World:
                 return
             # one launch per family of chains that share no node (Gauss-Seidel across families)
             for first, count, link_base, node_base in cs.families:
-                launch(kernel, (n, count),
+                family_kernel = kernel
+                if self.chain_solver == "registers":
+                    family_kernel = chains_registers.family_kernel(cs, first, count) or kernel
+                launch(family_kernel, (n, count),
                        [first, count, link_base, node_base, cs.edge_count, cs.closed, cs.node, cs.constraint, rest,
                         compliance, w_eff, inv_dt2, use_lam, newton_steps, lam_arr, *scratch, mask],
                        [s.particle_q])

@@ -1,0 +1,230 @@
+"""Direct XPBD solve of short open chains of distance constraints, one thread per (env, chain) with the whole chain in
+registers: the serial walk of ``kernels/chains.py`` (read its docstring first) with its loops unrolled to a
+compile-time chain length.
+
+The serial walk (``chains.solve_chains``) keeps its per-link and per-node intermediates (modified super-diagonals and
+right-hand sides, the filter's rows) in global scratch and reads the positions again at every Newton step: four walks
+over the chain per Newton step, each link waiting on a few dependent loads (its loop count is a run-time value, so
+nothing is issued ahead). A task with a few short ropes per env (RopeCutting: five 19-link ropes, 4 Newton steps at 40
+substeps) launches only ~5 threads per env, too few to hide that latency: the walk took 63 % of RopeCutting's step
+(H100, 4,096 envs, ``benchmarks/results/session28``). Here the chain's node positions, inverse masses, this sweep's
+multipliers and the eliminations' rows live in Warp vectors and matrices indexed by the constants of unrolled loops
+(``max_links`` is a closure constant, so Warp unrolls ``range(L)``; ``wp.config.max_unroll`` is raised for these
+kernels' modules), i.e. in registers: a thread loads its chain once per launch, runs every Newton step without
+touching memory but for the constraints' constants (rest length, compliance, mask, multiplier: small, shared, cached),
+and stores the moved nodes at the end.
+
+The arithmetic is the serial walk's, operation for operation, so the result is bit-identical to it on the CPU
+(``tests/test_chains_registers.py``). Chains shorter than ``max_links`` run the same unrolled code with the links past
+their end predicated off. Open chains only: a loop's Sherman-Morrison terms would cost another vector of registers
+for every chain, so a chain set with a closed chain keeps the serial walk (``World.chain_solver = "registers"``
+chooses per chain set; so does a set longer than ``MAX_LINKS``).
+"""
+
+# no ``from __future__ import annotations``: the kernel's annotations name the factory's vector types, locals of the
+# factory, which Warp can evaluate only as objects
+import warp as wp
+
+from lapwarp.kernels.chains import node_row, segment_dir
+
+wp.set_module_options({"enable_backward": False})
+
+#: the longest chain (links) the kernel takes (LigatingLoop's rod has 49): from 8 links on its rows no longer fit 255
+#: registers and spill to (per-thread, coalesced, cached) local memory; past this the unrolled code only grows
+MAX_LINKS = 64
+
+# the kernels by chain length (links)
+_KERNELS: dict[int, wp.Kernel] = {}
+
+
+def register_chain_kernel(max_links: int) -> wp.Kernel:
+    """The register-resident solve of open chains of at most ``max_links`` links (cached): launch ``(num_envs,
+    chains of the family)`` with ``chains.solve_chains``'s arguments (its scratch arrays go unused)."""
+    L = int(max_links)
+    if not 1 <= L <= MAX_LINKS:
+        raise ValueError(f"the register chain solve takes chains of 1..{MAX_LINKS} links, got {max_links!r}")
+    cached = _KERNELS.get(L)
+    if cached is not None:
+        return cached
+    N = L + 1  # nodes of the longest chain
+    L_1 = L - 1  # loop bounds and index caps as plain names: Warp unrolls a range of a constant name only
+    vec_l = wp.types.vector(length=L, dtype=float)
+    vec_n = wp.types.vector(length=N, dtype=float)
+    mat_n3 = wp.types.matrix(shape=(N, 3), dtype=float)
+
+    def solve_chains_in_registers(
+        family_start: int,
+        stride: int,
+        link_base: int,
+        node_base: int,
+        chain_edge_count: wp.array(dtype=wp.int32),
+        chain_closed: wp.array(dtype=wp.int32),
+        chain_node: wp.array(dtype=wp.int32),
+        chain_constraint: wp.array(dtype=wp.int32),
+        rest: wp.array(dtype=float),
+        compliance: wp.array2d(dtype=float),
+        inv_mass: wp.array2d(dtype=float),
+        inv_dt2: float,
+        use_lambda: int,
+        newton_steps: int,
+        lam: wp.array2d(dtype=float),
+        scratch_l: wp.array2d(dtype=float),
+        scratch_c: wp.array2d(dtype=float),
+        scratch_d: wp.array2d(dtype=float),
+        scratch_e: wp.array2d(dtype=float),
+        node_c: wp.array2d(dtype=float),
+        node_d: wp.array2d(dtype=wp.vec3),
+        node_par: wp.array2d(dtype=wp.vec3),
+        active: wp.array2d(dtype=wp.int32),
+        q: wp.array2d(dtype=wp.vec3),
+    ):
+        env, i = wp.tid()
+        r = family_start + i
+        s0 = link_base + i  # link k at s0 + k * stride, node j at nb + j * stride (chains.py's interleaved layout)
+        nb = node_base + i
+        m = chain_edge_count[r]
+        nodes = m + 1
+        pe = env % inv_mass.shape[0]
+        ce = env % compliance.shape[0]
+        masked = active.shape[1] > 0
+        # the chain's nodes, once per launch (every load issued ahead: the loop is unrolled)
+        x = mat_n3()
+        w = vec_n()
+        for j in range(N):
+            if j < nodes:
+                node = chain_node[nb + j * stride]
+                x[j] = q[env, node]
+                w[j] = inv_mass[pe, node]
+        acc = vec_l()  # this sweep's multipliers so far (the serial walk's scratch_l)
+        for it in range(newton_steps):
+            # ---- forward elimination (Thomas): modified super-diagonals cp and right-hand sides dp
+            cp = vec_l()
+            dp = vec_l()
+            n_cur, len_cur = segment_dir(x[0], x[1])
+            cons_k = chain_constraint[s0]
+            act_k = int(1)
+            if masked:
+                act_k = active[env, cons_k]
+            c_prev = float(0.0)
+            d_prev = float(0.0)
+            a_k = float(0.0)  # sub-diagonal A_{k,k-1}
+            for k in range(L):
+                if k < m:
+                    w_k1 = w[k + 1]
+                    n_next = wp.vec3(0.0)
+                    len_next = float(0.0)
+                    c_k = float(0.0)
+                    cons_next = cons_k
+                    act_next = act_k
+                    if k + 1 < m:
+                        # k + 2 <= L here; the cap keeps the unrolled copy of the last link (never run) in range
+                        n_next, len_next = segment_dir(x[k + 1], x[wp.min(k + 2, L)])
+                        c_k = -w_k1 * wp.dot(n_cur, n_next)
+                        cons_next = chain_constraint[s0 + (k + 1) * stride]
+                        if masked:
+                            act_next = active[env, cons_next]
+                            if act_k == 0 or act_next == 0:
+                                c_k = 0.0  # no coupling across a cut
+                    alpha = compliance[ce, cons_k] * inv_dt2
+                    b_k = w[k] + w_k1 + alpha
+                    rhs = rest[cons_k] - len_cur  # -C_k
+                    lam_k = float(0.0)
+                    if use_lambda != 0:
+                        lam_k = lam[env, cons_k]
+                    if it > 0:
+                        lam_k = lam_k + acc[k]
+                    rhs = rhs - alpha * lam_k
+                    if b_k <= 0.0 or act_k == 0:
+                        # both nodes pinned and rigid (empty row) or a removed segment: dl = 0
+                        b_k = 1.0
+                        rhs = 0.0
+                    inv = 1.0 / (b_k - a_k * c_prev)
+                    c_prev = c_k * inv
+                    d_prev = (rhs - a_k * d_prev) * inv
+                    cp[k] = c_prev
+                    dp[k] = d_prev
+                    a_k = c_k
+                    n_cur = n_next
+                    len_cur = len_next
+                    cons_k = cons_next
+                    act_k = act_next
+            # ---- back substitution: dp becomes dl
+            y_next = float(0.0)
+            for kk in range(L):
+                k = L_1 - kk
+                if k < m:
+                    y_next = dp[k] - cp[k] * y_next
+                    dp[k] = y_next
+            # ---- the transverse filter (chains.py: the implicit geometric-stiffness smoothing of dx's transverse
+            # part), rows formed from the positions before this step's update; a node's position takes its part
+            # along the tangent as soon as its row is formed (no later row reads it), the filtered rest below
+            n_prev = wp.vec3(0.0)
+            dl_prev = float(0.0)
+            k_prev = float(0.0)
+            cn_prev = float(0.0)
+            dn_prev = wp.vec3(0.0)
+            nc = vec_n()
+            nd = mat_n3()
+            for j in range(N):
+                if j < nodes:
+                    n_j = wp.vec3(0.0)
+                    dl_j = float(0.0)
+                    k_j = float(0.0)
+                    if j < m:
+                        n_j, len_j = segment_dir(x[j], x[wp.min(j + 1, L)])
+                        cj = chain_constraint[s0 + j * stride]
+                        if masked:
+                            if active[env, cj] == 0:
+                                n_j = wp.vec3(0.0)  # a removed segment: the nodes beside it are free ends
+                        jl = wp.min(j, L_1)
+                        dl_j = dp[jl]
+                        total = dl_j
+                        if it > 0:
+                            total = acc[jl] + dl_j
+                        acc[jl] = total
+                        if use_lambda != 0 and it == newton_steps - 1:
+                            lam[env, cj] = lam[env, cj] + total
+                        if j + 1 < nodes and len_j > 1.0e-12:
+                            k_j = wp.max(-dl_j, 0.0) / len_j
+                    lo, diag, up, rhs_j, par = node_row(n_prev, dl_prev, k_prev, n_j, dl_j, k_j, w[j], j)
+                    inv = 1.0 / (diag - lo * cn_prev)
+                    cn_prev = up * inv
+                    dn_prev = (rhs_j - dn_prev * lo) * inv
+                    nc[j] = cn_prev
+                    nd[j] = dn_prev
+                    if w[j] > 0.0:
+                        x[j] = par + x[j]
+                    n_prev = n_j
+                    dl_prev = dl_j
+                    k_prev = k_j
+            y = wp.vec3(0.0)
+            for jj in range(N):
+                j = L - jj
+                if j < nodes:
+                    y = nd[j] - y * nc[j]
+                    if w[j] > 0.0:
+                        x[j] = x[j] + y
+        # the moved nodes, once per launch
+        for j in range(N):
+            if j < nodes:
+                if w[j] > 0.0:
+                    q[env, chain_node[nb + j * stride]] = x[j]
+
+    kernel = wp.kernel(solve_chains_in_registers, module="unique", enable_backward=False,
+                       module_options={"max_unroll": N})
+    _KERNELS[L] = kernel
+    return kernel
+
+
+def family_kernel(cs, first: int, count: int) -> wp.Kernel | None:
+    """The register solve for the chains ``first .. first + count - 1`` of a ``chains.ChainSet`` (one family), or
+    ``None`` where it does not take them (a closed chain, or one longer than ``MAX_LINKS``): the serial walk then."""
+    lengths = cs.lengths[first:first + count]
+    if count == 0 or cs.closed_host[first:first + count].any() or int(lengths.max()) > MAX_LINKS:
+        return None
+    return register_chain_kernel(int(lengths.max()))
+
+
+def is_register_kernel(kernel) -> bool:
+    """Whether ``kernel`` is one of this module's solves (launched in small blocks, like the serial walk)."""
+    return any(kernel is k for k in _KERNELS.values())

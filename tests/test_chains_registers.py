@@ -1,0 +1,122 @@
+"""The register-resident chain solve (kernels/chains_registers.py, ``World.chain_solver = "registers"``: the serial
+walk's thread per chain with its loops unrolled to the chain length and the chain in registers) against the serial
+walk (kernels/chains.py): the scenes of tests/test_chains_partitioned.py stepped both ways.
+
+The same operations in the same order: on the CPU the positions are bit-identical (asserted exactly); on a GPU the
+two kernels may contract multiply-adds differently, so there the partitioned solve's tolerance applies (max |dx| <=
+1e-5 x the chain's length).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import warp as wp
+from test_chains_partitioned import OPEN, SEG, TOL, _cloth_world, _cut_rods, _perturb, _rod_world, _worst
+
+from lapwarp.builder import SceneBuilder
+
+
+def _open_rod_world(device, newton_steps: int, iterations: int, rigid: bool, cuttable: bool):
+    """tests/test_chains_partitioned.py's open rods alone (1..17 links, pinned at ends, inside, two adjacent nodes),
+    3 envs, perturbed (and cut)."""
+    b = SceneBuilder()
+    rods = []
+    for row, (m, pinned) in enumerate(OPEN):
+        th = np.pi * row / len(OPEN)
+        pts = np.linspace(0.0, SEG * m, m + 1)[:, None] * np.array([np.cos(th), np.sin(th), 0.0])
+        rods.append((b.add_rod(pts, radius=1e-3, youngs_modulus=1e6, damping=1.0, fixed=pinned, cuttable=cuttable),
+                     SEG * m))
+    world = b.finalize(3, device, substeps=5, iterations=iterations)
+    world.rod_newton_steps = newton_steps
+    if rigid:
+        world.model.rod_stretch_compliance.zero_()
+    _perturb(world, 0.1 * SEG)
+    if cuttable:
+        _cut_rods(world, rods)
+    return world, rods
+
+
+def _step_both(make, simulate=(0.04, 0.02)):
+    out = []
+    for solver in ("thomas", "registers"):
+        world, objects = make()
+        world.chain_solver = solver
+        start = world.positions()
+        world.simulate(*simulate)
+        assert world.unstable.numpy().sum() == 0
+        out.append(world.positions())
+    return start, out, objects
+
+
+def _assert_same(device, a: np.ndarray, b: np.ndarray, objects) -> None:
+    if wp.get_device(device).is_cpu:
+        np.testing.assert_array_equal(a, b)
+    else:
+        assert _worst(a, b, objects) <= TOL
+
+
+@pytest.mark.parametrize("newton_steps, iterations, rigid", [(1, 1, False), (2, 1, True), (3, 2, False)])
+@pytest.mark.parametrize("cuttable", [False, True])
+def test_register_rods_match_serial(device, newton_steps, iterations, rigid, cuttable):
+    # open rods of 1-17 links in one family (a kernel unrolled to 17 links, shorter chains predicated), 1-3 Newton
+    # steps (the multipliers of the earlier ones carried in registers), 1 or 2 sweeps (multipliers kept: use_lambda),
+    # compliant or rigid (pinned neighbours: empty rows), intact or cut
+    start, out, rods = _step_both(lambda: _open_rod_world(device, newton_steps, iterations, rigid, cuttable))
+    assert _worst(start, out[1], rods) > 100 * TOL  # the solves had work to do
+    _assert_same(device, out[0], out[1], rods)
+
+
+@pytest.mark.parametrize("newton_steps, cuttable", [(1, False), (2, True)])
+def test_register_cloth_edge_chains_match_serial(device, newton_steps, cuttable):
+    # a 6 x 5 cloth: rows, columns and diagonals of several lengths in 3 families (a kernel per family length); env 1
+    # with every fourth edge removed
+    _, out, objects = _step_both(lambda: _cloth_world(device, 0, newton_steps, cuttable))
+    _assert_same(device, out[0], out[1], objects)
+
+
+def test_loops_and_long_chains_keep_the_serial_walk(device):
+    # a family with a closed chain, or a chain longer than MAX_LINKS, is not the register kernel's: the serial walk
+    # solves it (the same positions), the others still take the register kernel
+    from lapwarp.kernels import chains_registers
+
+    world, rods = _rod_world(device, 0, 2, 1, False, True)  # open rods and loops, one family
+    cs = world.model.rod_chains
+    assert cs.num_families == 1 and cs.closed_host.any()
+    first, count, _, _ = cs.families[0]
+    assert chains_registers.family_kernel(cs, first, count) is None
+    start, out, rods = _step_both(lambda: _rod_world(device, 0, 2, 1, False, True))
+    _assert_same(device, out[0], out[1], rods)
+
+    b = SceneBuilder()
+    m = chains_registers.MAX_LINKS + 1
+    b.add_rod(np.stack([np.linspace(0.0, SEG * m, m + 1), np.zeros(m + 1), np.zeros(m + 1)], axis=1), radius=1e-3,
+              youngs_modulus=1e6, fixed=[0])
+    long = b.finalize(1, device).model.rod_chains
+    assert chains_registers.family_kernel(long, 0, 1) is None
+    with pytest.raises(ValueError, match="1..64 links"):
+        chains_registers.register_chain_kernel(m)
+
+
+def test_env_config_selects_the_register_solve(device):
+    # RopeCutting's five 19-link ropes (both ends fixed), plucked (every node moved by ~2 mm): the same positions both
+    # ways after three env steps (120 substeps of 4 Newton steps)
+    import lapwarp
+
+    out = []
+    for solver in ("thomas", "registers"):
+        env = lapwarp.make("RopeCutting", num_envs=2, device=device, chain_solver=solver)
+        assert env.world.chain_solver == solver
+        env.reset(seed=3)
+        actions = np.tile(np.array([[0.0, 0.0, 1.0, 0.3, 0.0]], dtype=np.float32), (2, 1))[:, :env.action_dim]
+        _perturb(env.world, 2e-3, seed=5)
+        start = env.world.positions()
+        for _ in range(3):
+            env.step(actions)
+        out.append(env.world.positions())
+        assert env.world.unstable.numpy().sum() == 0
+    assert np.abs(out[0] - start).max() > 1e-4  # the ropes moved
+    if wp.get_device(device).is_cpu:
+        np.testing.assert_array_equal(out[0], out[1])
+    else:
+        np.testing.assert_allclose(out[0], out[1], atol=1e-5)
