@@ -29,9 +29,17 @@ from lapwarp.kernels.chains import node_row, segment_dir
 
 wp.set_module_options({"enable_backward": False})
 
-#: the longest chain (links) the kernel takes (LigatingLoop's rod has 49): from 8 links on its rows no longer fit 255
+#: the longest chain (links) the kernel takes (LigatingLoop's rod has 49): from 8 links on, its rows no longer fit 255
 #: registers and spill to (per-thread, coalesced, cached) local memory; past this the unrolled code only grows
 MAX_LINKS = 64
+
+@wp.func
+def link_bit(lo: int, hi: int, k: int) -> int:
+    """Bit ``k`` of the 64-bit set ``(hi, lo)`` (``k`` a constant of an unrolled loop: the branch folds)."""
+    if k < 32:
+        return (lo >> k) & 1
+    return (hi >> (k - 32)) & 1
+
 
 # the kernels by chain length (links)
 _KERNELS: dict[int, wp.Kernel] = {}
@@ -95,42 +103,51 @@ def register_chain_kernel(max_links: int) -> wp.Kernel:
                 node = chain_node[nb + j * stride]
                 x[j] = q[env, node]
                 w[j] = inv_mass[pe, node]
+        # the links' constants, once per launch too: read inside the Newton loop, their loop-invariant addresses were
+        # hoisted out of it by the compiler, ~8 registers a link (sm_90: 218 registers at 4 links)
+        rest_v = vec_l()
+        alpha_v = vec_l()
+        lam0 = vec_l()  # the multipliers of earlier sweeps
+        acts_lo = int(0)  # bit k of lo (k < 32) or k - 32 of hi: link k is active (not cut)
+        acts_hi = int(0)
+        for k in range(L):
+            if k < m:
+                cons = chain_constraint[s0 + k * stride]
+                rest_v[k] = rest[cons]
+                alpha_v[k] = compliance[ce, cons] * inv_dt2
+                if use_lambda != 0:
+                    lam0[k] = lam[env, cons]
+                if not masked or active[env, cons] != 0:
+                    if k < 32:
+                        acts_lo = acts_lo | (1 << k)
+                    else:
+                        acts_hi = acts_hi | (1 << (k - 32))
         acc = vec_l()  # this sweep's multipliers so far (the serial walk's scratch_l)
         for it in range(newton_steps):
             # ---- forward elimination (Thomas): modified super-diagonals cp and right-hand sides dp
             cp = vec_l()
             dp = vec_l()
             n_cur, len_cur = segment_dir(x[0], x[1])
-            cons_k = chain_constraint[s0]
-            act_k = int(1)
-            if masked:
-                act_k = active[env, cons_k]
             c_prev = float(0.0)
             d_prev = float(0.0)
             a_k = float(0.0)  # sub-diagonal A_{k,k-1}
             for k in range(L):
                 if k < m:
                     w_k1 = w[k + 1]
+                    act_k = link_bit(acts_lo, acts_hi, k)
                     n_next = wp.vec3(0.0)
                     len_next = float(0.0)
                     c_k = float(0.0)
-                    cons_next = cons_k
-                    act_next = act_k
                     if k + 1 < m:
                         # k + 2 <= L here; the cap keeps the unrolled copy of the last link (never run) in range
                         n_next, len_next = segment_dir(x[k + 1], x[wp.min(k + 2, L)])
                         c_k = -w_k1 * wp.dot(n_cur, n_next)
-                        cons_next = chain_constraint[s0 + (k + 1) * stride]
-                        if masked:
-                            act_next = active[env, cons_next]
-                            if act_k == 0 or act_next == 0:
-                                c_k = 0.0  # no coupling across a cut
-                    alpha = compliance[ce, cons_k] * inv_dt2
+                        if act_k == 0 or link_bit(acts_lo, acts_hi, k + 1) == 0:
+                            c_k = 0.0  # no coupling across a cut
+                    alpha = alpha_v[k]
                     b_k = w[k] + w_k1 + alpha
-                    rhs = rest[cons_k] - len_cur  # -C_k
-                    lam_k = float(0.0)
-                    if use_lambda != 0:
-                        lam_k = lam[env, cons_k]
+                    rhs = rest_v[k] - len_cur  # -C_k
+                    lam_k = lam0[k]
                     if it > 0:
                         lam_k = lam_k + acc[k]
                     rhs = rhs - alpha * lam_k
@@ -146,8 +163,6 @@ def register_chain_kernel(max_links: int) -> wp.Kernel:
                     a_k = c_k
                     n_cur = n_next
                     len_cur = len_next
-                    cons_k = cons_next
-                    act_k = act_next
             # ---- back substitution: dp becomes dl
             y_next = float(0.0)
             for kk in range(L):
@@ -172,18 +187,14 @@ def register_chain_kernel(max_links: int) -> wp.Kernel:
                     k_j = float(0.0)
                     if j < m:
                         n_j, len_j = segment_dir(x[j], x[wp.min(j + 1, L)])
-                        cj = chain_constraint[s0 + j * stride]
-                        if masked:
-                            if active[env, cj] == 0:
-                                n_j = wp.vec3(0.0)  # a removed segment: the nodes beside it are free ends
                         jl = wp.min(j, L_1)
+                        if link_bit(acts_lo, acts_hi, jl) == 0:
+                            n_j = wp.vec3(0.0)  # a removed segment: the nodes beside it are free ends
                         dl_j = dp[jl]
                         total = dl_j
                         if it > 0:
                             total = acc[jl] + dl_j
                         acc[jl] = total
-                        if use_lambda != 0 and it == newton_steps - 1:
-                            lam[env, cj] = lam[env, cj] + total
                         if j + 1 < nodes and len_j > 1.0e-12:
                             k_j = wp.max(-dl_j, 0.0) / len_j
                     lo, diag, up, rhs_j, par = node_row(n_prev, dl_prev, k_prev, n_j, dl_j, k_j, w[j], j)
@@ -204,11 +215,16 @@ def register_chain_kernel(max_links: int) -> wp.Kernel:
                     y = nd[j] - y * nc[j]
                     if w[j] > 0.0:
                         x[j] = x[j] + y
-        # the moved nodes, once per launch
+        # the moved nodes and this sweep's multipliers, once per launch
         for j in range(N):
             if j < nodes:
                 if w[j] > 0.0:
                     q[env, chain_node[nb + j * stride]] = x[j]
+        if use_lambda != 0 and newton_steps > 0:
+            for k in range(L):
+                if k < m:
+                    cons = chain_constraint[s0 + k * stride]
+                    lam[env, cons] = lam0[k] + acc[k]
 
     kernel = wp.kernel(solve_chains_in_registers, module="unique", enable_backward=False,
                        module_options={"max_unroll": N})
