@@ -115,7 +115,8 @@ class ContactSystem:
     Attributes (after ``finalize``):
         report_count: ``(num_envs, num_pairs)`` int32 contacts per pair in the last substep of the last step.
         report_force: ``(num_envs, num_pairs)`` float32 summed normal force per pair, averaged over the step (N).
-        contact_count: ``(num_envs,)`` int32 contact records of the last step (clamped to ``capacity``).
+        contact_count: ``(num_envs,)`` int32 contact records of the last step (at most ``capacity``: a record past it
+            takes the count back and raises ``overflow``).
         contact_particle, contact_shape: ``(num_envs, capacity)`` int32 records (particle, shape index).
         contact_normal: ``(num_envs, capacity)`` vec3 world normal pointing from the shape to the particle.
         contact_depth: ``(num_envs, capacity)`` float penetration before projection (m, > -report_margin).
@@ -593,14 +594,13 @@ class ContactSystem:
         self.overflow = wp.zeros(n, dtype=wp.int32, device=dev)
         #: rod segments' contact colours in one launch per sweep (``ck.collide_segment_colors``) or a launch each
         self.fuse_segment_colors = True
-        #: ``(num_envs,)`` int32 or None: where set (an env collecting overflow over its frame skip), each step's
-        #: last sweep also ORs ``overflow`` into it (instead of a launch of the env's after every world step)
-        self.overflow_sink = None
         self._no_sink = wp.zeros(0, dtype=wp.int32, device=dev)
+        self._overflow_sink = None
         self.reports = make_struct(ck.ContactReports, report_count=self.report_count, report_force=self.report_force,
                                    contact_count=self.contact_count, contact_particle=self.contact_particle,
                                    contact_shape=self.contact_shape, contact_normal=self.contact_normal,
-                                   contact_depth=self.contact_depth, overflow=self.overflow)
+                                   contact_depth=self.contact_depth, overflow=self.overflow,
+                                   overflow_sink=self._no_sink)
         self._dummy_tf = wp.zeros((1, 1), dtype=wp.transform, device=dev)
         if self.body_ignore_mask:
             self.ignore_bodies = wp.zeros((n, max(self.world.model.particle_count, 1)), dtype=wp.int32, device=dev)
@@ -761,9 +761,17 @@ class ContactSystem:
             else:
                 launch(ck.collide_particle_pairs, (n, m), [members, solve, report], [q, a["delta"], reports])
             launch(ck.apply_particle_deltas, (n, m), [members.particle, a["delta"]], [q])
-        if report:
-            sink = self.overflow_sink if self.overflow_sink is not None else self._no_sink
-            launch(ck.clamp_contact_count, n, [self.capacity], [reports, sink])
+
+    @property
+    def overflow_sink(self):
+        """``(num_envs,)`` int32 or None: where set (an env collecting overflow over its frame skip), a record that
+        finds the buffer full also sets it (``ck.record_contact``: no launch of the env's after every world step)."""
+        return self._overflow_sink
+
+    @overflow_sink.setter
+    def overflow_sink(self, sink) -> None:
+        self._overflow_sink = sink
+        self.reports.overflow_sink = sink if sink is not None else self._no_sink
 
     def reset(self, env_mask: wp.array) -> None:
         """Clear the masked envs' reports (``World.reset`` calls it): a new episode starts with no contact."""

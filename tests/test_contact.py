@@ -317,6 +317,8 @@ def test_tool_contact_only_in_its_env_and_overflow_flag(device):
     cs.add_particle_group(p, radius=0.001)
     cs.add_capsule(0.002, 0.01, body=tool, name="tool")
     cs.finalize()
+    sink = wp.zeros(2, dtype=wp.int32, device=device)
+    cs.overflow_sink = sink  # an env's flag over its frame skip, raised by the record that found the buffer full
     pose = w.state.body_q.numpy()
     pose[1, 0, 2] = 0.0029
     w.state.body_q.assign(pose)
@@ -324,7 +326,11 @@ def test_tool_contact_only_in_its_env_and_overflow_flag(device):
     c = cs.counts()[:, 0]
     assert list(c) == [0, 5]
     assert list(cs.overflow.numpy()) == [0, 1]
+    assert list(sink.numpy()) == [0, 1]
+    # the last sweep's 5 records: the count ends at the capacity (records past it take it back), the 3 slots full
     assert list(cs.contact_count.numpy()) == [0, 3]
+    kept = cs.contact_particle.numpy()[1]
+    assert len(set(kept)) == 3 and set(kept) <= set(range(5))  # three of the row's five particles, none twice
     assert np.all(w.positions()[0, :, 2] == 0.0)
     assert np.allclose(w.positions()[1, :, 2], 0.0029 - 0.002 - 0.001, atol=1e-6)  # pushed below the tool
 

@@ -160,6 +160,8 @@ class ContactReports:
     contact_normal: wp.array2d(dtype=wp.vec3)
     contact_depth: wp.array2d(dtype=float)
     overflow: wp.array(dtype=wp.int32)
+    # ``(num_envs,)`` or empty: an env's flag over its frame skip, set with ``overflow`` (ContactSystem.overflow_sink)
+    overflow_sink: wp.array(dtype=wp.int32)
 
 
 @wp.struct
@@ -292,7 +294,13 @@ def record_contact(env: int, particle: int, shape: int, normal: wp.vec3, depth: 
         reports.contact_normal[env, slot] = normal
         reports.contact_depth[env, slot] = depth
     else:
+        # a full buffer: take the count back, so that it ends at the capacity (the first record past it found the
+        # count at the capacity with every slot below taken, and no later one can find it lower: no slot is handed
+        # out twice), and raise the flags here, where a launch per world step clamped and ORed them before
+        wp.atomic_sub(reports.contact_count, env, 1)
         reports.overflow[env] = 1
+        if reports.overflow_sink.shape[0] > 0:
+            reports.overflow_sink[env] = 1
 
 
 @wp.func
@@ -1258,14 +1266,3 @@ def clear_reports_masked(env_mask: wp.array(dtype=wp.int32), reports: ContactRep
     env = wp.tid()
     if env_mask[env] != 0:
         clear_env_reports(env, reports)
-
-
-@wp.kernel
-def clamp_contact_count(capacity: int, reports: ContactReports, overflow_sink: wp.array(dtype=wp.int32)):
-    """The step's record count within the buffer's capacity; where a sink is given (``ContactSystem.overflow_sink``)
-    an overflow is also ORed into it."""
-    env = wp.tid()
-    reports.contact_count[env] = wp.min(reports.contact_count[env], capacity)
-    if overflow_sink.shape[0] > 0:
-        if reports.overflow[env] != 0:
-            overflow_sink[env] = 1

@@ -1088,8 +1088,9 @@ class RopeThreadingEnv(BatchedEnv):
     expert = "lapwarp.tasks.thread_manipulation.rope_threading:RopeThreadingExpert"
     gpu_chain_block_links = 8  # RopeThreading 29.0k -> 65.2k env-steps/s (H100, 4,096 envs; 16: 63.5k)
     # the block (PCR) chain solve (it takes precedence over the partitioned one): the expert's step 96,898 -> 113,285
-    # env-steps/s (H200, 4,096 envs, same call, thirty-first session; with the packs 100,774 -> 110,546, thirty-second)
-    gpu_chain_solver = "pcr"
+    # env-steps/s (H200, 4,096 envs, same call, thirty-first session; with the packs 100,774 -> 110,546, thirty-second);
+    # the hybrid (kernels/chains_hybrid.py, 4 rows per lane) 110,557 -> 116,939 (H200, same call, thirty-third)
+    gpu_chain_solver = "hybrid"
     cfg: RopeThreadingConfig
 
     def _graspers(self, builder: SceneBuilder, bimanual: bool) -> InstrumentRig:
