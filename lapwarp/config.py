@@ -71,6 +71,8 @@ Vec3 = tuple[float, float, float]
 PTSD = tuple[float, float, float, float]
 
 _TRUE, _FALSE = ("true", "1", "yes", "on"), ("false", "0", "no", "off")
+_FLOAT32_TINY = float(np.finfo(np.float32).tiny)
+_FLOAT32_MAX = float(np.finfo(np.float32).max)
 
 
 class _Invalid(ValueError):
@@ -172,6 +174,11 @@ def coerce(value: Any, tp) -> Any:
             raise _Invalid("not a number")
         if not math.isfinite(float(value)):
             raise _Invalid("not finite")
+        if value != 0.0 and not _FLOAT32_TINY <= abs(float(value)) <= _FLOAT32_MAX:
+            # the device computes in float32: such a value would become 0 or inf there (a mass of 1e-265 kg gave an
+            # infinite inverse mass and compliance, silently)
+            raise _Invalid(f"outside float32's normal range ({_FLOAT32_TINY:.3g} .. {_FLOAT32_MAX:.3g} in magnitude), "
+                           f"in which the device computes")
         return float(value)
     if tp is str:
         if not isinstance(value, str):

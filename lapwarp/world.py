@@ -234,6 +234,7 @@ class World:
         self._start_tet_rotation = wp.clone(self._tet_rotation) if m.tet_count else None
         self._alloc_vertex_solve()
         self._no_rotation = wp.zeros((1, 0), dtype=wp.quat, device=dev)
+        self._no_points = wp.zeros((1, 0), dtype=wp.vec3, device=dev)
         # the fused tet sweep's colour table and particle window (the tets' lowest particle and the window's length)
         self._tet_color_offsets = wp.array(np.asarray(m.tet_color_offsets, dtype=np.int32), dtype=wp.int32,
                                            device=dev)
@@ -581,7 +582,8 @@ class World:
                 self._record_sweep(launch, xpbd, inv_dt2, use_lam, sweep)
                 for solver in self.solvers:
                     solver.record_sweep(self, launch, sweep)
-            if sub == substeps - 1 or not fuse:
+            # the last substep's velocity update: in the stability check's launch below where nothing comes between
+            if not fuse:
                 launch(xpbd.update_particle_velocities, (n, m.particle_count), [s.particle_q, self._q_pred, 1.0 / h],
                        [s.particle_qd])
                 if m.segment_count:
@@ -590,8 +592,10 @@ class World:
             for solver in self.solvers:
                 if hasattr(solver, "record_substep_end"):
                     solver.record_substep_end(self, launch, Sweep(sub, iters - 1, substeps, iters, h))
-        # the stability check also keeps the body poses as the next step's start (body_q_prev): one launch
-        cmds.append(lambda: self.check_stability(end_of_step=True))
+        # the stability check also keeps the body poses as the next step's start (body_q_prev) and, fused, runs the
+        # last substep's velocity update first: one launch
+        finish = 1.0 / h if fuse else 0.0
+        cmds.append(lambda: self._check_and_restore(end_of_step=True, finish_inv_dt=finish))
         unknown = sorted(set(caps) - capped)
         if unknown:
             raise ValueError(f"world.max_registers names kernels this world's step does not launch: {unknown}")
@@ -797,6 +801,11 @@ class World:
         """Flag envs with NaN or speed above ``model.max_speed``; optionally reset just those envs. One launch
         (``world_kernels.check_and_restore``, a block per env) at the end of every step, which (``end_of_step``) also
         keeps the body poses as the next step's start."""
+        self._check_and_restore(end_of_step)
+
+    def _check_and_restore(self, end_of_step: bool, finish_inv_dt: float = 0.0) -> None:
+        """``check_stability``'s launch; ``finish_inv_dt > 0`` (the World's step) also runs the last substep's velocity
+        update first (``world_kernels.check_and_restore``)."""
         m = self.model
         if m.particle_count == 0:
             return
@@ -809,7 +818,10 @@ class World:
         copy_body_q = int(end_of_step and self._body_q_prev is not None)
         launching.launch(world_kernels.check_and_restore, dim=(self.num_envs, lanes),
                          inputs=[float(m.max_speed), int(self.auto_reset_unstable), start, live, body_prev,
-                                 restore_prev, width, *rotations, copy_body_q],
+                                 restore_prev, width, *rotations, copy_body_q, float(finish_inv_dt),
+                                 self._q_pred if finish_inv_dt > 0.0 else self._no_points,
+                                 self._sq_prev if finish_inv_dt > 0.0 and self._sq_prev is not None
+                                 else self._no_rotation],
                          outputs=[self._unstable_now, self.unstable], device=self.device, block_dim=lanes)
 
     # ------------------------------------------------------------------------------------------------

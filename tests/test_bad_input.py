@@ -272,3 +272,21 @@ def test_equal_state_limits_read_zero(device):
                        state_low=(-90.0, -90.0, -32767.0, 0.0), state_high=(90.0, 90.0, 32767.0, 0.0))
     step_once(env)
     assert np.all(env.get_observations()["policy"].cpu().numpy()[:, 3] == 0.0)
+
+
+@pytest.mark.parametrize("value", [1.0e-265, 5.0e39, "-1e-300"])
+def test_floats_outside_float32_are_refused_by_name(value):
+    # the device computes in float32: a mass of 1e-265 kg became an infinite inverse mass there (the fuzz test's
+    # GraspLiftAndTouch draws warned of an overflow in a cast and stepped on); zero stays allowed where the field is
+    with pytest.raises(ValueError, match="gallbladder_mass.*float32"):
+        lapwarp.make("GraspLiftAndTouch", num_envs=1, device="cpu", gallbladder_mass=value)
+    with pytest.raises(ValueError, match="anchor_stiffness.*float32"):
+        lapwarp.make("GraspLiftAndTouch", num_envs=1, device="cpu", anchor_stiffness=value)
+    from lapwarp.config import check_fields
+
+    cfg = task_class("Reach").config_class(sphere_radius=1.0e-30)  # inside float32's normal range: taken
+    check_fields(cfg)
+    assert cfg.sphere_radius == 1.0e-30
+    cfg.sphere_radius = 1.0e-300
+    with pytest.raises(ValueError, match="sphere_radius"):
+        check_fields(cfg)

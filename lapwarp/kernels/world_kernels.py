@@ -4,6 +4,8 @@ from typing import Any
 
 import warp as wp
 
+from lapwarp.kernels.xpbd import segment_velocity
+
 wp.set_module_options({"enable_backward": False})
 
 
@@ -152,6 +154,9 @@ def check_and_restore(
     start_rotation: wp.array2d(dtype=wp.quat),
     rotation: wp.array2d(dtype=wp.quat),
     copy_body_q: int,
+    finish_inv_dt: float,
+    q_pred: wp.array2d(dtype=wp.vec3),
+    segment_q_prev: wp.array2d(dtype=wp.quat),
     flags_now: wp.array(dtype=wp.int32),
     unstable: wp.array(dtype=wp.int32),
 ):
@@ -161,15 +166,24 @@ def check_and_restore(
     (the body poses at the start of the step too) and its cut surfaces are marked dirty. Replaces a memset and five
     launches per world step (check, merge, three masked copies) that ran for every env whether or not it failed.
     With ``copy_body_q`` (the end of a world step) it first keeps the body poses as the next step's start
-    (``body_q_prev``), which was a copy of its own per world step."""
+    (``body_q_prev``), which was a copy of its own per world step. With ``finish_inv_dt > 0`` it first runs the
+    step's last velocity update (``xpbd.update_particle_velocities`` from ``q_pred``, ``update_segment_velocities``
+    from ``segment_q_prev`` where that has columns), which was a launch or two of its own per world step: each lane
+    updates the particles it then checks, so no barrier comes between."""
     env, lane = wp.tid()
     lanes = wp.block_dim()
+    q = live.particle_q
+    qd = live.particle_qd
+    if finish_inv_dt > 0.0:
+        for i in range(lane, q.shape[1], lanes):
+            # xpbd.update_particle_velocities' arithmetic
+            qd[env, i] = qd[env, i] + (q[env, i] - q_pred[env, i]) * finish_inv_dt
+        for i in range(lane, segment_q_prev.shape[1], lanes):
+            live.segment_qd[env, i] = segment_velocity(live.segment_q[env, i], segment_q_prev[env, i], finish_inv_dt)
     if copy_body_q != 0:
         # before the block-wide maximum below, whose barrier orders it before a restore's writes
         for i in range(lane, body_q_prev.shape[1], lanes):
             body_q_prev[env, i] = live.body_q[env, i]
-    q = live.particle_q
-    qd = live.particle_qd
     bad = int(0)
     for i in range(lane, q.shape[1], lanes):
         v2 = wp.length_sq(qd[env, i])
