@@ -9,6 +9,7 @@ spilled or doubled a kernel's registers.
 
     python benchmarks/kernel_resources.py --modules lapwarp.kernels.chains lapwarp.kernels.xpbd
     python benchmarks/kernel_resources.py --hybrid 128:4 128:2 --max-registers 128
+    python benchmarks/kernel_resources.py --registers 19 39
 """
 
 from __future__ import annotations
@@ -80,12 +81,14 @@ def module_resources(module, arch: int = 90, block_dim: int | None = None) -> di
 
 def main(argv: list[str] | None = None) -> int:
     from lapwarp import launching
-    from lapwarp.kernels import chains_hybrid
+    from lapwarp.kernels import chains_hybrid, chains_registers
 
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--modules", nargs="*", default=[], help="Python modules of Warp kernels, e.g. lapwarp.kernels.xpbd")
     p.add_argument("--hybrid", nargs="*", default=[], metavar="ROWS:PER_LANE",
                    help="the hybrid chain kernel for packs of ROWS rows at PER_LANE rows per lane")
+    p.add_argument("--registers", nargs="*", type=int, default=[], metavar="LINKS",
+                   help="the register-resident chain kernel for chains of LINKS links (kernels/chains_registers.py)")
     p.add_argument("--max-registers", type=int, default=None, help="compile the --hybrid kernels with this cap too")
     p.add_argument("--arch", type=int, default=90)
     p.add_argument("--out", default=None, help="JSON output path")
@@ -107,6 +110,10 @@ def main(argv: list[str] | None = None) -> int:
             for name, res in module_resources(k.module, args.arch, block).items():
                 rows.append({"module": f"hybrid {n}:{per_lane}", "kernel": name, "block_dim": block,
                              "max_registers": cap, **res})
+    for links in args.registers:
+        kernel = chains_registers.register_chain_kernel(links)
+        for name, res in module_resources(kernel.module, args.arch).items():
+            rows.append({"module": f"registers {links}", "kernel": name, **res})
     for r in rows:
         print(f"{r['module'][:28]:28s} {r['kernel'][:60]:60s} regs={r.get('registers', '?'):>3} "
               f"frame={r.get('frame_bytes', 0):>4} B shared={r.get('shared_bytes', 0):>5} B")
