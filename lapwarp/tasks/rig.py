@@ -177,20 +177,27 @@ def cutting_center(tip: wp.transform) -> wp.vec3:
     return wp.transform_point(tip, wp.vec3(0.0, 0.0, CAUTER_CUTTING_CENTER))
 
 
-@wp.kernel
-def place_hook_tools(pose: wp.array2d(dtype=wp.transform), active: wp.array2d(dtype=wp.int32),
-                     tool_a: wp.array2d(dtype=wp.vec3), tool_b: wp.array2d(dtype=wp.vec3),
-                     tool_active: wp.array(dtype=wp.int32)):
-    """Thread per env: the electrocautery hook's (instrument 0) two cutting capsules in the env frame for a
-    ``CuttingSystem`` with ``num_tools=2`` -- the cross bar at the tip and the last 7 mm of the hook, the part
-    sofa_env's carving spheres cover -- and whether the hook is switched on."""
-    env = wp.tid()
+@wp.func
+def place_hook_capsules(env: int, pose: wp.array2d(dtype=wp.transform), active: wp.array2d(dtype=wp.int32),
+                        tool_a: wp.array2d(dtype=wp.vec3), tool_b: wp.array2d(dtype=wp.vec3),
+                        tool_active: wp.array(dtype=wp.int32)):
+    """The electrocautery hook's (instrument 0) two cutting capsules in the env frame for a ``CuttingSystem`` with
+    ``num_tools=2`` -- the cross bar at the tip and the last 7 mm of the hook, the part sofa_env's carving spheres
+    cover -- and whether the hook is switched on (for a task's kernel that has more to do per physics step)."""
     tf = pose[env, 0]
     tool_a[env, 0] = wp.transform_point(tf, wp.vec3(0.0, -1.5e-3, CAUTER_CUTTING_CENTER))
     tool_b[env, 0] = wp.transform_point(tf, wp.vec3(0.0, 1.6e-3, CAUTER_CUTTING_CENTER))
     tool_a[env, 1] = wp.transform_point(tf, wp.vec3(0.0, 0.0, 7.4e-3))
     tool_b[env, 1] = wp.transform_point(tf, wp.vec3(0.0, 0.0, CAUTER_CUTTING_CENTER))
     tool_active[env] = active[env, 0]
+
+
+@wp.kernel
+def place_hook_tools(pose: wp.array2d(dtype=wp.transform), active: wp.array2d(dtype=wp.int32),
+                     tool_a: wp.array2d(dtype=wp.vec3), tool_b: wp.array2d(dtype=wp.vec3),
+                     tool_active: wp.array(dtype=wp.int32)):
+    """Thread per env: ``place_hook_capsules``."""
+    place_hook_capsules(wp.tid(), pose, active, tool_a, tool_b, tool_active)
 
 
 @wp.func

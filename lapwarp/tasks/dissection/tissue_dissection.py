@@ -84,7 +84,7 @@ from lapwarp.tasks.rig import (
     RigBounds,
     count_flag,
     cutting_center,
-    place_hook_tools,
+    place_hook_capsules,
     ptsd_accepted,
     ptsd_step,
     ptsd_step_action,
@@ -336,18 +336,28 @@ def spread_force(env: int, f: wp.vec3, p: Params, force_out: wp.array2d(dtype=wp
         force_out[env, p.flap_first + _FORCE_NODES[k]] = f * 0.25
 
 
-@wp.kernel
-def apply_retraction(actions: wp.array2d(dtype=wp.float32), p: Params, tissue: Tissue,
+@wp.func
+def apply_retraction(env: int, actions: wp.array2d(dtype=wp.float32), p: Params, tissue: Tissue,
                      force_out: wp.array2d(dtype=wp.vec3)):
-    """Per physics step: the agent's force change (with ``control_retraction_force``), then the force spread over the
-    four free-end nodes."""
-    env = wp.tid()
+    """The agent's force change (with ``control_retraction_force``), then the force spread over the four free-end
+    nodes."""
     f = tissue.force[env]
     if p.controlled != 0:
         for i in range(3):
             f[i] = wp.clamp(f[i] + actions[env, p.force_column + i] * p.force_step, -p.force_limit, p.force_limit)
         tissue.force[env] = f
     spread_force(env, f, p, force_out)
+
+
+@wp.kernel
+def retract_and_place_hook(actions: wp.array2d(dtype=wp.float32), p: Params, tissue: Tissue,
+                           pose: wp.array2d(dtype=wp.transform), active: wp.array2d(dtype=wp.int32),
+                           force_out: wp.array2d(dtype=wp.vec3), tool_a: wp.array2d(dtype=wp.vec3),
+                           tool_b: wp.array2d(dtype=wp.vec3), tool_active: wp.array(dtype=wp.int32)):
+    """Per physics step: ``apply_retraction`` and the hook's cutting capsules (``rig.place_hook_capsules``)."""
+    env = wp.tid()
+    apply_retraction(env, actions, p, tissue, force_out)
+    place_hook_capsules(env, pose, active, tool_a, tool_b, tool_active)
 
 
 @wp.kernel
@@ -598,7 +608,7 @@ def segment_distance(y: wp.vec3, a: wp.vec3, b: wp.vec3) -> float:
 
 @wp.func
 def hook_reach(tf: wp.transform, y: wp.vec3) -> float:
-    """Distance from ``y`` to the axes of the hook's cutting capsules at tip pose ``tf`` (``place_hook_tools``: the
+    """Distance from ``y`` to the axes of the hook's cutting capsules at tip pose ``tf`` (``place_hook_capsules``: the
     cross bar and the last 7 mm of the hook); an active hook removes a tet that comes within ~1 mm of them
     (its nearest face, or its centroid with ``cut_removal="centroid"``)."""
     bar = segment_distance(y, wp.transform_point(tf, wp.vec3(0.0, -1.5e-3, CAUTER_CUTTING_CENTER)),
@@ -808,11 +818,10 @@ class TissueDissectionEnv(BatchedEnv):
     def _before_physics_step(self) -> None:
         super()._before_physics_step()  # move the hook
         cut, dev, n = self.cutting, self.wp_device, self.num_envs
-        launching.launch(apply_retraction, dim=n, inputs=[self.actions, self.params, self.tissue],
-                         outputs=[self._force],
-                         device=dev)
-        launching.launch(place_hook_tools, dim=n, inputs=[self.rig.pose, self.rig.active],
-                         outputs=[cut.tool_a, cut.tool_b, cut.tool_active], device=dev)
+        # the retraction force and the hook's cutting capsules in one launch per physics step (were two)
+        launching.launch(retract_and_place_hook, dim=n, inputs=[self.actions, self.params, self.tissue, self.rig.pose,
+                                                                self.rig.active],
+                         outputs=[self._force, cut.tool_a, cut.tool_b, cut.tool_active], device=dev)
         cut.cut()
 
     def _compute_features(self, env_mask: wp.array, features_out: wp.array2d) -> None:
