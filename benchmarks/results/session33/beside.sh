@@ -11,7 +11,8 @@
 #    and 10^7-step random-action soaks of both;
 # 4. TissueDissection RGB replayed, RopeCutting RGB 64x64 (#17: 200k), the register solve on LigatingLoop's 49-link
 #    rod (against its "pcr"; bit-identical to the serial walk on the CPU after two env steps) and PrecisionCutting's
-#    cloth, the cloth's serial walk under register caps 80 and 128, RopeCutting's kernel profile on "registers";
+#    cloth, the cloth's serial walk under register caps 80 and 128, RopeCutting's kernel profile on "registers",
+#    TissueDissection RGB's profile (launches per env step: 402 in the thirty-second session, 30 fewer expected);
 # then the learning queue JOBS until DEADLINE seconds after this script started.
 # DEVICE (cuda:3), NUM_ENVS (4096), JOBS (next_jobs_gpu3.txt) and DEADLINE (1400) override.
 set -u
@@ -64,6 +65,9 @@ bench pc_cap128 new PrecisionCutting STATE --policy expert --max-registers solve
 PYTHONPATH=$new python3 benchmarks/profile_step.py --task RopeCutting --device "$dev" --num-envs "$n" --steps 10 \
   --out "$out/profile_rc.json" > "$out/profile_rc.txt" 2>&1
 echo "profile_rc rc=$?"; head -8 "$out/profile_rc.txt"
+PYTHONPATH=$new python3 benchmarks/profile_step.py --task TissueDissection --device "$dev" --num-envs "$n" --steps 10 \
+  --set observation_type=RGB --out "$out/td_rgb_profile.json" > "$out/td_rgb_profile.txt" 2>&1
+echo "td_rgb_profile rc=$? $(grep -m1 "kernel time per env step" "$out/td_rgb_profile.txt")"
 left=$((${DEADLINE:-1400} + t0 - $(date +%s)))
 [ "$left" -gt 0 ] || { echo "no time left for the queue"; exit 0; }
 PYTHONPATH=$new python3 train/experiments.py --queue "${JOBS:-$d/next_jobs_gpu3.txt}" --devices "$dev" \
