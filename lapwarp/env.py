@@ -381,16 +381,23 @@ class BatchedEnv(VecEnv):
         self.image_frame = wp.zeros((n, c, height, width), dtype=wp.float32, device=dev)
         self.image_stack = self.image_frame if s == 1 else wp.zeros((n, s * c, height, width), dtype=wp.float32,
                                                                      device=dev)
+        # the shading pass writes the frame itself unless the task draws overlays into the bytes after it
+        self._frame_in_shading = type(self)._draw_overlays is BatchedEnv._draw_overlays
+        if self._frame_in_shading:
+            kind = self.cfg.observation_type
+            self.camera.set_frame_output(self.image_frame, rgb=kind != "DEPTH", depth=kind != "RGB")
 
     def _observe_images(self, push_mode: int) -> None:
         self.update_visuals()
         self.camera.render()
         self._draw_overlays(self._camera_rgb, self.camera.scene.camera.fov_deg)
-        kind = self.cfg.observation_type
-        height, width = self.cfg.image_shape
-        launching.launch(env_kernels.write_image_frame, dim=(self.num_envs, height, width),
-                         inputs=[self._camera_rgb, self._camera_depth, int(kind != "DEPTH"), int(kind != "RGB"),
-                                 1.0 / self.camera.scene.camera.far], outputs=[self.image_frame], device=self.wp_device)
+        if not self._frame_in_shading:
+            kind = self.cfg.observation_type
+            height, width = self.cfg.image_shape
+            launching.launch(env_kernels.write_image_frame, dim=(self.num_envs, height, width),
+                             inputs=[self._camera_rgb, self._camera_depth, int(kind != "DEPTH"), int(kind != "RGB"),
+                                     1.0 / self.camera.scene.camera.far], outputs=[self.image_frame],
+                             device=self.wp_device)
         if self.cfg.frame_stack > 1:
             flat = self.image_frame.reshape((self.num_envs, -1))
             launching.launch(env_kernels.push_observation_frame, dim=flat.shape,

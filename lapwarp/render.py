@@ -739,6 +739,7 @@ class Renderer:
         for name, dtype in empty4.items():
             shape = (n, chans[name], h, w) if name in self.outputs else (1, 1, 1, 1)
             self._out[name] = wp.zeros(shape, dtype=dtype, device=dev)
+        self._frame, self._frame_rgb, self._frame_depth = wp.zeros((1, 1, 1, 1), dtype=wp.float32, device=dev), 0, 0
         self._points = None
 
         if self.method == "raycast":
@@ -797,6 +798,21 @@ class Renderer:
     def segmentation(self):
         """int32 torch tensor ``(num_envs, 1, H, W)``: the visible object's ``seg_id``; background = -1."""
         return self._output_view("segmentation")
+
+    def set_frame_output(self, frame, rgb: bool, depth: bool) -> None:
+        """Have every render also write an observation frame: ``frame`` float32 ``(num_envs, C, H, W)`` in [0, 1],
+        ``C = 3 * rgb + depth``, the RGB bytes / 255 and then depth / far (at most 1), in the shading pass (one launch
+        and one pass over the pixels fewer than converting the outputs afterwards); ``None`` stops it."""
+        self._require_final()
+        if frame is None:
+            self._frame, self._frame_rgb, self._frame_depth = wp.zeros((1, 1, 1, 1), dtype=wp.float32,
+                                                                       device=self.device), 0, 0
+            return
+        shape = (self.num_envs, 3 * int(bool(rgb)) + int(bool(depth)), self.height, self.width)
+        if not (rgb or depth) or tuple(frame.shape) != shape or frame.dtype != wp.float32:
+            raise ValueError(f"the frame output must be float32 of shape {shape} with rgb and / or depth, got "
+                             f"{frame.dtype} {tuple(frame.shape)} (rgb={rgb}, depth={depth})")
+        self._frame, self._frame_rgb, self._frame_depth = frame, int(bool(rgb)), int(bool(depth))
 
     def _output_view(self, name):
         self._require_final()
@@ -1021,9 +1037,12 @@ class Renderer:
                 int("rgb" in self.outputs),
                 int("depth" in self.outputs),
                 int("segmentation" in self.outputs),
+                self._frame_rgb,
+                self._frame_depth,
+                1.0 / self.far,
                 self._vbuf,
             ],
-            outputs=[self._out["rgb"], self._out["depth"], self._out["segmentation"]],
+            outputs=[self._out["rgb"], self._out["depth"], self._out["segmentation"], self._frame],
             device=dev,
         )
 

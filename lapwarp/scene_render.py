@@ -82,6 +82,10 @@ class SceneRenderer:
         self._num_instances = column
         self.renderer.finalize()
 
+    def set_frame_output(self, frame, rgb: bool, depth: bool) -> None:
+        """``Renderer.set_frame_output``: every render also writes the observation frame ``frame``."""
+        self.renderer.set_frame_output(frame, rgb, depth)
+
     def render(self) -> None:
         """Render every env from its current visual state (the env must have called ``update_visuals``)."""
         for transforms, column in self._rigid:

@@ -646,3 +646,36 @@ if __name__ == "__main__":
     GOLDEN.parent.mkdir(parents=True, exist_ok=True)
     save_image_grid(golden_scene("cpu").rgb, GOLDEN, ncols=2)
     print(f"wrote {GOLDEN}")
+
+
+@pytest.mark.parametrize("obs_type", ["RGB", "RGBD", "DEPTH"])
+def test_env_frames_written_in_the_shading_pass_match_the_outputs(device, obs_type):
+    # Reach's observation frame comes from the shading pass itself (Renderer.set_frame_output): exactly the RGB bytes
+    # / 255, then depth / far at most 1 (what a launch of env_kernels.write_image_frame computed after it); a task that
+    # draws overlays into the bytes (TissueManipulation) keeps that launch
+    import lapwarp
+
+    env = lapwarp.make("Reach", num_envs=2, device=device, observation_type=obs_type, image_shape=(24, 32),
+                       sphere_radius=0.02)
+    assert env._frame_in_shading
+    env.step(torch.zeros(2, env.num_actions, device=env.device))
+    frame = env.image_frame.numpy()
+    rgb = env.camera.renderer.rgb.cpu().numpy().astype(np.float32) / 255.0
+    depth = np.minimum(env.camera.renderer.depth.cpu().numpy() / env.camera.scene.camera.far, 1.0)
+    expected = {"RGB": rgb, "RGBD": np.concatenate([rgb, depth], axis=1), "DEPTH": depth}[obs_type]
+    assert frame.shape == expected.shape
+    np.testing.assert_array_equal(frame, expected)
+    assert 0.0 < frame.mean() < 1.0 and frame.std() > 0.0  # a scene, not a blank
+    assert not lapwarp.make("TissueManipulation", num_envs=1, device=device, observation_type="RGB")._frame_in_shading
+
+
+def test_frame_output_shape_is_checked(device):
+    r = Renderer(2, 8, 6, fov=40.0, near=0.01, far=2.0, device=device)
+    r.add_instance(r.add_mesh(*quad(0.3)))
+    r.finalize()
+    with pytest.raises(ValueError, match="frame output"):
+        r.set_frame_output(wp.zeros((2, 3, 6, 8), dtype=wp.float32, device=device), rgb=True, depth=True)
+    with pytest.raises(ValueError, match="frame output"):
+        r.set_frame_output(wp.zeros((2, 1, 6, 8), dtype=wp.float32, device=device), rgb=False, depth=False)
+    r.set_frame_output(wp.zeros((2, 4, 6, 8), dtype=wp.float32, device=device), rgb=True, depth=True)
+    r.set_frame_output(None, rgb=False, depth=False)

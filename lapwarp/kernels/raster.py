@@ -507,22 +507,34 @@ def shade_visibility(
     write_rgb: int,
     write_depth: int,
     write_seg: int,
+    frame_rgb: int,
+    frame_depth: int,
+    inv_far: float,
     vbuf: wp.array3d(dtype=wp.uint64),
     rgb_out: wp.array4d(dtype=wp.uint8),
     depth_out: wp.array4d(dtype=wp.float32),
     seg_out: wp.array4d(dtype=wp.int32),
+    frame_out: wp.array4d(dtype=wp.float32),
 ):
-    """One thread per (env, row, col): resolve the visibility buffer into the image outputs and clear it."""
+    """One thread per (env, row, col): resolve the visibility buffer into the image outputs and clear it. With
+    ``frame_rgb`` / ``frame_depth`` it also writes an observation frame ``(num_envs, C, H, W)`` in [0, 1]: the RGB
+    bytes / 255, then depth / far (at most 1), as ``env_kernels.write_image_frame`` does in a launch of its own (the env
+    keeps that launch where a task draws overlays into the bytes after the shading)."""
     env, y, x = wp.tid()
     key = vbuf[env, y, x]
     vbuf[env, y, x] = EMPTY_KEY
     if key == EMPTY_KEY:
-        if write_rgb != 0:
-            rgb_out[env, 0, y, x] = to_u8(background_color[0])
-            rgb_out[env, 1, y, x] = to_u8(background_color[1])
-            rgb_out[env, 2, y, x] = to_u8(background_color[2])
+        if write_rgb != 0 or frame_rgb != 0:
+            for k in range(3):
+                byte = to_u8(background_color[k])
+                if write_rgb != 0:
+                    rgb_out[env, k, y, x] = byte
+                if frame_rgb != 0:
+                    frame_out[env, k, y, x] = float(byte) / 255.0
         if write_depth != 0:
             depth_out[env, 0, y, x] = background_depth
+        if frame_depth != 0:
+            frame_out[env, 3 * frame_rgb, y, x] = wp.min(background_depth * inv_far, 1.0)
         if write_seg != 0:
             seg_out[env, 0, y, x] = -1
         return
@@ -530,9 +542,11 @@ def shade_visibility(
     obj = tri_obj[tri]
     if write_depth != 0:
         depth_out[env, 0, y, x] = key_depth(key)
+    if frame_depth != 0:
+        frame_out[env, 3 * frame_rgb, y, x] = wp.min(key_depth(key) * inv_far, 1.0)
     if write_seg != 0:
         seg_out[env, 0, y, x] = obj_seg[obj]
-    if write_rgb == 0:
+    if write_rgb == 0 and frame_rgb == 0:
         return
     idx = tri_vidx[tri]
     flags = obj_flags[obj]
@@ -590,9 +604,12 @@ def shade_visibility(
         albedo = wp.cw_mul(albedo, vc)
     lambert = wp.max(-wp.dot(n, d) / wp.sqrt(wp.dot(n, n) * wp.dot(d, d) + 1.0e-30), 0.0)
     col = albedo * (ambient + diffuse * lambert)
-    rgb_out[env, 0, y, x] = to_u8(col[0])
-    rgb_out[env, 1, y, x] = to_u8(col[1])
-    rgb_out[env, 2, y, x] = to_u8(col[2])
+    for k in range(3):
+        byte = to_u8(col[k])
+        if write_rgb != 0:
+            rgb_out[env, k, y, x] = byte
+        if frame_rgb != 0:
+            frame_out[env, k, y, x] = float(byte) / 255.0
 
 
 @wp.kernel
