@@ -739,7 +739,8 @@ class Renderer:
         for name, dtype in empty4.items():
             shape = (n, chans[name], h, w) if name in self.outputs else (1, 1, 1, 1)
             self._out[name] = wp.zeros(shape, dtype=dtype, device=dev)
-        self._frame, self._frame_rgb, self._frame_depth = wp.zeros((1, 1, 1, 1), dtype=wp.float32, device=dev), 0, 0
+        self._no_frame = wp.zeros((1, 1, 1, 1), dtype=wp.float32, device=dev)
+        self._frame, self._frame_rgb, self._frame_depth = self._no_frame, 0, 0
         self._points = None
 
         if self.method == "raycast":
@@ -805,8 +806,7 @@ class Renderer:
         and one pass over the pixels fewer than converting the outputs afterwards); ``None`` stops it."""
         self._require_final()
         if frame is None:
-            self._frame, self._frame_rgb, self._frame_depth = wp.zeros((1, 1, 1, 1), dtype=wp.float32,
-                                                                       device=self.device), 0, 0
+            self._frame, self._frame_rgb, self._frame_depth = self._no_frame, 0, 0
             return
         shape = (self.num_envs, 3 * int(bool(rgb)) + int(bool(depth)), self.height, self.width)
         if not (rgb or depth) or tuple(frame.shape) != shape or frame.dtype != wp.float32:

@@ -234,7 +234,6 @@ class World:
         self._start_tet_rotation = wp.clone(self._tet_rotation) if m.tet_count else None
         self._alloc_vertex_solve()
         self._no_rotation = wp.zeros((1, 0), dtype=wp.quat, device=dev)
-        self._no_points = wp.zeros((1, 0), dtype=wp.vec3, device=dev)
         # the fused tet sweep's colour table and particle window (the tets' lowest particle and the window's length)
         self._tet_color_offsets = wp.array(np.asarray(m.tet_color_offsets, dtype=np.int32), dtype=wp.int32,
                                            device=dev)
@@ -819,7 +818,7 @@ class World:
         launching.launch(world_kernels.check_and_restore, dim=(self.num_envs, lanes),
                          inputs=[float(m.max_speed), int(self.auto_reset_unstable), start, live, body_prev,
                                  restore_prev, width, *rotations, copy_body_q, float(finish_inv_dt),
-                                 self._q_pred if finish_inv_dt > 0.0 else self._no_points,
+                                 self._q_pred if finish_inv_dt > 0.0 else self._dummy_v3,
                                  self._sq_prev if finish_inv_dt > 0.0 and self._sq_prev is not None
                                  else self._no_rotation],
                          outputs=[self._unstable_now, self.unstable], device=self.device, block_dim=lanes)
