@@ -283,7 +283,7 @@ class World:
         pinned = m.particle_inv_mass.numpy() == 0.0  # (1 or num_envs, particles)
         self._unanchored_tets = [(int(c.min()), int(c.max())) for c in tet_components(idx)
                                  if not pinned[:, c].any(axis=1).all()]
-        lay = vertex_layout(idx)
+        lay = vertex_layout(idx, fixed=pinned.all(axis=0), lanes=self.tet_block_threads)
         self._vbd_layout = (
             wp.array(lay.vertices, dtype=wp.int32, device=dev), lay.color_offsets,
             wp.array(np.asarray(lay.color_offsets, dtype=np.int32), dtype=wp.int32, device=dev),
