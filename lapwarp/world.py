@@ -52,6 +52,8 @@ ROD_SOLVERS = ("auto", "colored", "fused")
 #: the tet methods ``World.tet_method`` may name: XPBD constraint projection, per-vertex descent (kernels/vbd.py), or
 #: "auto": per vertex where every tet mesh has a pinned particle in every env, else XPBD
 TET_METHODS = ("auto", "xpbd", "vbd")
+#: how the per-vertex tet solve updates its tets' rotations (``World.tet_rotation_update``)
+TET_ROTATION_UPDATES = ("vertex", "sweep")
 #: the direct chain solves ``World.chain_solver`` may name: "thomas" = a thread walks each chain (kernels/chains.py;
 #: partitioned where ``chain_block_links`` > 1), "pcr" = a thread block per chain, parallel cyclic reduction in shared
 #: memory (kernels/chains_block.py), "hybrid" = the same packs, each lane ``chain_lane_rows`` consecutive rows
@@ -191,6 +193,10 @@ class World:
         self.rod_block_threads = 32
         # tets' rotation: warm-started extraction iterations per projection (0 = SVD polar decomposition)
         self.tet_rotation_iterations = 2
+        # TET_ROTATION_UPDATES, the per-vertex tet solve's ("vbd") rotations: "vertex" = each vertex extracts its tets'
+        # rotations (four extractions per tet and sweep); "sweep" = once per tet at the sweep's start, used as they
+        # are by the vertices (kernels/vbd.py refresh_tet_rotations; needs tet_rotation_iterations > 0)
+        self.tet_rotation_update = "vertex"
         # tet sweep (TET_SOLVERS): "colored" = one launch per graph colour; "fused" = one launch per sweep, a thread
         # block of tet_block_threads per env with the env's tet particles in shared memory (xpbd.fused_tet_kernel);
         # "auto" = fused where the particle window fits FUSED_TET_MAX_PARTICLES. 32 threads measured fastest on the
@@ -453,7 +459,8 @@ class World:
         if self.model.particle_count == 0:
             return
         key = (float(dt), self.substeps_for(float(dt)), self.iterations, self.rod_newton_steps, self.chain_newton_steps,
-               self.tet_rotation_iterations, self.chain_block_links, self.chain_solver, self.chain_pcr_threads,
+               self.tet_rotation_iterations, self.tet_rotation_update, self.chain_block_links, self.chain_solver,
+               self.chain_pcr_threads,
                self.chain_pcr_rows, self.chain_lane_rows,
                self.tet_solver, self.tet_block_threads, self.model.attachments_distinct, self.rod_solver,
                self.rod_block_threads,
@@ -467,6 +474,13 @@ class World:
                 raise ValueError(f"world.tet_method 'vbd' moves a stiff body as a whole only slowly, so it takes only "
                                  f"tet meshes with a pinned particle in every env; the mesh of particles "
                                  f"{first}..{last} has none: use 'xpbd' (docs/physics.md)")
+            if self.tet_rotation_update not in TET_ROTATION_UPDATES:
+                raise ValueError(f"world.tet_rotation_update must be one of {TET_ROTATION_UPDATES}, got "
+                                 f"{self.tet_rotation_update!r}")
+            if self.tet_rotation_update == "sweep" and self.tet_method_in_use == "vbd" \
+                    and self.tet_rotation_iterations <= 0:
+                raise ValueError("world.tet_rotation_update 'sweep' stores warm-started rotations: it needs "
+                                 f"tet_rotation_iterations > 0, got {self.tet_rotation_iterations!r}")
             if self.chain_solver not in CHAIN_SOLVERS:
                 raise ValueError(f"world.chain_solver must be one of {CHAIN_SOLVERS}, got {self.chain_solver!r}")
             if self.chain_solver == "hybrid":
@@ -760,8 +774,13 @@ class World:
             launch(vbd.begin_substep, (n, vertices.shape[0]),
                    [vertices, m.particle_inv_mass, m.gravity, sweep.h, *self._prediction_masks(), self._q_pred],
                    [s.particle_q])
+        lagged = int(self.tet_rotation_update == "sweep")
+        if lagged:
+            launch(vbd.refresh_tet_rotations, (n, m.tet_count),
+                   [m.tet_indices, m.tet_inv_rest, tet_map, tet_mask, self.tet_rotation_iterations, s.particle_q],
+                   [rotation])
         common = [vertices, adj_offsets, adj_tets, adj_corners, m.tet_indices, m.tet_inv_rest, m.tet_params, w_eff,
-                  self._q_pred, inv_dt2, tet_map, tet_mask, self.tet_rotation_iterations]
+                  self._q_pred, inv_dt2, tet_map, tet_mask, self.tet_rotation_iterations, lagged]
         if self.fused_tets:
             first, count = self._tet_window
             threads = launching.block_lanes(dev, self.tet_block_threads)

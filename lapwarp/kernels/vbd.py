@@ -33,7 +33,7 @@ material, per-env parameters, cutting masks and the rotation warm start are shar
 
 import warp as wp
 
-from lapwarp.kernels.xpbd import tet_removed, tet_strain
+from lapwarp.kernels.xpbd import deformation_gradient, extract_rotation, strain_terms, tet_removed, tet_strain
 
 wp.set_module_options({"enable_backward": False})
 
@@ -70,6 +70,28 @@ def begin_substep(
     q[env, i] = q_pred[env, i] - acc * (h * h)
 
 
+@wp.kernel
+def refresh_tet_rotations(
+    indices: wp.array(dtype=wp.vec4i),
+    inv_rest: wp.array(dtype=wp.mat33),
+    tet_element: wp.array(dtype=wp.int32),
+    tet_active: wp.array2d(dtype=wp.int32),
+    rotation_iterations: int,
+    q: wp.array2d(dtype=wp.vec3),
+    tet_rotation: wp.array2d(dtype=wp.quat),
+):
+    """Every tet's rotation extracted once at the start of a sweep (warm-started from the stored one), for the
+    vertices' lagged use (``tet_vertex_terms``' ``lagged``). Why: each vertex extracting its tets' rotations is four
+    extractions per tet and sweep, most of the per-vertex solve's arithmetic; for a stiff, clamped body (ThreadInHole's
+    hole) the rotation barely changes within a sweep."""
+    env, c = wp.tid()
+    if tet_removed(env, c, tet_element, tet_active):
+        return
+    k = indices[c]
+    F = deformation_gradient(q[env, k[0]], q[env, k[1]], q[env, k[2]], q[env, k[3]], inv_rest[c])
+    tet_rotation[env, c] = extract_rotation(F, tet_rotation[env, c], rotation_iterations)
+
+
 @wp.func
 def tet_vertex_terms(
     env: int,
@@ -79,22 +101,32 @@ def tet_vertex_terms(
     inv_rest: wp.array(dtype=wp.mat33),
     params: wp.array2d(dtype=wp.vec3),
     rotation_iterations: int,
+    lagged: int,
     tet_rotation: wp.array2d(dtype=wp.quat),
 ):
     """Tet ``c``'s elastic force on its vertex ``corner`` and that vertex's Gauss-Newton Hessian block. Every vertex
     extracts the tet's rotation (warm-started from the stored one) and the thread of corner 0 stores it: the tet's
     vertices have different colours, so no two threads touch it at once. (Letting the other three use the stored
     rotation as it is, a sweep old, slowed the 30 kPa block's approach to its sag: 8 % short after 2 s at 10
-    substeps instead of 0.3 %.)"""
-    iters = int(0)
-    q0 = wp.quat_identity()
-    if tet_rotation.shape[1] > 0:
-        iters = rotation_iterations
-        q0 = tet_rotation[env, c]
+    substeps instead of 0.3 %.) ``lagged``: the rotation stored at the sweep's start (``refresh_tet_rotations``) is
+    used as it is, one extraction per tet and sweep instead of four (``World.tet_rotation_update`` "sweep")."""
     Dm_inv = inv_rest[c]
-    C_D, C_H, qr, DC, cof = tet_strain(x0, x1, x2, x3, Dm_inv, q0, iters)
-    if corner == 0 and iters > 0:
-        tet_rotation[env, c] = qr
+    C_D = float(0.0)
+    C_H = float(0.0)
+    DC = wp.mat33(0.0)
+    cof = wp.mat33(0.0)
+    if lagged != 0:
+        C_D, C_H, DC, cof = strain_terms(deformation_gradient(x0, x1, x2, x3, Dm_inv),
+                                         wp.quat_to_matrix(tet_rotation[env, c]))
+    else:
+        iters = int(0)
+        q0 = wp.quat_identity()
+        if tet_rotation.shape[1] > 0:
+            iters = rotation_iterations
+            q0 = tet_rotation[env, c]
+        C_D, C_H, qr, DC, cof = tet_strain(x0, x1, x2, x3, Dm_inv, q0, iters)
+        if corner == 0 and iters > 0:
+            tet_rotation[env, c] = qr
     p = params[env % params.shape[0], c]
     # d F / d x_corner = I (x) m, m the corner's row of Dm^-1 (corner 0: minus their sum): only this corner's gradients
     # the rows picked by constant indices: a run-time row index (``Dm_inv[corner - 1, k]``) put the matrix in local
@@ -146,6 +178,7 @@ def solve_vertices(
     tet_element: wp.array(dtype=wp.int32),
     tet_active: wp.array2d(dtype=wp.int32),
     rotation_iterations: int,
+    lagged: int,
     tet_rotation: wp.array2d(dtype=wp.quat),
     q: wp.array2d(dtype=wp.vec3),
 ):
@@ -164,7 +197,7 @@ def solve_vertices(
             continue
         k = indices[c]
         fa, Ha = tet_vertex_terms(env, c, adj_corners[a], q[env, k[0]], q[env, k[1]], q[env, k[2]], q[env, k[3]],
-                                  inv_rest, params, rotation_iterations, tet_rotation)
+                                  inv_rest, params, rotation_iterations, lagged, tet_rotation)
         f = f + fa
         H = H + Ha
     q[env, i] = vertex_step(q[env, i], q_pred[env, i], w, inv_dt2, f, H)
@@ -200,6 +233,7 @@ def fused_vertex_kernel(tile_particles: int):
         tet_element: wp.array(dtype=wp.int32),
         tet_active: wp.array2d(dtype=wp.int32),
         rotation_iterations: int,
+        lagged: int,
         tet_rotation: wp.array2d(dtype=wp.quat),
         q: wp.array2d(dtype=wp.vec3),
     ):
@@ -228,7 +262,7 @@ def fused_vertex_kernel(tile_particles: int):
                         fa, Ha = tet_vertex_terms(env, c, adj_corners[a], wp.tile_extract(xs, k[0] - first),
                                                   wp.tile_extract(xs, k[1] - first), wp.tile_extract(xs, k[2] - first),
                                                   wp.tile_extract(xs, k[3] - first), inv_rest, params,
-                                                  rotation_iterations, tet_rotation)
+                                                  rotation_iterations, lagged, tet_rotation)
                         f = f + fa
                         H = H + Ha
                     x = vertex_step(x, q_pred[env, i], w, inv_dt2, f, H)

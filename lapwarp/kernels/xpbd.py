@@ -328,26 +328,14 @@ def extract_rotation(F: wp.mat33, q0: wp.quat, iterations: int) -> wp.quat:
 
 
 @wp.func
-def tet_strain(
-    x0: wp.vec3, x1: wp.vec3, x2: wp.vec3, x3: wp.vec3,
-    Dm_inv: wp.mat33,
-    q0: wp.quat,
-    rotation_iterations: int,
-):
-    """The co-rotated tet's deformation: ``(C_D, C_H, qr, DC, cof)``: the constraints ``C_D = |F - R|_F`` and
-    ``C_H = det F - 1``, the extracted rotation ``qr`` (warm start of the next extraction; ``rotation_iterations``
-    0 = SVD polar decomposition), ``dC_D / dF = (F - R) / C_D`` (0 at rest) and ``dC_H / dF = cof F``. The gradient at
-    corner ``j`` = 1..3 is the matrix times row ``j - 1`` of ``Dm_inv``; corner 0's is minus their sum."""
-    F = wp.matrix_from_cols(x1 - x0, x2 - x0, x3 - x0) * Dm_inv
-    # Energy V (mu |F - R|^2 + lambda/2 (det F - 1)^2) = C_D^2 / (2 alpha_D) + C_H^2 / (2 alpha_H): both
-    # constraints vanish at rest, so stiff materials (alpha / dt^2 << w |grad C|^2) stay stable.
-    qr = q0
-    R = wp.mat33()
-    if rotation_iterations > 0:  # warm-started rotation extraction (the default)
-        qr = extract_rotation(F, q0, rotation_iterations)
-        R = wp.quat_to_matrix(qr)
-    else:
-        R = polar_rotation(F)
+def deformation_gradient(x0: wp.vec3, x1: wp.vec3, x2: wp.vec3, x3: wp.vec3, Dm_inv: wp.mat33):
+    """``F = Ds Dm^-1`` of a tet."""
+    return wp.matrix_from_cols(x1 - x0, x2 - x0, x3 - x0) * Dm_inv
+
+
+@wp.func
+def strain_terms(F: wp.mat33, R: wp.mat33):
+    """``(C_D, C_H, DC, cof)`` of :func:`tet_strain` for a deformation ``F`` and a given rotation ``R``."""
     FR = F - R
     C_D = wp.sqrt(wp.ddot(FR, FR))
     f1 = mat_col(F, 0)
@@ -358,6 +346,31 @@ def tet_strain(
     if C_D > 1.0e-9:
         DC = FR * (1.0 / C_D)
     cof = wp.matrix_from_cols(wp.cross(f2, f3), wp.cross(f3, f1), wp.cross(f1, f2))
+    return C_D, C_H, DC, cof
+
+
+@wp.func
+def tet_strain(
+    x0: wp.vec3, x1: wp.vec3, x2: wp.vec3, x3: wp.vec3,
+    Dm_inv: wp.mat33,
+    q0: wp.quat,
+    rotation_iterations: int,
+):
+    """The co-rotated tet's deformation: ``(C_D, C_H, qr, DC, cof)``: the constraints ``C_D = |F - R|_F`` and
+    ``C_H = det F - 1``, the extracted rotation ``qr`` (warm start of the next extraction; ``rotation_iterations``
+    0 = SVD polar decomposition), ``dC_D / dF = (F - R) / C_D`` (0 at rest) and ``dC_H / dF = cof F``. The gradient at
+    corner ``j`` = 1..3 is the matrix times row ``j - 1`` of ``Dm_inv``; corner 0's is minus their sum."""
+    F = deformation_gradient(x0, x1, x2, x3, Dm_inv)
+    # Energy V (mu |F - R|^2 + lambda/2 (det F - 1)^2) = C_D^2 / (2 alpha_D) + C_H^2 / (2 alpha_H): both
+    # constraints vanish at rest, so stiff materials (alpha / dt^2 << w |grad C|^2) stay stable.
+    qr = q0
+    R = wp.mat33()
+    if rotation_iterations > 0:  # warm-started rotation extraction (the default)
+        qr = extract_rotation(F, q0, rotation_iterations)
+        R = wp.quat_to_matrix(qr)
+    else:
+        R = polar_rotation(F)
+    C_D, C_H, DC, cof = strain_terms(F, R)
     return C_D, C_H, qr, DC, cof
 
 
