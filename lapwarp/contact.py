@@ -700,7 +700,9 @@ class ContactSystem:
         elif clear:
             launch(ck.clear_reports, n, [], [self.reports])
         if len(self.cp_particle):
-            launch(ck.collide_particles, (n, len(self.cp_particle)),
+            # the variant without the mesh SDF query where no shape is a mesh (fewer registers)
+            meshes = any(sh.kind == "mesh" for sh in self.shapes)
+            launch(ck.particle_collision_kernel(meshes), (n, len(self.cp_particle)),
                    [self._particles, shapes, motion, self._shape_poses, solve, ignore, masks, report,
                     self.report_margin], [q, reports])
         off = self.seg_color_offsets

@@ -540,3 +540,45 @@ def test_fused_segment_colours_match_a_launch_per_colour(device):
         np.testing.assert_array_equal(x[True], x[False])
     else:
         np.testing.assert_allclose(x[True], x[False], atol=1e-6)
+
+
+def test_particle_kernel_without_meshes_matches_the_full_one(device, monkeypatch):
+    """The particle contact launch without the mesh SDF query (``particle_collision_kernel(False)``, what a scene
+    without mesh shapes runs) against the variant that takes every kind, forced on the same scene: the same positions
+    (bit for bit on the CPU; within float32 rounding on a GPU, where the two kernels compile separately) after
+    particles dropped on every primitive came to rest, and the scene did pick the reduced variant."""
+    from lapwarp import contact as contact_module
+    from lapwarp.kernels import contact as ck
+
+    used = []
+    real = ck.particle_collision_kernel
+
+    def spy(meshes, force=None):
+        used.append(meshes)
+        return real(meshes if force is None else force)
+
+    out = []
+    for force in (None, True):
+        monkeypatch.setattr(contact_module.ck, "particle_collision_kernel", lambda m, f=force: spy(m, f))
+        b = SceneBuilder()
+        pts = np.array([[0.0, 0.0, 0.02], [0.2, 0.003, 0.05], [0.4, 0.002, 0.05], [0.6, 0.001, 0.05],
+                        [0.8, 0.004, 0.05]])
+        p = b.add_particles(pts, mass=0.01, damping=2.0)
+        w = b.finalize(num_envs=2, device=device, substeps=10)
+        cs = ContactSystem(w)
+        cs.add_particle_group(p, radius=0.002)
+        cs.add_plane(thickness=0.001)
+        cs.add_sphere(0.01, transform=(0.2, 0.0, 0.0), thickness=0.0005)
+        cs.add_box((0.01, 0.01, 0.01), transform=(0.4, 0.0, 0.0), thickness=0.0005)
+        cs.add_cylinder(0.01, 0.01, transform=(0.6, 0.0, 0.0), thickness=0.0005)
+        cs.add_capsule(0.01, 0.02, transform=(0.8, 0.0, 0.0, *_quat_axis_angle((1, 0, 0), math.pi / 2)),
+                       thickness=0.0005)
+        cs.finalize()
+        w.simulate(0.5, 0.1)
+        out.append(w.positions())
+    assert used and not any(used)  # no mesh shape: the scene asked for the variant without meshes
+    assert np.abs(out[0] - np.array(pts)).max() > 1e-3  # they fell
+    if device == "cpu":
+        np.testing.assert_array_equal(out[0], out[1])
+    else:
+        np.testing.assert_allclose(out[0], out[1], atol=1e-6)

@@ -197,8 +197,9 @@ class CellGrid:
 
 
 @wp.func
-def sdf_local(kind: int, params: wp.vec3, mesh: wp.uint64, p: wp.vec3, max_dist: float):
-    """Signed distance and outward normal of a shape at local point ``p`` (vec4: nx, ny, nz, d)."""
+def sdf_primitive(kind: int, params: wp.vec3, p: wp.vec3):
+    """Signed distance and outward normal of a primitive shape (no mesh) at local point ``p`` (vec4: nx, ny, nz,
+    d); far away for a mesh or an unknown kind."""
     up = wp.vec3(0.0, 0.0, 1.0)
     if kind == SHAPE_SPHERE:
         n = safe_normalize(p, up)
@@ -240,6 +241,12 @@ def sdf_local(kind: int, params: wp.vec3, mesh: wp.uint64, p: wp.vec3, max_dist:
         if dr > dz:
             return wp.vec4(radial[0], radial[1], radial[2], dr)
         return wp.vec4(axial[0], axial[1], axial[2], dz)
+    return wp.vec4(0.0, 0.0, 1.0, 1.0e6)
+
+
+@wp.func
+def sdf_local(kind: int, params: wp.vec3, mesh: wp.uint64, p: wp.vec3, max_dist: float):
+    """Signed distance and outward normal of a shape at local point ``p`` (vec4: nx, ny, nz, d)."""
     if kind == SHAPE_MESH:
         # closed meshes: inside/outside from the normal at the closest point (angle-weighted at edges)
         res = wp.mesh_query_point_sign_normal(mesh, p, max_dist)
@@ -252,7 +259,8 @@ def sdf_local(kind: int, params: wp.vec3, mesh: wp.uint64, p: wp.vec3, max_dist:
             if dist > 1.0e-9:
                 n = delta / dist * res.sign
             return wp.vec4(n[0], n[1], n[2], dist * res.sign)
-    return wp.vec4(0.0, 0.0, 1.0, 1.0e6)
+        return wp.vec4(0.0, 0.0, 1.0, 1.0e6)
+    return sdf_primitive(kind, params, p)
 
 
 @wp.func
@@ -367,68 +375,91 @@ def pose_shapes(shapes: ShapeTable, motion: BodyMotion, clear: int, reports: Con
     poses.tf_inv[env, s] = wp.transform_inverse(tf)
 
 
-@wp.kernel
-def collide_particles(
-    particles: ContactParticles,
-    shapes: ShapeTable,
-    motion: BodyMotion,
-    poses: ShapePoses,
-    solve: ParticleSolve,
-    ignore: IgnoreMask,
-    masks: CutMasks,
-    report: int,
-    report_margin: float,
-    q: wp.array2d(dtype=wp.vec3),
-    reports: ContactReports,
-):
-    env, k = wp.tid()
-    i = particles.particle[k]
-    w = solve.inv_mass[env % solve.inv_mass.shape[0], i]
-    if w == 0.0:
-        return
-    if masks.particle_active.shape[1] > 0:
-        if masks.particle_active[env, i] == 0:
-            return  # every element of the particle was cut away
-    g = particles.group[k]
-    r = particles.radius[k]
-    x = q[env, i]
-    x0 = start_position(solve, env, i)
-    ignore_bits = ignored_bodies(ignore, env, i)
-    moved = int(0)
-    for s in range(shapes.kind.shape[0]):
-        pair = shapes.pair_index[s, g]
-        if pair < 0 or shapes.kind[s] == SHAPE_SURFACE:
-            continue
-        if passes_through(shapes, s, ignore_bits):
-            continue
-        reach = r + shapes.thickness[s]
-        tf = poses.tf[env, s]
-        # exact cull: beyond the shape's bounding sphere by more than reach + report margin there is neither contact
-        # nor a report (pen <= -report_margin below)
-        if wp.length(x - wp.transform_get_translation(tf)) > poses.bound[s] + reach + report_margin:
-            continue
-        pl = wp.transform_point(poses.tf_inv[env, s], x)
-        nd = sdf_local(shapes.kind[s], shapes.params[s], shapes.mesh[s], pl, reach + report_margin + 1.0e-3)
-        d = nd[3]
-        pen = reach - d
-        if report != 0 and pen > -report_margin:
-            wp.atomic_add(reports.report_count, env, pair, 1)
-            record_contact(env, i, s, wp.transform_vector(tf, wp.vec3(nd[0], nd[1], nd[2])), pen, reports)
-        if pen <= 0.0:
-            continue
-        n = wp.transform_vector(tf, wp.vec3(nd[0], nd[1], nd[2]))
-        x = x + n * pen
-        # where the touched surface point was at the start of the substep (moving tools drag particles along)
-        tf0 = shape_pose(shapes, s, env, motion, motion.blend_prev)
-        xs0 = wp.transform_point(tf0, wp.transform_point(wp.transform_inverse(tf), x))
-        x = x + friction_correction((x - x0) - (x - xs0), n, pen, shapes.mu[s])
-        wp.atomic_add(reports.report_force, env, pair, pen / w * solve.force_scale)
-        moved = 1
-    # only a moved particle is written: a particle in two groups (GraspLiftAndTouch's gallbladder surface meets the
-    # instruments in one and the liver in another) has two threads here, and an unconditional write of the other
-    # thread's stale copy would race
-    if moved != 0:
-        q[env, i] = x
+_PARTICLE_KERNELS: dict = {}
+
+
+def particle_collision_kernel(meshes: bool) -> wp.Kernel:
+    """``collide_particles`` (cached per variant): the contact particles against the env's shapes. ``meshes``
+    False leaves out the mesh shapes' SDF query (scenes without one): its BVH stack and registers went with it
+    (sm_90: 108 -> 66 registers, a 128 -> 32 byte frame, ``benchmarks/kernel_resources.py``), so more warps fit an SM
+    in the rod tasks' per-substep contact launch; the same arithmetic for every other shape."""
+    kernel = _PARTICLE_KERNELS.get(bool(meshes))
+    if kernel is not None:
+        return kernel
+
+    def collide_particles(
+        particles: ContactParticles,
+        shapes: ShapeTable,
+        motion: BodyMotion,
+        poses: ShapePoses,
+        solve: ParticleSolve,
+        ignore: IgnoreMask,
+        masks: CutMasks,
+        report: int,
+        report_margin: float,
+        q: wp.array2d(dtype=wp.vec3),
+        reports: ContactReports,
+    ):
+        env, k = wp.tid()
+        i = particles.particle[k]
+        w = solve.inv_mass[env % solve.inv_mass.shape[0], i]
+        if w == 0.0:
+            return
+        if masks.particle_active.shape[1] > 0:
+            if masks.particle_active[env, i] == 0:
+                return  # every element of the particle was cut away
+        g = particles.group[k]
+        r = particles.radius[k]
+        x = q[env, i]
+        x0 = start_position(solve, env, i)
+        ignore_bits = ignored_bodies(ignore, env, i)
+        moved = int(0)
+        for s in range(shapes.kind.shape[0]):
+            pair = shapes.pair_index[s, g]
+            if pair < 0 or shapes.kind[s] == SHAPE_SURFACE:
+                continue
+            if passes_through(shapes, s, ignore_bits):
+                continue
+            reach = r + shapes.thickness[s]
+            tf = poses.tf[env, s]
+            # exact cull: beyond the shape's bounding sphere by more than reach + report margin there is neither contact
+            # nor a report (pen <= -report_margin below)
+            if wp.length(x - wp.transform_get_translation(tf)) > poses.bound[s] + reach + report_margin:
+                continue
+            pl = wp.transform_point(poses.tf_inv[env, s], x)
+            nd = wp.vec4()
+            if wp.static(meshes):
+                nd = sdf_local(shapes.kind[s], shapes.params[s], shapes.mesh[s], pl, reach + report_margin + 1.0e-3)
+            else:
+                nd = sdf_primitive(shapes.kind[s], shapes.params[s], pl)
+            d = nd[3]
+            pen = reach - d
+            if report != 0 and pen > -report_margin:
+                wp.atomic_add(reports.report_count, env, pair, 1)
+                record_contact(env, i, s, wp.transform_vector(tf, wp.vec3(nd[0], nd[1], nd[2])), pen, reports)
+            if pen <= 0.0:
+                continue
+            n = wp.transform_vector(tf, wp.vec3(nd[0], nd[1], nd[2]))
+            x = x + n * pen
+            # where the touched surface point was at the start of the substep (moving tools drag particles along)
+            tf0 = shape_pose(shapes, s, env, motion, motion.blend_prev)
+            xs0 = wp.transform_point(tf0, wp.transform_point(wp.transform_inverse(tf), x))
+            x = x + friction_correction((x - x0) - (x - xs0), n, pen, shapes.mu[s])
+            wp.atomic_add(reports.report_force, env, pair, pen / w * solve.force_scale)
+            moved = 1
+        # only a moved particle is written: a particle in two groups (GraspLiftAndTouch's gallbladder surface meets the
+        # instruments in one and the liver in another) has two threads here, and an unconditional write of the other
+        # thread's stale copy would race
+        if moved != 0:
+            q[env, i] = x
+
+    kernel = wp.kernel(collide_particles, module="unique", enable_backward=False)
+    _PARTICLE_KERNELS[bool(meshes)] = kernel
+    return kernel
+
+
+#: the variant that takes every shape kind
+collide_particles = particle_collision_kernel(True)
 
 
 # ----------------------------------------------------------------------------------------------------
