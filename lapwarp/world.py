@@ -780,15 +780,15 @@ class World:
                    [m.tet_indices, m.tet_inv_rest, tet_map, tet_mask, self.tet_rotation_iterations, s.particle_q],
                    [rotation])
         common = [vertices, adj_offsets, adj_tets, adj_corners, m.tet_indices, m.tet_inv_rest, m.tet_params, w_eff,
-                  self._q_pred, inv_dt2, tet_map, tet_mask, self.tet_rotation_iterations, lagged]
+                  self._q_pred, inv_dt2, tet_map, tet_mask, self.tet_rotation_iterations]
         if self.fused_tets:
             first, count = self._tet_window
             threads = launching.block_lanes(dev, self.tet_block_threads)
-            launch(vbd.fused_vertex_kernel(count), (n, threads), [offsets_dev, first, *common],
+            launch(vbd.fused_vertex_kernel(count, bool(lagged)), (n, threads), [offsets_dev, first, *common],
                    [rotation, s.particle_q], block_dim=threads)
         else:
             for c in range(len(offsets) - 1):
-                launch(vbd.solve_vertices, (n, offsets[c + 1] - offsets[c]), [offsets[c], *common],
+                launch(vbd.solve_vertices, (n, offsets[c + 1] - offsets[c]), [offsets[c], *common, lagged],
                        [rotation, s.particle_q])
 
     #: sweep rounds (four orders each) of the geodesic tethers' distances per step while an env's are not final

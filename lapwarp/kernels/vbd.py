@@ -33,7 +33,7 @@ material, per-env parameters, cutting masks and the rotation warm start are shar
 
 import warp as wp
 
-from lapwarp.kernels.xpbd import deformation_gradient, extract_rotation, strain_terms, tet_removed, tet_strain
+from lapwarp.kernels.xpbd import cofactor, deformation_gradient, extract_rotation, tet_removed, tet_strain
 
 wp.set_module_options({"enable_backward": False})
 
@@ -93,44 +93,10 @@ def refresh_tet_rotations(
 
 
 @wp.func
-def tet_vertex_terms(
-    env: int,
-    c: int,
-    corner: int,
-    x0: wp.vec3, x1: wp.vec3, x2: wp.vec3, x3: wp.vec3,
-    inv_rest: wp.array(dtype=wp.mat33),
-    params: wp.array2d(dtype=wp.vec3),
-    rotation_iterations: int,
-    lagged: int,
-    tet_rotation: wp.array2d(dtype=wp.quat),
-):
-    """Tet ``c``'s elastic force on its vertex ``corner`` and that vertex's Gauss-Newton Hessian block. Every vertex
-    extracts the tet's rotation (warm-started from the stored one) and the thread of corner 0 stores it: the tet's
-    vertices have different colours, so no two threads touch it at once. (Letting the other three use the stored
-    rotation as it is, a sweep old, slowed the 30 kPa block's approach to its sag: 8 % short after 2 s at 10
-    substeps instead of 0.3 %.) ``lagged``: the rotation stored at the sweep's start (``refresh_tet_rotations``) is
-    used as it is, one extraction per tet and sweep instead of four (``World.tet_rotation_update`` "sweep")."""
-    Dm_inv = inv_rest[c]
-    C_D = float(0.0)
-    C_H = float(0.0)
-    DC = wp.mat33(0.0)
-    cof = wp.mat33(0.0)
-    if lagged != 0:
-        C_D, C_H, DC, cof = strain_terms(deformation_gradient(x0, x1, x2, x3, Dm_inv),
-                                         wp.quat_to_matrix(tet_rotation[env, c]))
-    else:
-        iters = int(0)
-        q0 = wp.quat_identity()
-        if tet_rotation.shape[1] > 0:
-            iters = rotation_iterations
-            q0 = tet_rotation[env, c]
-        C_D, C_H, qr, DC, cof = tet_strain(x0, x1, x2, x3, Dm_inv, q0, iters)
-        if corner == 0 and iters > 0:
-            tet_rotation[env, c] = qr
-    p = params[env % params.shape[0], c]
-    # d F / d x_corner = I (x) m, m the corner's row of Dm^-1 (corner 0: minus their sum): only this corner's gradients
-    # the rows picked by constant indices: a run-time row index (``Dm_inv[corner - 1, k]``) put the matrix in local
-    # memory (an 88-byte frame per thread in the fused kernel on sm_90, benchmarks/kernel_resources.py)
+def corner_row(Dm_inv: wp.mat33, corner: int):
+    """``m``: d F / d x_corner = I (x) m, the corner's row of ``Dm^-1`` (corner 0: minus their sum). The rows are
+    picked by constant indices: a run-time row index (``Dm_inv[corner - 1, k]``) put the matrix in local memory (an
+    88-byte frame per thread in the fused kernel on sm_90, benchmarks/kernel_resources.py)."""
     row0 = wp.vec3(Dm_inv[0, 0], Dm_inv[0, 1], Dm_inv[0, 2])
     row1 = wp.vec3(Dm_inv[1, 0], Dm_inv[1, 1], Dm_inv[1, 2])
     row2 = wp.vec3(Dm_inv[2, 0], Dm_inv[2, 1], Dm_inv[2, 2])
@@ -141,16 +107,74 @@ def tet_vertex_terms(
         m = row0
     elif corner == 2:
         m = row1
-    d = DC * m
-    g = cof * m
-    inv_aD = 1.0 / p[0]
-    f = -d * (C_D * inv_aD)
+    return m
+
+
+@wp.func
+def add_volume_term(f: wp.vec3, m: wp.vec3, inv_aD: float, p: wp.vec3, C_H: float, g: wp.vec3):
+    """The vertex's force and Gauss-Newton Hessian block from its deviatoric force ``f`` (the Hessian ``|m|^2 /
+    alpha_D I``) plus the volume term ``-g C_H / alpha_H``, ``g g^T / alpha_H`` (``alpha_H < 0``: none)."""
     H = wp.identity(3, dtype=float) * (wp.dot(m, m) * inv_aD)
     if p[1] >= 0.0:  # alpha_H < 0 marks lambda = 0: no volume term
         inv_aH = 1.0 / p[1]
         f = f - g * (C_H * inv_aH)
         H = H + wp.outer(g, g) * inv_aH
     return f, H
+
+
+@wp.func
+def tet_vertex_terms(
+    env: int,
+    c: int,
+    corner: int,
+    x0: wp.vec3, x1: wp.vec3, x2: wp.vec3, x3: wp.vec3,
+    inv_rest: wp.array(dtype=wp.mat33),
+    params: wp.array2d(dtype=wp.vec3),
+    rotation_iterations: int,
+    tet_rotation: wp.array2d(dtype=wp.quat),
+):
+    """Tet ``c``'s elastic force on its vertex ``corner`` and that vertex's Gauss-Newton Hessian block. Every vertex
+    extracts the tet's rotation (warm-started from the stored one) and the thread of corner 0 stores it: the tet's
+    vertices have different colours, so no two threads touch it at once. (Letting the other three use the stored
+    rotation as it is, a sweep old, slowed the 30 kPa block's approach to its sag: 8 % short after 2 s at 10
+    substeps instead of 0.3 %; :func:`tet_vertex_terms_lagged` uses one refreshed at the sweep's start.)"""
+    iters = int(0)
+    q0 = wp.quat_identity()
+    if tet_rotation.shape[1] > 0:
+        iters = rotation_iterations
+        q0 = tet_rotation[env, c]
+    Dm_inv = inv_rest[c]
+    C_D, C_H, qr, DC, cof = tet_strain(x0, x1, x2, x3, Dm_inv, q0, iters)
+    if corner == 0 and iters > 0:
+        tet_rotation[env, c] = qr
+    p = params[env % params.shape[0], c]
+    m = corner_row(Dm_inv, corner)
+    d = DC * m
+    g = cof * m
+    inv_aD = 1.0 / p[0]
+    return add_volume_term(-d * (C_D * inv_aD), m, inv_aD, p, C_H, g)
+
+
+@wp.func
+def tet_vertex_terms_lagged(
+    env: int,
+    c: int,
+    corner: int,
+    x0: wp.vec3, x1: wp.vec3, x2: wp.vec3, x3: wp.vec3,
+    inv_rest: wp.array(dtype=wp.mat33),
+    params: wp.array2d(dtype=wp.vec3),
+    tet_rotation: wp.array2d(dtype=wp.quat),
+):
+    """:func:`tet_vertex_terms` with the tet's rotation as stored at the sweep's start (``refresh_tet_rotations``;
+    ``World.tet_rotation_update`` "sweep"): one extraction per tet and sweep instead of four. With ``R`` held,
+    ``-C_D dC_D / dx = -(F - R) m``: the norm ``C_D`` and its division cancel (the co-rotated linear force)."""
+    Dm_inv = inv_rest[c]
+    F = deformation_gradient(x0, x1, x2, x3, Dm_inv)
+    p = params[env % params.shape[0], c]
+    m = corner_row(Dm_inv, corner)
+    inv_aD = 1.0 / p[0]
+    f = -((F - wp.quat_to_matrix(tet_rotation[env, c])) * m) * inv_aD
+    return add_volume_term(f, m, inv_aD, p, wp.determinant(F) - 1.0, cofactor(F) * m)
 
 
 @wp.func
@@ -196,8 +220,17 @@ def solve_vertices(
         if tet_removed(env, c, tet_element, tet_active):
             continue
         k = indices[c]
-        fa, Ha = tet_vertex_terms(env, c, adj_corners[a], q[env, k[0]], q[env, k[1]], q[env, k[2]], q[env, k[3]],
-                                  inv_rest, params, rotation_iterations, lagged, tet_rotation)
+        x0 = q[env, k[0]]
+        x1 = q[env, k[1]]
+        x2 = q[env, k[2]]
+        x3 = q[env, k[3]]
+        fa = wp.vec3(0.0)
+        Ha = wp.mat33(0.0)
+        if lagged != 0:
+            fa, Ha = tet_vertex_terms_lagged(env, c, adj_corners[a], x0, x1, x2, x3, inv_rest, params, tet_rotation)
+        else:
+            fa, Ha = tet_vertex_terms(env, c, adj_corners[a], x0, x1, x2, x3, inv_rest, params, rotation_iterations,
+                                      tet_rotation)
         f = f + fa
         H = H + Ha
     q[env, i] = vertex_step(q[env, i], q_pred[env, i], w, inv_dt2, f, H)
@@ -206,16 +239,20 @@ def solve_vertices(
 _FUSED_KERNELS: dict = {}
 
 
-def fused_vertex_kernel(tile_particles: int):
-    """``solve_vertices_fused`` for a particle window of ``tile_particles`` (cached per size): one thread block per
-    env runs every colour of one sweep, with the env's tet particles ``q[env, first : first + tile_particles]`` in
-    shared memory (as ``xpbd.fused_tet_kernel`` does for the XPBD tets). Each lane takes one vertex of the colour
-    and writes it back into the tile (a block barrier per write); the arithmetic is ``solve_vertices``'s, in the same
-    order (bit-identical on the CPU, where a block has one lane)."""
-    kernel = _FUSED_KERNELS.get(tile_particles)
+def fused_vertex_kernel(tile_particles: int, lagged: bool = False):
+    """``solve_vertices_fused`` for a particle window of ``tile_particles`` (cached per size and rotation update):
+    one thread block per env runs every colour of one sweep, with the env's tet particles ``q[env, first : first +
+    tile_particles]`` in shared memory (as ``xpbd.fused_tet_kernel`` does for the XPBD tets). Each lane takes one
+    vertex of the colour and writes it back into the tile (a block barrier per write); the arithmetic is
+    ``solve_vertices``'s, in the same order (bit-identical on the CPU, where a block has one lane). ``lagged``
+    (compile-time: the variant holds only its own branch's registers, sm_90 128 with both): the rotations refreshed at
+    the sweep's start (:func:`tet_vertex_terms_lagged`)."""
+    key = (int(tile_particles), bool(lagged))
+    kernel = _FUSED_KERNELS.get(key)
     if kernel is not None:
         return kernel
     P = int(tile_particles)
+    LAGGED = bool(lagged)
 
     def solve_vertices_fused(
         color_offsets: wp.array(dtype=wp.int32),
@@ -233,7 +270,6 @@ def fused_vertex_kernel(tile_particles: int):
         tet_element: wp.array(dtype=wp.int32),
         tet_active: wp.array2d(dtype=wp.int32),
         rotation_iterations: int,
-        lagged: int,
         tet_rotation: wp.array2d(dtype=wp.quat),
         q: wp.array2d(dtype=wp.vec3),
     ):
@@ -259,10 +295,18 @@ def fused_vertex_kernel(tile_particles: int):
                         if tet_removed(env, c, tet_element, tet_active):
                             continue
                         k = indices[c]
-                        fa, Ha = tet_vertex_terms(env, c, adj_corners[a], wp.tile_extract(xs, k[0] - first),
-                                                  wp.tile_extract(xs, k[1] - first), wp.tile_extract(xs, k[2] - first),
-                                                  wp.tile_extract(xs, k[3] - first), inv_rest, params,
-                                                  rotation_iterations, lagged, tet_rotation)
+                        x0 = wp.tile_extract(xs, k[0] - first)
+                        x1 = wp.tile_extract(xs, k[1] - first)
+                        x2 = wp.tile_extract(xs, k[2] - first)
+                        x3 = wp.tile_extract(xs, k[3] - first)
+                        fa = wp.vec3(0.0)
+                        Ha = wp.mat33(0.0)
+                        if wp.static(LAGGED):
+                            fa, Ha = tet_vertex_terms_lagged(env, c, adj_corners[a], x0, x1, x2, x3, inv_rest, params,
+                                                             tet_rotation)
+                        else:
+                            fa, Ha = tet_vertex_terms(env, c, adj_corners[a], x0, x1, x2, x3, inv_rest, params,
+                                                      rotation_iterations, tet_rotation)
                         f = f + fa
                         H = H + Ha
                     x = vertex_step(x, q_pred[env, i], w, inv_dt2, f, H)
@@ -270,5 +314,5 @@ def fused_vertex_kernel(tile_particles: int):
         wp.tile_store(q[env], xs, offset=first)
 
     kernel = wp.kernel(solve_vertices_fused, module="unique", enable_backward=False)
-    _FUSED_KERNELS[tile_particles] = kernel
+    _FUSED_KERNELS[key] = kernel
     return kernel

@@ -338,15 +338,20 @@ def strain_terms(F: wp.mat33, R: wp.mat33):
     """``(C_D, C_H, DC, cof)`` of :func:`tet_strain` for a deformation ``F`` and a given rotation ``R``."""
     FR = F - R
     C_D = wp.sqrt(wp.ddot(FR, FR))
-    f1 = mat_col(F, 0)
-    f2 = mat_col(F, 1)
-    f3 = mat_col(F, 2)
     C_H = wp.determinant(F) - 1.0
     DC = wp.mat33(0.0)
     if C_D > 1.0e-9:
         DC = FR * (1.0 / C_D)
-    cof = wp.matrix_from_cols(wp.cross(f2, f3), wp.cross(f3, f1), wp.cross(f1, f2))
-    return C_D, C_H, DC, cof
+    return C_D, C_H, DC, cofactor(F)
+
+
+@wp.func
+def cofactor(F: wp.mat33):
+    """``cof F = d det F / d F`` (columns: the cross products of the other two columns)."""
+    f1 = mat_col(F, 0)
+    f2 = mat_col(F, 1)
+    f3 = mat_col(F, 2)
+    return wp.matrix_from_cols(wp.cross(f2, f3), wp.cross(f3, f1), wp.cross(f1, f2))
 
 
 @wp.func
