@@ -27,6 +27,7 @@ import numpy as np
 import warp as wp
 
 from lapwarp import launching
+from lapwarp.builder import TET_BLOCK_LANES
 from lapwarp.chains import pack_chains
 from lapwarp.config import check_seed, rng_seed32
 from lapwarp.kernels import (
@@ -202,7 +203,7 @@ class World:
         # "auto" = fused where the particle window fits FUSED_TET_MAX_PARTICLES. 32 threads measured fastest on the
         # H200 for every task with tets (16 / 32 / 64 / 128 tried; benchmarks/RESULTS.md, "Fused tet sweep")
         self.tet_solver = "auto"
-        self.tet_block_threads = 32
+        self.tet_block_threads = TET_BLOCK_LANES
         # how a sweep solves the tets (TET_METHODS): "xpbd" projects each tet's constraints from zero multipliers
         # every substep (a stiff body carries its load only at h c / l <~ 0.7); "vbd" moves each vertex by a Newton
         # step of the substep's potential (kernels/vbd.py), whose fixed point is the equilibrium at any stiffness
@@ -460,8 +461,7 @@ class World:
             return
         key = (float(dt), self.substeps_for(float(dt)), self.iterations, self.rod_newton_steps, self.chain_newton_steps,
                self.tet_rotation_iterations, self.tet_rotation_update, self.chain_block_links, self.chain_solver,
-               self.chain_pcr_threads,
-               self.chain_pcr_rows, self.chain_lane_rows,
+               self.chain_pcr_threads, self.chain_pcr_rows, self.chain_lane_rows,
                self.tet_solver, self.tet_block_threads, self.model.attachments_distinct, self.rod_solver,
                self.rod_block_threads,
                self.tet_method_in_use, self._register_caps_key(),
@@ -774,7 +774,7 @@ class World:
             launch(vbd.begin_substep, (n, vertices.shape[0]),
                    [vertices, m.particle_inv_mass, m.gravity, sweep.h, *self._prediction_masks(), self._q_pred],
                    [s.particle_q])
-        lagged = int(self.tet_rotation_update == "sweep")
+        lagged = self.tet_rotation_update == "sweep"
         if lagged:
             launch(vbd.refresh_tet_rotations, (n, m.tet_count),
                    [m.tet_indices, m.tet_inv_rest, tet_map, tet_mask, self.tet_rotation_iterations, s.particle_q],
@@ -784,11 +784,11 @@ class World:
         if self.fused_tets:
             first, count = self._tet_window
             threads = launching.block_lanes(dev, self.tet_block_threads)
-            launch(vbd.fused_vertex_kernel(count, bool(lagged)), (n, threads), [offsets_dev, first, *common],
+            launch(vbd.fused_vertex_kernel(count, lagged), (n, threads), [offsets_dev, first, *common],
                    [rotation, s.particle_q], block_dim=threads)
         else:
             for c in range(len(offsets) - 1):
-                launch(vbd.solve_vertices, (n, offsets[c + 1] - offsets[c]), [offsets[c], *common, lagged],
+                launch(vbd.solve_vertices, (n, offsets[c + 1] - offsets[c]), [offsets[c], *common, int(lagged)],
                        [rotation, s.particle_q])
 
     #: sweep rounds (four orders each) of the geodesic tethers' distances per step while an env's are not final

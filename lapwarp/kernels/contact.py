@@ -458,10 +458,6 @@ def particle_collision_kernel(meshes: bool) -> wp.Kernel:
     return kernel
 
 
-#: the variant that takes every shape kind
-collide_particles = particle_collision_kernel(True)
-
-
 # ----------------------------------------------------------------------------------------------------
 # rod segments (capsules) against spheres and capsules: thin tools between rod nodes
 # ----------------------------------------------------------------------------------------------------

@@ -481,6 +481,20 @@ def to_u8(v: float) -> wp.uint8:
     return wp.uint8(wp.int32(wp.clamp(v, 0.0, 1.0) * 255.0 + 0.5))
 
 
+@wp.func
+def store_color(env: int, y: int, x: int, col: wp.vec3, write_rgb: int, frame_rgb: int,
+                rgb_out: wp.array4d(dtype=wp.uint8), frame_out: wp.array4d(dtype=wp.float32)):
+    """A pixel's colour as bytes (``write_rgb``) and / or as the observation frame's bytes / 255 (``frame_rgb``)."""
+    if write_rgb == 0 and frame_rgb == 0:
+        return
+    for k in range(3):
+        byte = to_u8(col[k])
+        if write_rgb != 0:
+            rgb_out[env, k, y, x] = byte
+        if frame_rgb != 0:
+            frame_out[env, k, y, x] = float(byte) / 255.0
+
+
 @wp.kernel
 def shade_visibility(
     tri_obj: wp.array(dtype=wp.int32),
@@ -524,13 +538,7 @@ def shade_visibility(
     key = vbuf[env, y, x]
     vbuf[env, y, x] = EMPTY_KEY
     if key == EMPTY_KEY:
-        if write_rgb != 0 or frame_rgb != 0:
-            for k in range(3):
-                byte = to_u8(background_color[k])
-                if write_rgb != 0:
-                    rgb_out[env, k, y, x] = byte
-                if frame_rgb != 0:
-                    frame_out[env, k, y, x] = float(byte) / 255.0
+        store_color(env, y, x, background_color, write_rgb, frame_rgb, rgb_out, frame_out)
         if write_depth != 0:
             depth_out[env, 0, y, x] = background_depth
         if frame_depth != 0:
@@ -603,13 +611,7 @@ def shade_visibility(
             vc = w * def_colors[idx[0]] + u * def_colors[idx[1]] + v * def_colors[idx[2]]
         albedo = wp.cw_mul(albedo, vc)
     lambert = wp.max(-wp.dot(n, d) / wp.sqrt(wp.dot(n, n) * wp.dot(d, d) + 1.0e-30), 0.0)
-    col = albedo * (ambient + diffuse * lambert)
-    for k in range(3):
-        byte = to_u8(col[k])
-        if write_rgb != 0:
-            rgb_out[env, k, y, x] = byte
-        if frame_rgb != 0:
-            frame_out[env, k, y, x] = float(byte) / 255.0
+    store_color(env, y, x, albedo * (ambient + diffuse * lambert), write_rgb, frame_rgb, rgb_out, frame_out)
 
 
 @wp.kernel
