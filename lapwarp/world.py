@@ -53,7 +53,7 @@ ROD_SOLVERS = ("auto", "colored", "fused")
 #: the tet methods ``World.tet_method`` may name: XPBD constraint projection, per-vertex descent (kernels/vbd.py), or
 #: "auto": per vertex where every tet mesh has a pinned particle in every env, else XPBD
 TET_METHODS = ("auto", "xpbd", "vbd")
-#: how the per-vertex tet solve updates its tets' rotations (``World.tet_rotation_update``)
+#: how a tet sweep updates its tets' rotations (``World.tet_rotation_update``: where they are used, or once per sweep)
 TET_ROTATION_UPDATES = ("vertex", "sweep")
 #: the direct chain solves ``World.chain_solver`` may name: "thomas" = a thread walks each chain (kernels/chains.py;
 #: partitioned where ``chain_block_links`` > 1), "pcr" = a thread block per chain, parallel cyclic reduction in shared
@@ -194,9 +194,10 @@ class World:
         self.rod_block_threads = 32
         # tets' rotation: warm-started extraction iterations per projection (0 = SVD polar decomposition)
         self.tet_rotation_iterations = 2
-        # TET_ROTATION_UPDATES, the per-vertex tet solve's ("vbd") rotations: "vertex" = each vertex extracts its tets'
-        # rotations (four extractions per tet and sweep); "sweep" = once per tet at the sweep's start, used as they
-        # are by the vertices (kernels/vbd.py refresh_tet_rotations; needs tet_rotation_iterations > 0)
+        # TET_ROTATION_UPDATES, how a sweep updates its tets' rotations: "vertex" = where it uses them (XPBD: each
+        # tet's projection; the per-vertex solve "vbd": each vertex for its tets, four extractions per tet and sweep);
+        # "sweep" = once per tet at the sweep's start, in a launch over every tet at once, then used as they are
+        # (kernels/xpbd.py refresh_tet_rotations; needs tet_rotation_iterations > 0)
         self.tet_rotation_update = "vertex"
         # tet sweep (TET_SOLVERS): "colored" = one launch per graph colour; "fused" = one launch per sweep, a thread
         # block of tet_block_threads per env with the env's tet particles in shared memory (xpbd.fused_tet_kernel);
@@ -477,8 +478,7 @@ class World:
             if self.tet_rotation_update not in TET_ROTATION_UPDATES:
                 raise ValueError(f"world.tet_rotation_update must be one of {TET_ROTATION_UPDATES}, got "
                                  f"{self.tet_rotation_update!r}")
-            if self.tet_rotation_update == "sweep" and self.tet_method_in_use == "vbd" \
-                    and self.tet_rotation_iterations <= 0:
+            if self.tet_rotation_update == "sweep" and self.tet_rotation_iterations <= 0:
                 raise ValueError("world.tet_rotation_update 'sweep' stores warm-started rotations: it needs "
                                  f"tet_rotation_iterations > 0, got {self.tet_rotation_iterations!r}")
             if self.chain_solver not in CHAIN_SOLVERS:
@@ -702,17 +702,29 @@ class World:
                     lam.get("tet", self._dummy_v2), tet_map, tet_mask, self.tet_rotation_iterations]
         tet_out = [self._tet_rotation if self.tet_rotation_iterations > 0 else self._no_rotation, s.particle_q]
         off = m.tet_color_offsets
+        lagged = self.tet_rotation_update == "sweep"
+
+        def refresh_rotations():
+            # every tet's rotation once, before the sweep that uses them as they are (xpbd.refresh_tet_rotations)
+            launch(xpbd.refresh_tet_rotations, (n, m.tet_count),
+                   [m.tet_indices, m.tet_inv_rest, tet_map, tet_mask, self.tet_rotation_iterations, s.particle_q],
+                   [tet_out[0]])
         if m.tet_count and self.tet_method_in_use == "vbd":
-            self._record_vbd_sweep(launch, w_eff, inv_dt2, sweep, tet_map, tet_mask, tet_out[0])
+            self._record_vbd_sweep(launch, w_eff, inv_dt2, sweep, tet_map, tet_mask, tet_out[0],
+                                   refresh_rotations if lagged else None)
         elif m.tet_count and self.fused_tets:
+            if lagged:
+                refresh_rotations()
             first, count = self._tet_window
             # on the CPU a tiled block has one lane (Warp's CPU tile semantics): the same sweep, in order
             threads = launching.block_lanes(self.device, self.tet_block_threads)
-            launch(xpbd.fused_tet_kernel(count), (n, threads), [self._tet_color_offsets, first, *tet_args], tet_out,
-                   block_dim=threads)
-        else:
+            launch(xpbd.fused_tet_kernel(count, lagged), (n, threads), [self._tet_color_offsets, first, *tet_args],
+                   tet_out, block_dim=threads)
+        elif m.tet_count:
+            if lagged:
+                refresh_rotations()
             for c in range(len(off) - 1):
-                launch(xpbd.solve_tets, (n, off[c + 1] - off[c]), [off[c], *tet_args], tet_out)
+                launch(xpbd.solve_tets, (n, off[c + 1] - off[c]), [off[c], *tet_args, int(lagged)], tet_out)
         off = m.hinge_color_offsets
         for c in range(len(off) - 1):
             launch(xpbd.solve_hinges, (n, off[c + 1] - off[c]),
@@ -763,9 +775,11 @@ class World:
                 self.particle_force if self.particle_force is not None else self._dummy_v3,
                 int(self.particle_force is not None))
 
-    def _record_vbd_sweep(self, launch, w_eff, inv_dt2: float, sweep: Sweep, tet_map, tet_mask, rotation) -> None:
+    def _record_vbd_sweep(self, launch, w_eff, inv_dt2: float, sweep: Sweep, tet_map, tet_mask, rotation,
+                          refresh_rotations) -> None:
         """The tets' per-vertex sweep (``tet_method`` "vbd", kernels/vbd.py); the first sweep of a substep starts the
-        tet vertices from the inertial guess without gravity (``vbd.begin_substep``)."""
+        tet vertices from the inertial guess without gravity (``vbd.begin_substep``). ``refresh_rotations``: None, or
+        the launch of the rotations' refresh (``tet_rotation_update`` "sweep"), recorded after that start."""
         from lapwarp.kernels import vbd
 
         m, n, s, dev = self.model, self.num_envs, self.state, self.device
@@ -774,11 +788,9 @@ class World:
             launch(vbd.begin_substep, (n, vertices.shape[0]),
                    [vertices, m.particle_inv_mass, m.gravity, sweep.h, *self._prediction_masks(), self._q_pred],
                    [s.particle_q])
-        lagged = self.tet_rotation_update == "sweep"
+        lagged = refresh_rotations is not None
         if lagged:
-            launch(vbd.refresh_tet_rotations, (n, m.tet_count),
-                   [m.tet_indices, m.tet_inv_rest, tet_map, tet_mask, self.tet_rotation_iterations, s.particle_q],
-                   [rotation])
+            refresh_rotations()
         common = [vertices, adj_offsets, adj_tets, adj_corners, m.tet_indices, m.tet_inv_rest, m.tet_params, w_eff,
                   self._q_pred, inv_dt2, tet_map, tet_mask, self.tet_rotation_iterations]
         if self.fused_tets:

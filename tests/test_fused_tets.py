@@ -3,9 +3,9 @@ tet particles in shared memory) against the per-colour launches: the same projec
 positions (bit for bit on the CPU, where a block has one lane; within float32 rounding on the GPU, where the two
 kernels may contract multiply-adds differently), with per-env materials, a window that does not start at particle 0,
 several sweeps per substep (multipliers), the SVD rotation, and cut tets; for both tet methods (XPBD projections and
-the per-vertex solve, kernels/vbd.py, also with its rotations refreshed once per sweep). Also: the per-vertex solve's
-layout (a vertex colouring no tet violates, every incidence listed once), its refusal of unanchored meshes and of
-unknown method names and rotation updates."""
+the per-vertex solve, kernels/vbd.py), both also with the rotations refreshed once per sweep. Also: the per-vertex
+solve's layout (a vertex colouring no tet violates, every incidence listed once), its refusal of unanchored meshes and
+of unknown method names and rotation updates."""
 
 from __future__ import annotations
 
@@ -28,7 +28,7 @@ def _scene(device, solver, iterations=1, rotation_iterations=2, cut=False, metho
     world.tet_solver = solver
     world.tet_method = method.removesuffix("-sweep")
     if method.endswith("-sweep"):
-        world.tet_rotation_update = "sweep"  # kernels/vbd.py refresh_tet_rotations
+        world.tet_rotation_update = "sweep"  # kernels/xpbd.py refresh_tet_rotations
     world.tet_rotation_iterations = rotation_iterations
     if cut:
         import warp as wp
@@ -40,7 +40,8 @@ def _scene(device, solver, iterations=1, rotation_iterations=2, cut=False, metho
 
 
 @pytest.mark.parametrize("method,iterations,rotation_iterations,cut", [
-    ("xpbd", 1, 2, False), ("xpbd", 2, 0, False), ("xpbd", 1, 2, True),
+    ("xpbd", 1, 2, False), ("xpbd", 2, 0, False), ("xpbd", 1, 2, True), ("xpbd-sweep", 1, 2, False),
+    ("xpbd-sweep", 2, 1, True),
     ("vbd", 1, 2, False), ("vbd", 2, 0, False), ("vbd", 1, 2, True), ("vbd-sweep", 1, 2, False),
     ("vbd-sweep", 2, 1, True)])
 def test_fused_tet_sweep_matches_the_per_colour_launches(device, method, iterations, rotation_iterations, cut):
@@ -63,14 +64,15 @@ def test_unknown_tet_solver_is_rejected(device):
     world.tet_solver = "jacobi"
     with pytest.raises(ValueError, match="auto.*colored.*fused"):
         world.step(0.05)
-    world, _ = _scene(device, "colored", method="vbd")
-    world.tet_rotation_update = "never"
-    with pytest.raises(ValueError, match="vertex.*sweep"):
-        world.step(0.05)
-    world.tet_rotation_update = "sweep"
-    world.tet_rotation_iterations = 0  # SVD rotations are not stored: nothing to lag
-    with pytest.raises(ValueError, match="tet_rotation_iterations > 0"):
-        world.step(0.05)
+    for method in ("xpbd", "vbd"):
+        world, _ = _scene(device, "colored", method=method)
+        world.tet_rotation_update = "never"
+        with pytest.raises(ValueError, match="vertex.*sweep"):
+            world.step(0.05)
+        world.tet_rotation_update = "sweep"
+        world.tet_rotation_iterations = 0  # SVD rotations are not stored: nothing to lag
+        with pytest.raises(ValueError, match="tet_rotation_iterations > 0"):
+            world.step(0.05)
 
 
 def test_auto_fuses_the_tets_that_fit_shared_memory(device):

@@ -33,7 +33,7 @@ material, per-env parameters, cutting masks and the rotation warm start are shar
 
 import warp as wp
 
-from lapwarp.kernels.xpbd import cofactor, deformation_gradient, extract_rotation, tet_removed, tet_strain
+from lapwarp.kernels.xpbd import cofactor, deformation_gradient, tet_removed, tet_strain
 
 wp.set_module_options({"enable_backward": False})
 
@@ -68,28 +68,6 @@ def begin_substep(
     if use_force != 0:
         acc = acc + force[env, i] * w
     q[env, i] = q_pred[env, i] - acc * (h * h)
-
-
-@wp.kernel
-def refresh_tet_rotations(
-    indices: wp.array(dtype=wp.vec4i),
-    inv_rest: wp.array(dtype=wp.mat33),
-    tet_element: wp.array(dtype=wp.int32),
-    tet_active: wp.array2d(dtype=wp.int32),
-    rotation_iterations: int,
-    q: wp.array2d(dtype=wp.vec3),
-    tet_rotation: wp.array2d(dtype=wp.quat),
-):
-    """Every tet's rotation extracted once at the start of a sweep (warm-started from the stored one), for the
-    vertices' lagged use (``tet_vertex_terms``' ``lagged``). Why: each vertex extracting its tets' rotations is four
-    extractions per tet and sweep, most of the per-vertex solve's arithmetic; for a stiff, clamped body (ThreadInHole's
-    hole) the rotation barely changes within a sweep."""
-    env, c = wp.tid()
-    if tet_removed(env, c, tet_element, tet_active):
-        return
-    k = indices[c]
-    F = deformation_gradient(q[env, k[0]], q[env, k[1]], q[env, k[2]], q[env, k[3]], inv_rest[c])
-    tet_rotation[env, c] = extract_rotation(F, tet_rotation[env, c], rotation_iterations)
 
 
 @wp.func
@@ -165,7 +143,7 @@ def tet_vertex_terms_lagged(
     params: wp.array2d(dtype=wp.vec3),
     tet_rotation: wp.array2d(dtype=wp.quat),
 ):
-    """:func:`tet_vertex_terms` with the tet's rotation as stored at the sweep's start (``refresh_tet_rotations``;
+    """:func:`tet_vertex_terms` with the tet's rotation as stored at the sweep's start (``xpbd.refresh_tet_rotations``;
     ``World.tet_rotation_update`` "sweep"): one extraction per tet and sweep instead of four. With ``R`` held,
     ``-C_D dC_D / dx = -(F - R) m``: the norm ``C_D`` and its division cancel (the co-rotated linear force)."""
     Dm_inv = inv_rest[c]

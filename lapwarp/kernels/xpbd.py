@@ -380,6 +380,22 @@ def tet_strain(
 
 
 @wp.func
+def corner_gradients(DC: wp.mat33, cof: wp.mat33, Dm_inv: wp.mat33):
+    """The constraints' gradients at the four corners from ``dC_D / dF = DC`` and ``dC_H / dF = cof``: ``(d0 .. d3,
+    h0 .. h3)``, corner ``j`` = 1..3 the matrix times row ``j - 1`` of ``Dm_inv``, corner 0 minus their sum."""
+    DmT = wp.transpose(Dm_inv)
+    GD = DC * DmT
+    GH = cof * DmT
+    d1 = mat_col(GD, 0)
+    d2 = mat_col(GD, 1)
+    d3 = mat_col(GD, 2)
+    h1 = mat_col(GH, 0)
+    h2 = mat_col(GH, 1)
+    h3 = mat_col(GH, 2)
+    return -(d1 + d2 + d3), d1, d2, d3, -(h1 + h2 + h3), h1, h2, h3
+
+
+@wp.func
 def tet_constraints(
     x0: wp.vec3, x1: wp.vec3, x2: wp.vec3, x3: wp.vec3,
     Dm_inv: wp.mat33,
@@ -390,36 +406,23 @@ def tet_constraints(
     the extracted rotation (see :func:`tet_strain`), ``d_i`` / ``h_i`` the gradients of ``C_D = |F - R|_F`` /
     ``C_H = det F - 1`` at corner ``i``."""
     C_D, C_H, qr, DC, cof = tet_strain(x0, x1, x2, x3, Dm_inv, q0, rotation_iterations)
-    DmT = wp.transpose(Dm_inv)
-    GD = DC * DmT
-    GH = cof * DmT
-    d1 = mat_col(GD, 0)
-    d2 = mat_col(GD, 1)
-    d3 = mat_col(GD, 2)
-    d0 = -(d1 + d2 + d3)
-    h1 = mat_col(GH, 0)
-    h2 = mat_col(GH, 1)
-    h3 = mat_col(GH, 2)
-    h0 = -(h1 + h2 + h3)
+    d0, d1, d2, d3, h0, h1, h2, h3 = corner_gradients(DC, cof, Dm_inv)
     return C_D, C_H, qr, d0, d1, d2, d3, h0, h1, h2, h3
 
 
 @wp.func
-def tet_projection(
-    x0: wp.vec3, x1: wp.vec3, x2: wp.vec3, x3: wp.vec3,
+def constraint_projection(
+    C_D: float, C_H: float,
+    d0: wp.vec3, d1: wp.vec3, d2: wp.vec3, d3: wp.vec3,
+    h0: wp.vec3, h1: wp.vec3, h2: wp.vec3, h3: wp.vec3,
     w0: float, w1: float, w2: float, w3: float,
-    Dm_inv: wp.mat33,
     p: wp.vec3,
     inv_dt2: float,
     lD: float,
     lH: float,
-    q0: wp.quat,
-    rotation_iterations: int,
 ):
-    """One coupled XPBD projection of a co-rotated tet: returns whether it acts, the multiplier increments
-    ``(dlD, dlH)``, the tet's rotation (warm start of the next projection; ``rotation_iterations`` 0 = SVD polar
-    decomposition) and the four corner displacements."""
-    C_D, C_H, qr, d0, d1, d2, d3, h0, h1, h2, h3 = tet_constraints(x0, x1, x2, x3, Dm_inv, q0, rotation_iterations)
+    """One coupled XPBD projection of a tet's two constraints (values and corner gradients): returns whether it
+    acts, the multiplier increments ``(dlD, dlH)`` and the four corner displacements."""
     aD = p[0] * inv_dt2
     hydro = p[1] >= 0.0  # alpha_H < 0 marks lambda = 0 (nu = 0): no volume term
     aH = wp.max(p[1], 0.0) * inv_dt2
@@ -452,8 +455,29 @@ def tet_projection(
             ok = 0
         else:
             dlD = b1 / (A11 + aD)
-    return (ok, dlD, dlH, qr, (d0 * dlD + h0 * dlH) * w0, (d1 * dlD + h1 * dlH) * w1, (d2 * dlD + h2 * dlH) * w2,
+    return (ok, dlD, dlH, (d0 * dlD + h0 * dlH) * w0, (d1 * dlD + h1 * dlH) * w1, (d2 * dlD + h2 * dlH) * w2,
             (d3 * dlD + h3 * dlH) * w3)
+
+
+@wp.func
+def tet_projection(
+    x0: wp.vec3, x1: wp.vec3, x2: wp.vec3, x3: wp.vec3,
+    w0: float, w1: float, w2: float, w3: float,
+    Dm_inv: wp.mat33,
+    p: wp.vec3,
+    inv_dt2: float,
+    lD: float,
+    lH: float,
+    q0: wp.quat,
+    rotation_iterations: int,
+):
+    """One coupled XPBD projection of a co-rotated tet: returns whether it acts, the multiplier increments
+    ``(dlD, dlH)``, the tet's rotation (warm start of the next projection; ``rotation_iterations`` 0 = SVD polar
+    decomposition) and the four corner displacements."""
+    C_D, C_H, qr, d0, d1, d2, d3, h0, h1, h2, h3 = tet_constraints(x0, x1, x2, x3, Dm_inv, q0, rotation_iterations)
+    ok, dlD, dlH, dx0, dx1, dx2, dx3 = constraint_projection(C_D, C_H, d0, d1, d2, d3, h0, h1, h2, h3, w0, w1, w2, w3,
+                                                             p, inv_dt2, lD, lH)
+    return ok, dlD, dlH, qr, dx0, dx1, dx2, dx3
 
 
 @wp.func
@@ -462,6 +486,18 @@ def tet_removed(env: int, c: int, tet_element: wp.array(dtype=wp.int32), tet_act
     if tet_element.shape[0] > 0:
         return tet_active[env, tet_element[c]] == 0
     return False
+
+
+@wp.func
+def tet_multipliers(env: int, c: int, use_lambda: int, lam: wp.array2d(dtype=wp.vec2)):
+    """Tet ``c``'s multipliers ``(lD, lH)`` of the substep so far (0 when a sweep per substep does not keep them)."""
+    lD = float(0.0)
+    lH = float(0.0)
+    if use_lambda != 0:
+        lv = lam[env, c]
+        lD = lv[0]
+        lH = lv[1]
+    return lD, lH
 
 
 @wp.func
@@ -484,12 +520,7 @@ def project_tet(
     rotation warm start; when ``write``, stores its new rotation and (if it acts) multipliers. Returns whether it
     acts and the four corner displacements (the caller moves the corners)."""
     pe = env % inv_mass.shape[0]
-    lD = float(0.0)
-    lH = float(0.0)
-    if use_lambda != 0:
-        lv = lam[env, c]
-        lD = lv[0]
-        lH = lv[1]
+    lD, lH = tet_multipliers(env, c, use_lambda, lam)
     iters = int(0)
     q0 = wp.quat_identity()
     if tet_rotation.shape[1] > 0:  # warm-started rotation extraction (the default)
@@ -505,6 +536,62 @@ def project_tet(
     return ok, dx0, dx1, dx2, dx3
 
 
+@wp.func
+def project_tet_lagged(
+    env: int,
+    c: int,
+    k: wp.vec4i,
+    x0: wp.vec3, x1: wp.vec3, x2: wp.vec3, x3: wp.vec3,
+    inv_rest: wp.array(dtype=wp.mat33),
+    params: wp.array2d(dtype=wp.vec3),
+    inv_mass: wp.array2d(dtype=float),
+    inv_dt2: float,
+    use_lambda: int,
+    lam: wp.array2d(dtype=wp.vec2),
+    tet_rotation: wp.array2d(dtype=wp.quat),
+    write: bool,
+):
+    """:func:`project_tet` with the tet's rotation as :func:`refresh_tet_rotations` stored it at the sweep's start
+    (``World.tet_rotation_update`` "sweep"): read, neither extracted nor stored, so the coloured sweep, whose colours
+    run one after another, leaves the extraction to a launch over every tet at once."""
+    pe = env % inv_mass.shape[0]
+    lD, lH = tet_multipliers(env, c, use_lambda, lam)
+    Dm_inv = inv_rest[c]
+    F = deformation_gradient(x0, x1, x2, x3, Dm_inv)
+    C_D, C_H, DC, cof = strain_terms(F, wp.quat_to_matrix(tet_rotation[env, c]))
+    d0, d1, d2, d3, h0, h1, h2, h3 = corner_gradients(DC, cof, Dm_inv)
+    ok, dlD, dlH, dx0, dx1, dx2, dx3 = constraint_projection(
+        C_D, C_H, d0, d1, d2, d3, h0, h1, h2, h3, inv_mass[pe, k[0]], inv_mass[pe, k[1]], inv_mass[pe, k[2]],
+        inv_mass[pe, k[3]], params[env % params.shape[0], c], inv_dt2, lD, lH)
+    if write and ok != 0 and use_lambda != 0:
+        lam[env, c] = wp.vec2(lD + dlD, lH + dlH)
+    return ok, dx0, dx1, dx2, dx3
+
+
+@wp.kernel
+def refresh_tet_rotations(
+    indices: wp.array(dtype=wp.vec4i),
+    inv_rest: wp.array(dtype=wp.mat33),
+    tet_element: wp.array(dtype=wp.int32),
+    tet_active: wp.array2d(dtype=wp.int32),
+    rotation_iterations: int,
+    q: wp.array2d(dtype=wp.vec3),
+    tet_rotation: wp.array2d(dtype=wp.quat),
+):
+    """Every tet's rotation extracted once at the start of a sweep (warm-started from the stored one), for the
+    sweep's lagged use (``World.tet_rotation_update`` "sweep": :func:`project_tet_lagged`, the per-vertex solve's
+    ``vbd.tet_vertex_terms_lagged``). Why: extracted inside the coloured sweep, the rotation is arithmetic on the
+    sweep's serial path (XPBD: a block per env runs the colours one after another) or repeated by each of a tet's four
+    vertices (the per-vertex solve); here every tet of every env runs at once. For a stiff or slowly moving body the
+    rotation barely changes within a sweep."""
+    env, c = wp.tid()
+    if tet_removed(env, c, tet_element, tet_active):
+        return
+    k = indices[c]
+    F = deformation_gradient(q[env, k[0]], q[env, k[1]], q[env, k[2]], q[env, k[3]], inv_rest[c])
+    tet_rotation[env, c] = extract_rotation(F, tet_rotation[env, c], rotation_iterations)
+
+
 @wp.kernel
 def solve_tets(
     start: int,
@@ -518,10 +605,12 @@ def solve_tets(
     tet_element: wp.array(dtype=wp.int32),
     tet_active: wp.array2d(dtype=wp.int32),
     rotation_iterations: int,
+    lagged: int,
     tet_rotation: wp.array2d(dtype=wp.quat),
     q: wp.array2d(dtype=wp.vec3),
 ):
-    """The tets of one graph colour, one thread per (env, tet)."""
+    """The tets of one graph colour, one thread per (env, tet); ``lagged``: the rotations as refreshed at the sweep's
+    start (:func:`project_tet_lagged`)."""
     env, t = wp.tid()
     c = start + t
     if tet_removed(env, c, tet_element, tet_active):
@@ -531,8 +620,17 @@ def solve_tets(
     x1 = q[env, k[1]]
     x2 = q[env, k[2]]
     x3 = q[env, k[3]]
-    ok, dx0, dx1, dx2, dx3 = project_tet(env, c, k, x0, x1, x2, x3, inv_rest, params, inv_mass, inv_dt2, use_lambda,
-                                         lam, rotation_iterations, tet_rotation, True)
+    ok = int(0)
+    dx0 = wp.vec3()
+    dx1 = wp.vec3()
+    dx2 = wp.vec3()
+    dx3 = wp.vec3()
+    if lagged != 0:
+        ok, dx0, dx1, dx2, dx3 = project_tet_lagged(env, c, k, x0, x1, x2, x3, inv_rest, params, inv_mass, inv_dt2,
+                                                    use_lambda, lam, tet_rotation, True)
+    else:
+        ok, dx0, dx1, dx2, dx3 = project_tet(env, c, k, x0, x1, x2, x3, inv_rest, params, inv_mass, inv_dt2,
+                                             use_lambda, lam, rotation_iterations, tet_rotation, True)
     if ok == 0:
         return
     q[env, k[0]] = x0 + dx0
@@ -544,9 +642,10 @@ def solve_tets(
 _FUSED_TET_KERNELS: dict = {}
 
 
-def fused_tet_kernel(tile_particles: int):
+def fused_tet_kernel(tile_particles: int, lagged: bool = False):
     """``solve_tets_fused`` for a particle window of ``tile_particles`` (a tile's shape is a compile-time constant,
-    so one kernel per window size, cached).
+    so one kernel per window size and rotation update, cached; ``lagged``: the rotations as refreshed at the sweep's
+    start, :func:`project_tet_lagged`, compiled without the extraction).
 
     One thread block per env runs every colour of one sweep in a single launch: the env's tet particles
     ``q[env, first : first + tile_particles]`` are loaded into shared memory once, each colour's tets are
@@ -556,10 +655,12 @@ def fused_tet_kernel(tile_particles: int):
     this removes the launches' fixed cost and tail and keeps the positions on chip; the arithmetic per tet is
     :func:`tet_projection`, the same as ``solve_tets``, in the same order (bit-identical on the CPU, where a block
     has one lane)."""
-    kernel = _FUSED_TET_KERNELS.get(tile_particles)
+    key = (int(tile_particles), bool(lagged))
+    kernel = _FUSED_TET_KERNELS.get(key)
     if kernel is not None:
         return kernel
-    P = int(tile_particles)
+    P = key[0]
+    LAGGED = key[1]
 
     def solve_tets_fused(
         color_offsets: wp.array(dtype=wp.int32),
@@ -596,8 +697,18 @@ def fused_tet_kernel(tile_particles: int):
                 x1 = wp.tile_extract(xs, i1)
                 x2 = wp.tile_extract(xs, i2)
                 x3 = wp.tile_extract(xs, i3)
-                ok, dx0, dx1, dx2, dx3 = project_tet(env, c, k, x0, x1, x2, x3, inv_rest, params, inv_mass, inv_dt2,
-                                                     use_lambda, lam, rotation_iterations, tet_rotation, has)
+                ok = int(0)
+                dx0 = wp.vec3()
+                dx1 = wp.vec3()
+                dx2 = wp.vec3()
+                dx3 = wp.vec3()
+                if wp.static(LAGGED):
+                    ok, dx0, dx1, dx2, dx3 = project_tet_lagged(env, c, k, x0, x1, x2, x3, inv_rest, params, inv_mass,
+                                                                inv_dt2, use_lambda, lam, tet_rotation, has)
+                else:
+                    ok, dx0, dx1, dx2, dx3 = project_tet(env, c, k, x0, x1, x2, x3, inv_rest, params, inv_mass,
+                                                         inv_dt2, use_lambda, lam, rotation_iterations, tet_rotation,
+                                                         has)
                 moves = has and ok != 0
                 wp.tile_scatter_masked(xs, i0, x0 + dx0, moves)
                 wp.tile_scatter_masked(xs, i1, x1 + dx1, moves)
@@ -606,7 +717,7 @@ def fused_tet_kernel(tile_particles: int):
         wp.tile_store(q[env], xs, offset=first)
 
     kernel = wp.kernel(solve_tets_fused, module="unique", enable_backward=False)
-    _FUSED_TET_KERNELS[tile_particles] = kernel
+    _FUSED_TET_KERNELS[key] = kernel
     return kernel
 
 

@@ -178,6 +178,10 @@ class TissueDissectionConfig(EnvConfig):
             18-39, 0-1 / 53-87.
         settle_steps: physics steps the scene settles under the retraction force before every episode (sofa_zoo).
         physics_substeps: XPBD substeps per physics step (of ``time_step``).
+        tissue_rotation_update: how the tet sweep updates the flap's and connective tissue's tet rotations
+            (``World.tet_rotation_update``): ``sweep`` (extracted once per tet at each sweep's start in one launch over
+            every tet, then used as they are) or ``vertex`` (each tet's projection extracts its own inside the
+            sweep, whose colours run one after another; earlier versions).
         contact_capacity: contact records kept per env per step (counted when exceeded, never silent).
         max_episode_steps: time limit; ``None`` = max(400, 200 R) (Table C).
     """
@@ -213,6 +217,7 @@ class TissueDissectionConfig(EnvConfig):
     cut_removal: Literal["touch", "centroid"] = "touch"
     settle_steps: Annotated[int, Range(ge=0, le=10_000)] = 10
     physics_substeps: Count(10_000) = 4
+    tissue_rotation_update: Literal["vertex", "sweep"] = "sweep"
     contact_capacity: Count(4096) = 64
 
     def validate(self, reward_features, supported_observations) -> None:
@@ -743,6 +748,7 @@ class TissueDissectionEnv(BatchedEnv):
                                  builder)
         world = builder.finalize(num_envs=n, device=str(dev), substeps=cfg.physics_substeps, seed=cfg.seed)
         world.tet_method = "xpbd"  # the flap's speed and expert rates were measured with XPBD tets (not "auto")
+        world.tet_rotation_update = cfg.tissue_rotation_update
         self.rig.finalize(world)
         self._force = world.enable_external_forces()
 
