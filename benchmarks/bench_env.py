@@ -97,7 +97,8 @@ def bench_one(task: str, num_envs: int, device: str, seconds: float, invalid_act
                            use_cuda_graph=cuda_graph, **overrides)
         if tet_solver is not None:
             env.world.tet_solver = tet_solver  # before the first step records (and the env captures) the launches
-        env.world.max_registers = dict(max_registers or {})
+        # the task's own caps (ThreadInHole's lagged vertex sweep) stay unless named here
+        env.world.max_registers = {**env.world.max_registers, **(max_registers or {})}
         if pcr_rows is not None:
             env.world.chain_pcr_rows = pcr_rows
         if lane_rows is not None:
