@@ -713,19 +713,18 @@ class World:
         if m.tet_count and self.tet_method_in_use == "vbd":
             self._record_vbd_sweep(launch, w_eff, inv_dt2, sweep, tet_map, tet_mask, tet_out[0],
                                    refresh_rotations if lagged else None)
-        elif m.tet_count and self.fused_tets:
-            if lagged:
-                refresh_rotations()
-            first, count = self._tet_window
-            # on the CPU a tiled block has one lane (Warp's CPU tile semantics): the same sweep, in order
-            threads = launching.block_lanes(self.device, self.tet_block_threads)
-            launch(xpbd.fused_tet_kernel(count, lagged), (n, threads), [self._tet_color_offsets, first, *tet_args],
-                   tet_out, block_dim=threads)
         elif m.tet_count:
             if lagged:
                 refresh_rotations()
-            for c in range(len(off) - 1):
-                launch(xpbd.solve_tets, (n, off[c + 1] - off[c]), [off[c], *tet_args, int(lagged)], tet_out)
+            if self.fused_tets:
+                first, count = self._tet_window
+                # on the CPU a tiled block has one lane (Warp's CPU tile semantics): the same sweep, in order
+                threads = launching.block_lanes(self.device, self.tet_block_threads)
+                launch(xpbd.fused_tet_kernel(count, lagged), (n, threads), [self._tet_color_offsets, first, *tet_args],
+                       tet_out, block_dim=threads)
+            else:
+                for c in range(len(off) - 1):
+                    launch(xpbd.solve_tets, (n, off[c + 1] - off[c]), [off[c], *tet_args, int(lagged)], tet_out)
         off = m.hinge_color_offsets
         for c in range(len(off) - 1):
             launch(xpbd.solve_hinges, (n, off[c + 1] - off[c]),

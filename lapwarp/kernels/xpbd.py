@@ -653,8 +653,8 @@ def fused_tet_kernel(tile_particles: int, lagged: bool = False):
     writes never collide), each chunk's new positions are scattered into the shared tile (a block barrier), and
     the window is stored back at the end. Against one launch per colour (~30 for GraspLiftAndTouch's organs)
     this removes the launches' fixed cost and tail and keeps the positions on chip; the arithmetic per tet is
-    :func:`tet_projection`, the same as ``solve_tets``, in the same order (bit-identical on the CPU, where a block
-    has one lane)."""
+    :func:`project_tet` (lagged: :func:`project_tet_lagged`), the same as ``solve_tets``, in the same order
+    (bit-identical on the CPU, where a block has one lane)."""
     key = (int(tile_particles), bool(lagged))
     kernel = _FUSED_TET_KERNELS.get(key)
     if kernel is not None:
