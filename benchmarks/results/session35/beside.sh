@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The GPU beside the next lease's learning queue (queue.sh's BESIDE; x4: GPU 3, x2: GPU 1 with DEVICE=cuda:1), ~6 min
+# The GPU beside the next lease's learning queue (queue.sh's BESIDE; x4: GPU 3, x2: GPU 1 with DEVICE=cuda:1), ~12 min
 # of checks in order of need, then the learning queue JOBS until DEADLINE seconds after this script started:
 # 1. the GPU tests of the thirty-fifth session's changes: ThreadInHole's register cap (its sag tests), the bench's kept
 #    task caps, LigatingLoop's sag with the lagged XPBD cavity, TissueDissection's tests on its new default;
@@ -7,7 +7,9 @@
 #    cap as a bench option, 143.1k against 134.6k) against the same kernel at 255 (uncapped: it needs 80), same call;
 # 3. TissueDissection's 10^7-step random-action soak on its new default (the rotations once per sweep; #17 asks one per
 #    task; the quick lease had no time for it);
-# 4. profiles: LigatingLoop with the lagged cavity (23.4k against 80.2k in the quick lease, same call, unexplained; the
+# 4. caps of the two one-warp-per-env kernels at 71 / 72 registers (1.11 waves of 4,096 envs) at 64 (one wave):
+#    RopeThreading, RopeCutting, LigatingLoop, ThreadInHole, TissueDissection;
+# 5. profiles: LigatingLoop with the lagged cavity (23.4k against 80.2k in the quick lease, same call, unexplained; the
 #    CPU costs the same within 6 %) against its default, and ThreadInHole (where its 143k go; #18 asks 300k).
 # DEVICE (cuda:3), NUM_ENVS (4096), JOBS (next_jobs_gpu3.txt) and DEADLINE (1400) override.
 set -u
@@ -37,6 +39,18 @@ bench tih_default_again ThreadInHole STATE
 PYTHONPATH=$new python3 benchmarks/soak.py --device "$dev" --num-envs "$n" --env-steps 1e7 \
   --tasks TissueDissection --action-types CONTINUOUS --out "$out/soak_td.jsonl" > "$out/soak_td.txt" 2>&1
 echo "soak rc=$? $(tail -2 "$out/soak_td.txt" | tr '\n' ' ' | cut -c1-300)"
+# one-warp-per-env kernels between 64 and 72 registers (sm_90) take 28 blocks per SM, so 4,096 envs need 1.11 waves
+# on 132 SMs; at 64 all fit one (spill frames 16 and 32 B): solve_rods_fused (71 registers) and
+# pose_shapes_and_tools (72), each pair in the same call
+bench rt_default RopeThreading STATE
+bench rt_rods64 RopeThreading STATE --max-registers solve_rods_fused=64
+bench rc_default RopeCutting STATE
+bench rc_rods64 RopeCutting STATE --max-registers solve_rods_fused=64
+bench ll_default LigatingLoop STATE
+bench ll_rods64 LigatingLoop STATE --max-registers solve_rods_fused=64
+bench tih_both64 ThreadInHole STATE --max-registers solve_rods_fused=64 pose_shapes_and_tools=64
+bench td_default TissueDissection STATE
+bench td_pose64 TissueDissection STATE --max-registers pose_shapes_and_tools=64
 prof() {  # NAME TASK [profile_step.py options...]
   local name=$1 task=$2
   shift 2
