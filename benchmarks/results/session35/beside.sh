@@ -9,8 +9,8 @@
 #    task; the quick lease had no time for it);
 # 4. caps of the two one-warp-per-env kernels at 71 / 72 registers (1.11 waves of 4,096 envs) at 64 (one wave):
 #    RopeThreading, RopeCutting, LigatingLoop, ThreadInHole, TissueDissection;
-# 5. profiles: LigatingLoop with the lagged cavity (23.4k against 80.2k in the quick lease, same call, unexplained; the
-#    CPU costs the same within 6 %) against its default, and ThreadInHole (where its 143k go; #18 asks 300k).
+# 5. profiles: LigatingLoop with the lagged cavity (23.4k against 80.2k in the quick lease, same call; on the CPU its
+#    steps grow costlier as the loop presses on the stiffer cavity) against its default, and ThreadInHole (where its 143k go; #18 asks 300k).
 # DEVICE (cuda:3), NUM_ENVS (4096), JOBS (next_jobs_gpu3.txt) and DEADLINE (1400) override.
 set -u
 t0=$(date +%s)
