@@ -10,6 +10,7 @@ spilled or doubled a kernel's registers.
     python benchmarks/kernel_resources.py --modules lapwarp.kernels.chains lapwarp.kernels.xpbd
     python benchmarks/kernel_resources.py --hybrid 128:4 128:2 --max-registers 128
     python benchmarks/kernel_resources.py --registers 19 39
+    python benchmarks/kernel_resources.py --modules lapwarp.kernels.xpbd --blocks 4096   # waves of a block per env
 """
 
 from __future__ import annotations
@@ -62,6 +63,22 @@ def parse_cubin(path: str | Path) -> dict[str, dict[str, int]]:
     return out
 
 
+def block_waves(registers: int, num_blocks: int, lanes: int = 32, sms: int = 132, registers_per_sm: int = 65536,
+                max_blocks_per_sm: int = 32) -> tuple[int, float]:
+    """``(blocks per SM, waves)`` of a grid of ``num_blocks`` blocks of ``lanes`` threads at ``registers`` per thread,
+    as far as registers limit it (shared memory may limit it further): registers are allocated per thread in units of
+    8, a block in whole warps, and an SM holds at most ``max_blocks_per_sm`` blocks (32 on sm_80 .. sm_90; 132 SMs: an
+    H100 SXM or H200). A latency-bound kernel with one block per env at 4,096 envs takes 1.11 waves at 65-72
+    registers (28 blocks per SM) and one at <= 64 (32): ThreadInHole's per-vertex sweep capped from 80 to 64 (1.24 ->
+    one wave) ran +6.3 % (thirty-fifth session)."""
+    per_thread = 8 * -(-int(registers) // 8)
+    warps = -(-int(lanes) // 32)
+    per_sm = min(max_blocks_per_sm, registers_per_sm // (per_thread * 32 * warps))
+    if per_sm < 1:
+        raise ValueError(f"a block of {lanes} lanes at {registers} registers does not fit an SM")
+    return per_sm, num_blocks / (per_sm * sms)
+
+
 def module_resources(module, arch: int = 90, block_dim: int | None = None) -> dict[str, dict[str, int]]:
     """Compile a Warp module (a ``wp.Module``, or a Python module holding kernels) for ``sm_{arch}`` and return each
     forward kernel's resources by kernel name (``block_dim``: the module's block size for tile kernels)."""
@@ -91,6 +108,10 @@ def main(argv: list[str] | None = None) -> int:
                    help="the register-resident chain kernel for chains of LINKS links (kernels/chains_registers.py)")
     p.add_argument("--max-registers", type=int, default=None, help="compile the --hybrid kernels with this cap too")
     p.add_argument("--arch", type=int, default=90)
+    p.add_argument("--blocks", type=int, default=None, metavar="N",
+                   help="also print blocks per SM and waves for a grid of N one-warp blocks (e.g. 4096: a block per "
+                        "env) on --sms SMs, as far as registers limit it")
+    p.add_argument("--sms", type=int, default=132)
     p.add_argument("--out", default=None, help="JSON output path")
     args = p.parse_args(argv)
     wp.config.quiet = True
@@ -115,8 +136,12 @@ def main(argv: list[str] | None = None) -> int:
         for name, res in module_resources(kernel.module, args.arch).items():
             rows.append({"module": f"registers {links}", "kernel": name, **res})
     for r in rows:
+        waves = ""
+        if args.blocks and "registers" in r:
+            r["blocks_per_sm"], r["waves"] = block_waves(r["registers"], args.blocks, sms=args.sms)
+            waves = f" {r['blocks_per_sm']:>2} blocks/SM {r['waves']:.2f} waves"
         print(f"{r['module'][:28]:28s} {r['kernel'][:60]:60s} regs={r.get('registers', '?'):>3} "
-              f"frame={r.get('frame_bytes', 0):>4} B shared={r.get('shared_bytes', 0):>5} B")
+              f"frame={r.get('frame_bytes', 0):>4} B shared={r.get('shared_bytes', 0):>5} B{waves}")
     if args.out:
         Path(args.out).write_text(json.dumps({"arch": args.arch, "warp": wp.__version__, "kernels": rows}, indent=1))
     return 0

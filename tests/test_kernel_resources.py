@@ -11,7 +11,7 @@ import pytest
 import warp as wp
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-from kernel_resources import module_resources, parse_cubin  # noqa: E402
+from kernel_resources import block_waves, module_resources, parse_cubin  # noqa: E402
 
 vec16 = wp.types.vector(length=16, dtype=float)
 
@@ -48,3 +48,18 @@ def test_parse_refuses_a_non_elf(tmp_path):
     path.write_bytes(b"not an elf")
     with pytest.raises(ValueError, match="not an ELF64"):
         parse_cubin(path)
+
+
+def test_block_waves_by_registers():
+    """One-warp blocks, 4,096 of them (a block per env) on 132 SMs: registers allocated in units of 8 per thread, at
+    most 32 blocks per SM. <= 64 registers: one wave; 65-72: 28 blocks per SM, 1.11 waves (solve_rods_fused's 71);
+    80: 25, 1.24 (ThreadInHole's uncapped vertex sweep); 128: 16, 1.94. Wider blocks hold whole warps."""
+    assert block_waves(64, 4096) == (32, pytest.approx(4096 / (32 * 132)))
+    assert block_waves(71, 4096)[0] == 28 and block_waves(72, 4096)[0] == 28
+    assert block_waves(71, 4096)[1] == pytest.approx(1.108, abs=1e-3)
+    assert block_waves(80, 4096)[0] == 25 and block_waves(80, 4096)[1] == pytest.approx(1.241, abs=1e-3)
+    assert block_waves(128, 4096)[0] == 16
+    assert block_waves(64, 4096, lanes=40)[0] == 16  # two warps a block
+    assert block_waves(32, 100, lanes=64, sms=1)[0] == 32
+    with pytest.raises(ValueError, match="does not fit"):
+        block_waves(255, 1, lanes=1024)
