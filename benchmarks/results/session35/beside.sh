@@ -8,7 +8,8 @@
 # 3. TissueDissection's 10^7-step random-action soak on its new default (the rotations once per sweep; #17 asks one per
 #    task; the quick lease had no time for it);
 # 4. caps of the two one-warp-per-env kernels at 71 / 72 registers (1.11 waves of 4,096 envs) at 64 (one wave):
-#    RopeThreading, RopeCutting, LigatingLoop, ThreadInHole, TissueDissection;
+#    RopeThreading, RopeCutting, LigatingLoop, ThreadInHole, TissueDissection; and of RopeCutting's rope contact and
+#    TissueDissection's outcode triangle sweep (benchmarks/kernel_resources.py --blocks 4096);
 # 5. profiles: LigatingLoop with the lagged cavity (23.4k against 80.2k in the quick lease, same call; on the CPU its
 #    steps grow costlier as the loop presses on the stiffer cavity) against its default, and ThreadInHole (where its 143k go; #18 asks 300k).
 # DEVICE (cuda:3), NUM_ENVS (4096), JOBS (next_jobs_gpu3.txt) and DEADLINE (1400) override.
@@ -51,6 +52,10 @@ bench ll_rods64 LigatingLoop STATE --max-registers solve_rods_fused=64
 bench tih_both64 ThreadInHole STATE --max-registers solve_rods_fused=64 pose_shapes_and_tools=64
 bench td_default TissueDissection STATE
 bench td_pose64 TissueDissection STATE --max-registers pose_shapes_and_tools=64
+# two more one-warp-per-env kernels into one wave at 64, with larger spill frames: RopeCutting's rope contact (96
+# registers, 1.48 waves; 168 B) and TissueDissection's outcode triangle sweep (120, 1.83 waves; 152 B)
+bench rc_seg64 RopeCutting STATE --max-registers collide_segment_colors=64
+bench td_outcodes64 TissueDissection STATE --max-registers collide_triangle_outcodes=64
 prof() {  # NAME TASK [profile_step.py options...]
   local name=$1 task=$2
   shift 2
