@@ -669,9 +669,9 @@ def test_cavity_sag_matches_closed_form(device, method):
     ring's mean drop after 2 s with zero actions matches it within 10 % (measured 0.145 mm: the coarse linear tets are
     a little stiffer than the beam; it creeps there, 0.13 mm after 1 s, because one sweep per substep relaxes a stiff
     body's slow modes over many substeps). With XPBD's tets (the task's default, known limitation) it sags > 10x the
-    closed form within 0.25 s (measured 12 mm: one sweep per substep does not reach a stiff tet's modulus; 320
+    closed form within 0.5 s (measured 12 mm: one sweep per substep does not reach a stiff tet's modulus; 320
     substeps per physics step 0.18 mm). With the rotations refreshed once per sweep (``cavity_rotation_update =
-    "sweep"``) XPBD's cavity is stiffer, 5-20x the closed form (measured 2.5 mm at 0.25 s; 1.6 mm at 0.5 s)."""
+    "sweep"``) XPBD's cavity is stiffer, 5-20x the closed form (measured 2.5 mm at 0.5 s; 1.6 mm at 1 s)."""
     env = make(device, 1, randomize_loop_state=False, bank_settle_steps=1, cavity_solver=method.removesuffix("-sweep"),
                cavity_rotation_update="sweep" if method.endswith("-sweep") else "vertex")
     env.reset()

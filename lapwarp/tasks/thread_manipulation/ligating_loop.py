@@ -178,8 +178,8 @@ class LigatingLoopConfig(EnvConfig):
             0.153 mm; the loop cannot close to 0.8 on it, see the module docstring).
         cavity_rotation_update: how the XPBD sweep updates the cavity's tet rotations (``World.tet_rotation_update``):
             ``vertex`` (each tet's projection extracts its own inside the sweep) or ``sweep`` (once per tet at each
-            sweep's start, then used as they are: the cavity is then stiffer, 1.6-2.5 mm of self-weight sag in the
-            first second instead of 12 mm, and the expert's loop no longer closes to the 0.8 target: 0 of 8 CPU
+            sweep's start, then used as they are: the cavity is then stiffer, 2.5 mm of self-weight sag after 0.5 s and
+            1.6 mm after 1 s instead of 12 mm, and the expert's loop no longer closes to the 0.8 target: 0 of 8 CPU
             episodes, so it is not the default).
         loop_inertia_scale: the loop segments' rotational inertia over a cylinder's (``SceneBuilder.add_rod``'s
             ``inertia_scale``): with 1000 the open loop's hanging shape at 20 substeps is within 0.3 mm of its shape at
