@@ -704,18 +704,11 @@ class World:
         tet_out = [self._tet_rotation if self.tet_rotation_iterations > 0 else self._no_rotation, s.particle_q]
         off = m.tet_color_offsets
         lagged = self.tet_rotation_update == "sweep"
-
-        def refresh_rotations():
-            # every tet's rotation once, before the sweep that uses them as they are (xpbd.refresh_tet_rotations)
-            launch(xpbd.refresh_tet_rotations, (n, m.tet_count),
-                   [m.tet_indices, m.tet_inv_rest, tet_map, tet_mask, self.tet_rotation_iterations, s.particle_q],
-                   [tet_out[0]])
         if m.tet_count and self.tet_method_in_use == "vbd":
-            self._record_vbd_sweep(launch, w_eff, inv_dt2, sweep, tet_map, tet_mask, tet_out[0],
-                                   refresh_rotations if lagged else None)
+            self._record_vbd_sweep(launch, w_eff, inv_dt2, sweep, tet_map, tet_mask, tet_out[0], lagged)
         elif m.tet_count:
             if lagged:
-                refresh_rotations()
+                self._record_rotation_refresh(launch, tet_map, tet_mask, tet_out[0])
             if self.fused_tets:
                 first, count = self._tet_window
                 # on the CPU a tiled block has one lane (Warp's CPU tile semantics): the same sweep, in order
@@ -775,11 +768,21 @@ class World:
                 self.particle_force if self.particle_force is not None else self._dummy_v3,
                 int(self.particle_force is not None))
 
+    def _record_rotation_refresh(self, launch, tet_map, tet_mask, rotation) -> None:
+        """Every tet's rotation once, before the sweep that uses them as they are (``tet_rotation_update`` "sweep",
+        ``xpbd.refresh_tet_rotations``)."""
+        from lapwarp.kernels import xpbd
+
+        m, s = self.model, self.state
+        launch(xpbd.refresh_tet_rotations, (self.num_envs, m.tet_count),
+               [m.tet_indices, m.tet_inv_rest, tet_map, tet_mask, self.tet_rotation_iterations, s.particle_q],
+               [rotation])
+
     def _record_vbd_sweep(self, launch, w_eff, inv_dt2: float, sweep: Sweep, tet_map, tet_mask, rotation,
-                          refresh_rotations) -> None:
+                          lagged: bool) -> None:
         """The tets' per-vertex sweep (``tet_method`` "vbd", kernels/vbd.py); the first sweep of a substep starts the
-        tet vertices from the inertial guess without gravity (``vbd.begin_substep``). ``refresh_rotations``: None, or
-        the launch of the rotations' refresh (``tet_rotation_update`` "sweep"), recorded after that start."""
+        tet vertices from the inertial guess without gravity (``vbd.begin_substep``). ``lagged``: the rotations
+        refreshed once per sweep (``tet_rotation_update`` "sweep"), after that start."""
         from lapwarp.kernels import vbd
 
         m, n, s, dev = self.model, self.num_envs, self.state, self.device
@@ -788,9 +791,8 @@ class World:
             launch(vbd.begin_substep, (n, vertices.shape[0]),
                    [vertices, m.particle_inv_mass, m.gravity, sweep.h, *self._prediction_masks(), self._q_pred],
                    [s.particle_q])
-        lagged = refresh_rotations is not None
         if lagged:
-            refresh_rotations()
+            self._record_rotation_refresh(launch, tet_map, tet_mask, rotation)
         common = [vertices, adj_offsets, adj_tets, adj_corners, m.tet_indices, m.tet_inv_rest, m.tet_params, w_eff,
                   self._q_pred, inv_dt2, tet_map, tet_mask, self.tet_rotation_iterations]
         if self.fused_tets:
