@@ -308,7 +308,14 @@ def extract_rotation(F: wp.mat33, q0: wp.quat, iterations: int) -> wp.quat:
     """Rotation of ``F`` by Mueller et al. 2016 ("A Robust Method to Extract the Rotational Part of
     Deformations"): from the warm start ``q0`` (the tet's rotation of the previous sweep), turn the frame's columns
     towards ``F``'s. Always a proper rotation, also for inverted tets; a few iterations suffice when warm-started,
-    which is far cheaper than the SVD of ``polar_rotation``."""
+    which is far cheaper than the SVD of ``polar_rotation``.
+
+    Each turn by the iteration's vector ``omega`` is the normalised quaternion ``(omega / 2, 1)``, a rotation by
+    ``2 atan(|omega| / 2)`` (``|omega| - |omega|^3 / 12``) about ``omega`` where the paper turns by ``|omega|``:
+    the same fixed point (``omega = 0``, the columns balanced) without the sine, cosine, square root and division
+    of an axis-angle quaternion. Why: this runs inside the tet sweeps' serial paths (XPBD: every projection;
+    LigatingLoop's cavity), and the trigonometry's slow path gave every kernel that calls it a 32-byte stack frame
+    (sm_90, benchmarks/kernel_resources.py)."""
     q = q0
     a0 = mat_col(F, 0)
     a1 = mat_col(F, 1)
@@ -318,12 +325,11 @@ def extract_rotation(F: wp.mat33, q0: wp.quat, iterations: int) -> wp.quat:
         r0 = mat_col(R, 0)
         r1 = mat_col(R, 1)
         r2 = mat_col(R, 2)
-        omega = (wp.cross(r0, a0) + wp.cross(r1, a1) + wp.cross(r2, a2)) * (
-            1.0 / (wp.abs(wp.dot(r0, a0) + wp.dot(r1, a1) + wp.dot(r2, a2)) + 1.0e-9))
-        angle = wp.length(omega)
-        if angle < 1.0e-9:
+        half = (wp.cross(r0, a0) + wp.cross(r1, a1) + wp.cross(r2, a2)) * (
+            0.5 / (wp.abs(wp.dot(r0, a0) + wp.dot(r1, a1) + wp.dot(r2, a2)) + 1.0e-9))
+        if wp.length_sq(half) < 2.5e-19:  # |omega| < 1e-9: converged
             break
-        q = wp.normalize(wp.quat_from_axis_angle(omega / angle, angle) * q)
+        q = wp.normalize(wp.quat(half[0], half[1], half[2], 1.0) * q)
     return q
 
 
