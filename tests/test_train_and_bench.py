@@ -138,13 +138,14 @@ def test_bench_env_applies_and_records_the_contact_settings(device, tmp_path):
 
 def test_bench_env_applies_and_records_register_caps(device, tmp_path, capsys):
     """``--max-registers KERNEL=N`` caps a kernel of the world's step (recorded with the result, beside the task's
-    own caps: ThreadInHole's lagged vertex sweep at 64); a malformed item or a cap out of range is a usage error
-    before anything runs."""
+    own caps: ThreadInHole's lagged vertex sweep, rods and pose kernel at 64); a malformed item or a cap out of range
+    is a usage error before anything runs."""
     out = tmp_path / "bench.json"
     assert bench_env.main(["--device", device, "--task", "ThreadInHole", "--num-envs", "1", "--seconds", "0.05",
                            "--max-registers", "collide_particles=64", "--out", str(out)]) == 0
     (r,) = json.loads(out.read_text())["results"]
-    assert r["max_registers"] == {"collide_particles": 64, "solve_vertices_fused": 64} and r["env_steps_per_s"] > 0
+    assert r["max_registers"] == {"collide_particles": 64, "solve_vertices_fused": 64, "solve_rods_fused": 64,
+                                  "pose_shapes_and_tools": 64} and r["env_steps_per_s"] > 0
     for bad, message in (("collide_particles", "KERNEL=N"), ("collide_particles=x", "KERNEL=N"),
                          ("collide_particles=300", "register cap must be an int")):
         with pytest.raises(SystemExit) as exc:

@@ -788,6 +788,11 @@ class TissueDissectionEnv(BatchedEnv):
         self.contact.add_plane(transform=(0.0, 0.0, 0.0), name="floor", mu_static=0.0, groups=[flap_group])
         self.rig.add_colliders(self.contact, mu_static=0.0, groups=[flap_group])  # sofa_env: friction 0
         self.contact.finalize()
+        # the contact's shape and tool-axis pose kernel (launched from here on; one warp per env) at 64 registers
+        # instead of 72: one wave of 4,096 envs instead of 1.11 (sm_90; a 32 B spill frame). H200, expert, 4,096 envs,
+        # same call as the uncapped step: 243.9k -> 245.8k env-steps/s (benchmarks/RESULTS.md, thirty-sixth session;
+        # the CPU ignores the cap)
+        world.max_registers["pose_shapes_and_tools"] = 64
         self.cutting = CuttingSystem(world, carving_distance=cfg.carving_distance, num_tools=2, num_labels=2,
                                      tool_radius=HOOK_RADIUS, removal=cfg.cut_removal)
         flap_id = self.cutting.add_object(self.flap_obj, labels=np.full(len(ft), FLAP))

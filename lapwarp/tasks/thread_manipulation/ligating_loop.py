@@ -690,6 +690,11 @@ class LigatingLoopEnv(BatchedEnv):
                                  attachment_capacity=N)
         world.tet_method = cfg.cavity_solver
         world.tet_rotation_update = cfg.cavity_rotation_update
+        # the rods' fused sweep (one warp per env) at 64 registers instead of 71: 32 blocks per SM hold 4,096 envs
+        # in one wave instead of 1.11 (sm_90; a 16 B spill frame). H200, expert, 4,096 envs, same call as the
+        # uncapped step: 80.8k -> 81.1k env-steps/s (benchmarks/RESULTS.md, thirty-sixth session; the CPU
+        # ignores the cap)
+        world.max_registers["solve_rods_fused"] = 64
         rig.finalize(world)
         closure = LoopClosure(world, loop, rig.shapes[0].shaft_body, wp.transform_get_rotation(self._start_tip),
                               cfg.pitch)

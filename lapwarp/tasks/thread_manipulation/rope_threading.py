@@ -1121,6 +1121,11 @@ class RopeThreadingEnv(BatchedEnv):
         eye_bodies = [builder.add_body(f"eye{e}") for e in range(eyes)]
         world = builder.finalize(num_envs=num_envs, device=str(dev), substeps=cfg.physics_substeps, seed=cfg.seed,
                                  attachment_capacity=2)
+        # the rods' fused sweep (one warp per env) at 64 registers instead of 71: 32 blocks per SM hold 4,096 envs
+        # in one wave instead of 1.11 (sm_90; a 16 B spill frame). H200, expert, 4,096 envs, same call as the
+        # uncapped step: 123.1k -> 125.0k env-steps/s (benchmarks/RESULTS.md, thirty-sixth session; the CPU
+        # ignores the cap)
+        world.max_registers["solve_rods_fused"] = 64
         rig.finalize(world)
         c = ContactSystem(world, capacity=cfg.contact_capacity, body_ignore_mask=True)
         group = c.add_particle_group(rope, radius=ROPE_RADIUS, name="rope")

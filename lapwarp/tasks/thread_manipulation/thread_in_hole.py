@@ -679,6 +679,10 @@ class ThreadInHoleEnv(BatchedEnv):
             # one-warp blocks per SM then hold 4,096 envs in one wave instead of 1.24 (H200, expert, 4,096 envs, same
             # call: 134.6k -> 143.1k env-steps/s; the CPU ignores the cap)
             world.max_registers["solve_vertices_fused"] = 64
+        # the rods' fused sweep (71 registers) and the contact's pose kernel (72), each one warp per env, at 64: one
+        # wave of 4,096 envs instead of 1.11 (sm_90; spill frames 16 / 32 B). H200, expert, same call as the step
+        # without these two caps: 144.5k -> 145.6k env-steps/s (benchmarks/RESULTS.md, thirty-sixth session)
+        world.max_registers.update(solve_rods_fused=64, pose_shapes_and_tools=64)
         self.rig.finalize(world)
         self.contact = c = ContactSystem(world, capacity=cfg.contact_capacity, body_ignore_mask=True)
         thread_group = c.add_particle_group(self.thread, radius=radius, name="thread")
