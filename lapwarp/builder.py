@@ -95,7 +95,7 @@ def pack_colors(elements: np.ndarray, lanes: int) -> tuple[np.ndarray, list[int]
     (``sum(ceil(size / lanes))``), then the fewest colours. Candidates: the elements in the given order, by
     descending and by ascending sum of their nodes' degrees, each uncapped and capped at 1-4 passes per colour.
     Why: a pass costs a lane's latency whether the colour fills it or not, and plain greedy colours leave ragged
-    last passes (LigatingLoop's 2,160 tets would take 78 passes of 32 lanes in 17 colours, packed 70 against at
+    last passes (LigatingLoop's 2,160 tets would take 78 passes of 32 lanes in 17 colours, packed 72 against at
     least 68; GraspLiftAndTouch's 1,368 61 -> 45; the XPBD tets keep their colours, see ``finalize``)."""
     elements = np.asarray(elements, dtype=np.int64)
     if lanes < 1:
@@ -699,6 +699,7 @@ class SceneBuilder:
         auto_reset_unstable: bool = True,
         edge_solver: str = "chains",
         per_env_materials: bool = False,
+        tet_colors: str = "greedy",
     ):
         """Build the batched ``World`` of ``num_envs`` copies of this scene on ``device``.
 
@@ -722,12 +723,18 @@ class SceneBuilder:
                 projection per constraint, colour by colour (cheaper per sweep, converges slowly on long paths).
             per_env_materials: give every env its own row of every material array (stiffness, damping, mass), so
                 ``World.set_materials`` can change them per env at reset (domain randomisation of materials).
+            tet_colors: how the tets are coloured for the XPBD sweep: ``"greedy"`` (default: plain greedy colours,
+                the order every task's XPBD tets were tuned on) or ``"packed"`` (:func:`pack_colors` for the fused
+                sweep's ``TET_BLOCK_LANES`` lanes: fewer passes per sweep, e.g. LigatingLoop's cavity 72 instead of
+                78; another Gauss-Seidel order, so a body's shape after a step differs slightly).
         """
         from lapwarp.chains import build_chain_set, straight_chains
         from lapwarp.world import World
 
         if edge_solver not in ("chains", "colored"):
             raise ValueError(f"edge_solver={edge_solver!r} is not 'chains' or 'colored'")
+        if tet_colors not in ("greedy", "packed"):
+            raise ValueError(f"tet_colors={tet_colors!r} is not 'greedy' or 'packed'")
         dev = wp.get_device(device)
         N = int(num_envs)
         n = self._n
@@ -808,10 +815,13 @@ class SceneBuilder:
                 model.hinge_tris = wp.array(htri.astype(np.int32), dtype=wp.vec2i, device=dev)
         if self._tets.count():
             idx = np.concatenate(self._tets.indices)
-            # plain greedy colours, not pack_colors': the XPBD tets' shape after a step depends on the Gauss-Seidel
-            # order (not converged per sweep), and repacked colours moved TissueManipulation's traced reachable
-            # polygons to 0.85 IoU of the stored ones and failed experts that were tuned on this order
-            order, offs = color_graph(idx)
+            # plain greedy colours unless asked to pack them: the XPBD tets' shape after a step depends on the
+            # Gauss-Seidel order (not converged per sweep), and repacked colours moved TissueManipulation's traced
+            # reachable polygons to 0.85 IoU of the stored ones and failed experts that were tuned on this order
+            if tet_colors == "packed":
+                order, offs = pack_colors(idx, TET_BLOCK_LANES)
+            else:
+                order, offs = color_graph(idx)
             model.tet_count = len(idx)
             model.tet_indices = wp.array(idx[order].astype(np.int32), dtype=wp.vec4i, device=dev)
             model.tet_inv_rest = wp.array(np.concatenate(self._tets.rest)[order].astype(f32), dtype=wp.mat33,

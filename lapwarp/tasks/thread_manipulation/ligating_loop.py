@@ -181,6 +181,9 @@ class LigatingLoopConfig(EnvConfig):
             sweep's start, then used as they are: the cavity is then stiffer, 2.5 mm of self-weight sag after 0.5 s and
             1.6 mm after 1 s instead of 12 mm, and the expert's loop no longer closes to the 0.8 target: 0 of 8 CPU
             episodes, so it is not the default).
+        cavity_tet_colors: how the cavity's tets are coloured for the XPBD sweep (``SceneBuilder.finalize``'s
+            ``tet_colors``): ``packed`` (for the fused sweep's 32 lanes: 72 passes per sweep instead of 78) or
+            ``greedy`` (plain greedy colours, the order of earlier versions; another Gauss-Seidel order).
         loop_inertia_scale: the loop segments' rotational inertia over a cylinder's (``SceneBuilder.add_rod``'s
             ``inertia_scale``): with 1000 the open loop's hanging shape at 20 substeps is within 0.3 mm of its shape at
             320 substeps (at 1: 20 mm narrower, the bending far from converged).
@@ -218,6 +221,7 @@ class LigatingLoopConfig(EnvConfig):
     cavity_damping: NonNegative = 10.0
     cavity_solver: Literal["xpbd", "vbd"] = "xpbd"
     cavity_rotation_update: Literal["vertex", "sweep"] = "vertex"
+    cavity_tet_colors: Literal["packed", "greedy"] = "packed"
     gravity: NonNegative = 0.981
     bank_settle_steps: Annotated[int, Range(ge=1, le=10_000)] = 30
     physics_substeps: Count(10_000) = 20
@@ -687,7 +691,7 @@ class LigatingLoopEnv(BatchedEnv):
                                         name="cavity")
             self.cavity_rest = (hv, ht)
         world = builder.finalize(num_envs=num_envs, device=str(dev), substeps=cfg.physics_substeps, seed=cfg.seed,
-                                 attachment_capacity=N)
+                                 attachment_capacity=N, tet_colors=cfg.cavity_tet_colors)
         world.tet_method = cfg.cavity_solver
         world.tet_rotation_update = cfg.cavity_rotation_update
         # the rods' fused sweep (one warp per env) at 64 registers instead of 71: 32 blocks per SM hold 4,096 envs
