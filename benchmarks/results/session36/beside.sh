@@ -4,11 +4,12 @@
 # thirty-sixth session's quick-lease code, dd0b651, carried as .device/small/old) against the new code, same call:
 # 1. the GPU tests of the thirty-sixth session's changes: LigatingLoop's attachment slots a thread per slot (against
 #    the walk, 1e-6 m) and its pins, the packed XPBD colours, the tets;
-# 2. LigatingLoop (#18 asks 100k; 86.4k at dd0b651): the new default (slots a thread each + packed cavity colours)
-#    against dd0b651 and against the new code with the greedy colours (which isolates the packing); its cavity's fused
-#    XPBD sweep (127 registers, 1.94 waves of 4,096 one-warp blocks; 48.7 % of its kernel time) capped at 64 / 80 / 96;
-# 3. LigatingLoop's expert on the new default (256 first episodes, stiff and soft; the packing changes the Gauss-Seidel
-#    order: 8 / 8 stiff on the CPU) and a 10^7-step soak;
+# 2. LigatingLoop (#18 asks 100k; 86.4k at dd0b651): the new default (its attachment slots a thread each) against
+#    dd0b651, and with the cavity's colours packed (cavity_tet_colors="packed": 72 passes per sweep instead of 78);
+#    its cavity's fused XPBD sweep (127 registers, 1.94 waves of 4,096 one-warp blocks; 48.7 % of its kernel time)
+#    capped at 64 / 80 / 96;
+# 3. LigatingLoop's expert (256 first episodes, stiff and soft) on the default and with the packed colours (on the CPU
+#    the soft loop's expert closed 6 of 8 with them against 8 of 8; stiff 8 of 8 either way), a 10^7-step soak;
 # 4. the contact sweeps' caps together with this session's rods / pose caps: RopeCutting's collide_segment_colors and
 #    TissueDissection's collide_triangle_outcodes at 64 (each +0.7 / +0.2 % alone);
 # 5. RopeThreading and RopeCutting on the new defaults against 555e7ee's figures (the quick lease had no time), and
@@ -35,13 +36,14 @@ bench() {  # NAME TASK PYTHONPATH [bench_env.py options...]
 }
 bench ll_old LigatingLoop "$old"
 bench ll_new LigatingLoop "$new"
-bench ll_greedy LigatingLoop "$new" --set cavity_tet_colors='"greedy"'
+bench ll_packed LigatingLoop "$new" --set cavity_tet_colors='"packed"'
 bench ll_new_again LigatingLoop "$new"
 bench ll_tets64 LigatingLoop "$new" --max-registers solve_tets_fused=64
 bench ll_tets80 LigatingLoop "$new" --max-registers solve_tets_fused=80
 bench ll_tets96 LigatingLoop "$new" --max-registers solve_tets_fused=96
-PYTHONPATH=$new timeout 300 python3 benchmarks/expert_success.py --task LigatingLoop --device "$dev" --num-envs 256 \
-  --action-types CONTINUOUS --config loop_stiffness='"stiff"' --config loop_stiffness='"soft"' \
+PYTHONPATH=$new timeout 420 python3 benchmarks/expert_success.py --task LigatingLoop --device "$dev" --num-envs 256 \
+  --action-types CONTINUOUS --config loop_stiffness=stiff --config loop_stiffness=soft \
+  --config "loop_stiffness=stiff cavity_tet_colors=packed" --config "loop_stiffness=soft cavity_tet_colors=packed" \
   --out "$out/expert_ll.jsonl" > "$out/expert_ll.txt" 2>&1
 echo "expert rc=$? $(grep -o '"success_rate": [0-9.]*' "$out/expert_ll.jsonl" | tr '\n' ' ')"
 PYTHONPATH=$new timeout 300 python3 benchmarks/soak.py --device "$dev" --num-envs "$n" --env-steps 1e7 \
