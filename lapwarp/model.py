@@ -149,8 +149,9 @@ class Model:
     body_count: int = 0
     body_names: list = field(default_factory=list)
     attachment_capacity: int = 0
-    # every slot is a static attachment of its own particle (no free slot for grasping, no particle twice): the
-    # attachment pass may run a thread per slot (xpbd.solve_attachment_slots)
+    # no particle is ever in two slots (finalize: every slot a static attachment of its own particle, no free slot for
+    # grasping; LigatingLoop's closure: slot k only ever holds loop node k): the attachment pass may run a thread per
+    # slot (xpbd.solve_attachment_slots)
     attachments_distinct: bool = False
 
     objects: list = field(default_factory=list)  # SceneObject handles, in insertion order

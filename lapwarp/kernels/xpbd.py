@@ -812,10 +812,11 @@ def solve_attachment_slots(
     stiff_only: int,
     q: wp.array2d(dtype=wp.vec3),
 ):
-    """``solve_attachments`` with a thread per (env, slot), for worlds whose slots hold distinct particles that nothing
-    re-assigns (``Model.attachments_distinct``): each slot then touches its own particle, so the order is immaterial
-    and the result is the same. The walk over an env's slots in one thread was latency-bound (TissueDissection: 36
-    anchors, 1.5 ms of its ~20 ms step on the H200, 40 launches)."""
+    """``solve_attachments`` with a thread per (env, slot), for worlds where no particle is ever in two slots
+    (``Model.attachments_distinct``: static anchors, or LigatingLoop's slot k that only ever holds node k): each slot
+    then touches its own particle, so the order is immaterial and the result is the same. The walk over an env's
+    slots in one thread was latency-bound (TissueDissection: 36 anchors, 1.5 ms of its ~20 ms step on the H200, 40
+    launches)."""
     env, s = wp.tid()
     solve_attachment_slot(env, s, attach_particle, attach_body, attach_offset, attach_compliance, body_q_prev, body_q,
                           blend, inv_mass, inv_dt2, stiff_only, q)
