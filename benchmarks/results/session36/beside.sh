@@ -4,8 +4,10 @@
 # thirty-sixth session's quick-lease code, dd0b651, carried as .device/small/old) against the new code, same call:
 # 1. the GPU tests of the thirty-sixth session's changes: LigatingLoop's attachment slots a thread per slot (against
 #    the walk, 1e-6 m) and its pins, the packed XPBD colours, the tets;
-# 2. LigatingLoop (#18 asks 100k; 86.4k at dd0b651): the new default (its attachment slots a thread each) against
-#    dd0b651, and with the cavity's colours packed (cavity_tet_colors="packed": 72 passes per sweep instead of 78);
+# 2. LigatingLoop (#18 asks 100k; 86.4k at dd0b651): the new default (its attachment slots a thread each; the particle
+#    contact reading a particle's start position and pass-through mask only where a shape is near) against dd0b651,
+#    and with the cavity's colours packed (cavity_tet_colors="packed": 72 passes per sweep instead of 78);
+#    ThreadInHole and GraspLiftAndTouch new against dd0b651 (the particle contact change alone);
 #    its cavity's fused XPBD sweep (127 registers, 1.94 waves of 4,096 one-warp blocks; 48.7 % of its kernel time)
 #    capped at 64 / 80 / 96;
 # 3. LigatingLoop's expert (256 first episodes, stiff and soft) on the default and with the packed colours (on the CPU
@@ -38,6 +40,10 @@ bench ll_old LigatingLoop "$old"
 bench ll_new LigatingLoop "$new"
 bench ll_packed LigatingLoop "$new" --set cavity_tet_colors='"packed"'
 bench ll_new_again LigatingLoop "$new"
+bench tih_old ThreadInHole "$old"
+bench tih_new ThreadInHole "$new"
+bench glt_old GraspLiftAndTouch "$old"
+bench glt_new GraspLiftAndTouch "$new"
 bench ll_tets64 LigatingLoop "$new" --max-registers solve_tets_fused=64
 bench ll_tets80 LigatingLoop "$new" --max-registers solve_tets_fused=80
 bench ll_tets96 LigatingLoop "$new" --max-registers solve_tets_fused=96
