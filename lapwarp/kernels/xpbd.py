@@ -716,10 +716,12 @@ def fused_tet_kernel(tile_particles: int, lagged: bool = False):
                                                          inv_dt2, use_lambda, lam, rotation_iterations, tet_rotation,
                                                          has)
                 moves = has and ok != 0
-                wp.tile_scatter_masked(xs, i0, x0 + dx0, moves)
-                wp.tile_scatter_masked(xs, i1, x1 + dx1, moves)
-                wp.tile_scatter_masked(xs, i2, x2 + dx2, moves)
-                wp.tile_scatter_masked(xs, i3, x3 + dx3, moves)
+                # the corners read again from the tile (unchanged since: a colour's tets share no particle) rather than
+                # held in registers through the projection
+                wp.tile_scatter_masked(xs, i0, wp.tile_extract(xs, i0) + dx0, moves)
+                wp.tile_scatter_masked(xs, i1, wp.tile_extract(xs, i1) + dx1, moves)
+                wp.tile_scatter_masked(xs, i2, wp.tile_extract(xs, i2) + dx2, moves)
+                wp.tile_scatter_masked(xs, i3, wp.tile_extract(xs, i3) + dx3, moves)
         wp.tile_store(q[env], xs, offset=first)
 
     kernel = wp.kernel(solve_tets_fused, module="unique", enable_backward=False)
