@@ -7,7 +7,8 @@
 # 2. LigatingLoop (#18 asks 100k; 86.4k at dd0b651): the new default (its attachment slots a thread each; the particle
 #    contact reading a particle's start position and pass-through mask only where a shape is near) against dd0b651,
 #    and with the cavity's colours packed (cavity_tet_colors="packed": 72 passes per sweep instead of 78);
-#    ThreadInHole and GraspLiftAndTouch new against dd0b651 (the particle contact change alone);
+#    ThreadInHole and GraspLiftAndTouch new against dd0b651 (the particle contact change alone), TissueDissection
+#    (with it, its lagged XPBD tet sweep at 94 registers instead of 114: the corners re-read from the tile);
 #    its cavity's fused XPBD sweep (127 registers, 1.94 waves of 4,096 one-warp blocks; 48.7 % of its kernel time)
 #    capped at 64 / 80 / 96;
 # 3. LigatingLoop's expert (256 first episodes, stiff and soft) on the default and with the packed colours (on the CPU
@@ -57,6 +58,7 @@ PYTHONPATH=$new timeout 300 python3 benchmarks/soak.py --device "$dev" --num-env
 echo "soak rc=$? $(tail -1 "$out/soak_ll.txt" | cut -c1-300)"
 bench rc_new RopeCutting "$new"
 bench rc_seg64 RopeCutting "$new" --max-registers collide_segment_colors=64
+bench td_old TissueDissection "$old"
 bench td_new TissueDissection "$new"
 bench td_outcodes64 TissueDissection "$new" --max-registers collide_triangle_outcodes=64
 bench rt_new RopeThreading "$new"
