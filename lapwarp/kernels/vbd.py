@@ -264,10 +264,14 @@ def fused_vertex_kernel(tile_particles: int, lagged: bool = False):
                 i = vertices[j]
                 w = inv_mass[pe, i]
                 moves = base + lane < end and w != 0.0
-                x = wp.tile_extract(xs, i - first)
+                x = wp.vec3(0.0)  # written only where the lane moves its vertex
                 if moves:
+                    # the Hessian is symmetric (each tet's block is |m|^2 / alpha_D I + g g^T / alpha_H, whose mirrored
+                    # entries are the same products), so its sum is held as diagonal and upper entries: six registers
+                    # instead of nine through the loop, the same sums
                     f = wp.vec3(0.0)
-                    H = wp.mat33(0.0)
+                    Hd = wp.vec3(0.0)
+                    Hu = wp.vec3(0.0)
                     for a in range(adj_offsets[j], adj_offsets[j + 1]):
                         c = adj_tets[a]
                         if tet_removed(env, c, tet_element, tet_active):
@@ -286,8 +290,11 @@ def fused_vertex_kernel(tile_particles: int, lagged: bool = False):
                             fa, Ha = tet_vertex_terms(env, c, adj_corners[a], x0, x1, x2, x3, inv_rest, params,
                                                       rotation_iterations, tet_rotation)
                         f = f + fa
-                        H = H + Ha
-                    x = vertex_step(x, q_pred[env, i], w, inv_dt2, f, H)
+                        Hd = Hd + wp.vec3(Ha[0, 0], Ha[1, 1], Ha[2, 2])
+                        Hu = Hu + wp.vec3(Ha[0, 1], Ha[0, 2], Ha[1, 2])
+                    H = wp.mat33(Hd[0], Hu[0], Hu[1], Hu[0], Hd[1], Hu[2], Hu[1], Hu[2], Hd[2])
+                    # the vertex read from the tile here, not held through the loop (no lane writes it meanwhile)
+                    x = vertex_step(wp.tile_extract(xs, i - first), q_pred[env, i], w, inv_dt2, f, H)
                 wp.tile_scatter_masked(xs, i - first, x, moves)
         wp.tile_store(q[env], xs, offset=first)
 
