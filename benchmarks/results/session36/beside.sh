@@ -7,7 +7,8 @@
 # 2. LigatingLoop (#18 asks 100k; 86.4k at dd0b651): the new default (its attachment slots a thread each; the particle
 #    contact reading a particle's start position and pass-through mask only where a shape is near) against dd0b651,
 #    and with the cavity's colours packed (cavity_tet_colors="packed": 72 passes per sweep instead of 78);
-#    ThreadInHole and GraspLiftAndTouch new against dd0b651 (the particle contact change alone), TissueDissection
+#    ThreadInHole (with it, its capped vertex sweep spilling 32 B instead of 64) and GraspLiftAndTouch (the contact
+#    change alone) against dd0b651, TissueDissection
 #    (with it, its lagged XPBD tet sweep at 94 registers instead of 114: the corners re-read from the tile);
 #    its cavity's fused XPBD sweep (127 registers, 1.94 waves of 4,096 one-warp blocks; 48.7 % of its kernel time)
 #    capped at 64 / 80 / 96;
