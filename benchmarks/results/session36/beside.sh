@@ -3,7 +3,7 @@
 # of checks in order of need, then the learning queue JOBS until DEADLINE seconds after this script started. OLD (the
 # thirty-sixth session's quick-lease code, dd0b651, carried as .device/small/old) against the new code, same call:
 # 1. the GPU tests of the thirty-sixth session's changes: LigatingLoop's attachment slots a thread per slot (against
-#    the walk, 1e-6 m) and its pins, the packed XPBD colours, the tets;
+#    the walk, 1e-6 m) and its pins, the packed XPBD colours, the fused tet sweeps, the particle contact;
 # 2. LigatingLoop (#18 asks 100k; 86.4k at dd0b651): the new default (its attachment slots a thread each; the particle
 #    contact reading a particle's start position and pass-through mask only where a shape is near) against dd0b651,
 #    and with the cavity's colours packed (cavity_tet_colors="packed": 72 passes per sweep instead of 78);
@@ -29,7 +29,8 @@ mkdir -p "$out"
 new=/tmp/site:$PWD
 old=/tmp/site:$PWD/.device/small/old
 PYTHONPATH=$new python3 -m pytest -q -p no:cacheprovider tests/test_ligating_loop.py tests/test_colour_packing.py \
-  -k "slots or pins or closing or packs or packed" --device "$dev" > "$out/pytest_cuda.txt" 2>&1
+  tests/test_fused_tets.py tests/test_contact.py -k "slots or pins or closing or packs or packed or fused or vertex or \
+  particle" --device "$dev" > "$out/pytest_cuda.txt" 2>&1
 echo "pytest rc=$? $(tail -1 "$out/pytest_cuda.txt")"
 bench() {  # NAME TASK PYTHONPATH [bench_env.py options...]
   local name=$1 task=$2 path=$3
