@@ -214,8 +214,9 @@ class World:
         self.tet_method = "auto"
         # register caps of the recorded step's kernels by their function's name (``{"collide_triangle_colors": 64}``;
         # launching.register_capped): for measuring what a cap does to a latency-bound kernel (bench_env.py
-        # --max-registers) and for tasks whose step a cap measured faster (ThreadInHole); a name no kernel of the
-        # step has is an error when the step is recorded
+        # --max-registers) and for tasks whose step a cap measured faster (set in the task: ThreadInHole's vertex
+        # sweep, the rods' sweep and contact pose kernel of the rod and tissue tasks); a name no kernel of the step has
+        # is an error when the step is recorded
         self.max_registers: dict[str, int] = {}
         self.rng = wp.empty(self.num_envs, dtype=wp.uint32, device=self.device)
         self.unstable = wp.zeros(self.num_envs, dtype=wp.int32, device=self.device)

@@ -402,21 +402,6 @@ def corner_gradients(DC: wp.mat33, cof: wp.mat33, Dm_inv: wp.mat33):
 
 
 @wp.func
-def tet_constraints(
-    x0: wp.vec3, x1: wp.vec3, x2: wp.vec3, x3: wp.vec3,
-    Dm_inv: wp.mat33,
-    q0: wp.quat,
-    rotation_iterations: int,
-):
-    """The co-rotated tet's two constraints and their gradients: ``(C_D, C_H, qr, d0 .. d3, h0 .. h3)`` with ``qr``
-    the extracted rotation (see :func:`tet_strain`), ``d_i`` / ``h_i`` the gradients of ``C_D = |F - R|_F`` /
-    ``C_H = det F - 1`` at corner ``i``."""
-    C_D, C_H, qr, DC, cof = tet_strain(x0, x1, x2, x3, Dm_inv, q0, rotation_iterations)
-    d0, d1, d2, d3, h0, h1, h2, h3 = corner_gradients(DC, cof, Dm_inv)
-    return C_D, C_H, qr, d0, d1, d2, d3, h0, h1, h2, h3
-
-
-@wp.func
 def constraint_projection(
     C_D: float, C_H: float,
     d0: wp.vec3, d1: wp.vec3, d2: wp.vec3, d3: wp.vec3,
@@ -466,27 +451,6 @@ def constraint_projection(
 
 
 @wp.func
-def tet_projection(
-    x0: wp.vec3, x1: wp.vec3, x2: wp.vec3, x3: wp.vec3,
-    w0: float, w1: float, w2: float, w3: float,
-    Dm_inv: wp.mat33,
-    p: wp.vec3,
-    inv_dt2: float,
-    lD: float,
-    lH: float,
-    q0: wp.quat,
-    rotation_iterations: int,
-):
-    """One coupled XPBD projection of a co-rotated tet: returns whether it acts, the multiplier increments
-    ``(dlD, dlH)``, the tet's rotation (warm start of the next projection; ``rotation_iterations`` 0 = SVD polar
-    decomposition) and the four corner displacements."""
-    C_D, C_H, qr, d0, d1, d2, d3, h0, h1, h2, h3 = tet_constraints(x0, x1, x2, x3, Dm_inv, q0, rotation_iterations)
-    ok, dlD, dlH, dx0, dx1, dx2, dx3 = constraint_projection(C_D, C_H, d0, d1, d2, d3, h0, h1, h2, h3, w0, w1, w2, w3,
-                                                             p, inv_dt2, lD, lH)
-    return ok, dlD, dlH, qr, dx0, dx1, dx2, dx3
-
-
-@wp.func
 def tet_removed(env: int, c: int, tet_element: wp.array(dtype=wp.int32), tet_active: wp.array2d(dtype=wp.int32)):
     """Tet ``c`` (colour-ordered) of env ``env`` was cut away (an empty element map: nothing is cuttable)."""
     if tet_element.shape[0] > 0:
@@ -507,6 +471,35 @@ def tet_multipliers(env: int, c: int, use_lambda: int, lam: wp.array2d(dtype=wp.
 
 
 @wp.func
+def project_strained_tet(
+    env: int,
+    c: int,
+    k: wp.vec4i,
+    C_D: float, C_H: float, DC: wp.mat33, cof: wp.mat33,
+    Dm_inv: wp.mat33,
+    params: wp.array2d(dtype=wp.vec3),
+    inv_mass: wp.array2d(dtype=float),
+    inv_dt2: float,
+    use_lambda: int,
+    lam: wp.array2d(dtype=wp.vec2),
+    write: bool,
+):
+    """The coupled projection of tet ``c`` of env ``env`` (corners ``k``) from its strain terms (``strain_terms``)
+    with the substep's multipliers; when ``write`` and it acts, stores them. Returns whether it acts and the four
+    corner displacements (the caller moves the corners). Shared by :func:`project_tet` and
+    :func:`project_tet_lagged`, which differ only in where the rotation comes from."""
+    pe = env % inv_mass.shape[0]
+    lD, lH = tet_multipliers(env, c, use_lambda, lam)
+    d0, d1, d2, d3, h0, h1, h2, h3 = corner_gradients(DC, cof, Dm_inv)
+    ok, dlD, dlH, dx0, dx1, dx2, dx3 = constraint_projection(
+        C_D, C_H, d0, d1, d2, d3, h0, h1, h2, h3, inv_mass[pe, k[0]], inv_mass[pe, k[1]], inv_mass[pe, k[2]],
+        inv_mass[pe, k[3]], params[env % params.shape[0], c], inv_dt2, lD, lH)
+    if write and ok != 0 and use_lambda != 0:
+        lam[env, c] = wp.vec2(lD + dlD, lH + dlH)
+    return ok, dx0, dx1, dx2, dx3
+
+
+@wp.func
 def project_tet(
     env: int,
     c: int,
@@ -522,24 +515,21 @@ def project_tet(
     tet_rotation: wp.array2d(dtype=wp.quat),
     write: bool,
 ):
-    """:func:`tet_projection` of tet ``c`` of env ``env`` (corners ``k`` at ``x0 .. x3``) with its multipliers and
-    rotation warm start; when ``write``, stores its new rotation and (if it acts) multipliers. Returns whether it
+    """One coupled XPBD projection of the co-rotated tet ``c`` of env ``env`` (corners ``k`` at ``x0 .. x3``), its
+    rotation extracted warm-started from the stored one (``rotation_iterations`` 0 or no stored rotations: the SVD
+    polar decomposition); when ``write``, stores its new rotation and (if it acts) multipliers. Returns whether it
     acts and the four corner displacements (the caller moves the corners)."""
-    pe = env % inv_mass.shape[0]
-    lD, lH = tet_multipliers(env, c, use_lambda, lam)
     iters = int(0)
     q0 = wp.quat_identity()
     if tet_rotation.shape[1] > 0:  # warm-started rotation extraction (the default)
         iters = rotation_iterations
         q0 = tet_rotation[env, c]
-    ok, dlD, dlH, qr, dx0, dx1, dx2, dx3 = tet_projection(
-        x0, x1, x2, x3, inv_mass[pe, k[0]], inv_mass[pe, k[1]], inv_mass[pe, k[2]], inv_mass[pe, k[3]], inv_rest[c],
-        params[env % params.shape[0], c], inv_dt2, lD, lH, q0, iters)
+    Dm_inv = inv_rest[c]
+    C_D, C_H, qr, DC, cof = tet_strain(x0, x1, x2, x3, Dm_inv, q0, iters)
     if write and iters > 0:
         tet_rotation[env, c] = qr
-    if write and ok != 0 and use_lambda != 0:
-        lam[env, c] = wp.vec2(lD + dlD, lH + dlH)
-    return ok, dx0, dx1, dx2, dx3
+    return project_strained_tet(env, c, k, C_D, C_H, DC, cof, Dm_inv, params, inv_mass, inv_dt2, use_lambda, lam,
+                                write)
 
 
 @wp.func
@@ -560,18 +550,11 @@ def project_tet_lagged(
     """:func:`project_tet` with the tet's rotation as :func:`refresh_tet_rotations` stored it at the sweep's start
     (``World.tet_rotation_update`` "sweep"): read, neither extracted nor stored, so the coloured sweep, whose colours
     run one after another, leaves the extraction to a launch over every tet at once."""
-    pe = env % inv_mass.shape[0]
-    lD, lH = tet_multipliers(env, c, use_lambda, lam)
     Dm_inv = inv_rest[c]
     F = deformation_gradient(x0, x1, x2, x3, Dm_inv)
     C_D, C_H, DC, cof = strain_terms(F, wp.quat_to_matrix(tet_rotation[env, c]))
-    d0, d1, d2, d3, h0, h1, h2, h3 = corner_gradients(DC, cof, Dm_inv)
-    ok, dlD, dlH, dx0, dx1, dx2, dx3 = constraint_projection(
-        C_D, C_H, d0, d1, d2, d3, h0, h1, h2, h3, inv_mass[pe, k[0]], inv_mass[pe, k[1]], inv_mass[pe, k[2]],
-        inv_mass[pe, k[3]], params[env % params.shape[0], c], inv_dt2, lD, lH)
-    if write and ok != 0 and use_lambda != 0:
-        lam[env, c] = wp.vec2(lD + dlD, lH + dlH)
-    return ok, dx0, dx1, dx2, dx3
+    return project_strained_tet(env, c, k, C_D, C_H, DC, cof, Dm_inv, params, inv_mass, inv_dt2, use_lambda, lam,
+                                write)
 
 
 @wp.kernel
