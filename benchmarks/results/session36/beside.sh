@@ -9,7 +9,7 @@
 #    and with the cavity's colours packed (cavity_tet_colors="packed": 72 passes per sweep instead of 78);
 #    ThreadInHole (with it, its capped vertex sweep spilling 32 B instead of 64) and GraspLiftAndTouch (the contact
 #    change alone) against dd0b651, TissueDissection
-#    (with it, its lagged XPBD tet sweep at 94 registers instead of 114: the corners re-read from the tile);
+#    (with it, its lagged XPBD tet sweep at 96 registers instead of 114: the corners re-read from the tile);
 #    its cavity's fused XPBD sweep (127 registers, 1.94 waves of 4,096 one-warp blocks; 48.7 % of its kernel time)
 #    capped at 64 / 80 / 96;
 # 3. LigatingLoop's expert (256 first episodes, stiff and soft) on the default and with the packed colours (on the CPU
