@@ -199,6 +199,10 @@ class World:
         # "sweep" = once per tet at the sweep's start, in a launch over every tet at once, then used as they are
         # (kernels/xpbd.py refresh_tet_rotations; needs tet_rotation_iterations > 0)
         self.tet_rotation_update = "vertex"
+        # with "sweep": refresh the stored rotations at every tet_rotation_refresh-th sweep of a step (its first
+        # always, so a reset env starts from its own), used as they are in between (fewer launches over every tet;
+        # a body that turns little within that many sweeps, e.g. ThreadInHole's clamped hole)
+        self.tet_rotation_refresh = 1
         # tet sweep (TET_SOLVERS): "colored" = one launch per graph colour; "fused" = one launch per sweep, a thread
         # block of tet_block_threads per env with the env's tet particles in shared memory (xpbd.fused_tet_kernel);
         # "auto" = fused where the particle window fits FUSED_TET_MAX_PARTICLES. 32 threads measured fastest on the
@@ -463,7 +467,8 @@ class World:
         if self.model.particle_count == 0:
             return
         key = (float(dt), self.substeps_for(float(dt)), self.iterations, self.rod_newton_steps, self.chain_newton_steps,
-               self.tet_rotation_iterations, self.tet_rotation_update, self.chain_block_links, self.chain_solver,
+               self.tet_rotation_iterations, self.tet_rotation_update, self.tet_rotation_refresh,
+               self.chain_block_links, self.chain_solver,
                self.chain_pcr_threads, self.chain_pcr_rows, self.chain_lane_rows,
                self.tet_solver, self.tet_block_threads, self.model.attachments_distinct, self.rod_solver,
                self.rod_block_threads,
@@ -483,6 +488,10 @@ class World:
             if self.tet_rotation_update == "sweep" and self.tet_rotation_iterations <= 0:
                 raise ValueError("world.tet_rotation_update 'sweep' stores warm-started rotations: it needs "
                                  f"tet_rotation_iterations > 0, got {self.tet_rotation_iterations!r}")
+            every = self.tet_rotation_refresh
+            if isinstance(every, bool) or not isinstance(every, (int, np.integer)) or every < 1:
+                raise ValueError(f"world.tet_rotation_refresh must be an int >= 1 (sweeps between refreshes of the "
+                                 f"stored tet rotations), got {every!r}")
             if self.chain_solver not in CHAIN_SOLVERS:
                 raise ValueError(f"world.chain_solver must be one of {CHAIN_SOLVERS}, got {self.chain_solver!r}")
             if self.chain_solver == "hybrid":
@@ -705,10 +714,13 @@ class World:
         tet_out = [self._tet_rotation if self.tet_rotation_iterations > 0 else self._no_rotation, s.particle_q]
         off = m.tet_color_offsets
         lagged = self.tet_rotation_update == "sweep"
+        # the stored rotations refreshed at this sweep (lagged only): its first of the step, then every
+        # tet_rotation_refresh-th
+        refresh = lagged and (sweep.substep * sweep.iterations + sweep.iteration) % self.tet_rotation_refresh == 0
         if m.tet_count and self.tet_method_in_use == "vbd":
-            self._record_vbd_sweep(launch, w_eff, inv_dt2, sweep, tet_map, tet_mask, tet_out[0], lagged)
+            self._record_vbd_sweep(launch, w_eff, inv_dt2, sweep, tet_map, tet_mask, tet_out[0], lagged, refresh)
         elif m.tet_count:
-            if lagged:
+            if refresh:
                 self._record_rotation_refresh(launch, tet_map, tet_mask, tet_out[0])
             if self.fused_tets:
                 first, count = self._tet_window
@@ -780,10 +792,10 @@ class World:
                [rotation])
 
     def _record_vbd_sweep(self, launch, w_eff, inv_dt2: float, sweep: Sweep, tet_map, tet_mask, rotation,
-                          lagged: bool) -> None:
+                          lagged: bool, refresh: bool) -> None:
         """The tets' per-vertex sweep (``tet_method`` "vbd", kernels/vbd.py); the first sweep of a substep starts the
-        tet vertices from the inertial guess without gravity (``vbd.begin_substep``). ``lagged``: the rotations
-        refreshed once per sweep (``tet_rotation_update`` "sweep"), after that start."""
+        tet vertices from the inertial guess without gravity (``vbd.begin_substep``). ``lagged``: the sweep reads the
+        stored rotations (``tet_rotation_update`` "sweep"), ``refresh``: refreshed first, after that start."""
         from lapwarp.kernels import vbd
 
         m, n, s, dev = self.model, self.num_envs, self.state, self.device
@@ -792,7 +804,7 @@ class World:
             launch(vbd.begin_substep, (n, vertices.shape[0]),
                    [vertices, m.particle_inv_mass, m.gravity, sweep.h, *self._prediction_masks(), self._q_pred],
                    [s.particle_q])
-        if lagged:
+        if refresh:
             self._record_rotation_refresh(launch, tet_map, tet_mask, rotation)
         common = [vertices, adj_offsets, adj_tets, adj_corners, m.tet_indices, m.tet_inv_rest, m.tet_params, w_eff,
                   self._q_pred, inv_dt2, tet_map, tet_mask, self.tet_rotation_iterations]

@@ -73,6 +73,11 @@ def test_unknown_tet_solver_is_rejected(device):
         world.tet_rotation_iterations = 0  # SVD rotations are not stored: nothing to lag
         with pytest.raises(ValueError, match="tet_rotation_iterations > 0"):
             world.step(0.05)
+        world.tet_rotation_iterations = 2
+        for every in (0, 1.5, True):
+            world.tet_rotation_refresh = every
+            with pytest.raises(ValueError, match="tet_rotation_refresh must be an int >= 1"):
+                world.step(0.05)
 
 
 def test_auto_fuses_the_tets_that_fit_shared_memory(device):

@@ -361,21 +361,22 @@ def test_hanging_stretch_matches_closed_form(name):
     np.testing.assert_allclose(strain[1:-1], expected[1:-1], rtol=0.02)
 
 
-@pytest.mark.parametrize("solver, substeps, rotations", [("vbd", None, "sweep"), ("vbd", None, "vertex"),
-                                                         ("xpbd", 40, "sweep")])
-def test_hole_sag_matches_closed_form(solver, substeps, rotations):
+@pytest.mark.parametrize("solver, substeps, rotations, refresh", [
+    ("vbd", None, "sweep", 1), ("vbd", None, "sweep", 4), ("vbd", None, "vertex", 1), ("xpbd", 40, "sweep", 1)])
+def test_hole_sag_matches_closed_form(solver, substeps, rotations, refresh):
     """The normal configuration's hole, settled at build (50 physics steps, no contact with the thread): a column
     under its own weight with its bottom fixed sags at its top by rho g h^2 / (2 E), rho = 10 kg over the annulus'
     volume pi (r_out^2 - r_in^2) h: 15.6 micrometres. The outer top ring's mean sag matches that within 25 % (a
     linear-tet wall with Poisson's ratio 0.3 and a fixed bottom ring is somewhat stiffer than the 1D column) with the
     default per-vertex solve at the default 4 substeps (its tets' rotations refreshed once per sweep, the default, or
-    by every vertex), and with XPBD's tets at 40 substeps (measured 15.2 um; 80: 13.7 um). XPBD's tets at the default
+    by every vertex; refreshed once per physics step, ``hole_rotation_refresh=4``: 14.23 um against 14.26), and with
+    XPBD's tets at 40 substeps (measured 15.2 um; 80: 13.7 um). XPBD's tets at the default
     substeps sag 149 um (9.6 x: one sweep per substep does not reach a stiff tet's modulus;
     ``test_hole_sag_with_xpbd_at_default_substeps_is_far_too_soft``)."""
     r_in, r_out, height, youngs, mass = CONFIGURATIONS["normal"]["hole"]
     overrides = {} if substeps is None else dict(physics_substeps=substeps)
-    env = make(hole_solver=solver, hole_rotation_update=rotations, **overrides)
-    assert env.world.tet_rotation_update == rotations
+    env = make(hole_solver=solver, hole_rotation_update=rotations, hole_rotation_refresh=refresh, **overrides)
+    assert (env.world.tet_rotation_update, env.world.tet_rotation_refresh) == (rotations, refresh)
     # the lagged per-vertex sweep runs capped at 64 registers (one wave of 4,096 envs on an H200), the other sweeps
     # uncapped; the rods' sweep and the contact's pose kernel at 64 in every configuration
     lagged_vertex = (solver, rotations) == ("vbd", "sweep")

@@ -161,6 +161,8 @@ class ThreadInHoleConfig(EnvConfig):
             instead of four; the stiff, clamped hole barely turns within a sweep, and its sag matches the closed form
             either way, tests/test_thread_in_hole.py) or ``vertex`` (every vertex extracts its tets'; earlier
             versions).
+        hole_rotation_refresh: with ``sweep``, the stored rotations are refreshed at every this-many-th sweep of a
+            physics step (its first always; ``World.tet_rotation_refresh``) and used as they are in between.
         gravity: m/s^2 along -z (sofa_env's -981 mm/s^2).
         poisson_ratio: thread and hole (sofa_env's 0.3).
         settle_steps: physics steps the thread settles at build (sofa_env's 50, after every reset).
@@ -190,6 +192,7 @@ class ThreadInHoleConfig(EnvConfig):
     hole_damping: NonNegative = 10.0
     hole_solver: Literal["vbd", "xpbd"] = "vbd"
     hole_rotation_update: Literal["vertex", "sweep"] = "sweep"
+    hole_rotation_refresh: Count(10_000) = 1
     gravity: NonNegative = 0.981
     poisson_ratio: Annotated[float, Range(ge=0.0, lt=0.5)] = 0.3
     settle_steps: Annotated[int, Range(ge=1, le=10_000)] = 50
@@ -674,6 +677,7 @@ class ThreadInHoleEnv(BatchedEnv):
                                  attachment_capacity=1)
         world.tet_method = cfg.hole_solver
         world.tet_rotation_update = cfg.hole_rotation_update
+        world.tet_rotation_refresh = cfg.hole_rotation_refresh
         if cfg.hole_solver == "vbd" and cfg.hole_rotation_update == "sweep":
             # the lagged per-vertex sweep at 64 registers (80 without the cap, a 64 B spill frame with it): 32
             # one-warp blocks per SM then hold 4,096 envs in one wave instead of 1.24 (H200, expert, 4,096 envs, same
