@@ -18,12 +18,22 @@ all_done() {
   grep -q ALLDONE /tmp/r/done.txt 2>/dev/null \
     && { [ ! -f /tmp/r/beside.log ] || grep -q "BESIDE exit" /tmp/r/beside.log; }
 }
+pack() {
+  # written aside and renamed, so a call cut short (its limit lowered to the lease's device time left) still
+  # returns the last whole archive
+  (cd /tmp && tar czf "$OUT/r.part" --exclude='*.pt' r && mv "$OUT/r.part" "$OUT/r.tgz")
+}
 end=$(( $(date +%s) + $1 ))
-while [ "$(date +%s)" -lt "$end" ] && ! all_done; do sleep 10; done
+n=0
+while [ "$(date +%s)" -lt "$end" ] && ! all_done; do
+  sleep 10
+  n=$((n + 1))
+  [ $((n % 6)) -ne 0 ] || pack
+done
 grep -E "started|finished|FAILED" /tmp/r/queue.log | tail -40
 if [ -f /tmp/r/beside.log ]; then
   grep -E "started|finished|FAILED" /tmp/r/beside.log | tail -20
   tail -3 /tmp/r/beside.log
 fi
 nvidia-smi --query-gpu=index,utilization.gpu,memory.used --format=csv
-cd /tmp && tar czf "$OUT/r.tgz" --exclude='*.pt' r && ls -la "$OUT"
+pack && ls -la "$OUT"

@@ -24,6 +24,10 @@ rm -rf /tmp/queue_code && mkdir -p /tmp/queue_code
 # f67e92a in the twenty-sixth session), so the runs record COMMIT instead (experiments.git_commit's fallback)
 (cd "$code" && tar --exclude=./.git --exclude=./.device --exclude=./runs --exclude=__pycache__ -cf - .) \
   | tar xf - -C /tmp/queue_code
+# the old tree a BESIDE script compares against (.device is left out above: wheels): its commands run from this copy
+if [ -d "$code/.device/small/old" ]; then
+  mkdir -p /tmp/queue_code/.device/small && cp -r "$code/.device/small/old" /tmp/queue_code/.device/small/
+fi
 export PYTHONUNBUFFERED=1 PYTHONPATH=/tmp/site:/tmp/queue_code
 export LAPWARP_COMMIT=${3:-}
 deadline=${4:+--deadline $4}
