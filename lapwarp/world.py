@@ -217,11 +217,14 @@ class World:
         # free body as a whole only slowly). Tasks name theirs (measured speeds and expert rates depend on it)
         self.tet_method = "auto"
         # register caps of the recorded step's kernels by their function's name (``{"collide_triangle_colors": 64}``;
-        # launching.register_capped): for measuring what a cap does to a latency-bound kernel (bench_env.py
-        # --max-registers) and for tasks whose step a cap measured faster (set in the task: ThreadInHole's vertex
-        # sweep, the rods' sweep and contact pose kernel of the rod and tissue tasks); a name no kernel of the step has
-        # is an error when the step is recorded
+        # launching.register_capped), for measuring what a cap does to a latency-bound kernel (bench_env.py
+        # --max-registers): a name no kernel of the step has is an error when the step is recorded
         self.max_registers: dict[str, int] = {}
+        # the caps a task measured faster for its own step (ThreadInHole's vertex sweep, the rods' sweep and contact
+        # kernels of the rod and tissue tasks, LigatingLoop's cavity sweep), applied where the step launches that
+        # kernel and silently not where another setting launches another one (e.g. bench_env.py --tet-solver
+        # colored); max_registers overrides them
+        self.default_register_caps: dict[str, int] = {}
         self.rng = wp.empty(self.num_envs, dtype=wp.uint32, device=self.device)
         self.unstable = wp.zeros(self.num_envs, dtype=wp.int32, device=self.device)
         self._unstable_now = wp.zeros(self.num_envs, dtype=wp.int32, device=self.device)
@@ -526,13 +529,20 @@ class World:
         for cmd in self._cmds:
             cmd()
 
+    @property
+    def register_caps(self) -> dict[str, int]:
+        """The caps the recorded step applies: the task's defaults, then ``max_registers`` over them."""
+        return {**self.default_register_caps, **self.max_registers}
+
     def _register_caps_key(self) -> tuple:
-        """``max_registers`` checked (kernel function names to caps CUDA takes) and as a sorted tuple."""
-        for name, cap in self.max_registers.items():
+        """The caps (``max_registers`` and ``default_register_caps``: kernel function names to caps CUDA takes) checked
+        and as a sorted tuple."""
+        for name, cap in (*self.max_registers.items(), *self.default_register_caps.items()):
             if not isinstance(name, str):
-                raise ValueError(f"world.max_registers maps kernel function names to caps, got key {name!r}")
+                raise ValueError(f"world.max_registers and default_register_caps map kernel function names to caps, "
+                                 f"got key {name!r}")
             launching.check_register_cap(cap)
-        return tuple(sorted(self.max_registers.items()))
+        return tuple(sorted(self.register_caps.items()))
 
     def _record_step(self, dt: float) -> list:
         from lapwarp.kernels import xpbd
@@ -541,7 +551,7 @@ class World:
         cmds: list = []
 
         sm_count = dev.sm_count if dev.is_cuda else 0
-        caps = self.max_registers
+        caps = self.register_caps
         capped = set()
 
         def launch(kernel, dim=None, inputs=(), outputs=(), block_dim=None):
@@ -620,7 +630,7 @@ class World:
         # last substep's velocity update first: one launch
         finish = 1.0 / h if fuse else 0.0
         cmds.append(lambda: self._check_and_restore(end_of_step=True, finish_inv_dt=finish))
-        unknown = sorted(set(caps) - capped)
+        unknown = sorted(set(self.max_registers) - capped)
         if unknown:
             raise ValueError(f"world.max_registers names kernels this world's step does not launch: {unknown}")
         return cmds

@@ -215,10 +215,28 @@ def test_register_caps_keep_the_results_and_reject_bad_caps(device):
     np.testing.assert_allclose(capped.positions(), plain.positions(), rtol=0, atol=1e-6)
     for caps, message in (({"integrate_particles": 8}, r"register cap must be an int in \[16, 255\]"),
                           ({"integrate_particles": True}, "register cap must be an int"),
-                          ({3: 64}, "maps kernel function names"),
+                          ({3: 64}, "map kernel function names"),
                           ({"no_such_kernel": 64}, r"does not launch: \['no_such_kernel'\]")):
         with pytest.raises(ValueError, match=message):
             _pendulum_world(device, caps).step(0.01)
+
+
+def test_default_register_caps_apply_where_launched_and_yield_to_max_registers(device):
+    """A task's own caps (``World.default_register_caps``) apply to the kernels the step launches and are passed over
+    where another setting launches another kernel (no error, unlike ``max_registers``); ``max_registers`` overrides
+    them; a bad cap among them is still a ``ValueError``."""
+    world = _pendulum_world(device)
+    world.default_register_caps = {"integrate_particles": 32, "no_such_kernel": 64}
+    world.step(0.01)
+    assert world.register_caps == {"integrate_particles": 32, "no_such_kernel": 64}
+    world.max_registers = {"integrate_particles": 48}
+    assert world.register_caps == {"integrate_particles": 48, "no_such_kernel": 64}
+    world.step(0.01)
+    assert np.isfinite(world.positions()).all()
+    world.default_register_caps = {"integrate_particles": 8}
+    world.max_registers = {}
+    with pytest.raises(ValueError, match=r"register cap must be an int in \[16, 255\]"):
+        world.step(0.01)
 
 
 class _SubstepEndProbe:

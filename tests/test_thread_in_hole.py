@@ -368,10 +368,10 @@ def test_hole_sag_matches_closed_form(solver, substeps, rotations, refresh):
     under its own weight with its bottom fixed sags at its top by rho g h^2 / (2 E), rho = 10 kg over the annulus'
     volume pi (r_out^2 - r_in^2) h: 15.6 micrometres. The outer top ring's mean sag matches that within 25 % (a
     linear-tet wall with Poisson's ratio 0.3 and a fixed bottom ring is somewhat stiffer than the 1D column) with the
-    default per-vertex solve at the default 4 substeps (its tets' rotations refreshed once per sweep, the default, or
-    by every vertex; refreshed once per physics step, ``hole_rotation_refresh=4``: 14.23 um against 14.26), and with
-    XPBD's tets at 40 substeps (measured 15.2 um; 80: 13.7 um). XPBD's tets at the default
-    substeps sag 149 um (9.6 x: one sweep per substep does not reach a stiff tet's modulus;
+    default per-vertex solve at the default 4 substeps (its tets' rotations refreshed once per physics step, the
+    default ``hole_rotation_refresh=4``, once per sweep, or by every vertex; measured 14.23 / 14.26 um at 4 / 1),
+    and with XPBD's tets at 40 substeps (measured 15.2 um; 80: 13.7 um). XPBD's tets at the default substeps sag
+    149 um (9.6 x: one sweep per substep does not reach a stiff tet's modulus;
     ``test_hole_sag_with_xpbd_at_default_substeps_is_far_too_soft``)."""
     r_in, r_out, height, youngs, mass = CONFIGURATIONS["normal"]["hole"]
     overrides = {} if substeps is None else dict(physics_substeps=substeps)
@@ -381,7 +381,7 @@ def test_hole_sag_matches_closed_form(solver, substeps, rotations, refresh):
     # uncapped; the rods' sweep and the contact's pose kernel at 64 in every configuration
     lagged_vertex = (solver, rotations) == ("vbd", "sweep")
     caps = {"solve_rods_fused": 64, "pose_shapes_and_tools": 64}
-    assert env.world.max_registers == ({**caps, "solve_vertices_fused": 64} if lagged_vertex else caps)
+    assert env.world.default_register_caps == ({**caps, "solve_vertices_fused": 64} if lagged_vertex else caps)
     assert thread_speeds(env)[0] < 1e-3
     density = mass / (math.pi * (r_out**2 - r_in**2) * height)
     expected = density * GRAVITY * height**2 / (2.0 * youngs)

@@ -527,8 +527,9 @@ class RopeCuttingEnv(BatchedEnv):
         # the rods' fused sweep (one warp per env) at 64 registers instead of 71: 32 blocks per SM hold 4,096 envs
         # in one wave instead of 1.11 (sm_90; a 16 B spill frame). H200, expert, 4,096 envs, same call as the
         # uncapped step: 320.2k -> 326.6k env-steps/s (benchmarks/RESULTS.md, thirty-sixth session; the CPU
-        # ignores the cap)
-        world.max_registers["solve_rods_fused"] = 64
+        # ignores the cap). The segment contact's colour sweep at 64 too: 328.1k -> 329.6k (thirty-seventh session,
+        # same call; +0.7 % alone in the thirty-sixth)
+        world.default_register_caps.update(solve_rods_fused=64, collide_segment_colors=64)
         self.rig.finalize(world)
         self.contact = ContactSystem(world, capacity=cfg.contact_capacity)
         for rope in self.ropes_obj:

@@ -791,8 +791,9 @@ class TissueDissectionEnv(BatchedEnv):
         # the contact's shape and tool-axis pose kernel (launched from here on; one warp per env) at 64 registers
         # instead of 72: one wave of 4,096 envs instead of 1.11 (sm_90; a 32 B spill frame). H200, expert, 4,096 envs,
         # same call as the uncapped step: 243.9k -> 245.8k env-steps/s (benchmarks/RESULTS.md, thirty-sixth session;
-        # the CPU ignores the cap)
-        world.max_registers["pose_shapes_and_tools"] = 64
+        # the CPU ignores the cap); its triangle sweep over the outcodes at 64 too: 247.1k -> 247.7k (thirty-seventh
+        # session, same call; +0.2 % alone in the thirty-sixth)
+        world.default_register_caps.update(pose_shapes_and_tools=64, collide_triangle_outcodes=64)
         self.cutting = CuttingSystem(world, carving_distance=cfg.carving_distance, num_tools=2, num_labels=2,
                                      tool_radius=HOOK_RADIUS, removal=cfg.cut_removal)
         flap_id = self.cutting.add_object(self.flap_obj, labels=np.full(len(ft), FLAP))

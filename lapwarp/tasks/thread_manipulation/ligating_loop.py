@@ -699,8 +699,9 @@ class LigatingLoopEnv(BatchedEnv):
         # the rods' fused sweep (one warp per env) at 64 registers instead of 71: 32 blocks per SM hold 4,096 envs
         # in one wave instead of 1.11 (sm_90; a 16 B spill frame). H200, expert, 4,096 envs, same call as the
         # uncapped step: 80.8k -> 81.1k env-steps/s (benchmarks/RESULTS.md, thirty-sixth session; the CPU
-        # ignores the cap)
-        world.max_registers["solve_rods_fused"] = 64
+        # ignores the cap). The cavity's fused XPBD sweep (124 registers) at 96: 89,341 / 89,353 -> 89,573 (same call,
+        # thirty-seventh session; 80: 83,742, 64: 77,889)
+        world.default_register_caps.update(solve_rods_fused=64, solve_tets_fused=96)
         rig.finalize(world)
         closure = LoopClosure(world, loop, rig.shapes[0].shaft_body, wp.transform_get_rotation(self._start_tip),
                               cfg.pitch)

@@ -1125,7 +1125,7 @@ class RopeThreadingEnv(BatchedEnv):
         # in one wave instead of 1.11 (sm_90; a 16 B spill frame). H200, expert, 4,096 envs, same call as the
         # uncapped step: 123.1k -> 125.0k env-steps/s (benchmarks/RESULTS.md, thirty-sixth session; the CPU
         # ignores the cap)
-        world.max_registers["solve_rods_fused"] = 64
+        world.default_register_caps["solve_rods_fused"] = 64
         rig.finalize(world)
         c = ContactSystem(world, capacity=cfg.contact_capacity, body_ignore_mask=True)
         group = c.add_particle_group(rope, radius=ROPE_RADIUS, name="rope")
