@@ -162,7 +162,8 @@ def bench_one(task: str, num_envs: int, device: str, seconds: float, invalid_act
         "surface_refit_interval": next((c.surface_refit_interval for c in contact_systems(env)), None),
         "triangle_block_threads": next((c.triangle_block_threads for c in contact_systems(env)), None),
         "tet_solver": ("fused" if env.world.fused_tets else "colored") if env.world.model.tet_count else None,
-        "max_registers": env.world.register_caps,
+        # (an older lapwarp, timed beside this one, has max_registers only)
+        "max_registers": dict(getattr(env.world, "register_caps", env.world.max_registers)),
         "chain_solver": env.world.chain_solver,
         "rod_solver": env.world.rod_solver if env.world.model.segment_count else None,
         "chain_pcr_rows": env.world.chain_pcr_rows if env.world.chain_solver in ("pcr", "hybrid") else None,

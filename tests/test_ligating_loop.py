@@ -541,11 +541,12 @@ def test_reset_draws(env, device):
     (dict(marking_start=0.045, marking_width=0.01), "beyond the cavity"),
     (dict(loop_stiffness="medium"), "loop_stiffness"),
     (dict(num_loop_points=5), "num_loop_points"),
+    (dict(cavity_rotation_iterations=0), "cavity_rotation_iterations"),
 ])
 def test_invalid_configuration_raises(overrides, message, device):
-    """An inverted band range, a band ending beyond the 50 mm cavity, an unknown stiffness and fewer than 12 loop
-    nodes raise ValueError naming the problem; the extreme valid band (start 44 mm, width 6 mm, ending at 50 mm)
-    validates."""
+    """An inverted band range, a band ending beyond the 50 mm cavity, an unknown stiffness, fewer than 12 loop
+    nodes and no rotation extraction iteration raise ValueError naming the problem; the extreme valid band (start
+    44 mm, width 6 mm, ending at 50 mm) validates."""
     with pytest.raises(ValueError, match=message):
         make(device, 1, **overrides)
     LigatingLoopConfig(marking_start=0.044, marking_start_range=(0.02, 0.044)).validate(

@@ -181,6 +181,8 @@ class LigatingLoopConfig(EnvConfig):
             sweep's start, then used as they are: the cavity is then stiffer, 2.5 mm of self-weight sag after 0.5 s and
             1.6 mm after 1 s instead of 12 mm, and the expert's loop no longer closes to the 0.8 target: 0 of 8 CPU
             episodes, so it is not the default).
+        cavity_rotation_iterations: warm-started rotation extraction iterations per tet projection
+            (``World.tet_rotation_iterations``, ``xpbd.extract_rotation``).
         cavity_tet_colors: how the cavity's tets are coloured for the XPBD sweep (``SceneBuilder.finalize``'s
             ``tet_colors``): ``greedy`` (plain greedy colours, what the expert and the learned rows ran on) or
             ``packed`` (for the fused sweep's 32 lanes: 72 passes per sweep instead of 78; another Gauss-Seidel
@@ -223,6 +225,7 @@ class LigatingLoopConfig(EnvConfig):
     cavity_damping: NonNegative = 10.0
     cavity_solver: Literal["xpbd", "vbd"] = "xpbd"
     cavity_rotation_update: Literal["vertex", "sweep"] = "vertex"
+    cavity_rotation_iterations: Annotated[int, Range(ge=1, le=8)] = 2
     cavity_tet_colors: Literal["greedy", "packed"] = "greedy"
     gravity: NonNegative = 0.981
     bank_settle_steps: Annotated[int, Range(ge=1, le=10_000)] = 30
@@ -696,6 +699,7 @@ class LigatingLoopEnv(BatchedEnv):
                                  attachment_capacity=N, tet_colors=cfg.cavity_tet_colors)
         world.tet_method = cfg.cavity_solver
         world.tet_rotation_update = cfg.cavity_rotation_update
+        world.tet_rotation_iterations = cfg.cavity_rotation_iterations
         # the rods' fused sweep (one warp per env) at 64 registers instead of 71: 32 blocks per SM hold 4,096 envs
         # in one wave instead of 1.11 (sm_90; a 16 B spill frame). H200, expert, 4,096 envs, same call as the
         # uncapped step: 80.8k -> 81.1k env-steps/s (benchmarks/RESULTS.md, thirty-sixth session; the CPU
