@@ -192,6 +192,8 @@ class World:
         # rod_block_threads lanes per env) or a launch each
         self.rod_solver = "auto"
         self.rod_block_threads = 32
+        # a substep's prediction of particles and rod segments in one launch (False: a launch each, as before)
+        self.integrate_together = True
         # tets' rotation: warm-started extraction iterations per projection (0 = SVD polar decomposition)
         self.tet_rotation_iterations = 2
         # TET_ROTATION_UPDATES, how a sweep updates its tets' rotations: "vertex" = where it uses them (XPBD: each
@@ -474,7 +476,7 @@ class World:
                self.chain_block_links, self.chain_solver,
                self.chain_pcr_threads, self.chain_pcr_rows, self.chain_lane_rows,
                self.tet_solver, self.tet_block_threads, self.model.attachments_distinct, self.rod_solver,
-               self.rod_block_threads,
+               self.rod_block_threads, self.integrate_together,
                self.tet_method_in_use, self._register_caps_key(),
                *(solver.record_key() for solver in self.solvers if hasattr(solver, "record_key")))
         if self._cmd_key != key:
@@ -593,15 +595,24 @@ class World:
         # them (a solver's record_substep_end would): one launch and one pass over the particles fewer per substep
         fuse = not any(hasattr(solver, "record_substep_end") for solver in self.solvers)
         for sub in range(substeps):
-            if sub > 0 and fuse:
-                launch(xpbd.finish_and_integrate_particles, (n, m.particle_count),
-                       [1.0 / h, m.particle_inv_mass, m.particle_damping, m.gravity, h, *self._prediction_masks(),
-                        s.particle_q, s.particle_qd], [self._q_pred])
+            particle_args = [m.particle_inv_mass, m.particle_damping, m.gravity, h, *self._prediction_masks(),
+                             s.particle_q, s.particle_qd]
+            if m.segment_count and self.integrate_together:
+                # particles and segments in one launch (the same arithmetic on independent elements)
+                both = (n, max(m.particle_count, m.segment_count))
+                segment_args = [m.segment_inv_inertia, m.segment_damping, s.segment_q, s.segment_qd]
+                if sub > 0 and fuse:
+                    launch(xpbd.finish_and_integrate_particles_and_segments, both,
+                           [1.0 / h, *particle_args, self._q_pred, *segment_args], [self._sq_prev])
+                else:
+                    launch(xpbd.integrate_particles_and_segments, both,
+                           [*particle_args, self._q_pred, *segment_args], [self._sq_prev])
+            elif sub > 0 and fuse:
+                launch(xpbd.finish_and_integrate_particles, (n, m.particle_count), [1.0 / h, *particle_args],
+                       [self._q_pred])
             else:
-                launch(xpbd.integrate_particles, (n, m.particle_count),
-                       [m.particle_inv_mass, m.particle_damping, m.gravity, h, *self._prediction_masks(), s.particle_q,
-                        s.particle_qd], [self._q_pred])
-            if m.segment_count:
+                launch(xpbd.integrate_particles, (n, m.particle_count), particle_args, [self._q_pred])
+            if m.segment_count and not self.integrate_together:
                 if sub > 0 and fuse:
                     launch(xpbd.finish_and_integrate_segments, (n, m.segment_count),
                            [1.0 / h, m.segment_inv_inertia, m.segment_damping, h, s.segment_q, s.segment_qd],

@@ -14,7 +14,8 @@
 # 4. ThreadInHole on its new default against b9ad86d (hole_rotation_refresh 1 there; 151.1k -> 159.4k in the quick
 #    lease), its experts (256 first episodes per configuration) and a 10^7-step soak on it;
 # 5. RopeCutting and TissueDissection on their new caps against b9ad86d; RopeThreading; a LigatingLoop profile with
-#    one iteration.
+#    one iteration. Every rod task's new code also predicts its particles and segments in one launch per substep
+#    (World.integrate_together; RopeThreading 99 launches fewer per env step, LigatingLoop 38, ThreadInHole 30).
 # DEVICE (cuda:3), NUM_ENVS (4096), JOBS (next_jobs_gpu3.txt) and DEADLINE (1400) override.
 set -u
 t0=$(date +%s)
@@ -63,6 +64,7 @@ bench rc_old RopeCutting "$old" expert
 bench rc_new RopeCutting "$new" expert
 bench td_old TissueDissection "$old" expert
 bench td_new TissueDissection "$new" expert
+bench rt_old RopeThreading "$old" expert
 bench rt_new RopeThreading "$new" expert
 PYTHONPATH=$new python3 benchmarks/profile_step.py --task LigatingLoop --device "$dev" --num-envs "$n" --steps 5 \
   --warmup 10 --set cavity_rotation_iterations=1 --out "$out/profile_ll_iter1.json" > "$out/profile_ll_iter1.txt" 2>&1

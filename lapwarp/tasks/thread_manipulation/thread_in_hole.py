@@ -157,10 +157,10 @@ class ThreadInHoleConfig(EnvConfig):
             material's stiffness) or ``xpbd`` (one XPBD sweep per substep: the normal hole sags 149 um under its own
             weight against the closed form's 15.6 um at the default substeps; what earlier versions ran).
         hole_rotation_update: how the per-vertex solve updates the hole's tet rotations (``World.tet_rotation_update``):
-            ``sweep`` (once per tet at each sweep's start, used as they are: one rotation extraction per tet and sweep
-            instead of four; the stiff, clamped hole barely turns within a sweep, and its sag matches the closed form
-            either way, tests/test_thread_in_hole.py) or ``vertex`` (every vertex extracts its tets'; earlier
-            versions).
+            ``sweep`` (extracted once per tet at a sweep's start, how often ``hole_rotation_refresh`` says, and used
+            as they are: at most one extraction per tet and sweep instead of four; the stiff, clamped hole barely
+            turns within a physics step, and its sag matches the closed form either way, tests/test_thread_in_hole.py)
+            or ``vertex`` (every vertex extracts its tets' in every sweep; earlier versions).
         hole_rotation_refresh: with ``sweep``, the stored rotations are refreshed at every this-many-th sweep of a
             physics step (its first always; ``World.tet_rotation_refresh``) and used as they are in between. 4 (once
             per physics step at the default substeps): H200, expert, 4,096 envs, same call 151.1k -> 159.4k
