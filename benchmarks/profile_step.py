@@ -8,6 +8,14 @@ scripted expert (``--policy random`` for random actions); after warm-up, ``--ste
 milliseconds per env step, sorted by time. The total is device kernel time only (no launch gaps, no torch ops), so
 it is a lower bound of the graph-replayed step.
 
+    python benchmarks/profile_step.py --task LigatingLoop --profiler torch --graph --out profile.json
+
+``--profiler torch`` times the same steps with PyTorch's profiler instead (CUPTI, through Kineto): every kernel the
+device runs, Warp's and the others (the BVH refits Warp runs in its native library, memsets, torch's operations), and
+with ``--graph`` inside the env's replayed CUDA graph, so the total is the device time of the step as it runs. Rows
+are grouped by kernel name (Warp's kernels keep their names); on the CPU the profiler sees no device work and only the
+wall time is measured.
+
     python benchmarks/profile_step.py --diff touch.json centroid.json
 
 compares two written profiles kernel by kernel (ms per env step and launches of each, the difference), largest
@@ -42,6 +50,16 @@ def kernel_rows(timing_results, count: int) -> list[tuple[str, float, float]]:
     return sorted(((name, n / count, ms / count) for name, (n, ms) in per_kernel.items()), key=lambda row: -row[2])
 
 
+def torch_kernel_rows(events, count: int) -> list[tuple[str, float, float]]:
+    """PyTorch profiler events of device work (kernels, memcpys, memsets) summed by name, as ``kernel_rows``."""
+    per_kernel = collections.defaultdict(lambda: [0, 0.0])
+    for e in events:
+        if e.device_type == torch.autograd.DeviceType.CUDA:
+            per_kernel[e.name][0] += 1
+            per_kernel[e.name][1] += e.time_range.elapsed_us() / 1e3
+    return sorted(((name, n / count, ms / count) for name, (n, ms) in per_kernel.items()), key=lambda row: -row[2])
+
+
 def diff_profiles(first: dict, second: dict, top: int) -> list[tuple[str, float, float, float, float]]:
     """Per kernel name of either profile: (name, ms per step in ``first``, in ``second``, launches per step in each),
     largest absolute difference in ms first; printed with the totals."""
@@ -71,6 +89,11 @@ def main(argv: list[str] | None = None) -> int:
                         help="kernels only, or kernels, memcpys and memsets")
     parser.add_argument("--triangle-sweep", choices=ContactSystem.TRIANGLE_SWEEPS, default=None,
                         help="the contact system's triangle sweep (default: its own)")
+    parser.add_argument("--profiler", choices=["warp", "torch"], default="warp",
+                        help="Warp's kernel timer (its kernels only, no graph) or PyTorch's profiler (every device "
+                             "kernel, also inside a replayed graph)")
+    parser.add_argument("--graph", action="store_true",
+                        help="with --profiler torch: replay the env's CUDA graph (Warp's timer sees no graph kernels)")
     parser.add_argument("--top", type=positive_int, default=25, help="kernels printed")
     parser.add_argument("--out", default=None)
     parser.add_argument("--diff", nargs=2, default=None, metavar=("FIRST", "SECOND"),
@@ -85,13 +108,15 @@ def main(argv: list[str] | None = None) -> int:
             parser.error("--diff needs two profile JSON files written by --out (with a 'kernels' list)")
         diff_profiles(first, second, args.top)
         return 0
+    if args.graph and args.profiler != "torch":
+        parser.error("--graph needs --profiler torch (Warp's kernel timer does not see into a replayed graph)")
     wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)
     try:
         overrides = {"invalid_actions": "zero", **parse_overrides(args.set)}  # no host sync unless asked for
         lapwarp.check_config(args.task, **overrides)
     except ValueError as exc:
         parser.error(str(exc))
-    env = lapwarp.make(args.task, num_envs=args.num_envs, device=args.device, use_cuda_graph=False, **overrides)
+    env = lapwarp.make(args.task, num_envs=args.num_envs, device=args.device, use_cuda_graph=args.graph, **overrides)
     apply_contact_settings(env, triangle_sweep=args.triangle_sweep)
     if args.policy == "expert":
         expert = make_expert(env)
@@ -111,23 +136,37 @@ def main(argv: list[str] | None = None) -> int:
     cuda_filter = wp.TIMING_KERNEL if args.timing == "kernel" else wp.TIMING_ALL
     wp.synchronize_device(env.wp_device)
     start = time.perf_counter()
-    with wp.ScopedTimer("profile", cuda_filter=cuda_filter, print=False, synchronize=True) as timer:
-        for a in actions:
-            env.step(a)
-    wall_ms = 1e3 * (time.perf_counter() - start) / args.steps
-    rows = kernel_rows(timer.timing_results, args.steps)
+    if args.profiler == "torch":
+        from torch.profiler import ProfilerActivity, profile
+
+        activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if env.wp_device.is_cuda else [])
+        with profile(activities=activities) as prof:
+            for a in actions:
+                env.step(a)
+            wp.synchronize_device(env.wp_device)
+        wall_ms = 1e3 * (time.perf_counter() - start) / args.steps
+        rows = torch_kernel_rows(prof.events(), args.steps)
+    else:
+        with wp.ScopedTimer("profile", cuda_filter=cuda_filter, print=False, synchronize=True) as timer:
+            for a in actions:
+                env.step(a)
+        wall_ms = 1e3 * (time.perf_counter() - start) / args.steps
+        rows = kernel_rows(timer.timing_results, args.steps)
     total = sum(row[2] for row in rows)
     if not env.wp_device.is_cuda:
-        print("note: Warp records kernel times only on CUDA devices; on the CPU only the wall time is measured")
+        print(f"note: {'PyTorch' if args.profiler == 'torch' else 'Warp'} records device times only on CUDA devices; "
+              f"on the CPU only the wall time is measured")
+    regime = ("graph replayed" if args.graph else "no graph") + f", {args.profiler} profiler"
     print(f"{args.task}, {args.num_envs} envs: {total:.3f} ms kernel time per env step, "
-          f"{sum(row[1] for row in rows):.0f} launches; {wall_ms:.3f} ms wall per step (no graph, profiled)")
+          f"{sum(row[1] for row in rows):.0f} launches; {wall_ms:.3f} ms wall per step ({regime})")
     for name, launches, ms in rows[: args.top]:
         print(f"  {ms:8.3f} ms {100 * ms / total:5.1f}%  {launches:6.0f} x  {name}")
     if args.out:
         with open(args.out, "w") as f:
             json.dump({"task": args.task, "num_envs": args.num_envs, "steps": args.steps, "policy": args.policy,
                        "overrides": overrides, "kernel_ms_per_step": total, "warmup": args.warmup,
-                       "timing": args.timing, "profiled_wall_ms_per_step": wall_ms,
+                       "timing": args.timing, "profiled_wall_ms_per_step": wall_ms, "profiler": args.profiler,
+                       "graph": args.graph,
                        "device_name": (torch.cuda.get_device_name(torch.device(args.device))
                                        if env.wp_device.is_cuda else "cpu"),
                        "kernels": [{"name": n, "launches_per_step": k, "ms_per_step": t} for n, k, t in rows]},

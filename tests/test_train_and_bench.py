@@ -196,6 +196,25 @@ def test_profile_step_records_warmup_timing_and_wall(device, tmp_path):
     assert report["warmup"] == 1 and report["timing"] == "all" and report["profiled_wall_ms_per_step"] > 0
 
 
+def test_profile_step_with_torch_profiler(device, tmp_path, capsys):
+    """``--profiler torch`` (with ``--graph`` where the device has graphs) runs the steps under PyTorch's profiler and
+    writes the same report; on the CPU it sees no device kernels (rows empty, the wall time measured); ``--graph``
+    without it is a usage error."""
+    out = tmp_path / "profile.json"
+    graph = ["--graph"] if device.startswith("cuda") else []
+    assert profile_step.main(["--device", device, "--task", "Reach", "--num-envs", "2", "--steps", "2", "--warmup",
+                              "1", "--policy", "random", "--profiler", "torch", *graph, "--out", str(out)]) == 0
+    report = json.loads(out.read_text())
+    assert report["profiler"] == "torch" and report["graph"] == bool(graph) and report["profiled_wall_ms_per_step"] > 0
+    if device.startswith("cuda"):
+        assert report["kernel_ms_per_step"] > 0 and report["kernels"]
+    else:
+        assert report["kernels"] == [] and "only the wall time" in capsys.readouterr().out
+    with pytest.raises(SystemExit):
+        profile_step.main(["--task", "Reach", "--graph"])
+    assert "--graph needs --profiler torch" in capsys.readouterr().err
+
+
 def test_profile_step_diff_compares_two_profiles_kernel_by_kernel(tmp_path, capsys):
     def profile(path, kernels):
         path.write_text(json.dumps({"kernel_ms_per_step": sum(k[2] for k in kernels), "kernels": [

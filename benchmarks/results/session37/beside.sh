@@ -15,7 +15,9 @@
 #    lease), its experts (256 first episodes per configuration) and a 10^7-step soak on it;
 # 5. RopeCutting and TissueDissection on their new caps against b9ad86d; RopeThreading; a LigatingLoop profile with
 #    one iteration. Every rod task's new code also predicts its particles and segments in one launch per substep
-#    (World.integrate_together; RopeThreading 99 launches fewer per env step, LigatingLoop 38, ThreadInHole 30).
+#    (World.integrate_together; RopeThreading 99 launches fewer per env step, LigatingLoop 38, ThreadInHole 30);
+# 6. PyTorch's profiler over LigatingLoop's and RopeThreading's replayed graphs (profile_step.py --profiler torch
+#    --graph): every device kernel, Warp's native BVH refits and memsets included.
 # DEVICE (cuda:3), NUM_ENVS (4096), JOBS (next_jobs_gpu3.txt) and DEADLINE (1400) override.
 set -u
 t0=$(date +%s)
@@ -69,6 +71,14 @@ bench rt_new RopeThreading "$new" expert
 PYTHONPATH=$new python3 benchmarks/profile_step.py --task LigatingLoop --device "$dev" --num-envs "$n" --steps 5 \
   --warmup 10 --set cavity_rotation_iterations=1 --out "$out/profile_ll_iter1.json" > "$out/profile_ll_iter1.txt" 2>&1
 echo "profile_ll_iter1 rc=$? $(head -1 "$out/profile_ll_iter1.txt")"
+# every device kernel of the replayed graph (PyTorch's profiler): where LigatingLoop's 45.8 ms step spends the ~6 ms
+# that Warp's kernel timer (39.4 ms) does not see; RopeThreading's the same way
+for task in LigatingLoop RopeThreading; do
+  PYTHONPATH=$new timeout 240 python3 benchmarks/profile_step.py --task "$task" --device "$dev" --num-envs "$n" \
+    --steps 5 --warmup 10 --profiler torch --graph --top 40 --out "$out/tprofile_$task.json" \
+    > "$out/tprofile_$task.txt" 2>&1
+  echo "tprofile_$task rc=$? $(head -1 "$out/tprofile_$task.txt")"
+done
 jobs=${JOBS:-$d/next_jobs_gpu3.txt}
 grep -qv '^#' "$jobs" || { echo "no jobs in $jobs"; exit 0; }
 left=$((${DEADLINE:-1400} + t0 - $(date +%s)))
