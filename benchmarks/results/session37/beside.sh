@@ -49,6 +49,11 @@ bench ll_new_again LigatingLoop "$new" expert
 bench ll_iter1_replay LigatingLoop "$new" replay --replay-steps 150 --set cavity_rotation_iterations=1
 bench tih_old ThreadInHole "$old" expert
 bench tih_new ThreadInHole "$new" expert
+# its thread's chain solve (8.9 % of its kernels: one thread per env walks 12-20 links, one warp per SM) on the other
+# solves (never timed on ThreadInHole): registers (RopeCutting's), pcr packs (LigatingLoop's), hybrid (RopeThreading's)
+bench tih_registers ThreadInHole "$new" expert --set chain_solver='"registers"'
+bench tih_pcr ThreadInHole "$new" expert --set chain_solver='"pcr"'
+bench tih_hybrid ThreadInHole "$new" expert --set chain_solver='"hybrid"'
 PYTHONPATH=$new timeout 480 python3 benchmarks/expert_success.py --task LigatingLoop --device "$dev" --num-envs 256 \
   --action-types CONTINUOUS --config loop_stiffness=stiff --config loop_stiffness=soft \
   --config loop_stiffness=stiff cavity_tet_colors=packed --config loop_stiffness=soft cavity_tet_colors=packed \
