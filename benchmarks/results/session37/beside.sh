@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # The GPU beside the next lease's learning queue (queue.sh's BESIDE; x4: GPU 3, x2: GPU 1 with DEVICE=cuda:1),
-# ~15 min of checks in order of need, then the learning queue JOBS until DEADLINE seconds after this script started.
+# ~20 min of checks in order of need, then the learning queue JOBS until DEADLINE seconds after this script started.
 # OLD (the thirty-seventh session's lease code, b9ad86d, carried as .device/small/old; queue.sh now copies it next to
 # the code this runs from) against the new code, same call:
 # 1. GPU tests of the thirty-seventh session's changes: ThreadInHole (its hole's rotations refreshed once per physics
