@@ -16,6 +16,7 @@
 # 5. RopeCutting and TissueDissection on their new caps against b9ad86d; RopeThreading; a LigatingLoop profile with
 #    one iteration. Every rod task's new code also predicts its particles and segments in one launch per substep
 #    (World.integrate_together; RopeThreading 99 launches fewer per env step, LigatingLoop 38, ThreadInHole 30);
+#    The serial chain walk (PrecisionCutting's cloth, ThreadInHole's thread) loads a link's new node one link ahead.
 # 6. PyTorch's profiler over LigatingLoop's and RopeThreading's replayed graphs (profile_step.py --profiler torch
 #    --graph): every device kernel, Warp's native BVH refits and memsets included.
 # DEVICE (cuda:3), NUM_ENVS (4096), JOBS (next_jobs_gpu3.txt) and DEADLINE (1400) override.
@@ -73,6 +74,10 @@ bench td_old TissueDissection "$old" expert
 bench td_new TissueDissection "$new" expert
 bench rt_old RopeThreading "$old" expert
 bench rt_new RopeThreading "$new" expert
+# the serial chain walk loading each link's new node one link ahead (software pipelining; PrecisionCutting's cloth
+# spends ~80 % of its step in it, ThreadInHole's thread 8.9 %)
+bench pc_old PrecisionCutting "$old" expert
+bench pc_new PrecisionCutting "$new" expert
 PYTHONPATH=$new python3 benchmarks/profile_step.py --task LigatingLoop --device "$dev" --num-envs "$n" --steps 5 \
   --warmup 10 --set cavity_rotation_iterations=1 --out "$out/profile_ll_iter1.json" > "$out/profile_ll_iter1.txt" 2>&1
 echo "profile_ll_iter1 rc=$? $(head -1 "$out/profile_ll_iter1.txt")"
