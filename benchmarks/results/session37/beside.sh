@@ -78,6 +78,10 @@ bench rt_new RopeThreading "$new" expert
 # spends ~80 % of its step in it, ThreadInHole's thread 8.9 %)
 bench pc_old PrecisionCutting "$old" expert
 bench pc_new PrecisionCutting "$new" expert
+# (sm_90: the cloth's walk at its cap of 96 spills 336 B instead of 192 with the lookahead; uncapped 188 registers
+# instead of 152)
+bench pc_new_cap128 PrecisionCutting "$new" expert --max-registers solve_chains=128
+bench pc_new_cap160 PrecisionCutting "$new" expert --max-registers solve_chains=160
 PYTHONPATH=$new python3 benchmarks/profile_step.py --task LigatingLoop --device "$dev" --num-envs "$n" --steps 5 \
   --warmup 10 --set cavity_rotation_iterations=1 --out "$out/profile_ll_iter1.json" > "$out/profile_ll_iter1.txt" 2>&1
 echo "profile_ll_iter1 rc=$? $(head -1 "$out/profile_ll_iter1.txt")"
