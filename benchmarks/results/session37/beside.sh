@@ -55,6 +55,14 @@ bench tih_new ThreadInHole "$new" expert
 bench tih_registers ThreadInHole "$new" expert --set chain_solver='"registers"'
 bench tih_pcr ThreadInHole "$new" expert --set chain_solver='"pcr"'
 bench tih_hybrid ThreadInHole "$new" expert --set chain_solver='"hybrid"'
+# the serial chain walk loading each link's new node one link ahead (software pipelining; PrecisionCutting's cloth
+# spends ~80 % of its step in it, ThreadInHole's thread 8.9 %)
+bench pc_old PrecisionCutting "$old" expert
+bench pc_new PrecisionCutting "$new" expert
+# (sm_90: the cloth's walk at its cap of 96 spills 336 B instead of 192 with the lookahead; uncapped 188 registers
+# instead of 152)
+bench pc_new_cap128 PrecisionCutting "$new" expert --max-registers solve_chains=128
+bench pc_new_cap160 PrecisionCutting "$new" expert --max-registers solve_chains=160
 PYTHONPATH=$new timeout 480 python3 benchmarks/expert_success.py --task LigatingLoop --device "$dev" --num-envs 256 \
   --action-types CONTINUOUS --config loop_stiffness=stiff --config loop_stiffness=soft \
   --config loop_stiffness=stiff cavity_tet_colors=packed --config loop_stiffness=soft cavity_tet_colors=packed \
@@ -74,14 +82,6 @@ bench td_old TissueDissection "$old" expert
 bench td_new TissueDissection "$new" expert
 bench rt_old RopeThreading "$old" expert
 bench rt_new RopeThreading "$new" expert
-# the serial chain walk loading each link's new node one link ahead (software pipelining; PrecisionCutting's cloth
-# spends ~80 % of its step in it, ThreadInHole's thread 8.9 %)
-bench pc_old PrecisionCutting "$old" expert
-bench pc_new PrecisionCutting "$new" expert
-# (sm_90: the cloth's walk at its cap of 96 spills 336 B instead of 192 with the lookahead; uncapped 188 registers
-# instead of 152)
-bench pc_new_cap128 PrecisionCutting "$new" expert --max-registers solve_chains=128
-bench pc_new_cap160 PrecisionCutting "$new" expert --max-registers solve_chains=160
 PYTHONPATH=$new python3 benchmarks/profile_step.py --task LigatingLoop --device "$dev" --num-envs "$n" --steps 5 \
   --warmup 10 --set cavity_rotation_iterations=1 --out "$out/profile_ll_iter1.json" > "$out/profile_ll_iter1.txt" 2>&1
 echo "profile_ll_iter1 rc=$? $(head -1 "$out/profile_ll_iter1.txt")"
