@@ -12,11 +12,12 @@
 # 3. LigatingLoop's expert (256 first episodes, stiff and soft) on the default, the packed colours and one iteration
 #    (the packed colours' GPU expert did not run last time: each --config was one quoted word);
 # 4. ThreadInHole on its new default against b9ad86d (hole_rotation_refresh 1 there; 151.1k -> 159.4k in the quick
-#    lease), its experts (256 first episodes per configuration) and a 10^7-step soak on it;
-# 5. RopeCutting and TissueDissection on their new caps against b9ad86d; RopeThreading; a LigatingLoop profile with
-#    one iteration. Every rod task's new code also predicts its particles and segments in one launch per substep
-#    (World.integrate_together; RopeThreading 99 launches fewer per env step, LigatingLoop 38, ThreadInHole 30);
-#    The serial chain walk (PrecisionCutting's cloth, ThreadInHole's thread) loads a link's new node one link ahead.
+#    lease) and on the other chain solves, its experts (256 first episodes per configuration) and a 10^7-step soak;
+#    PrecisionCutting against b9ad86d (the serial chain walk, ~80 % of its step, loads a link's new node one link
+#    ahead), also at register caps 128 / 160 (timed before the experts);
+# 5. RopeCutting and TissueDissection on their new caps against b9ad86d; RopeThreading against b9ad86d; a LigatingLoop
+#    profile with one iteration. Every rod task's new code also predicts its particles and segments in one launch per
+#    substep (World.integrate_together; RopeThreading 99 launches fewer per env step, LigatingLoop 38, ThreadInHole 30).
 # 6. PyTorch's profiler over LigatingLoop's and RopeThreading's replayed graphs (profile_step.py --profiler torch
 #    --graph): every device kernel, Warp's native BVH refits and memsets included.
 # DEVICE (cuda:3), NUM_ENVS (4096), JOBS (next_jobs_gpu3.txt) and DEADLINE (1400) override.
