@@ -9,8 +9,9 @@
 #    one rotation extraction iteration per projection (cavity_rotation_iterations=1: the sweep is bound by its
 #    instruction issue; CPU: sag 12.33 against 12.57 mm, expert stiff / soft 8 / 8 each, soft mean length 98 against
 #    132), the packed colours, both; the step replayed on the best;
-# 3. LigatingLoop's expert (256 first episodes, stiff and soft) on the default, the packed colours and one iteration
-#    (the packed colours' GPU expert did not run last time: each --config was one quoted word);
+# 3. LigatingLoop's expert (256 first episodes, stiff and soft) on the default, the packed colours, one iteration and
+#    both (the packed colours' GPU expert did not run last time: each --config was one quoted word; CPU, 8 first
+#    episodes: packed 8 / 6, one iteration 8 / 8, both 8 / 7, stiff / soft);
 # 4. ThreadInHole on its new default against b9ad86d (hole_rotation_refresh 1 there; 151.1k -> 159.4k in the quick
 #    lease) and on the other chain solves, its experts (256 first episodes per configuration) and a 10^7-step soak;
 #    PrecisionCutting against b9ad86d (the serial chain walk, ~80 % of its step, loads a link's new node one link
@@ -68,6 +69,8 @@ PYTHONPATH=$new timeout 480 python3 benchmarks/expert_success.py --task Ligating
   --action-types CONTINUOUS --config loop_stiffness=stiff --config loop_stiffness=soft \
   --config loop_stiffness=stiff cavity_tet_colors=packed --config loop_stiffness=soft cavity_tet_colors=packed \
   --config loop_stiffness=stiff cavity_rotation_iterations=1 --config loop_stiffness=soft cavity_rotation_iterations=1 \
+  --config loop_stiffness=stiff cavity_tet_colors=packed cavity_rotation_iterations=1 \
+  --config loop_stiffness=soft cavity_tet_colors=packed cavity_rotation_iterations=1 \
   --out "$out/expert_ll.jsonl" > "$out/expert_ll.txt" 2>&1
 echo "expert_ll rc=$? $(grep -o '"success_rate": [0-9.]*' "$out/expert_ll.jsonl" | tr '\n' ' ')"
 PYTHONPATH=$new timeout 300 python3 benchmarks/expert_success.py --task ThreadInHole --device "$dev" --num-envs 256 \
