@@ -601,12 +601,8 @@ class World:
                 # particles and segments in one launch (the same arithmetic on independent elements)
                 both = (n, max(m.particle_count, m.segment_count))
                 segment_args = [m.segment_inv_inertia, m.segment_damping, s.segment_q, s.segment_qd]
-                if sub > 0 and fuse:
-                    launch(xpbd.finish_and_integrate_particles_and_segments, both,
-                           [1.0 / h, *particle_args, self._q_pred, *segment_args], [self._sq_prev])
-                else:
-                    launch(xpbd.integrate_particles_and_segments, both,
-                           [*particle_args, self._q_pred, *segment_args], [self._sq_prev])
+                launch(xpbd.integrate_particles_and_segments, both,
+                       [int(sub > 0 and fuse), 1.0 / h, *particle_args, self._q_pred, *segment_args], [self._sq_prev])
             elif sub > 0 and fuse:
                 launch(xpbd.finish_and_integrate_particles, (n, m.particle_count), [1.0 / h, *particle_args],
                        [self._q_pred])

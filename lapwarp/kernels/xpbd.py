@@ -888,36 +888,7 @@ def update_segment_velocities(
 
 @wp.kernel
 def integrate_particles_and_segments(
-    inv_mass: wp.array2d(dtype=float),
-    damping: wp.array2d(dtype=float),
-    gravity: wp.vec3,
-    dt: float,
-    active: wp.array2d(dtype=wp.int32),
-    use_active: int,
-    force: wp.array2d(dtype=wp.vec3),
-    use_force: int,
-    q: wp.array2d(dtype=wp.vec3),
-    qd: wp.array2d(dtype=wp.vec3),
-    q_pred_out: wp.array2d(dtype=wp.vec3),
-    inv_inertia: wp.array2d(dtype=float),
-    segment_damping: wp.array2d(dtype=float),
-    sq: wp.array2d(dtype=wp.quat),
-    sqd: wp.array2d(dtype=wp.vec3),
-    sq_prev_out: wp.array2d(dtype=wp.quat),
-):
-    """``integrate_particles`` and ``integrate_segments`` in one launch over ``max(particles, segments)`` threads
-    per env (thread ``k`` takes particle ``k`` and segment ``k`` where they exist): the same arithmetic on independent
-    elements, one launch fewer per world step in a scene with rods."""
-    env, k = wp.tid()
-    if k < q.shape[1]:
-        integrate_particle(env, k, qd[env, k], inv_mass, damping, gravity, dt, active, use_active, force, use_force, q,
-                           qd, q_pred_out)
-    if k < sq.shape[1]:
-        integrate_segment(env, k, sqd[env, k], inv_inertia, segment_damping, dt, sq, sqd, sq_prev_out)
-
-
-@wp.kernel
-def finish_and_integrate_particles_and_segments(
+    finish: int,
     inv_dt_prev: float,
     inv_mass: wp.array2d(dtype=float),
     damping: wp.array2d(dtype=float),
@@ -936,16 +907,22 @@ def finish_and_integrate_particles_and_segments(
     sqd: wp.array2d(dtype=wp.vec3),
     sq_prev_out: wp.array2d(dtype=wp.quat),
 ):
-    """``finish_and_integrate_particles`` and ``finish_and_integrate_segments`` in one launch (as
-    ``integrate_particles_and_segments``): one launch fewer per substep in a scene with rods (RopeThreading: 99 per
-    env step)."""
+    """``integrate_particles`` and ``integrate_segments`` in one launch over ``max(particles, segments)`` threads
+    per env (thread ``k`` takes particle ``k`` and segment ``k`` where they exist), with ``finish`` != 0 as
+    ``finish_and_integrate_particles`` / ``_segments`` (the substep before's velocity update, ``inv_dt_prev``, first):
+    the same arithmetic on independent elements, one launch fewer per substep in a scene with rods (RopeThreading: 99
+    per env step)."""
     env, k = wp.tid()
     if k < q.shape[1]:
-        v_old = qd[env, k] + (q[env, k] - q_pred_out[env, k]) * inv_dt_prev
+        v_old = qd[env, k]
+        if finish != 0:
+            v_old = v_old + (q[env, k] - q_pred_out[env, k]) * inv_dt_prev
         integrate_particle(env, k, v_old, inv_mass, damping, gravity, dt, active, use_active, force, use_force, q, qd,
                            q_pred_out)
     if k < sq.shape[1]:
-        om_old = segment_velocity(sq[env, k], sq_prev_out[env, k], inv_dt_prev)
+        om_old = sqd[env, k]
+        if finish != 0:
+            om_old = segment_velocity(sq[env, k], sq_prev_out[env, k], inv_dt_prev)
         integrate_segment(env, k, om_old, inv_inertia, segment_damping, dt, sq, sqd, sq_prev_out)
 
 
