@@ -248,3 +248,62 @@ def pack_chains(cs: ChainSet, capacity: int, device) -> ChainPacks:
     return ChainPacks(rows=arr(flat, wp.vec3i), pack_start=arr(starts), pack_rows=arr(counts),
                       pack_closed=arr(closed_flags), families=families, max_rows=max(counts, default=1),
                       capacity=int(capacity))
+
+
+@dataclass
+class SharedChainLayout:
+    """A chain set laid out for the shared-memory solve (``kernels/chains_shared.py``): its nodes numbered within the
+    set, in the padded shared slots the kernel keeps them in.
+
+    Attributes:
+        particles: ``(nodes,)`` int32 global particle of the set's ``t``-th node (ascending).
+        slot: int32 shared slot of every node slot of the set (``ChainSet.node``'s layout; padding slots 0).
+        family_first, family_count, family_link_base, family_node_base: int32 per family (``ChainSet.families``).
+        node_slots: shared slots the nodes take (padding included); longest: the longest chain's links.
+    """
+
+    particles: wp.array
+    slot: wp.array
+    family_first: wp.array
+    family_count: wp.array
+    family_link_base: wp.array
+    family_node_base: wp.array
+    node_slots: int
+    longest: int
+
+    def shared_bytes(self, lanes: int) -> int:
+        """Shared memory of one block of ``lanes`` lanes: 16 B per node slot and per scratch slot."""
+        return 16 * (self.node_slots + (self.longest + 1) * lanes)
+
+
+def shared_chain_layout(cs: ChainSet, device) -> SharedChainLayout | None:
+    """The shared-memory layout of ``cs``, or None where that solve does not take it: a closed chain (a loop's
+    Sherman-Morrison form is the serial kernel's alone) or a family not stored longest first (its lanes loop to the
+    first chain's length of each round)."""
+    from lapwarp.kernels.chains_shared import padded_slot
+
+    if cs is None or cs.count == 0 or cs.closed_host.any():
+        return None
+    used = []
+    for first, count, _, node_base in cs.families:
+        lengths = cs.lengths[first:first + count]
+        if np.any(np.diff(lengths) > 0):
+            return None
+        for i in range(count):
+            used.append(cs.node_host[node_base + i + count * np.arange(int(lengths[i]) + 1)])
+    particles = np.unique(np.concatenate(used))
+    local = {int(p): t for t, p in enumerate(particles)}
+    slot = np.zeros(len(cs.node_host), np.int32)
+    for first, count, _, node_base in cs.families:
+        for i in range(count):
+            idx = node_base + i + count * np.arange(int(cs.lengths[first + i]) + 1)
+            slot[idx] = [padded_slot(local[int(p)]) for p in cs.node_host[idx]]
+
+    def arr(values):
+        return wp.array(np.asarray(values, dtype=np.int32), dtype=wp.int32, device=device)
+
+    fam = np.asarray(cs.families, dtype=np.int64).reshape(-1, 4)
+    return SharedChainLayout(particles=arr(particles), slot=arr(slot), family_first=arr(fam[:, 0]),
+                             family_count=arr(fam[:, 1]), family_link_base=arr(fam[:, 2]),
+                             family_node_base=arr(fam[:, 3]), node_slots=padded_slot(len(particles) - 1) + 1,
+                             longest=int(cs.lengths.max()))
