@@ -91,8 +91,7 @@ def bench_one(task: str, num_envs: int, device: str, seconds: float, invalid_act
               surface_refit_interval: int | None = None, triangle_sweep: str | None = None,
               triangle_block_threads: int | None = None, replay_steps: int = 600,
               max_registers: dict[str, int] | None = None, pcr_rows: int | None = None,
-              rod_solver: str | None = None, lane_rows: int | None = None,
-              chain_lanes: int | None = None) -> dict:
+              rod_solver: str | None = None, lane_rows: int | None = None) -> dict:
     def make_env():
         env = lapwarp.make(task, num_envs=num_envs, device=device, invalid_actions=invalid_actions,
                            use_cuda_graph=cuda_graph, **overrides)
@@ -104,8 +103,6 @@ def bench_one(task: str, num_envs: int, device: str, seconds: float, invalid_act
             env.world.chain_pcr_rows = pcr_rows
         if lane_rows is not None:
             env.world.chain_lane_rows = lane_rows
-        if chain_lanes is not None:
-            env.world.chain_shared_lanes = chain_lanes
         if rod_solver is not None:
             env.world.rod_solver = rod_solver
         apply_contact_settings(env, surface_refit_interval, triangle_sweep, triangle_block_threads)
@@ -171,7 +168,6 @@ def bench_one(task: str, num_envs: int, device: str, seconds: float, invalid_act
         "rod_solver": env.world.rod_solver if env.world.model.segment_count else None,
         "chain_pcr_rows": env.world.chain_pcr_rows if env.world.chain_solver in ("pcr", "hybrid") else None,
         "chain_lane_rows": env.world.chain_lane_rows if env.world.chain_solver == "hybrid" else None,
-        "chain_shared_lanes": (env.world.chain_shared_lanes if env.world.chain_solver == "shared" else None),
     }
     env.close()
     return result
@@ -212,9 +208,6 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--lane-rows", type=positive_int, default=None,
                         help="rows per lane of the 'hybrid' chain solve (--set chain_solver=hybrid; default: the "
                              "world's)")
-    parser.add_argument("--chain-lanes", type=positive_int, default=None,
-                        help="lanes per env's block of the 'shared' chain solve (--set chain_solver=shared; default: "
-                             "the world's)")
     parser.add_argument("--rod-solver", choices=list(ROD_SOLVERS), default=None,
                         help="the world's rod sweep: one launch per colour or all colours in one (default: its own)")
     parser.add_argument("--no-graph", action="store_true",
@@ -245,7 +238,7 @@ def main(argv: list[str] | None = None) -> int:
                           cuda_graph=not args.no_graph, surface_refit_interval=args.surface_refit_interval,
                           triangle_sweep=args.triangle_sweep, triangle_block_threads=args.triangle_block_threads,
                           replay_steps=args.replay_steps, max_registers=max_registers, pcr_rows=args.pcr_rows,
-                          rod_solver=args.rod_solver, lane_rows=args.lane_rows, chain_lanes=args.chain_lanes)
+                          rod_solver=args.rod_solver, lane_rows=args.lane_rows)
             results.append(r)
             print(f"{r['task']:<10} {n:>9} {mode:>8} {r['env_steps_per_s']:>14,.0f} {r['step_ms']:>9.3f}", flush=True)
     regime = "the expert's recorded actions replayed" if args.policy == "replay" else f"{args.policy} actions"

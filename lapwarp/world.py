@@ -28,7 +28,7 @@ import warp as wp
 
 from lapwarp import launching
 from lapwarp.builder import TET_BLOCK_LANES
-from lapwarp.chains import pack_chains, shared_chain_layout
+from lapwarp.chains import pack_chains
 from lapwarp.config import check_seed, rng_seed32
 from lapwarp.kernels import (
     chains,
@@ -36,7 +36,6 @@ from lapwarp.kernels import (
     chains_hybrid,
     chains_partitioned,
     chains_registers,
-    chains_shared,
     geodesic,
     world_kernels,
 )
@@ -61,10 +60,8 @@ TET_ROTATION_UPDATES = ("vertex", "sweep")
 #: memory (kernels/chains_block.py), "hybrid" = the same packs, each lane ``chain_lane_rows`` consecutive rows
 #: eliminated in registers and PCR over one interface row per lane (kernels/chains_hybrid.py), "registers" = the serial
 #: walk's thread per chain with the whole chain in registers (kernels/chains_registers.py; families of open chains of
-#: at most chains_registers.MAX_LINKS links, the serial walk elsewhere), "shared" = a thread block per env walks every
-#: family of a chain set in turn with the set's nodes in shared memory, one launch per sweep
-#: (kernels/chains_shared.py; sets of open chains, the serial walk elsewhere; bit-identical to "thomas" on the CPU)
-CHAIN_SOLVERS = ("thomas", "pcr", "hybrid", "registers", "shared")
+#: at most chains_registers.MAX_LINKS links, the serial walk elsewhere)
+CHAIN_SOLVERS = ("thomas", "pcr", "hybrid", "registers")
 #: the longest chain (links) the "pcr" solve takes: its block keeps ~33 floats per row in shared memory (~34 KB)
 PCR_MAX_LINKS = 256
 #: rows of the "pcr" solve's packs by default: the open chains of a family laid end to end in blocks of up to this
@@ -188,8 +185,6 @@ class World:
         # block: chain_pcr_threads (0 = the largest pack's rows rounded up to a warp, at most 128)
         self.chain_solver = "thomas"
         self.chain_pcr_threads = 0
-        # "shared": lanes per env's block (each walks the family's chains i, i + lanes, ..)
-        self.chain_shared_lanes = 64
         # "hybrid": rows per lane (compile-time, unrolled in registers); the lanes follow from the largest pack
         self.chain_lane_rows = 4
         self._chain_pcr_rows = 0
@@ -277,10 +272,6 @@ class World:
         # device arrays are copied from the host, which a step recorded inside a CUDA graph capture must not do
         self._packs = {}
         self._lay_out_chain_packs()
-        # the shared-memory solve's layout per chain set (None: a set it does not take), laid out here for the same
-        # reason
-        self._shared_layouts = {id(cs): shared_chain_layout(cs, dev) for cs in (m.rod_chains, m.edge_chains)
-                                if cs is not None and cs.count}
         if self.state.body_q is not None:
             self._body_q_prev = wp.clone(self.state.body_q)
         self._dummy_f = wp.zeros((1, 1), dtype=float, device=dev)
@@ -343,22 +334,6 @@ class World:
                              f"1: a chain per block), got {rows!r}")
         self._chain_pcr_rows = int(rows)
         self._lay_out_chain_packs()
-
-    def _check_shared_chains(self) -> None:
-        """``ValueError`` where the "shared" chain solve cannot run this scene: lanes out of range, or a chain set's
-        block larger than the device's shared memory per block."""
-        lanes = self.chain_shared_lanes
-        if isinstance(lanes, bool) or not isinstance(lanes, (int, np.integer)) or not 1 <= lanes <= 1024:
-            raise ValueError(f"world.chain_shared_lanes must be an int in [1, 1024], got {lanes!r}")
-        if not self.device.is_cuda:
-            return
-        limit = self.device.max_shared_memory_per_block
-        for layout in self._shared_layouts.values():
-            if layout is not None and layout.shared_bytes(int(lanes)) > limit:
-                raise ValueError(f"world.chain_solver 'shared' keeps a chain set's {layout.node_slots} node slots and "
-                                 f"{layout.longest + 1} scratch slots per lane in shared memory: "
-                                 f"{layout.shared_bytes(int(lanes))} B at {lanes} lanes, more than this device's "
-                                 f"{limit} B per block; use fewer lanes or 'thomas'")
 
     def _lay_out_chain_packs(self) -> None:
         capacity = self._chain_pcr_rows or PCR_PACK_ROWS
@@ -499,7 +474,7 @@ class World:
         key = (float(dt), self.substeps_for(float(dt)), self.iterations, self.rod_newton_steps, self.chain_newton_steps,
                self.tet_rotation_iterations, self.tet_rotation_update, self.tet_rotation_refresh,
                self.chain_block_links, self.chain_solver,
-               self.chain_pcr_threads, self.chain_pcr_rows, self.chain_lane_rows, self.chain_shared_lanes,
+               self.chain_pcr_threads, self.chain_pcr_rows, self.chain_lane_rows,
                self.tet_solver, self.tet_block_threads, self.model.attachments_distinct, self.rod_solver,
                self.rod_block_threads, self.integrate_together,
                self.tet_method_in_use, self._register_caps_key(),
@@ -540,8 +515,6 @@ class World:
                     raise ValueError(f"world.chain_solver {self.chain_solver!r} keeps a chain in one block: this "
                                      f"scene's longest chain has {longest} links, more than {PCR_MAX_LINKS}; use "
                                      f"'thomas'")
-            if self.chain_solver == "shared":
-                self._check_shared_chains()
             if not 0 <= int(self.chain_pcr_threads) <= 1024:
                 raise ValueError(f"world.chain_pcr_threads must be in [0, 1024] (0: automatic), got "
                                  f"{self.chain_pcr_threads!r}")
@@ -705,21 +678,6 @@ class World:
                            [pack_base, packs.pack_start, packs.pack_rows, packs.pack_closed, packs.rows, rest,
                             compliance, w_eff, inv_dt2, use_lam, newton_steps, lam_arr, mask],
                            [s.particle_q], block_dim=lanes)
-                return
-            layout = self._shared_layouts.get(id(cs)) if self.chain_solver == "shared" else None
-            if layout is not None:
-                # every family in one launch, a block per env with the set's nodes in shared memory
-                # on the CPU one lane walks every chain in order, or the lanes as Warp's cooperative fibers where
-                # wp.config.enable_cpu_blocks is set (the GPU's rounds and barriers: tests/test_chains_shared.py)
-                lanes = int(self.chain_shared_lanes)
-                if not self.device.is_cuda and not wp.config.enable_cpu_blocks:
-                    lanes = 1
-                kernel = chains_shared.shared_chain_kernel(layout.node_slots, (layout.longest + 1) * lanes)
-                launch(kernel, (n, lanes),
-                       [len(cs.families), layout.family_first, layout.family_count, layout.family_link_base,
-                        layout.family_node_base, cs.edge_count, layout.slot, cs.constraint, layout.particles, rest,
-                        compliance, w_eff, inv_dt2, use_lam, newton_steps, lam_arr, scratch[0], mask],
-                       [s.particle_q], block_dim=lanes)
                 return
             if self.chain_block_links > 1:
                 # partitioned, family after family: per Newton step five launches, blocks of chain_block_links links

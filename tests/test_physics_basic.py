@@ -334,3 +334,25 @@ def test_step_keeps_body_poses_as_next_start(device):
     np.testing.assert_array_equal(world.body_q_previous.numpy(), world.state.body_q.numpy())
     np.testing.assert_allclose(world.positions()[:, obj.particle_start], np.tile(v[0] + (0.0, 0.0, -0.01), (2, 1)),
                                atol=1e-4)  # the held vertex followed the body
+
+
+def test_iterations_set_directly_allocate_the_multipliers(device):
+    # world.iterations assigned after finalize (set_iterations allocates the XPBD multipliers): the step allocates
+    # them where the sweeps index them (a (1, 1) dummy was indexed out of bounds before: a segfault on the CPU), and
+    # the result equals set_iterations'
+    v, t = cloth_grid(6, 5, 0.05, 0.04, plane="xz", origin=(0.0, 0.0, -0.04))
+    out = []
+    for direct in (False, True):
+        b = SceneBuilder()
+        b.add_cloth(v, t, areal_density=0.2, stretch_stiffness=1e3, bend_stiffness=1e-6, damping=1.0,
+                    fixed=np.nonzero(v[:, 2] > -1e-9)[0][:2])
+        world = b.finalize(2, device, substeps=5)
+        if direct:
+            world.iterations = 2
+        else:
+            world.set_iterations(2)
+        world.simulate(0.04, 0.02)
+        assert "edge" in world._lam
+        out.append(world.positions())
+    np.testing.assert_array_equal(out[0], out[1])
+    assert np.isfinite(out[0]).all()

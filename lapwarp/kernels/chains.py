@@ -169,13 +169,6 @@ def solve_chains(
         # constraint (a link loaded both its nodes' indices and positions and its constraint's index up to five times)
         node_k1 = chain_node[nb + (1 % nodes) * stride]
         x_k1 = q[env, node_k1]
-        # node k + 2 is loaded one link ahead of its use (software pipelining: the load of a link's new node, which the
-        # walk waits for, is issued while the link before is eliminated; q is not written before the final pass)
-        node_ahead = node_k1
-        x_ahead = x_k1
-        if m > 1:
-            node_ahead = chain_node[nb + (2 % nodes) * stride]
-            x_ahead = q[env, node_ahead]
         n_cur, len_cur = segment_dir(x_first, x_k1)
         cons_k = chain_constraint[s0]
         act_k = int(1)
@@ -206,14 +199,11 @@ def solve_chains(
             cons_next = cons_k
             act_next = act_k
             if k + 1 < m:
-                node_k2 = node_ahead
-                x_k2 = x_ahead
-                if k + 2 < m:
-                    k3 = k + 3
-                    if k3 >= nodes:
-                        k3 = k3 - nodes
-                    node_ahead = chain_node[nb + k3 * stride]
-                    x_ahead = q[env, node_ahead]
+                k2 = k + 2
+                if k2 >= nodes:
+                    k2 = k2 - nodes
+                node_k2 = chain_node[nb + k2 * stride]
+                x_k2 = q[env, node_k2]
                 n_next, len_next = segment_dir(x_k1, x_k2)
                 c_k = -w_k1 * wp.dot(n_cur, n_next)
                 cons_next = chain_constraint[s0 + (k + 1) * stride]
@@ -305,12 +295,7 @@ def solve_chains(
             dl_prev = scratch_d[env, s0 + (m - 1) * stride]
         cn_prev = float(0.0)
         dn_prev = wp.vec3(0.0)
-        node_j = chain_node[nb]  # carried like the forward walk's, and node j + 1 loaded one node ahead as there
-        node_ahead = node_j
-        x_ahead = x_first
-        if nodes > 1:
-            node_ahead = chain_node[nb + stride]
-            x_ahead = q[env, node_ahead]
+        node_j = chain_node[nb]  # carried like the forward walk's
         for j in range(nodes):
             n_j = wp.vec3(0.0)
             dl_j = float(0.0)
@@ -322,11 +307,8 @@ def solve_chains(
                 if jn == nodes:
                     x_next = x_first  # closing segment of a loop: node 0 as it was before the update
                 else:
-                    node_next = node_ahead
-                    x_next = x_ahead
-                    if jn + 1 < nodes:
-                        node_ahead = chain_node[nb + (jn + 1) * stride]
-                        x_ahead = q[env, node_ahead]
+                    node_next = chain_node[nb + jn * stride]
+                    x_next = q[env, node_next]
                 n_j, len_j = segment_dir(x_cur, x_next)
                 cj = chain_constraint[s0 + j * stride]
                 if masked:
