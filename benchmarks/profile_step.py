@@ -14,7 +14,9 @@ it is a lower bound of the graph-replayed step.
 device runs, Warp's and the others (the BVH refits Warp runs in its native library, memsets, torch's operations), and
 with ``--graph`` inside the env's replayed CUDA graph, so the total is the device time of the step as it runs. Rows
 are grouped by kernel name (Warp's kernels keep their names); on the CPU the profiler sees no device work and only the
-wall time is measured.
+wall time is measured. It also reports where the device idles (``device_gaps``): per env step the span from the first
+kernel's start to the last one's end, the busy part, and the longest gaps with the kernels on either side (what Warp's
+timer cannot show: LigatingLoop's step ran 45.8 ms against 39.0 ms of device kernels, H200).
 
     python benchmarks/profile_step.py --diff touch.json centroid.json
 
@@ -58,6 +60,32 @@ def torch_kernel_rows(events, count: int) -> list[tuple[str, float, float]]:
             per_kernel[e.name][0] += 1
             per_kernel[e.name][1] += e.time_range.elapsed_us() / 1e3
     return sorted(((name, n / count, ms / count) for name, (n, ms) in per_kernel.items()), key=lambda row: -row[2])
+
+
+def device_gaps(intervals, count: int, top: int) -> dict:
+    """Where the device idles between its work: ``intervals`` are ``(start_us, end_us, name)`` of every device event
+    (any stream; overlapping ones merge), ``count`` the env steps they cover. Returns per env step the span from the
+    first start to the last end, the busy time (the union of the intervals) and the idle rest (ms), and the ``top``
+    longest idle gaps as ``(gap_us, name before, name after)``, longest first: a gap is device time that no kernel
+    fills, e.g. the host launching the next work late or a graph's dependency gaps."""
+    events = sorted(intervals)
+    if not events:
+        return {"span_ms_per_step": 0.0, "busy_ms_per_step": 0.0, "idle_ms_per_step": 0.0, "gaps": []}
+    busy = 0.0
+    gaps = []
+    cur_start, cur_end, cur_name = events[0]
+    for start, end, name in events[1:]:
+        if start > cur_end:
+            busy += cur_end - cur_start
+            gaps.append((start - cur_end, cur_name, name))
+            cur_start, cur_end, cur_name = start, end, name
+        elif end > cur_end:
+            cur_end, cur_name = end, name
+    busy += cur_end - cur_start
+    span = cur_end - events[0][0]
+    gaps.sort(key=lambda g: -g[0])
+    return {"span_ms_per_step": span / 1e3 / count, "busy_ms_per_step": busy / 1e3 / count,
+            "idle_ms_per_step": (span - busy) / 1e3 / count, "gaps": gaps[:top]}
 
 
 def diff_profiles(first: dict, second: dict, top: int) -> list[tuple[str, float, float, float, float]]:
@@ -146,12 +174,15 @@ def main(argv: list[str] | None = None) -> int:
             wp.synchronize_device(env.wp_device)
         wall_ms = 1e3 * (time.perf_counter() - start) / args.steps
         rows = torch_kernel_rows(prof.events(), args.steps)
+        gaps = device_gaps([(e.time_range.start, e.time_range.end, e.name) for e in prof.events()
+                            if e.device_type == torch.autograd.DeviceType.CUDA], args.steps, args.top)
     else:
         with wp.ScopedTimer("profile", cuda_filter=cuda_filter, print=False, synchronize=True) as timer:
             for a in actions:
                 env.step(a)
         wall_ms = 1e3 * (time.perf_counter() - start) / args.steps
         rows = kernel_rows(timer.timing_results, args.steps)
+        gaps = None
     total = sum(row[2] for row in rows)
     if not env.wp_device.is_cuda:
         print(f"note: {'PyTorch' if args.profiler == 'torch' else 'Warp'} records device times only on CUDA devices; "
@@ -161,6 +192,11 @@ def main(argv: list[str] | None = None) -> int:
           f"{sum(row[1] for row in rows):.0f} launches; {wall_ms:.3f} ms wall per step ({regime})")
     for name, launches, ms in rows[: args.top]:
         print(f"  {ms:8.3f} ms {100 * ms / total:5.1f}%  {launches:6.0f} x  {name}")
+    if gaps is not None and gaps["gaps"]:
+        print(f"device per env step: {gaps['span_ms_per_step']:.3f} ms from the first kernel's start to the last's "
+              f"end, {gaps['busy_ms_per_step']:.3f} ms busy, {gaps['idle_ms_per_step']:.3f} ms idle; longest gaps:")
+        for gap_us, before, after in gaps["gaps"]:
+            print(f"  {gap_us:9.1f} us  after {before[:70]}  before {after[:70]}")
     if args.out:
         with open(args.out, "w") as f:
             json.dump({"task": args.task, "num_envs": args.num_envs, "steps": args.steps, "policy": args.policy,
@@ -169,7 +205,8 @@ def main(argv: list[str] | None = None) -> int:
                        "graph": args.graph,
                        "device_name": (torch.cuda.get_device_name(torch.device(args.device))
                                        if env.wp_device.is_cuda else "cpu"),
-                       "kernels": [{"name": n, "launches_per_step": k, "ms_per_step": t} for n, k, t in rows]},
+                       "kernels": [{"name": n, "launches_per_step": k, "ms_per_step": t} for n, k, t in rows],
+                       "device_gaps": gaps},
                       f, indent=2)
     env.close()
     return 0

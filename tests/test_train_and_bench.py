@@ -208,11 +208,28 @@ def test_profile_step_with_torch_profiler(device, tmp_path, capsys):
     assert report["profiler"] == "torch" and report["graph"] == bool(graph) and report["profiled_wall_ms_per_step"] > 0
     if device.startswith("cuda"):
         assert report["kernel_ms_per_step"] > 0 and report["kernels"]
+        gaps = report["device_gaps"]
+        assert gaps["busy_ms_per_step"] <= gaps["span_ms_per_step"] + 1e-9
     else:
         assert report["kernels"] == [] and "only the wall time" in capsys.readouterr().out
+        assert report["device_gaps"]["gaps"] == []
     with pytest.raises(SystemExit):
         profile_step.main(["--task", "Reach", "--graph"])
     assert "--graph needs --profiler torch" in capsys.readouterr().err
+
+
+def test_device_gaps_merge_overlaps_and_rank_idle_gaps():
+    # two steps of device work in microseconds: overlapping events (another stream) merge, touching ones leave no gap
+    events = [(0.0, 10.0, "a"), (5.0, 12.0, "b"), (12.0, 20.0, "c"), (50.0, 60.0, "d"), (62.0, 70.0, "e"),
+              (65.0, 66.0, "f")]
+    gaps = profile_step.device_gaps(events, 2, 5)
+    assert gaps["span_ms_per_step"] == pytest.approx(70.0 / 1e3 / 2)
+    assert gaps["busy_ms_per_step"] == pytest.approx((20.0 + 10.0 + 8.0) / 1e3 / 2)
+    assert gaps["idle_ms_per_step"] == pytest.approx((30.0 + 2.0) / 1e3 / 2)
+    assert gaps["gaps"] == [(30.0, "c", "d"), (2.0, "d", "e")]
+    assert profile_step.device_gaps(events, 2, 1)["gaps"] == [(30.0, "c", "d")]
+    assert profile_step.device_gaps([], 1, 3) == {"span_ms_per_step": 0.0, "busy_ms_per_step": 0.0,
+                                                  "idle_ms_per_step": 0.0, "gaps": []}
 
 
 def test_profile_step_diff_compares_two_profiles_kernel_by_kernel(tmp_path, capsys):
