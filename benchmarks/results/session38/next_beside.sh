@@ -1,0 +1,60 @@
+#!/usr/bin/env bash
+# The GPU beside the next lease's learning queue (queue.sh's BESIDE; x4: GPU 3, x2: GPU 1 with DEVICE=cuda:1),
+# written in the thirty-eighth session, in order of need (~15 min), then the learning queue JOBS until DEADLINE:
+# 1. GPU tests of the thirty-eighth session's changes: the multipliers allocated where iterations is set directly,
+#    profile_step's device gaps, LigatingLoop on its new default (one rotation iteration);
+# 2. where LigatingLoop's step goes beyond its kernels (45.8 ms against 39.0 ms of device kernels last lease; 0.6 ms
+#    for RopeThreading): profile_step --profiler torch --graph now lists the device's idle gaps with the kernels beside
+#    them; LigatingLoop's step with and without the graph;
+# 3. ThreadInHole's thread chain on the PCR solve (164.4k against 160.2k last lease) with its expert (three
+#    configurations, continuous and discrete) where results/session38/quick.sh did not run it;
+# 4. a 10^7-step soak of LigatingLoop on its new default;
+# 5. the step of the six tasks whose #17 / #18 targets are open, same call (expert, 4,096 envs).
+# DEVICE (cuda:3), NUM_ENVS (4096), JOBS (next_jobs_gpu3.txt) and DEADLINE (1400) override.
+set -u
+t0=$(date +%s)
+dev=${DEVICE:-cuda:3}
+n=${NUM_ENVS:-4096}
+d=benchmarks/results/session38
+out=/tmp/r/beside39
+mkdir -p "$out"
+new=/tmp/site:$PWD
+PYTHONPATH=$new python3 -m pytest -q -p no:cacheprovider tests/test_physics_basic.py tests/test_train_and_bench.py \
+  tests/test_ligating_loop.py -k "iterations_set or profile_step or device_gaps or sag or slots or pins" \
+  --device "$dev" > "$out/pytest_cuda.txt" 2>&1
+echo "pytest rc=$? $(tail -1 "$out/pytest_cuda.txt")"
+bench() {  # NAME TASK POLICY [bench_env.py options...]
+  local name=$1 task=$2 policy=$3
+  shift 3
+  PYTHONPATH=$new python3 benchmarks/bench_env.py --task "$task" --device "$dev" --num-envs "$n" --seconds 3 \
+    --obs STATE --policy "$policy" "$@" --out "$out/$name.json" > "$out/$name.txt" 2>&1
+  echo "$name rc=$? $(tail -1 "$out/$name.txt")"
+}
+for task in LigatingLoop RopeThreading; do
+  PYTHONPATH=$new timeout 240 python3 benchmarks/profile_step.py --task "$task" --device "$dev" --num-envs "$n" \
+    --steps 5 --warmup 10 --profiler torch --graph --top 40 --out "$out/tprofile_$task.json" \
+    > "$out/tprofile_$task.txt" 2>&1
+  echo "tprofile_$task rc=$? $(grep -A3 'device per env step' "$out/tprofile_$task.txt" | tr '\n' ' ' | cut -c1-400)"
+done
+bench ll LigatingLoop expert
+bench ll_nograph LigatingLoop expert --no-graph
+bench tih ThreadInHole expert
+bench tih_pcr ThreadInHole expert --set chain_solver='"pcr"'
+PYTHONPATH=$new timeout 300 python3 benchmarks/expert_success.py --task ThreadInHole --device "$dev" --num-envs 256 \
+  --action-types CONTINUOUS DISCRETE --config configuration=normal chain_solver=pcr \
+  --config configuration=flexible chain_solver=pcr --config configuration=inverted chain_solver=pcr \
+  --out "$out/expert_tih_pcr.jsonl" > "$out/expert_tih_pcr.txt" 2>&1
+echo "expert_tih_pcr rc=$? $(grep -o '"success_rate": [0-9.]*' "$out/expert_tih_pcr.jsonl" | tr '\n' ' ')"
+PYTHONPATH=$new timeout 240 python3 benchmarks/soak.py --device "$dev" --num-envs "$n" --env-steps 1e7 \
+  --tasks LigatingLoop --action-types CONTINUOUS --out "$out/soak_ll.jsonl" > "$out/soak_ll.txt" 2>&1
+echo "soak_ll rc=$? $(tail -1 "$out/soak_ll.txt" | cut -c1-300)"
+for task in RopeCutting PrecisionCutting TissueDissection RopeThreading; do
+  bench "step_$task" "$task" expert
+done
+jobs=${JOBS:-$d/next_jobs_gpu3_next.txt}
+grep -qv '^#' "$jobs" || { echo "no jobs in $jobs"; exit 0; }
+left=$((${DEADLINE:-1400} + t0 - $(date +%s)))
+[ "$left" -gt 0 ] || { echo "no time left for the queue"; exit 0; }
+PYTHONPATH=$new python3 train/experiments.py --queue "$jobs" --devices "$dev" \
+  --fast-pixels --shared-encoder --skip-done --no-plots --deadline "$left" --out /tmp/r/learning \
+  --log-dir /tmp/queue_runs_beside
