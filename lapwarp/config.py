@@ -246,9 +246,8 @@ class EnvConfig:
             it needs ``wp.config.enable_cpu_blocks``), ``"registers"`` (the thread per chain of ``"thomas"`` with the
             whole chain in registers, its loops unrolled: families of open chains of at most 64 links,
             ``kernels/chains_registers.py``; bit-identical to "thomas" on the CPU) or ``"auto"`` (default): the task's
-            measured best on CUDA devices (``BatchedEnv.gpu_chain_solver``: "pcr" for LigatingLoop and PickAndPlace,
-            "hybrid" for RopeThreading, "registers" for RopeCutting)
-            and "thomas" on the CPU.
+            measured best on CUDA devices (``BatchedEnv.gpu_chain_solver``: "pcr" for LigatingLoop, PickAndPlace and
+            ThreadInHole, "hybrid" for RopeThreading, "registers" for RopeCutting) and "thomas" on the CPU.
     """
 
     observation_type: str = "STATE"

@@ -6,11 +6,11 @@
 # 2. where LigatingLoop's step goes beyond its kernels (45.8 ms against 39.0 ms of device kernels last lease; 0.6 ms
 #    for RopeThreading): profile_step --profiler torch --graph now lists the device's idle gaps with the kernels beside
 #    them; LigatingLoop's step with and without the graph;
-# 3. ThreadInHole's thread chain on the PCR solve (164.4k against 160.2k last lease) with its expert (three
-#    configurations, continuous and discrete) where results/session38/quick.sh did not run it;
-# 4. a 10^7-step soak of LigatingLoop on its new default;
+# 3. ThreadInHole on its new GPU default (its thread's chain by PCR, 164.4k against 160.2k last lease; its continuous
+#    expert 256 / 256 per configuration on it) against the serial walk, and its discrete expert on it;
+# 4. a 10^7-step soak of LigatingLoop on its new default (5 x 10^6 ran clean in the quick call);
 # 5. the step of the six tasks whose #17 / #18 targets are open, same call (expert, 4,096 envs).
-# DEVICE (cuda:3), NUM_ENVS (4096), JOBS (next_jobs_gpu3.txt) and DEADLINE (1400) override.
+# DEVICE (cuda:3), NUM_ENVS (4096), JOBS (next_jobs_gpu3_next.txt) and DEADLINE (1400) override.
 set -u
 t0=$(date +%s)
 dev=${DEVICE:-cuda:3}
@@ -39,11 +39,10 @@ done
 bench ll LigatingLoop expert
 bench ll_nograph LigatingLoop expert --no-graph
 bench tih ThreadInHole expert
-bench tih_pcr ThreadInHole expert --set chain_solver='"pcr"'
+bench tih_serial ThreadInHole expert --set chain_solver='"thomas"'
 PYTHONPATH=$new timeout 300 python3 benchmarks/expert_success.py --task ThreadInHole --device "$dev" --num-envs 256 \
-  --action-types CONTINUOUS DISCRETE --config configuration=normal chain_solver=pcr \
-  --config configuration=flexible chain_solver=pcr --config configuration=inverted chain_solver=pcr \
-  --out "$out/expert_tih_pcr.jsonl" > "$out/expert_tih_pcr.txt" 2>&1
+  --action-types DISCRETE --config configuration=normal --config configuration=flexible \
+  --config configuration=inverted --out "$out/expert_tih_pcr.jsonl" > "$out/expert_tih_pcr.txt" 2>&1
 echo "expert_tih_pcr rc=$? $(grep -o '"success_rate": [0-9.]*' "$out/expert_tih_pcr.jsonl" | tr '\n' ' ')"
 PYTHONPATH=$new timeout 240 python3 benchmarks/soak.py --device "$dev" --num-envs "$n" --env-steps 1e7 \
   --tasks LigatingLoop --action-types CONTINUOUS --out "$out/soak_ll.jsonl" > "$out/soak_ll.txt" 2>&1
