@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # The GPU beside the thirty-eighth session's lease queue (queue.sh's BESIDE; x4: GPU 3, x2: GPU 1 with DEVICE=cuda:1):
-# the thirty-seventh session's checks (results/session37/beside.sh: this session's first try of its lease was refused,
-# the wheel's parts too large beside the tracked tree), with first, same call, PrecisionCutting (#17 asks 100k; 26.1k)
+# the thirty-seventh session's planned checks (results/session37/next_lease.md; its plan's script, superseded by this
+# one, is removed; this session's first try of the lease was refused, the wheel's parts too large), with first, same call, PrecisionCutting (#17 asks 100k; 26.1k)
 # with its cloth's chain sets solved in shared memory (World.chain_solver "shared", kernels/chains_shared.py: a block
 # per env walks the 40 x 40 cloth's three families in one launch per sweep, every dependent load of the walk from
 # shared memory; bit-identical to the serial walk on the CPU) at 64 / 40 / 32 lanes per block against the serial walk

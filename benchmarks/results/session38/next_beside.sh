@@ -19,17 +19,11 @@ d=benchmarks/results/session38
 out=/tmp/r/beside39
 mkdir -p "$out"
 new=/tmp/site:$PWD
+. train/device/beside_lib.sh  # bench, run_queue
 PYTHONPATH=$new python3 -m pytest -q -p no:cacheprovider tests/test_physics_basic.py tests/test_train_and_bench.py \
   tests/test_ligating_loop.py -k "iterations_set or profile_step or device_gaps or sag or slots or pins" \
   --device "$dev" > "$out/pytest_cuda.txt" 2>&1
 echo "pytest rc=$? $(tail -1 "$out/pytest_cuda.txt")"
-bench() {  # NAME TASK POLICY [bench_env.py options...]
-  local name=$1 task=$2 policy=$3
-  shift 3
-  PYTHONPATH=$new python3 benchmarks/bench_env.py --task "$task" --device "$dev" --num-envs "$n" --seconds 3 \
-    --obs STATE --policy "$policy" "$@" --out "$out/$name.json" > "$out/$name.txt" 2>&1
-  echo "$name rc=$? $(tail -1 "$out/$name.txt")"
-}
 for task in LigatingLoop RopeThreading; do
   PYTHONPATH=$new timeout 240 python3 benchmarks/profile_step.py --task "$task" --device "$dev" --num-envs "$n" \
     --steps 5 --warmup 10 --profiler torch --graph --top 40 --out "$out/tprofile_$task.json" \
@@ -50,10 +44,4 @@ echo "soak_ll rc=$? $(tail -1 "$out/soak_ll.txt" | cut -c1-300)"
 for task in RopeCutting PrecisionCutting TissueDissection RopeThreading; do
   bench "step_$task" "$task" expert
 done
-jobs=${JOBS:-$d/next_jobs_gpu3_next.txt}
-grep -qv '^#' "$jobs" || { echo "no jobs in $jobs"; exit 0; }
-left=$((${DEADLINE:-1400} + t0 - $(date +%s)))
-[ "$left" -gt 0 ] || { echo "no time left for the queue"; exit 0; }
-PYTHONPATH=$new python3 train/experiments.py --queue "$jobs" --devices "$dev" \
-  --fast-pixels --shared-encoder --skip-done --no-plots --deadline "$left" --out /tmp/r/learning \
-  --log-dir /tmp/queue_runs_beside
+run_queue "${JOBS:-$d/next_jobs_gpu3_next.txt}" "${DEADLINE:-1400}"

@@ -1,0 +1,22 @@
+#!/usr/bin/env bash
+# Helpers for a lease's BESIDE script (train/device/queue.sh runs it from /tmp/queue_code), sourced after it sets
+# dev (the device), n (num_envs), out (its result folder), new (its PYTHONPATH) and t0 (its start, seconds):
+#   bench NAME TASK POLICY [bench_env.py options...]   one bench_env.py point (STATE, 3 s) into $out/NAME.json / .txt
+#   run_queue JOBS_FILE DEADLINE                         the learning queue on $dev until DEADLINE seconds after t0
+bench() {
+  local name=$1 task=$2 policy=$3
+  shift 3
+  PYTHONPATH=$new python3 benchmarks/bench_env.py --task "$task" --device "$dev" --num-envs "$n" --seconds 3 \
+    --obs STATE --policy "$policy" "$@" --out "$out/$name.json" > "$out/$name.txt" 2>&1
+  echo "$name rc=$? $(tail -1 "$out/$name.txt")"
+}
+
+run_queue() {
+  local jobs=$1 deadline=$2
+  grep -qv '^#' "$jobs" || { echo "no jobs in $jobs"; return 0; }
+  local left=$((deadline + t0 - $(date +%s)))
+  [ "$left" -gt 0 ] || { echo "no time left for the queue"; return 0; }
+  PYTHONPATH=$new python3 train/experiments.py --queue "$jobs" --devices "$dev" \
+    --fast-pixels --shared-encoder --skip-done --no-plots --deadline "$left" --out /tmp/r/learning \
+    --log-dir /tmp/queue_runs_beside
+}
