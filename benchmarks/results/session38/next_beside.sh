@@ -24,7 +24,7 @@ PYTHONPATH=$new python3 -m pytest -q -p no:cacheprovider tests/test_physics_basi
   tests/test_ligating_loop.py -k "iterations_set or profile_step or device_gaps or sag or slots or pins" \
   --device "$dev" > "$out/pytest_cuda.txt" 2>&1
 echo "pytest rc=$? $(tail -1 "$out/pytest_cuda.txt")"
-for task in LigatingLoop RopeThreading; do
+for task in LigatingLoop RopeThreading ThreadInHole RopeCutting; do
   PYTHONPATH=$new timeout 240 python3 benchmarks/profile_step.py --task "$task" --device "$dev" --num-envs "$n" \
     --steps 5 --warmup 10 --profiler torch --graph --top 40 --out "$out/tprofile_$task.json" \
     > "$out/tprofile_$task.txt" 2>&1
