@@ -150,6 +150,13 @@ class ContactSystem:
         # candidate is then tested against its own current bounds: the same contacts as a refit every sweep. A refit
         # of every env's surface BVH costs far more than the drift pass (LigatingLoop: 30 % of its step).
         self.surface_refit_interval = 0
+        # and across the physics steps of one env step: a physics step's first sweep refits only at every
+        # surface_refit_steps-th step of its env step (World.step's step_index; the env step's first always, since
+        # resets move the surfaces between env steps). 1 = every physics step. The drift keeps growing from the last
+        # refit, so the contacts are the same either way; what changes is how many refits an env step pays for
+        # against how far the queries grow (ThreadInHole's stiff hole barely moves within an env step: one refit
+        # of its ten per env step)
+        self.surface_refit_steps = 1
         self.shapes: list[Shape] = []
         self.groups: list[ParticleGroup] = []
         self.self_sets: list[dict] = []
@@ -671,15 +678,25 @@ class ContactSystem:
         if int(self.surface_refit_interval) < 0:
             raise ValueError(f"surface_refit_interval must be >= 0 (0: once per world.step), "
                              f"got {self.surface_refit_interval!r}")
+        steps = self.surface_refit_steps
+        if isinstance(steps, bool) or not isinstance(steps, (int, np.integer)) or steps < 1:
+            raise ValueError(f"surface_refit_steps must be an int >= 1 (physics steps of an env step between the "
+                             f"surfaces' BVH refits; 1: every physics step), got {steps!r}")
         return (self.resolved_triangle_sweep(), int(self.triangle_block_threads), int(self.surface_refit_interval),
-                id(self.overflow_sink), bool(self.fuse_segment_colors))
+                int(self.surface_refit_steps), id(self.overflow_sink), bool(self.fuse_segment_colors))
+
+    def step_variant(self, step_index: int) -> bool:
+        """Whether the physics step ``step_index`` of an env step refits the surfaces' BVHs at its first sweep
+        (``World.step``: the steps that do and those that do not are recorded apart)."""
+        return not getattr(self, "_surfaces", None) or step_index % int(self.surface_refit_steps) == 0
 
     def _refits_surfaces(self, sweep) -> bool:
-        """Whether this sweep refits the surfaces' BVHs (always the step's first sweep: bodies and resets move
-        the surfaces between steps)."""
+        """Whether this sweep refits the surfaces' BVHs: the first sweep of every ``surface_refit_steps``-th
+        physics step of an env step (always its first: resets move the surfaces between env steps), and within a
+        physics step every ``surface_refit_interval``-th substep."""
         k = int(self.surface_refit_interval)
         if sweep.first:
-            return True
+            return self.step_variant(sweep.step_index)
         return k > 0 and sweep.iteration == 0 and sweep.substep % k == 0
 
     def record_sweep(self, world, launch, sweep) -> None:

@@ -426,17 +426,18 @@ def test_bead_rests_on_deforming_tissue_surface_per_env(device):
     assert list(cs.counts()[:, 0]) == [1, 1]
 
 
-@pytest.mark.parametrize("interval", [0, 4])
-def test_stale_surface_bvh_finds_the_same_contacts(device, interval):
+@pytest.mark.parametrize("interval, steps", [(0, 1), (4, 1), (0, 3)])
+def test_stale_surface_bvh_finds_the_same_contacts(device, interval, steps):
     """A free tet block (2 x 2 x 1 cm) thrown at 0.1 m/s into 9 beads (r = 0.5 mm, at rest, no gravity) 2 mm above
     its top face, 10 substeps per 0.05 s step: the surface moves 0.5 mm per substep, 5 mm per step. Refitting its BVH
-    once per step (``surface_refit_interval`` 0) or every fourth substep, with queries grown by the measured drift,
-    gives exactly the trajectories of a refit before every sweep (interval 1): the same candidate triangles, the same
-    contacts."""
+    once per step (``surface_refit_interval`` 0), every fourth substep, or only at the first of three physics steps
+    of an env step (``surface_refit_steps`` 3, ``World.step``'s step index 0, 1, 2), with queries grown by the
+    measured drift, gives exactly the trajectories of a refit before every sweep (interval 1): the same candidate
+    triangles, the same contacts."""
     v, t = box_tets((0.02, 0.02, 0.01), (2, 2, 1), origin=(-0.01, -0.01, 0.0))
     beads0 = np.array([[x, y, 0.012] for x in (-0.006, 0.0, 0.006) for y in (-0.006, 0.0, 0.006)])
     out = []
-    for k in (1, interval):
+    for k, refit_steps in ((1, 1), (interval, steps)):
         b = SceneBuilder(gravity=(0.0, 0.0, 0.0))
         blk = b.add_tet_mesh(v, t, density=1000.0, youngs_modulus=1e5, poisson_ratio=0.3)
         beads = b.add_particles(beads0, mass=1.0e-4)
@@ -449,12 +450,17 @@ def test_stale_surface_bvh_finds_the_same_contacts(device, interval):
         cs.add_particle_group(beads, radius=5.0e-4, name="beads")
         cs.add_surface(blk, thickness=0.0, name="block")
         cs.surface_refit_interval = k
+        cs.surface_refit_steps = refit_steps
         cs.finalize()
-        for _ in range(3):
-            w.step(0.05)
+        for index in range(3):
+            w.step(0.05, index)
         out.append((w.positions(), cs._surfaces[0]["drift"].numpy()))
+        # one recording per variant: with refits every third step, the refitting first step and the two others
+        assert len(w._cmd_cache) == (2 if refit_steps == 3 else 1)
     (ref, _), (x, drift) = out
-    assert drift.min() > 4.0e-4  # the stale bounds were off by over 0.4 mm when last queried
+    # the stale bounds were off by over 0.4 mm when last queried (by two steps' motion, ~10 mm, without a refit in
+    # the env step's last two physics steps)
+    assert drift.min() > (9.0e-3 if steps == 3 else 4.0e-4)
     assert np.array_equal(ref, x)
     assert x[:, beads.particle_start:, 2].min() > 0.02  # every bead was pushed up by the surface (it started at 12 mm)
 
@@ -473,6 +479,26 @@ def test_negative_surface_refit_interval_is_rejected(device):
     cs.finalize()
     with pytest.raises(ValueError, match="surface_refit_interval"):
         w.step(0.01)
+
+
+@pytest.mark.parametrize("steps", [0, -2, 1.5, True])
+def test_bad_surface_refit_steps_are_rejected(device, steps):
+    """``surface_refit_steps`` must be an int >= 1: anything else is a clear error when the step is recorded (not a
+    division by zero or a silent refit every step)."""
+    v, t = box_tets((0.02, 0.02, 0.01), (2, 2, 1), origin=(-0.01, -0.01, 0.0))
+    b = SceneBuilder()
+    blk = b.add_tet_mesh(v, t, density=1000.0, youngs_modulus=1e5, poisson_ratio=0.3)
+    bead = b.add_particles(np.array([[0.0, 0.0, 0.02]]), mass=1.0e-4)
+    w = b.finalize(num_envs=1, device=device, substeps=2)
+    cs = ContactSystem(w)
+    cs.add_particle_group(bead, radius=5.0e-4)
+    cs.add_surface(blk)
+    cs.surface_refit_steps = steps
+    cs.finalize()
+    with pytest.raises(ValueError, match="surface_refit_steps"):
+        w.step(0.01, 1)
+    with pytest.raises(ValueError, match="step_index"):
+        w.step(0.01, -1)
 
 
 def test_cell_list_matches_brute_force(device):

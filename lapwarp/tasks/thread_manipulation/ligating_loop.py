@@ -719,6 +719,9 @@ class LigatingLoopEnv(BatchedEnv):
             loop_group = contact.add_particle_group(loop, radius=LOOP_SPHERE, name="loop")
             self.cavity_group = contact.add_particle_group(hole, radius=0.5 * MM, name="cavity")
             contact.add_surface(hole, groups=[loop_group], name="cavity_surface", mu_static=0.0)
+            # the cavity's BVH refit once per env step (the first of its physics steps), the queries grown by the
+            # drift since (the same contacts)
+            contact.surface_refit_steps = cfg.frame_skip
             rig.add_colliders(contact, groups=[self.cavity_group], mu_static=0.0)
             contact.finalize()
         return world, rig, loop, hole, closure, contact
