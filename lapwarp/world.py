@@ -279,6 +279,7 @@ class World:
         self._dummy_f = wp.zeros((1, 1), dtype=float, device=dev)
         self._dummy_v2 = wp.zeros((1, 1), dtype=wp.vec2, device=dev)
         self._dummy_v3 = wp.zeros((1, 1), dtype=wp.vec3, device=dev)
+        self._vbd_no_flags = wp.zeros(0, dtype=wp.int32, device=dev)  # the prediction writes no tet solve's start
         # "no cutting masks" for the constraint kernels: empty element maps / a (1, 0) mask
         self._no_map_i = wp.zeros(0, dtype=wp.int32, device=dev)
         self._no_mask = wp.zeros((1, 0), dtype=wp.int32, device=dev)
@@ -299,6 +300,7 @@ class World:
         its host copies must not happen while a step is recorded inside a CUDA graph capture."""
         m, dev = self.model, self.device
         self._vbd_layout = None
+        self._vbd_start_flags = wp.zeros(0, dtype=wp.int32, device=dev)
         self._unanchored_tets: list[tuple[int, int]] = []
         if not m.tet_count:
             return
@@ -307,6 +309,11 @@ class World:
         self._unanchored_tets = [(int(c.min()), int(c.max())) for c in tet_components(idx)
                                  if not pinned[:, c].any(axis=1).all()]
         lay = vertex_layout(idx, fixed=pinned.all(axis=0), lanes=self.tet_block_threads)
+        # the solve's vertices flagged per particle: the prediction writes their start of the solve
+        # (xpbd.integrate_particle's vbd_start) where nothing moves them in between (_vbd_start_in_prediction)
+        flags = np.zeros(m.particle_count, dtype=np.int32)
+        flags[np.asarray(lay.vertices, dtype=np.int64)] = 1
+        self._vbd_start_flags = wp.array(flags, dtype=wp.int32, device=dev)
         self._vbd_layout = (
             wp.array(lay.vertices, dtype=wp.int32, device=dev), lay.color_offsets,
             wp.array(np.asarray(lay.color_offsets, dtype=np.int32), dtype=wp.int32, device=dev),
@@ -617,9 +624,10 @@ class World:
         # a substep's velocity update and the next one's prediction run as one kernel where nothing comes between
         # them (a solver's record_substep_end would): one launch and one pass over the particles fewer per substep
         fuse = not any(hasattr(solver, "record_substep_end") for solver in self.solvers)
+        start_flags = self._vbd_start_flags if self._vbd_start_in_prediction() else self._vbd_no_flags
         for sub in range(substeps):
             particle_args = [m.particle_inv_mass, m.particle_damping, m.gravity, h, *self._prediction_masks(),
-                             s.particle_q, s.particle_qd]
+                             start_flags, s.particle_q, s.particle_qd]
             if m.segment_count and self.integrate_together:
                 # particles and segments in one launch (the same arithmetic on independent elements)
                 both = (n, max(m.particle_count, m.segment_count))
@@ -821,6 +829,16 @@ class World:
                 self.particle_force if self.particle_force is not None else self._dummy_v3,
                 int(self.particle_force is not None))
 
+    def _vbd_start_in_prediction(self) -> bool:
+        """Whether the prediction writes the per-vertex tet solve's start (``xpbd.integrate_particle``'s
+        ``vbd_start``) instead of ``vbd.begin_substep`` after it: where the solve is in use and nothing the sweep runs
+        before it moves particles (geodesic tethers, held points among them, and plain edge constraints do; the
+        tets come next). One launch and one pass over the tet vertices fewer per substep (ThreadInHole: 40 per env
+        step)."""
+        m = self.model
+        return (self.tet_method_in_use == "vbd" and m.tet_count > 0 and m.geo_particles is None
+                and (m.edge_chains is not None or len(m.edge_color_offsets) <= 1))
+
     def _record_rotation_refresh(self, launch, tet_map, tet_mask, rotation) -> None:
         """Every tet's rotation once, before the sweep that uses them as they are (``tet_rotation_update`` "sweep",
         ``xpbd.refresh_tet_rotations``)."""
@@ -840,7 +858,7 @@ class World:
 
         m, n, s, dev = self.model, self.num_envs, self.state, self.device
         vertices, offsets, offsets_dev, adj_offsets, adj_tets, adj_corners = self._vbd_layout
-        if sweep.iteration == 0:
+        if sweep.iteration == 0 and not self._vbd_start_in_prediction():
             launch(vbd.begin_substep, (n, vertices.shape[0]),
                    [vertices, m.particle_inv_mass, m.gravity, sweep.h, *self._prediction_masks(), self._q_pred],
                    [s.particle_q])

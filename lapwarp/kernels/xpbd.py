@@ -44,11 +44,15 @@ def integrate_particle(
     use_active: int,
     force: wp.array2d(dtype=wp.vec3),
     use_force: int,
+    vbd_start: wp.array(dtype=wp.int32),
     q: wp.array2d(dtype=wp.vec3),
     qd: wp.array2d(dtype=wp.vec3),
     q_pred_out: wp.array2d(dtype=wp.vec3),
 ):
-    """Particle ``(env, i)``'s prediction from velocity ``v_old`` (see ``integrate_particles``)."""
+    """Particle ``(env, i)``'s prediction from velocity ``v_old`` (see ``integrate_particles``). ``vbd_start``
+    (per particle; empty: none) flags the per-vertex tet solve's vertices: they start their solve from the inertial
+    guess without the external acceleration, ``x_pred - h^2 (g + w f)``, written here instead of by
+    ``vbd.begin_substep`` (the same arithmetic; ``World._record_step`` says when)."""
     x = q[env, i]
     w = inv_mass[env % inv_mass.shape[0], i]
     # a particle whose elements were all cut away (``active`` 0) belongs to nothing: it stays where it was (sofa_env
@@ -69,7 +73,11 @@ def integrate_particle(
     v = v_old / (1.0 + d * dt) + acc * dt
     qd[env, i] = v
     xp = x + v * dt
-    q[env, i] = xp
+    start = xp
+    if vbd_start.shape[0] > 0:
+        if vbd_start[i] != 0:
+            start = xp - acc * (dt * dt)
+    q[env, i] = start
     q_pred_out[env, i] = xp
 
 
@@ -83,14 +91,15 @@ def integrate_particles(
     use_active: int,
     force: wp.array2d(dtype=wp.vec3),
     use_force: int,
+    vbd_start: wp.array(dtype=wp.int32),
     q: wp.array2d(dtype=wp.vec3),
     qd: wp.array2d(dtype=wp.vec3),
     q_pred_out: wp.array2d(dtype=wp.vec3),
 ):
     """A substep's prediction: damping, gravity and external forces on the velocity, then the position."""
     env, i = wp.tid()
-    integrate_particle(env, i, qd[env, i], inv_mass, damping, gravity, dt, active, use_active, force, use_force, q, qd,
-                       q_pred_out)
+    integrate_particle(env, i, qd[env, i], inv_mass, damping, gravity, dt, active, use_active, force, use_force,
+                       vbd_start, q, qd, q_pred_out)
 
 
 @wp.kernel
@@ -104,6 +113,7 @@ def finish_and_integrate_particles(
     use_active: int,
     force: wp.array2d(dtype=wp.vec3),
     use_force: int,
+    vbd_start: wp.array(dtype=wp.int32),
     q: wp.array2d(dtype=wp.vec3),
     qd: wp.array2d(dtype=wp.vec3),
     q_pred_out: wp.array2d(dtype=wp.vec3),
@@ -113,8 +123,8 @@ def finish_and_integrate_particles(
     substep (nothing runs between them; ``World._record_step``)."""
     env, i = wp.tid()
     v_old = qd[env, i] + (q[env, i] - q_pred_out[env, i]) * inv_dt_prev
-    integrate_particle(env, i, v_old, inv_mass, damping, gravity, dt, active, use_active, force, use_force, q, qd,
-                       q_pred_out)
+    integrate_particle(env, i, v_old, inv_mass, damping, gravity, dt, active, use_active, force, use_force,
+                       vbd_start, q, qd, q_pred_out)
 
 
 @wp.kernel
@@ -898,6 +908,7 @@ def integrate_particles_and_segments(
     use_active: int,
     force: wp.array2d(dtype=wp.vec3),
     use_force: int,
+    vbd_start: wp.array(dtype=wp.int32),
     q: wp.array2d(dtype=wp.vec3),
     qd: wp.array2d(dtype=wp.vec3),
     q_pred_out: wp.array2d(dtype=wp.vec3),
@@ -917,8 +928,8 @@ def integrate_particles_and_segments(
         v_old = qd[env, k]
         if finish != 0:
             v_old = v_old + (q[env, k] - q_pred_out[env, k]) * inv_dt_prev
-        integrate_particle(env, k, v_old, inv_mass, damping, gravity, dt, active, use_active, force, use_force, q, qd,
-                           q_pred_out)
+        integrate_particle(env, k, v_old, inv_mass, damping, gravity, dt, active, use_active, force, use_force,
+                           vbd_start, q, qd, q_pred_out)
     if k < sq.shape[1]:
         om_old = sqd[env, k]
         if finish != 0:
