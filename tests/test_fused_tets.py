@@ -128,3 +128,49 @@ def test_vertex_solve_refuses_unanchored_meshes_and_unknown_methods(device):
     world.tet_method = "implicit"
     with pytest.raises(ValueError, match="xpbd.*vbd"):
         world.step(0.05)
+
+
+@pytest.mark.parametrize("force", [False, True])
+def test_vertex_solve_start_in_the_prediction_matches_begin_substep(device, force):
+    """The per-vertex solve's start of a substep (``x_pred - h^2 (g + w f)``) written by the prediction
+    (``xpbd.integrate_particle``'s ``vbd_start``, where nothing in the sweep moves the tet vertices before the solve)
+    against ``vbd.begin_substep`` after the prediction: the same positions after four steps of a hanging block with
+    per-env materials (bit for bit on the CPU; within float32 rounding on the GPU, where the two kernels may contract
+    multiply-adds differently), also with an external force on the particles. With a cloth in the scene (its plain
+    edge constraints run before the tets) the World keeps begin_substep."""
+    import warp as wp
+
+    result = {}
+    for in_prediction in (False, True):
+        b = SceneBuilder()
+        v, t = box_tets((0.04, 0.02, 0.01), (6, 3, 2))
+        block = b.add_tet_mesh(v, t, density=1000.0, youngs_modulus=[3e3, 8e3, 5e3], poisson_ratio=0.45,
+                               fixed=np.nonzero(v[:, 0] < 1e-9)[0])
+        world = b.finalize(num_envs=3, device=device, substeps=8)
+        world.tet_method = "vbd"
+        assert world._vbd_start_in_prediction()
+        if not in_prediction:
+            world._vbd_start_in_prediction = lambda: False
+        if force:
+            f = np.zeros((3, world.model.particle_count, 3), dtype=np.float32)
+            f[:, :, 1] = 2.0e-4  # sideways, N per particle
+            wp.copy(world.enable_external_forces(), wp.array(f, dtype=wp.vec3, device=device))
+        for _ in range(4):
+            world.step(0.05)
+        result[in_prediction] = world.positions(block)
+    sag = -result[False][..., 2].min()
+    assert sag > 1e-3  # the free end hangs: the comparison is not between two resting blocks
+    if device == "cpu":
+        np.testing.assert_array_equal(result[True], result[False])
+    else:
+        np.testing.assert_allclose(result[True], result[False], atol=1e-6 * 0.04 + 1e-3 * sag)
+    if force:
+        assert result[True][..., 1].max() > 1e-4  # the force moved the block sideways
+
+    b = SceneBuilder()
+    cv, ct = cloth_grid(4, 4, 0.02, 0.02, plane="xz")
+    b.add_cloth(cv, ct, fixed=np.nonzero(cv[:, 2] > 0.02 - 1e-9)[0])
+    b.add_tet_mesh(v, t, density=1000.0, youngs_modulus=3e3, poisson_ratio=0.45, fixed=np.nonzero(v[:, 0] < 1e-9)[0])
+    world = b.finalize(num_envs=1, device=device, substeps=4)
+    world.tet_method = "vbd"
+    assert world._vbd_start_in_prediction() == (world.model.edge_chains is not None)
