@@ -98,12 +98,15 @@ def module_resources(module, arch: int = 90, block_dim: int | None = None) -> di
 
 def main(argv: list[str] | None = None) -> int:
     from lapwarp import launching
-    from lapwarp.kernels import chains_hybrid, chains_registers
+    from lapwarp.kernels import chains_block, chains_hybrid, chains_registers
 
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--modules", nargs="*", default=[], help="Python modules of Warp kernels, e.g. lapwarp.kernels.xpbd")
-    p.add_argument("--hybrid", nargs="*", default=[], metavar="ROWS:PER_LANE",
-                   help="the hybrid chain kernel for packs of ROWS rows at PER_LANE rows per lane")
+    p.add_argument("--hybrid", nargs="*", default=[], metavar="ROWS:PER_LANE[:open][:unmasked]",
+                   help="the hybrid chain kernel for packs of ROWS rows at PER_LANE rows per lane (open: the variant "
+                        "without closed loops, unmasked: without cutting masks)")
+    p.add_argument("--block", nargs="*", default=[], metavar="ROWS[:open][:unmasked]",
+                   help="the block (PCR) chain kernel for packs of ROWS rows (flags as for --hybrid)")
     p.add_argument("--registers", nargs="*", type=int, default=[], metavar="LINKS",
                    help="the register-resident chain kernel for chains of LINKS links (kernels/chains_registers.py)")
     p.add_argument("--max-registers", type=int, default=None, help="compile the --hybrid kernels with this cap too")
@@ -121,8 +124,11 @@ def main(argv: list[str] | None = None) -> int:
         for kernel, res in module_resources(importlib.import_module(name), args.arch).items():
             rows.append({"module": name, "kernel": kernel, **res})
     for spec in args.hybrid:
-        n, per_lane = (int(v) for v in spec.split(":"))
-        kernel = chains_hybrid.hybrid_chain_kernel(n, per_lane)
+        n, per_lane, *flags = spec.split(":")
+        n, per_lane = int(n), int(per_lane)
+        # ROWS:PER_LANE[:open][:unmasked]: the variant without loops / cutting masks
+        kernel = chains_hybrid.hybrid_chain_kernel(n, per_lane, loops="open" not in flags,
+                                                   masked="unmasked" not in flags)
         lanes = chains_hybrid.lanes_for(n, per_lane)
         block = 32 * ((lanes + 31) // 32)
         caps = [None] + ([args.max_registers] if args.max_registers else [])
@@ -131,6 +137,11 @@ def main(argv: list[str] | None = None) -> int:
             for name, res in module_resources(k.module, args.arch, block).items():
                 rows.append({"module": f"hybrid {n}:{per_lane}", "kernel": name, "block_dim": block,
                              "max_registers": cap, **res})
+    for spec in args.block:
+        n, *flags = spec.split(":")
+        kernel = chains_block.block_chain_kernel(int(n), loops="open" not in flags, masked="unmasked" not in flags)
+        for name, res in module_resources(kernel.module, args.arch).items():
+            rows.append({"module": f"block {spec}", "kernel": name, **res})
     for links in args.registers:
         kernel = chains_registers.register_chain_kernel(links)
         for name, res in module_resources(kernel.module, args.arch).items():

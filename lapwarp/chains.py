@@ -198,6 +198,7 @@ class ChainPacks:
         families: host list of ``(first pack, packs)``, in the chain set's family order.
         max_rows: the most rows of a pack (the kernel's shared tile length).
         capacity: the row budget the packs were laid out for.
+        any_closed: whether some pack is a loop (host; the kernels compile their loop branches only then).
     """
 
     rows: wp.array
@@ -207,6 +208,7 @@ class ChainPacks:
     families: list
     max_rows: int
     capacity: int
+    any_closed: bool = True
 
 
 def pack_chains(cs: ChainSet, capacity: int, device) -> ChainPacks:
@@ -247,4 +249,4 @@ def pack_chains(cs: ChainSet, capacity: int, device) -> ChainPacks:
 
     return ChainPacks(rows=arr(flat, wp.vec3i), pack_start=arr(starts), pack_rows=arr(counts),
                       pack_closed=arr(closed_flags), families=families, max_rows=max(counts, default=1),
-                      capacity=int(capacity))
+                      capacity=int(capacity), any_closed=any(closed_flags))

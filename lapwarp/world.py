@@ -694,13 +694,17 @@ class World:
                 if self.chain_solver == "pcr":  # a row per lane
                     lanes = int(self.chain_pcr_threads) or min(128, 32 * ((packs.max_rows + 31) // 32))
                     lanes = launching.block_lanes(self.device, lanes)
-                    kernel = chains_block.block_chain_kernel(packs.max_rows)
+                    # compiled without the loop and cut branches where the family has no loop / the scene no masks
+                    kernel = chains_block.block_chain_kernel(packs.max_rows, loops=packs.any_closed,
+                                                             masked=mask.shape[1] > 0)
                 else:
                     # chain_lane_rows rows per lane: a warp's multiple of lanes on the GPU; on the CPU exactly the
                     # lanes that hold rows, as Warp's cooperative fibers
                     held = chains_hybrid.lanes_for(packs.max_rows, int(self.chain_lane_rows))
                     lanes = 32 * ((held + 31) // 32) if self.device.is_cuda else held
-                    kernel = chains_hybrid.hybrid_chain_kernel(packs.max_rows, int(self.chain_lane_rows))
+                    # compiled without the loop and cut branches where the family has no loop / the scene no masks
+                    kernel = chains_hybrid.hybrid_chain_kernel(packs.max_rows, int(self.chain_lane_rows),
+                                                               loops=packs.any_closed, masked=mask.shape[1] > 0)
                 for pack_base, count in packs.families:
                     launch(kernel, (n, count, lanes),
                            [pack_base, packs.pack_start, packs.pack_rows, packs.pack_closed, packs.rows, rest,

@@ -23,7 +23,8 @@ def test_pcr_rods_match_serial(device, newton_steps, iterations, rigid, cuttable
 
     lengths = []  # the block kernels the "pcr" world records (by their tile length): the solve really ran
     original = chains_block.block_chain_kernel
-    monkeypatch.setattr(chains_block, "block_chain_kernel", lambda links: lengths.append(links) or original(links))
+    monkeypatch.setattr(chains_block, "block_chain_kernel",
+                        lambda links, **flags: lengths.append(links) or original(links, **flags))
     out = []
     for solver in ("thomas", "pcr"):
         world, rods = _rod_world(device, 0, newton_steps, iterations, rigid, cuttable)
@@ -159,12 +160,18 @@ def test_env_config_selects_the_pcr_solve():
         lapwarp.make("Reach", num_envs=1, device="cpu", chain_solver="jacobi")
 
 
-def test_pcr_long_rope_matches_serial(device):
+def test_pcr_long_rope_matches_serial(device, monkeypatch):
     # a hanging rope of 200 links swinging from horizontal for 0.5 s (2 Newton steps, 20 substeps): more nodes than a
     # block's 128 lanes, so on the GPU every lane takes two rows per round; the same path as the serial solve to 1e-5
-    # of its length (measured 1.8e-6, CPU)
+    # of its length (measured 1.8e-6, CPU). An open, uncut rope: the kernel variant compiled without the loop and cut
+    # branches ran
     from lapwarp.builder import SceneBuilder
+    from lapwarp.kernels import chains_block
 
+    variants = []
+    original = chains_block.block_chain_kernel
+    monkeypatch.setattr(chains_block, "block_chain_kernel",
+                        lambda links, **flags: variants.append(flags) or original(links, **flags))
     out = []
     for solver in ("thomas", "pcr"):
         b = SceneBuilder()
@@ -177,3 +184,4 @@ def test_pcr_long_rope_matches_serial(device):
         out.append(world.positions(rod))
     assert out[1][0, -1, 2] < -0.05  # the tip fell and swings
     assert np.abs(out[0] - out[1]).max() <= TOL * 0.2
+    assert variants and all(v == {"loops": False, "masked": False} for v in variants), variants

@@ -120,10 +120,17 @@ def test_hybrid_cloth_edge_chains_match_serial(device, newton_steps, cuttable):
     assert _worst(out[0], out[1], objects) <= TOL
 
 
-def test_hybrid_long_rope_matches_serial(device):
+def test_hybrid_long_rope_matches_serial(device, monkeypatch):
     # a hanging rope of 200 links swinging from horizontal for 0.5 s (2 Newton steps, 20 substeps): 51 lanes of 4
-    # rows, a reduced system of 51 rows
+    # rows, a reduced system of 51 rows. An open, uncut rope: the kernel variant compiled without the loop and cut
+    # branches ran
     from lapwarp.builder import SceneBuilder
+    from lapwarp.kernels import chains_hybrid
+
+    variants = []
+    original = chains_hybrid.hybrid_chain_kernel
+    monkeypatch.setattr(chains_hybrid, "hybrid_chain_kernel",
+                        lambda rows, per_lane, **flags: variants.append(flags) or original(rows, per_lane, **flags))
 
     def make():
         b = SceneBuilder()
@@ -135,6 +142,7 @@ def test_hybrid_long_rope_matches_serial(device):
     _, out, rods = _step_both(make, device, simulate=(0.5, 0.1))
     assert out[1][0, 200, 2] < -0.05  # the tip fell and swings
     assert _worst(out[0], out[1], rods) <= TOL * 0.2
+    assert variants and all(v == {"loops": False, "masked": False} for v in variants), variants
 
 
 def test_hybrid_setting_is_checked(device, monkeypatch):

@@ -439,7 +439,8 @@ def _normalization_study_rows() -> list[Row]:
     99.1 % normalised on the earlier hole)."""
     rows = {row.name: row for row in _thread_rows() + _dissection_rows()}
     return [_with_obs_normalization(rows[name], name.removesuffix("-state") + "-norm-state")
-            for name in ("tih-flexible-state", "tih-normal-state", "tih-inverted-state", "rt-base-fixed-state", "ll-stiff-closure-n05-i2-state", "td-r2-state",
+            for name in ("tih-flexible-state", "tih-normal-state", "tih-inverted-state", "rt-base-fixed-state",
+                         "ll-stiff-closure-n05-i2-state", "td-r2-state",
                          "pc-line-fixed-state",
                          # twenty-eighth session: RopeThreading with the eye's reset noise 62.9 % (sampled 79.3 %;
                          # paper 100 %), where normalisation took the fixed eye from 94.8 to 100 %

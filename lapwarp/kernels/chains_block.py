@@ -40,8 +40,8 @@ from lapwarp.kernels.chains import link_row_terms, node_row, segment_dir
 
 wp.set_module_options({"enable_backward": False})
 
-# the kernels by tile length (the most rows of a pack, a compile-time constant of the shared tiles)
-_KERNELS: dict[int, wp.Kernel] = {}
+# the kernels by (tile length: the most rows of a pack, a compile-time constant of the shared tiles; loops; masked)
+_KERNELS: dict[tuple[int, bool, bool], wp.Kernel] = {}
 # a row of either system, one shared element (so a PCR round writes it with one scatter and one block barrier): sub-,
 # main and super-diagonal, then the right-hand sides: a link row's (-C - alpha lambda, loop vector u, 0), a filter
 # row's vec3
@@ -103,11 +103,15 @@ def pcr_round_func(N: int) -> wp.Function:
     return pcr_round
 
 
-def block_chain_kernel(max_rows: int) -> wp.Kernel:
-    """The block solve for packs (``chains.ChainPacks``) of at most ``max_rows`` rows (cached per length): launch
-    ``(num_envs, packs, lanes)`` with ``block_dim=lanes`` (``launching.block_lanes``), one family at a time."""
+def block_chain_kernel(max_rows: int, loops: bool = True, masked: bool = True) -> wp.Kernel:
+    """The block solve for packs (``chains.ChainPacks``) of at most ``max_rows`` rows (cached per length and flags):
+    launch ``(num_envs, packs, lanes)`` with ``block_dim=lanes`` (``launching.block_lanes``), one family at a time.
+    ``loops`` / ``masked`` (compile-time): whether the family may hold a closed loop / the scene has cutting masks
+    (without them the variant compiles neither branch)."""
     N = max(int(max_rows), 1)
-    cached = _KERNELS.get(N)
+    LOOPS, MASKED = bool(loops), bool(masked)
+    key = (N, LOOPS, MASKED)
+    cached = _KERNELS.get(key)
     if cached is not None:
         return cached
 
@@ -144,8 +148,13 @@ def block_chain_kernel(max_rows: int) -> wp.Kernel:
         # those with a constraint
         pe = env % inv_mass.shape[0]
         ce = env % compliance.shape[0]
-        masked = active.shape[1] > 0
-        closed3, wraps = pack_loop(pack_closed[p], rows, r0, n, masked, active, env)
+        masked = False
+        if wp.static(MASKED):
+            masked = active.shape[1] > 0
+        closed3 = int(0)
+        wraps = int(0)
+        if wp.static(LOOPS):
+            closed3, wraps = pack_loop(pack_closed[p], rows, r0, n, masked, active, env)
         rows0 = wp.tile_zeros(shape=N, dtype=vec6, storage="shared")  # link rows (a, b, c, r, u, 0), PCR buffer 0
         rows1 = wp.tile_zeros(shape=N, dtype=vec6, storage="shared")  # ... and 1
         dl_acc = wp.tile_zeros(shape=N, dtype=wp.vec2, storage="shared")  # per link: dl, this sweep's multiplier so far
@@ -307,5 +316,5 @@ def block_chain_kernel(max_rows: int) -> wp.Kernel:
                 wp.tile_scatter_masked(xw, j, wp.vec4(x[0], x[1], x[2], xwj[3]), moved)
 
     kernel = wp.kernel(solve_chains_block, module="unique", enable_backward=False)
-    _KERNELS[N] = kernel
+    _KERNELS[key] = kernel
     return kernel

@@ -46,8 +46,8 @@ from lapwarp.kernels.chains_block import pack_loop, pcr_round_func, vec6
 
 wp.set_module_options({"enable_backward": False})
 
-# the kernels by (most rows of a pack, rows per lane)
-_KERNELS: dict[tuple[int, int], wp.Kernel] = {}
+# the kernels by (most rows of a pack, rows per lane, loops, masked)
+_KERNELS: dict[tuple[int, int, bool, bool], wp.Kernel] = {}
 
 
 def lanes_for(max_rows: int, rows_per_lane: int) -> int:
@@ -164,15 +164,18 @@ def partition_solver(P: int, L: int) -> wp.Function:
     return solve_partition
 
 
-def hybrid_chain_kernel(max_rows: int, rows_per_lane: int) -> wp.Kernel:
+def hybrid_chain_kernel(max_rows: int, rows_per_lane: int, loops: bool = True, masked: bool = True) -> wp.Kernel:
     """The partitioned block solve for packs of at most ``max_rows`` rows, ``rows_per_lane`` rows per lane (cached):
     launch ``(num_envs, packs, lanes)`` with ``block_dim=lanes``, ``lanes >= lanes_for(max_rows, rows_per_lane)``
-    (extra lanes idle), one family at a time."""
+    (extra lanes idle), one family at a time. ``loops`` / ``masked`` (compile-time): whether the family may hold a
+    closed loop / the scene has cutting masks; without them the variant holds no registers for their branches
+    (RopeThreading's open, uncut rope: 255 -> REGS registers per lane at 4 rows, sm_90)."""
     P = int(rows_per_lane)
     if not 1 <= P <= 16:
         raise ValueError(f"rows per lane must be in [1, 16] (unrolled per lane), got {rows_per_lane!r}")
     L = lanes_for(max_rows, P)
-    key = (L * P, P)
+    LOOPS, MASKED = bool(loops), bool(masked)
+    key = (L * P, P, LOOPS, MASKED)
     cached = _KERNELS.get(key)
     if cached is not None:
         return cached
@@ -207,8 +210,13 @@ def hybrid_chain_kernel(max_rows: int, rows_per_lane: int) -> wp.Kernel:
         s_row = lane * P  # this lane's first row
         pe = env % inv_mass.shape[0]
         ce = env % compliance.shape[0]
-        masked = active.shape[1] > 0
-        closed3, wraps = pack_loop(pack_closed[p], rows, r0, n, masked, active, env)
+        masked = False
+        if wp.static(MASKED):
+            masked = active.shape[1] > 0
+        closed3 = int(0)
+        wraps = int(0)
+        if wp.static(LOOPS):
+            closed3, wraps = pack_loop(pack_closed[p], rows, r0, n, masked, active, env)
         up = wp.tile_zeros(shape=L, dtype=vec6, storage="shared")
         red0 = wp.tile_zeros(shape=L, dtype=vec6, storage="shared")
         red1 = wp.tile_zeros(shape=L, dtype=vec6, storage="shared")

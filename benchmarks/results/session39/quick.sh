@@ -8,7 +8,8 @@
 #    throughout: its bench step is 43.0 ms where the lease's graph profile saw 36.96 ms of device span per step at
 #    steps 10-15, so 4. the step by phase (the expert's actions replayed: steps 5-20 against 5-150) and a profile at
 #    steps 60-65 against the lease's 10-15 answer whether later states cost more or the clocks drop;
-# 5. ThreadInHole's continuous expert on the new code, as far as the time goes.
+# 5. RopeThreading's hybrid chain kernel without its loop and cut branches against the lease's code;
+# 6. ThreadInHole's continuous expert on the new code, as far as the time goes.
 # Lines go to stdout as they finish; files under $OUT/q39, packed into $OUT/q39.tgz after each.
 set -u
 t0=$(date +%s)
@@ -49,6 +50,11 @@ echo "ll end $(date +%s.%N)" >> "$out/marks.txt"
 bench ll_refit1 LigatingLoop expert --surface-refit-steps 1
 bench ll_replay20 LigatingLoop replay --replay-steps 20
 bench ll_replay150 LigatingLoop replay --replay-steps 150
+pack
+# RopeThreading's hybrid chain solve compiled without the loop and cut branches (its rope is open and uncut: 217
+# registers per lane without a spill against 255 with a 112-byte spill frame, sm_90) against the lease's code
+bench rt RopeThreading expert
+bench_old rt_old RopeThreading expert
 pack
 if [ "$(left)" -gt 70 ]; then
   PYTHONPATH=$new timeout $(( $(left) - 5 )) python3 benchmarks/profile_step.py --task LigatingLoop --device "$dev" \
