@@ -169,7 +169,7 @@ def hybrid_chain_kernel(max_rows: int, rows_per_lane: int, loops: bool = True, m
     launch ``(num_envs, packs, lanes)`` with ``block_dim=lanes``, ``lanes >= lanes_for(max_rows, rows_per_lane)``
     (extra lanes idle), one family at a time. ``loops`` / ``masked`` (compile-time): whether the family may hold a
     closed loop / the scene has cutting masks; without them the variant holds no registers for their branches
-    (RopeThreading's open, uncut rope: 255 -> REGS registers per lane at 4 rows, sm_90)."""
+    (RopeThreading's open, uncut rope: 255 registers and a 112-byte spill frame -> 217 and none at 4 rows, sm_90)."""
     P = int(rows_per_lane)
     if not 1 <= P <= 16:
         raise ValueError(f"rows per lane must be in [1, 16] (unrolled per lane), got {rows_per_lane!r}")
