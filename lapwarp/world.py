@@ -279,7 +279,6 @@ class World:
         self._dummy_f = wp.zeros((1, 1), dtype=float, device=dev)
         self._dummy_v2 = wp.zeros((1, 1), dtype=wp.vec2, device=dev)
         self._dummy_v3 = wp.zeros((1, 1), dtype=wp.vec3, device=dev)
-        self._vbd_no_flags = wp.zeros(0, dtype=wp.int32, device=dev)  # the prediction writes no tet solve's start
         # "no cutting masks" for the constraint kernels: empty element maps / a (1, 0) mask
         self._no_map_i = wp.zeros(0, dtype=wp.int32, device=dev)
         self._no_mask = wp.zeros((1, 0), dtype=wp.int32, device=dev)
@@ -300,7 +299,7 @@ class World:
         its host copies must not happen while a step is recorded inside a CUDA graph capture."""
         m, dev = self.model, self.device
         self._vbd_layout = None
-        self._vbd_start_flags = wp.zeros(0, dtype=wp.int32, device=dev)
+        self._vbd_start_flags = None  # set below where there are tets (_vbd_start_in_prediction needs them)
         self._unanchored_tets: list[tuple[int, int]] = []
         if not m.tet_count:
             return
@@ -624,7 +623,8 @@ class World:
         # a substep's velocity update and the next one's prediction run as one kernel where nothing comes between
         # them (a solver's record_substep_end would): one launch and one pass over the particles fewer per substep
         fuse = not any(hasattr(solver, "record_substep_end") for solver in self.solvers)
-        start_flags = self._vbd_start_flags if self._vbd_start_in_prediction() else self._vbd_no_flags
+        # the empty int32 array where the prediction writes no tet solve's start
+        start_flags = self._vbd_start_flags if self._vbd_start_in_prediction() else self._no_map_i
         for sub in range(substeps):
             particle_args = [m.particle_inv_mass, m.particle_damping, m.gravity, h, *self._prediction_masks(),
                              start_flags, s.particle_q, s.particle_qd]

@@ -465,8 +465,8 @@ def test_stale_surface_bvh_finds_the_same_contacts(device, interval, steps):
     assert x[:, beads.particle_start:, 2].min() > 0.02  # every bead was pushed up by the surface (it started at 12 mm)
 
 
-def test_negative_surface_refit_interval_is_rejected(device):
-    """``surface_refit_interval`` below 0 is a clear error when the step is recorded, not a silent every-sweep refit."""
+def _bead_over_surface(device, **settings):
+    """A bead above a free tet block's surface, one env, the contact system's ``settings`` set before finalize."""
     v, t = box_tets((0.02, 0.02, 0.01), (2, 2, 1), origin=(-0.01, -0.01, 0.0))
     b = SceneBuilder()
     blk = b.add_tet_mesh(v, t, density=1000.0, youngs_modulus=1e5, poisson_ratio=0.3)
@@ -475,8 +475,15 @@ def test_negative_surface_refit_interval_is_rejected(device):
     cs = ContactSystem(w)
     cs.add_particle_group(bead, radius=5.0e-4)
     cs.add_surface(blk)
-    cs.surface_refit_interval = -1
+    for name, value in settings.items():
+        setattr(cs, name, value)
     cs.finalize()
+    return w
+
+
+def test_negative_surface_refit_interval_is_rejected(device):
+    """``surface_refit_interval`` below 0 is a clear error when the step is recorded, not a silent every-sweep refit."""
+    w = _bead_over_surface(device, surface_refit_interval=-1)
     with pytest.raises(ValueError, match="surface_refit_interval"):
         w.step(0.01)
 
@@ -485,16 +492,7 @@ def test_negative_surface_refit_interval_is_rejected(device):
 def test_bad_surface_refit_steps_are_rejected(device, steps):
     """``surface_refit_steps`` must be an int >= 1: anything else is a clear error when the step is recorded (not a
     division by zero or a silent refit every step)."""
-    v, t = box_tets((0.02, 0.02, 0.01), (2, 2, 1), origin=(-0.01, -0.01, 0.0))
-    b = SceneBuilder()
-    blk = b.add_tet_mesh(v, t, density=1000.0, youngs_modulus=1e5, poisson_ratio=0.3)
-    bead = b.add_particles(np.array([[0.0, 0.0, 0.02]]), mass=1.0e-4)
-    w = b.finalize(num_envs=1, device=device, substeps=2)
-    cs = ContactSystem(w)
-    cs.add_particle_group(bead, radius=5.0e-4)
-    cs.add_surface(blk)
-    cs.surface_refit_steps = steps
-    cs.finalize()
+    w = _bead_over_surface(device, surface_refit_steps=steps)
     with pytest.raises(ValueError, match="surface_refit_steps"):
         w.step(0.01, 1)
     with pytest.raises(ValueError, match="step_index"):

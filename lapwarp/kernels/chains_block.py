@@ -63,6 +63,35 @@ def pack_loop(closed: int, rows: wp.array(dtype=wp.vec3i), r0: int, n: int, mask
     return closed3, wraps
 
 
+_PACK_SETUPS: dict[tuple[bool, bool], wp.Function] = {}
+
+
+def pack_setup_func(loops: bool, masked: bool) -> wp.Function:
+    """A pack's cutting-mask flag and ``pack_loop``'s ``(closed3, wraps)``, with the loop and mask branches compiled
+    only where ``loops`` / ``masked`` say the family may need them (else constants: a kernel for open, uncut chains
+    holds no registers for them); cached per flags, shared by the block and hybrid kernels."""
+    key = (bool(loops), bool(masked))
+    cached = _PACK_SETUPS.get(key)
+    if cached is not None:
+        return cached
+    LOOPS, MASKED = key
+
+    @wp.func
+    def pack_setup(pack_closed: wp.array(dtype=wp.int32), p: int, rows: wp.array(dtype=wp.vec3i), r0: int, n: int,
+                   active: wp.array2d(dtype=wp.int32), env: int):
+        masked = False
+        if wp.static(MASKED):
+            masked = active.shape[1] > 0
+        closed3 = int(0)
+        wraps = int(0)
+        if wp.static(LOOPS):
+            closed3, wraps = pack_loop(pack_closed[p], rows, r0, n, masked, active, env)
+        return masked, closed3, wraps
+
+    _PACK_SETUPS[key] = pack_setup
+    return pack_setup
+
+
 _PCR_ROUNDS: dict[int, wp.Function] = {}
 
 
@@ -122,6 +151,7 @@ def block_chain_kernel(max_rows: int, loops: bool = True, masked: bool = True) -
         return wp.vec3(v[0], v[1], v[2])
 
     pcr_round = pcr_round_func(N)
+    pack_setup = pack_setup_func(LOOPS, MASKED)
 
     def solve_chains_block(
         pack_base: int,
@@ -148,13 +178,7 @@ def block_chain_kernel(max_rows: int, loops: bool = True, masked: bool = True) -
         # those with a constraint
         pe = env % inv_mass.shape[0]
         ce = env % compliance.shape[0]
-        masked = False
-        if wp.static(MASKED):
-            masked = active.shape[1] > 0
-        closed3 = int(0)
-        wraps = int(0)
-        if wp.static(LOOPS):
-            closed3, wraps = pack_loop(pack_closed[p], rows, r0, n, masked, active, env)
+        masked, closed3, wraps = pack_setup(pack_closed, p, rows, r0, n, active, env)
         rows0 = wp.tile_zeros(shape=N, dtype=vec6, storage="shared")  # link rows (a, b, c, r, u, 0), PCR buffer 0
         rows1 = wp.tile_zeros(shape=N, dtype=vec6, storage="shared")  # ... and 1
         dl_acc = wp.tile_zeros(shape=N, dtype=wp.vec2, storage="shared")  # per link: dl, this sweep's multiplier so far

@@ -42,7 +42,7 @@ lanes as fibers with real barriers, so the CPU tests run the GPU's partition, re
 import warp as wp
 
 from lapwarp.kernels.chains import link_row_terms, node_row, segment_dir
-from lapwarp.kernels.chains_block import pack_loop, pcr_round_func, vec6
+from lapwarp.kernels.chains_block import pack_setup_func, pcr_round_func, vec6
 
 wp.set_module_options({"enable_backward": False})
 
@@ -184,6 +184,7 @@ def hybrid_chain_kernel(max_rows: int, rows_per_lane: int, loops: bool = True, m
     mat_p3 = wp.types.matrix(shape=(P, 3), dtype=float)
 
     solve_partition = partition_solver(P, L)
+    pack_setup = pack_setup_func(LOOPS, MASKED)
 
     def solve_chains_hybrid(
         pack_base: int,
@@ -210,13 +211,7 @@ def hybrid_chain_kernel(max_rows: int, rows_per_lane: int, loops: bool = True, m
         s_row = lane * P  # this lane's first row
         pe = env % inv_mass.shape[0]
         ce = env % compliance.shape[0]
-        masked = False
-        if wp.static(MASKED):
-            masked = active.shape[1] > 0
-        closed3 = int(0)
-        wraps = int(0)
-        if wp.static(LOOPS):
-            closed3, wraps = pack_loop(pack_closed[p], rows, r0, n, masked, active, env)
+        masked, closed3, wraps = pack_setup(pack_closed, p, rows, r0, n, active, env)
         up = wp.tile_zeros(shape=L, dtype=vec6, storage="shared")
         red0 = wp.tile_zeros(shape=L, dtype=vec6, storage="shared")
         red1 = wp.tile_zeros(shape=L, dtype=vec6, storage="shared")
