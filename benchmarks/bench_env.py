@@ -50,15 +50,10 @@ def contact_systems(env) -> list:
     return [solver for solver in env.world.solvers if hasattr(solver, "triangle_sweep")]
 
 
-def apply_contact_settings(env, surface_refit_interval: int | None = None, triangle_sweep: str | None = None,
-                           triangle_block_threads: int | None = None, surface_refit_steps: int | None = None) -> None:
-    """Set the contact systems' refit interval and steps, triangle sweep and the fused sweep's threads per env block
-    (None: keep theirs), before the first step records the launches (and the env captures them)."""
+def apply_contact_settings(env, triangle_sweep: str | None = None, triangle_block_threads: int | None = None) -> None:
+    """Set the contact systems' triangle sweep and the fused sweep's threads per env block (None: keep theirs),
+    before the first step records the launches (and the env captures them)."""
     for contact in contact_systems(env):
-        if surface_refit_interval is not None:
-            contact.surface_refit_interval = surface_refit_interval
-        if surface_refit_steps is not None:
-            contact.surface_refit_steps = surface_refit_steps
         if triangle_sweep is not None:
             contact.triangle_sweep = triangle_sweep
         if triangle_block_threads is not None:
@@ -90,11 +85,9 @@ def record_expert_actions(env, steps: int) -> list[torch.Tensor]:
 
 def bench_one(task: str, num_envs: int, device: str, seconds: float, invalid_actions: str, overrides: dict,
               policy: str = "random", tet_solver: str | None = None, cuda_graph: bool = True,
-              surface_refit_interval: int | None = None, triangle_sweep: str | None = None,
-              triangle_block_threads: int | None = None, replay_steps: int = 600,
-              max_registers: dict[str, int] | None = None, pcr_rows: int | None = None,
-              rod_solver: str | None = None, lane_rows: int | None = None,
-              surface_refit_steps: int | None = None) -> dict:
+              triangle_sweep: str | None = None, triangle_block_threads: int | None = None,
+              replay_steps: int = 600, max_registers: dict[str, int] | None = None, pcr_rows: int | None = None,
+              rod_solver: str | None = None, lane_rows: int | None = None) -> dict:
     def make_env():
         env = lapwarp.make(task, num_envs=num_envs, device=device, invalid_actions=invalid_actions,
                            use_cuda_graph=cuda_graph, **overrides)
@@ -108,7 +101,7 @@ def bench_one(task: str, num_envs: int, device: str, seconds: float, invalid_act
             env.world.chain_lane_rows = lane_rows
         if rod_solver is not None:
             env.world.rod_solver = rod_solver
-        apply_contact_settings(env, surface_refit_interval, triangle_sweep, triangle_block_threads, surface_refit_steps)
+        apply_contact_settings(env, triangle_sweep, triangle_block_threads)
         return env
 
     env = make_env()
@@ -162,8 +155,6 @@ def bench_one(task: str, num_envs: int, device: str, seconds: float, invalid_act
         "observation_type": env.cfg.observation_type, "cuda_graph": env._use_cuda_graph,
         "resolution": list(env.cfg.image_shape) if env.uses_images else None,
         "triangle_sweep": next((c.resolved_triangle_sweep() for c in contact_systems(env)), None),
-        "surface_refit_interval": next((c.surface_refit_interval for c in contact_systems(env)), None),
-        "surface_refit_steps": next((getattr(c, "surface_refit_steps", 1) for c in contact_systems(env)), None),
         "triangle_block_threads": next((c.triangle_block_threads for c in contact_systems(env)), None),
         "tet_solver": ("fused" if env.world.fused_tets else "colored") if env.world.model.tet_count else None,
         # (an older lapwarp, timed beside this one, has max_registers only)
@@ -196,12 +187,6 @@ def main(argv: list[str] | None = None) -> int:
                         help="--policy replay: expert steps recorded (timing stops after them, 5 warm-up steps first)")
     parser.add_argument("--tet-solver", choices=["auto", "colored", "fused"], default=None,
                         help="the world's tet sweep (default: the world's own choice)")
-    parser.add_argument("--surface-refit-interval", type=non_negative_int, default=None,
-                        help="substeps between refits of deforming contact surfaces' BVHs (0: once per world step; "
-                             "default: the contact system's own)")
-    parser.add_argument("--surface-refit-steps", type=positive_int, default=None,
-                        help="physics steps of an env step between those refits (1: every physics step; default: "
-                             "the contact system's own)")
     parser.add_argument("--triangle-sweep", choices=ContactSystem.TRIANGLE_SWEEPS, default=None,
                         help="the contact system's triangle sweep (default: its own)")
     parser.add_argument("--triangle-block-threads", type=positive_int, default=None,
@@ -242,11 +227,10 @@ def main(argv: list[str] | None = None) -> int:
     for n in args.num_envs:
         for mode in modes:
             r = bench_one(args.task, n, args.device, args.seconds, mode, overrides, args.policy, args.tet_solver,
-                          cuda_graph=not args.no_graph, surface_refit_interval=args.surface_refit_interval,
-                          triangle_sweep=args.triangle_sweep, triangle_block_threads=args.triangle_block_threads,
+                          cuda_graph=not args.no_graph, triangle_sweep=args.triangle_sweep,
+                          triangle_block_threads=args.triangle_block_threads,
                           replay_steps=args.replay_steps, max_registers=max_registers, pcr_rows=args.pcr_rows,
-                          rod_solver=args.rod_solver, lane_rows=args.lane_rows,
-                          surface_refit_steps=args.surface_refit_steps)
+                          rod_solver=args.rod_solver, lane_rows=args.lane_rows)
             results.append(r)
             print(f"{r['task']:<10} {n:>9} {mode:>8} {r['env_steps_per_s']:>14,.0f} {r['step_ms']:>9.3f}", flush=True)
     regime = "the expert's recorded actions replayed" if args.policy == "replay" else f"{args.policy} actions"

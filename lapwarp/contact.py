@@ -29,6 +29,7 @@ from lapwarp import launching
 from lapwarp.kernels import contact as ck
 from lapwarp.kernels.geometry import BodyMotion
 from lapwarp.launching import make_struct
+from lapwarp.surface_clusters import SurfaceClusters
 
 # particle-particle sets with at least this many members per env use the per-env cell list (measured on CPU,
 # see docs/contact.md: brute force costs M^2 pair tests, the cell list ~27 buckets + a scan per sweep)
@@ -144,20 +145,8 @@ class ContactSystem:
         # thirtieth session, and was dropped). Read when the World records a step (record_key)
         self.triangle_sweep = "auto"
         self.triangle_block_threads = 32
-        # deforming surfaces: refit their BVH every surface_refit_interval substeps (0: once per world.step, at its
-        # first sweep). In between, queries grow by how far the surface's vertices moved since the refit (``drift``,
-        # measured every sweep), so the stale bounds still cover every triangle the query can touch, and each
-        # candidate is then tested against its own current bounds: the same contacts as a refit every sweep. A refit
-        # of every env's surface BVH costs far more than the drift pass (LigatingLoop: 30 % of its step).
-        self.surface_refit_interval = 0
-        # and across the physics steps of one env step: a physics step's first sweep refits only at every
-        # surface_refit_steps-th step of its env step (World.step's step_index; the env step's first always, since
-        # resets move the surfaces between env steps). 1 = every physics step. The drift keeps growing from the last
-        # refit, so the contacts are the same either way; what changes is how many refits an env step pays for
-        # against how far the queries grow (ThreadInHole's stiff hole barely moves within an env step: one refit
-        # of its ten per env step, 167.4k -> 183.5k env-steps/s with the expert; LigatingLoop's cavity, squeezed by
-        # the loop, drifts enough that its queries cost more than the refit: 95.4k -> 92.4k, H200, same call)
-        self.surface_refit_steps = 1
+        # deforming surfaces: triangles per leaf of their clustering (SurfaceClusters; read at finalize)
+        self.surface_leaf_size = 8
         self.shapes: list[Shape] = []
         self.groups: list[ParticleGroup] = []
         self.self_sets: list[dict] = []
@@ -273,9 +262,10 @@ class ContactSystem:
         """The deforming triangle surface of a deformable object as a collider for the *other* objects' particle
         groups of the same env (thread through a soft hole, loop around a soft cylinder, rod on tissue).
 
-        One grouped ``wp.Mesh`` over the flat view of ``state.particle_q`` holds every env's copy of the triangles
-        (BVH group = env); it is refit (not rebuilt) before every contact sweep and queried from the env's own
-        subtree. Contact is two-way: the triangle's vertices take their mass-weighted share of the correction.
+        The triangles are grouped once from the rest shape into leaves and super leaves (shared by every env,
+        :class:`lapwarp.surface_clusters.SurfaceClusters`); before each contact sweep's queries every env's boxes
+        are computed from its vertices as they are then. Contact is two-way: the triangle's vertices take their
+        mass-weighted share of the correction.
 
         Args:
             obj: a ``SceneObject`` with ``surface_tris`` (tet mesh surface, cloth triangles) or ``(F, 3)`` global
@@ -533,23 +523,23 @@ class ContactSystem:
                                       segment_active=self.seg_mask, tri_col=self.tri_col, tri_col2=self.tri_col2,
                                       tri_active=self.tri_mask, tet_face_active=self.face_mask)
 
-        # deforming surfaces: one grouped wp.Mesh each over the flat (num_envs * particle_count) view of
-        # particle_q, so refit reads the live positions with no gather; BVH group = env
+        # deforming surfaces: the triangles in a clustered order from the rest shape (shared topology) and every
+        # env's leaf / super-leaf boxes, recomputed from the live positions before each query (SurfaceClusters)
         P = self.world.model.particle_count
         self._surfaces = []
+        rest = self.world.state.particle_q.numpy()[0] if any(sh.surface for sh in self.shapes) else None
         for sidx, sh in enumerate(self.shapes):
             if sh.surface is None:
                 continue
             t = sh.surface["tris"]
-            flat = (t[None, :, :] + (np.arange(n, dtype=np.int64) * P)[:, None, None]).reshape(-1)
-            mesh = wp.Mesh(points=self.world.state.particle_q.flatten(), indices=arr(flat.astype(np.int32), wp.int32),
-                           groups=arr(np.repeat(np.arange(n), len(t)).astype(np.int32), wp.int32))
+            clusters = SurfaceClusters(t, rest, leaf_size=self.surface_leaf_size)
+            t = t[clusters.order]
             verts = np.unique(t)
             fc = sh.surface["face_col"]
             if fc is None:
                 face_col, face_mask = self._no_col, self._dummy_mask
             else:
-                face_col = arr(fc.astype(np.int32), wp.int32)
+                face_col = arr(fc[clusters.order].astype(np.int32), wp.int32)
                 face_mask = self.tri_mask if sh.surface["kind"] == "cloth" else self.face_mask
             # thickness and friction: the kernel reads the surface's own row of the shape table
             owner = sh.surface["owner"]
@@ -557,13 +547,19 @@ class ContactSystem:
             # the launch covers only them, not every contact particle (LigatingLoop: ~50 loop nodes, not 800)
             cand = np.nonzero((pair[sidx, np.asarray(cp_groups, dtype=np.int64)] >= 0)
                               & ~((cp_all >= owner[0]) & (cp_all < owner[1])))[0] if len(cp_all) else []
-            drift = wp.zeros(n, dtype=float, device=dev)  # per env: how far the vertices moved since the refit
-            self._surfaces.append(dict(mesh=mesh, verts=arr(verts.astype(np.int32), wp.int32),
-                                       snapshot=wp.zeros((n, len(verts)), dtype=wp.vec3, device=dev), drift=drift,
-                                       candidates=arr(np.asarray(cand, dtype=np.int32), wp.int32), surface=make_struct(
-                ck.ContactSurface, shape=sidx, mesh=mesh.id, tris=arr(t.astype(np.int32), wp.vec3i),
-                owner_start=int(owner[0]), owner_end=int(owner[1]), closed=int(sh.surface["closed"]),
-                face_col=face_col, face_active=face_mask, drift=drift)))
+            L, S = clusters.num_leaves, clusters.num_supers
+            boxes = {key: wp.zeros((n, size), dtype=wp.vec3, device=dev)
+                     for key, size in (("leaf_lo", L), ("leaf_hi", L), ("super_lo", S), ("super_hi", S))}
+            self._surfaces.append(dict(verts=arr(verts.astype(np.int32), wp.int32), clusters=clusters, **boxes,
+                                       leaf_vert_start=arr(clusters.leaf_vert_start, wp.int32),
+                                       leaf_verts=arr(clusters.leaf_verts, wp.int32),
+                                       candidates=arr(np.asarray(cand, dtype=np.int32), wp.int32)))
+            sf = self._surfaces[-1]
+            sf["surface"] = make_struct(
+                ck.ContactSurface, shape=sidx, tris=arr(t.astype(np.int32), wp.vec3i), owner_start=int(owner[0]),
+                owner_end=int(owner[1]), closed=int(sh.surface["closed"]), face_col=face_col, face_active=face_mask,
+                leaf_size=clusters.leaf_size, leaves_per_super=clusters.leaves_per_super,
+                leaf_vert_start=sf["leaf_vert_start"], leaf_verts=sf["leaf_verts"], **boxes)
         if self._surfaces:
             self.surf_delta = wp.zeros((n, P, 3), dtype=wp.int64, device=dev)  # fixed point, see the kernel
             self.surf_count = wp.zeros((n, P), dtype=wp.int32, device=dev)
@@ -676,29 +672,8 @@ class ContactSystem:
         if not 1 <= int(self.triangle_block_threads) <= 1024:
             raise ValueError(f"triangle_block_threads must be in [1, 1024] (threads of one env's block), "
                              f"got {self.triangle_block_threads!r}")
-        if int(self.surface_refit_interval) < 0:
-            raise ValueError(f"surface_refit_interval must be >= 0 (0: once per world.step), "
-                             f"got {self.surface_refit_interval!r}")
-        steps = self.surface_refit_steps
-        if isinstance(steps, bool) or not isinstance(steps, (int, np.integer)) or steps < 1:
-            raise ValueError(f"surface_refit_steps must be an int >= 1 (physics steps of an env step between the "
-                             f"surfaces' BVH refits; 1: every physics step), got {steps!r}")
-        return (self.resolved_triangle_sweep(), int(self.triangle_block_threads), int(self.surface_refit_interval),
-                int(self.surface_refit_steps), id(self.overflow_sink), bool(self.fuse_segment_colors))
-
-    def step_variant(self, step_index: int) -> bool:
-        """Whether the physics step ``step_index`` of an env step refits the surfaces' BVHs at its first sweep
-        (``World.step``: the steps that do and those that do not are recorded apart)."""
-        return not getattr(self, "_surfaces", None) or step_index % int(self.surface_refit_steps) == 0
-
-    def _refits_surfaces(self, sweep) -> bool:
-        """Whether this sweep refits the surfaces' BVHs: the first sweep of every ``surface_refit_steps``-th
-        physics step of an env step (always its first: resets move the surfaces between env steps), and within a
-        physics step every ``surface_refit_interval``-th substep."""
-        k = int(self.surface_refit_interval)
-        if sweep.first:
-            return self.step_variant(sweep.step_index)
-        return k > 0 and sweep.iteration == 0 and sweep.substep % k == 0
+        return (self.resolved_triangle_sweep(), int(self.triangle_block_threads), id(self.overflow_sink),
+                bool(self.fuse_segment_colors))
 
     def record_sweep(self, world, launch, sweep) -> None:
         """Record the contact projections of one sweep (called by the World while it records a step)."""
@@ -752,17 +727,14 @@ class ContactSystem:
             for c in range(len(off) - 1):
                 launch(ck.collide_triangles, (n, off[c + 1] - off[c]),
                        [self._triangles, off[c], shapes, self._tool_axes, solve, ignore, masks], [q, reports])
-        refit = self._refits_surfaces(sweep)
         for sf in self._surfaces:
             if len(sf["candidates"]) == 0:
-                continue  # nothing queries this surface's BVH
-            verts, snap, drift = sf["verts"], sf["snapshot"], sf["drift"]
-            if refit:
-                launch(sf["mesh"].refit)  # BVH bounds of the surface as it is now (after this sweep's constraints)
-                launch(ck.surface_snapshot, (n, verts.shape[0]), [verts, q], [snap, drift])
-            else:
-                lanes = launching.block_lanes(self.device, 64)  # a block per env (ck.surface_drift)
-                launch(ck.surface_drift, (n, lanes), [verts, q, snap], [drift], block_dim=lanes)
+                continue  # nothing queries this surface
+            # every env's boxes as its vertices are now (after this sweep's constraints), then the queries
+            launch(ck.surface_leaf_bounds, (n, sf["clusters"].num_leaves), [sf["leaf_vert_start"], sf["leaf_verts"], q],
+                   [sf["leaf_lo"], sf["leaf_hi"]])
+            launch(ck.surface_super_bounds, (n, sf["clusters"].num_supers),
+                   [sf["leaf_lo"], sf["leaf_hi"], sf["clusters"].leaves_per_super], [sf["super_lo"], sf["super_hi"]])
             launch(ck.collide_surface, (n, len(sf["candidates"])),
                    [self._particles, sf["candidates"], sf["surface"], shapes, solve, masks, report, self.report_margin],
                    [q, self.surf_delta, self.surf_count, reports])

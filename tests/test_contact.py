@@ -13,6 +13,7 @@ import warp as wp
 from lapwarp.assets import box_tets, cloth_grid, rod_circle, rod_polyline
 from lapwarp.builder import SceneBuilder
 from lapwarp.contact import ContactSystem
+from lapwarp.surface_clusters import SurfaceClusters
 
 
 def _quat_axis_angle(axis, angle):
@@ -426,18 +427,17 @@ def test_bead_rests_on_deforming_tissue_surface_per_env(device):
     assert list(cs.counts()[:, 0]) == [1, 1]
 
 
-@pytest.mark.parametrize("interval, steps", [(0, 1), (4, 1), (0, 3)])
-def test_stale_surface_bvh_finds_the_same_contacts(device, interval, steps):
+@pytest.mark.parametrize("leaf_size", [1, 8])
+def test_clustered_surface_query_matches_a_search_of_every_triangle(device, leaf_size):
     """A free tet block (2 x 2 x 1 cm) thrown at 0.1 m/s into 9 beads (r = 0.5 mm, at rest, no gravity) 2 mm above
-    its top face, 10 substeps per 0.05 s step: the surface moves 0.5 mm per substep, 5 mm per step. Refitting its BVH
-    once per step (``surface_refit_interval`` 0), every fourth substep, or only at the first of three physics steps
-    of an env step (``surface_refit_steps`` 3, ``World.step``'s step index 0, 1, 2), with queries grown by the
-    measured drift, gives exactly the trajectories of a refit before every sweep (interval 1): the same candidate
-    triangles, the same contacts."""
+    its top face, 10 substeps per 0.05 s step: the surface moves 0.5 mm per substep, 5 mm per step. The clustered
+    query (leaves of ``leaf_size`` triangles in super leaves, every env's boxes recomputed each sweep) gives exactly
+    the trajectories of one leaf holding every triangle (each query then tests them all): it meets every triangle
+    near the bead, however far the surface moved."""
     v, t = box_tets((0.02, 0.02, 0.01), (2, 2, 1), origin=(-0.01, -0.01, 0.0))
     beads0 = np.array([[x, y, 0.012] for x in (-0.006, 0.0, 0.006) for y in (-0.006, 0.0, 0.006)])
     out = []
-    for k, refit_steps in ((1, 1), (interval, steps)):
+    for size in (10_000, leaf_size):
         b = SceneBuilder(gravity=(0.0, 0.0, 0.0))
         blk = b.add_tet_mesh(v, t, density=1000.0, youngs_modulus=1e5, poisson_ratio=0.3)
         beads = b.add_particles(beads0, mass=1.0e-4)
@@ -449,20 +449,42 @@ def test_stale_surface_bvh_finds_the_same_contacts(device, interval, steps):
         cs = ContactSystem(w)
         cs.add_particle_group(beads, radius=5.0e-4, name="beads")
         cs.add_surface(blk, thickness=0.0, name="block")
-        cs.surface_refit_interval = k
-        cs.surface_refit_steps = refit_steps
+        cs.surface_leaf_size = size
         cs.finalize()
-        for index in range(3):
-            w.step(0.05, index)
-        out.append((w.positions(), cs._surfaces[0]["drift"].numpy()))
-        # one recording per variant: with refits every third step, the refitting first step and the two others
-        assert len(w._cmd_cache) == (2 if refit_steps == 3 else 1)
-    (ref, _), (x, drift) = out
-    # the stale bounds were off by over 0.4 mm when last queried (by two steps' motion, ~10 mm, without a refit in
-    # the env step's last two physics steps)
-    assert drift.min() > (9.0e-3 if steps == 3 else 4.0e-4)
-    assert np.array_equal(ref, x)
+        clusters = cs._surfaces[0]["clusters"]
+        assert clusters.num_leaves == (1 if size == 10_000 else -(-len(blk.surface_tris) // leaf_size))
+        for _ in range(3):
+            w.step(0.05)
+        out.append(w.positions())
+    ref, x = out
+    np.testing.assert_allclose(x, ref, rtol=0.0, atol=1.0e-9)
     assert x[:, beads.particle_start:, 2].min() > 0.02  # every bead was pushed up by the surface (it started at 12 mm)
+
+
+def test_surface_clusters_are_compact_and_cover_every_triangle():
+    """A 32 x 32 grid of unit squares (2,048 triangles): the clustered order is a permutation, each leaf of 8
+    triangles lies within a 2 x 2 block of squares (the median splits halve the grid: extent 2 per axis), each
+    super leaf's leaves are neighbours, and each leaf's vertex list is its triangles' distinct vertices."""
+    n = 32
+    ij = np.arange((n + 1) ** 2).reshape(n + 1, n + 1)
+    quads = np.stack([ij[:-1, :-1], ij[1:, :-1], ij[1:, 1:], ij[:-1, 1:]], axis=-1).reshape(-1, 4)
+    tris = np.concatenate([quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]])
+    xs, ys = np.meshgrid(np.arange(n + 1.0), np.arange(n + 1.0), indexing="ij")
+    points = np.stack([xs.ravel(), ys.ravel(), np.zeros(xs.size)], axis=1)
+    c = SurfaceClusters(tris, points)
+    assert np.array_equal(np.sort(c.order), np.arange(len(tris)))
+    assert (c.num_leaves, c.leaves_per_super, c.num_supers) == (256, 16, 16)
+    ordered = tris[c.order]
+    for leaf in range(c.num_leaves):
+        verts = np.unique(ordered[leaf * 8:(leaf + 1) * 8])
+        assert np.array_equal(c.leaf_verts[c.leaf_vert_start[leaf]:c.leaf_vert_start[leaf + 1]], verts)
+        extent = points[verts].max(axis=0) - points[verts].min(axis=0)
+        assert extent.max() <= 2.0
+    for s in range(c.num_supers):
+        verts = np.unique(ordered[s * 128:(s + 1) * 128])
+        assert np.ptp(points[verts], axis=0).max() <= 8.0  # 16 leaves of 2 x 2: an 8 x 8 block
+    with pytest.raises(ValueError, match="leaf_size"):
+        SurfaceClusters(tris, points, leaf_size=0)
 
 
 def _bead_over_surface(device, **settings):
@@ -481,22 +503,10 @@ def _bead_over_surface(device, **settings):
     return w
 
 
-def test_negative_surface_refit_interval_is_rejected(device):
-    """``surface_refit_interval`` below 0 is a clear error when the step is recorded, not a silent every-sweep refit."""
-    w = _bead_over_surface(device, surface_refit_interval=-1)
-    with pytest.raises(ValueError, match="surface_refit_interval"):
-        w.step(0.01)
-
-
-@pytest.mark.parametrize("steps", [0, -2, 1.5, True])
-def test_bad_surface_refit_steps_are_rejected(device, steps):
-    """``surface_refit_steps`` must be an int >= 1: anything else is a clear error when the step is recorded (not a
-    division by zero or a silent refit every step)."""
-    w = _bead_over_surface(device, surface_refit_steps=steps)
-    with pytest.raises(ValueError, match="surface_refit_steps"):
-        w.step(0.01, 1)
-    with pytest.raises(ValueError, match="step_index"):
-        w.step(0.01, -1)
+def test_bad_surface_leaf_size_is_rejected(device):
+    """``surface_leaf_size`` must be an int >= 1: anything else is a clear error at finalize."""
+    with pytest.raises(ValueError, match="leaf_size"):
+        _bead_over_surface(device, surface_leaf_size=0)
 
 
 def test_cell_list_matches_brute_force(device):

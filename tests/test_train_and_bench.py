@@ -124,14 +124,14 @@ def test_bench_reset_times_cut_and_uncut_resets_after_as_many_steps(device, tmp_
 
 
 def test_bench_env_applies_and_records_the_contact_settings(device, tmp_path):
-    """``--surface-refit-interval``, ``--triangle-sweep``, ``--triangle-block-threads`` and ``--no-graph`` reach the
-    env's contact system and world before the first step and are written with the result."""
+    """``--triangle-sweep``, ``--triangle-block-threads`` and ``--no-graph`` reach the env's contact system and world
+    before the first step and are written with the result."""
     out = tmp_path / "bench.json"
     assert bench_env.main(["--device", device, "--task", "ThreadInHole", "--num-envs", "1", "--seconds", "0.05",
-                           "--surface-refit-interval", "3", "--triangle-sweep", "colored", "--no-graph",
+                           "--triangle-sweep", "colored", "--no-graph",
                            "--triangle-block-threads", "16", "--out", str(out)]) == 0
     (r,) = json.loads(out.read_text())["results"]
-    assert r["surface_refit_interval"] == 3 and r["triangle_sweep"] == "colored" and r["cuda_graph"] is False
+    assert r["triangle_sweep"] == "colored" and r["cuda_graph"] is False
     assert r["triangle_block_threads"] == 16
     assert r["env_steps_per_s"] > 0
 
@@ -342,7 +342,7 @@ def test_soak_counts_faults_and_checks_determinism(device, tmp_path, capsys):
     (profile_step, ["--task", "Reach", "--steps", "0"], "expected a positive integer, got 0"),
     (profile_step, ["--task", "Reach", "--warmup", "0"], "expected a positive integer, got 0"),
     (profile_step, ["--task", "Reach", "--timing", "some"], "invalid choice: 'some'"),
-    (bench_env, ["--task", "Reach", "--surface-refit-interval", "-1"], "expected a non-negative integer, got -1"),
+    (bench_env, ["--task", "Reach", "--pcr-rows", "-1"], "expected a non-negative integer, got -1"),
     (bench_env, ["--task", "Reach", "--triangle-sweep", "shared"], "invalid choice: 'shared'"),
     (profile_step, ["--task", "Reach", "--set", "invalid_actions=maybe"], "invalid_actions"),
     (soak, ["--tasks", "Reach", "--set", "seed=3"], "--set cannot set ['seed']"),

@@ -99,18 +99,26 @@ class ContactTriangles:
 
 @wp.struct
 class ContactSurface:
-    """A deforming triangle surface as a collider: a grouped ``wp.Mesh`` over every env's copy (group = env) of
-    ``tris``, owned by particles ``[owner_start, owner_end)``; thickness and friction are its shape's."""
+    """A deforming triangle surface as a collider: ``tris`` (every env's copy over its own ``particle_q`` row) in the
+    clustered order of :class:`lapwarp.surface_clusters.SurfaceClusters`, owned by particles
+    ``[owner_start, owner_end)``, with every env's leaf and super-leaf boxes (``surface_leaf_bounds`` /
+    ``surface_super_bounds`` write them before each query); thickness and friction are its shape's."""
 
     shape: int
-    mesh: wp.uint64
     tris: wp.array(dtype=wp.vec3i)
     owner_start: int
     owner_end: int
     closed: int
     face_col: wp.array(dtype=wp.int32)  # column of each triangle in face_active; empty: not cuttable
     face_active: wp.array2d(dtype=wp.int32)
-    drift: wp.array(dtype=float)  # per env: the most any surface vertex moved since the BVH's refit (m)
+    leaf_size: int  # leaf l holds triangles [l * leaf_size, (l + 1) * leaf_size)
+    leaves_per_super: int  # super leaf s holds leaves [s * leaves_per_super, (s + 1) * leaves_per_super)
+    leaf_vert_start: wp.array(dtype=wp.int32)  # CSR of each leaf's distinct vertices
+    leaf_verts: wp.array(dtype=wp.int32)
+    leaf_lo: wp.array2d(dtype=wp.vec3)  # (num_envs, leaves): each leaf's box, as the vertices are now
+    leaf_hi: wp.array2d(dtype=wp.vec3)
+    super_lo: wp.array2d(dtype=wp.vec3)  # (num_envs, super leaves)
+    super_hi: wp.array2d(dtype=wp.vec3)
 
 
 @wp.struct
@@ -584,7 +592,7 @@ def collide_segment_colors(
 
 # ----------------------------------------------------------------------------------------------------
 # triangles: cloth / tissue-surface triangles against tool spheres and capsules, particles against the
-# deforming triangle surface of another object (grouped wp.Mesh, one BVH subtree per env)
+# deforming triangle surface of another object (each env's own boxes over a shared clustering)
 # ----------------------------------------------------------------------------------------------------
 
 
@@ -909,6 +917,16 @@ def collide_triangle_outcodes_kernel(window: int) -> wp.Kernel:
     return kernel
 
 
+@wp.func
+def box_gap_sq(p: wp.vec3, lo: wp.vec3, hi: wp.vec3):
+    """Squared distance from ``p`` to the box ``[lo, hi]`` (0 inside): a sphere about ``p`` meets the box when it
+    is at most the radius squared."""
+    gx = wp.max(wp.max(lo[0] - p[0], p[0] - hi[0]), 0.0)
+    gy = wp.max(wp.max(lo[1] - p[1], p[1] - hi[1]), 0.0)
+    gz = wp.max(wp.max(lo[2] - p[2], p[2] - hi[2]), 0.0)
+    return gx * gx + gy * gy + gz * gz
+
+
 @wp.kernel
 def collide_surface(
     particles: ContactParticles,
@@ -924,11 +942,10 @@ def collide_surface(
     surf_count: wp.array2d(dtype=wp.int32),
     reports: ContactReports,
 ):
-    # Particles of one object against the deforming triangles of another in the same env. The grouped mesh
-    # holds every env's triangles over the flat view of state.particle_q (group = env), refit at most a few sweeps
-    # before this launch (see the query below); the query starts at this env's subtree so envs never see each
-    # other although all of them sit at the origin. Two-way: the triangle's share of the correction goes to
-    # surf_delta (averaged later).
+    # Particles of one object against the deforming triangles of another in the same env: the env's own leaf and
+    # super-leaf boxes (written this sweep, before this launch) lead to its triangles, so envs never see each other
+    # although all of them sit at the origin. Two-way: the triangle's share of the correction goes to surf_delta
+    # (averaged later).
     # ``candidates``: the contact particles whose group pairs with this surface, minus its own vertices.
     env, k0 = wp.tid()
     k = candidates[k0]
@@ -948,48 +965,41 @@ def collide_surface(
     reach = particles.radius[k] + shapes.thickness[surface.shape]
     tris = surface.tris
     ntri = tris.shape[0]
-    mesh = surface.mesh
-    root = wp.mesh_get_group_root(mesh, env)
     # swept query (the particle's path during this substep): a particle that crossed a surface within one
     # substep still finds the triangle it crossed; the side / inside test below then pushes it back
     xs = start_position(solve, env, i)
-    # The BVH's bounds may be some sweeps old (ContactSystem.surface_refit_interval): the query grows by how far
-    # the vertices moved since, so it reaches every triangle whose current bounds meet the sphere, and each
-    # candidate is kept only if its current bounds do (the BVH's own sphere-box test, intersect_sphere_aabb): the
-    # candidates do not depend on how stale the bounds are, nor on how many triangles share a BVH leaf.
     centre = (x + xs) * 0.5
     radius = wp.length(x - xs) * 0.5 + reach + report_margin
     radius_sq = radius * radius
-    query = wp.bvh_query_sphere(wp.mesh_get_bvh(mesh), centre, radius + surface.drift[env], root)
-    face = int(0)
+    # The boxes were computed from this sweep's vertex positions: super leaves, then the leaves of those the sphere
+    # meets, then the triangles of the leaves it meets, each triangle kept only if its own bounds meet the sphere
+    num_leaves = surface.leaf_lo.shape[1]
     best = int(-1)
     best_d = float(1.0e30)
     best_bw = wp.vec3(0.0)
-    while wp.bvh_query_next(query, face):
-        f = face - env * ntri
-        if f < 0 or f >= ntri:
+    for s in range(surface.super_lo.shape[1]):
+        if box_gap_sq(centre, surface.super_lo[env, s], surface.super_hi[env, s]) > radius_sq:
             continue
-        if surface.face_col.shape[0] > 0:
-            # cuttable surface: removed triangles / tet faces off the current surface do not collide
-            if surface.face_active[env, surface.face_col[f]] == 0:
+        for leaf in range(s * surface.leaves_per_super, wp.min((s + 1) * surface.leaves_per_super, num_leaves)):
+            if box_gap_sq(centre, surface.leaf_lo[env, leaf], surface.leaf_hi[env, leaf]) > radius_sq:
                 continue
-        t = tris[f]
-        ta = q[env, t[0]]
-        tb = q[env, t[1]]
-        tc = q[env, t[2]]
-        lo = wp.min(wp.min(ta, tb), tc)
-        hi = wp.max(wp.max(ta, tb), tc)
-        gx = wp.max(wp.max(lo[0] - centre[0], centre[0] - hi[0]), 0.0)
-        gy = wp.max(wp.max(lo[1] - centre[1], centre[1] - hi[1]), 0.0)
-        gz = wp.max(wp.max(lo[2] - centre[2], centre[2] - hi[2]), 0.0)
-        if gx * gx + gy * gy + gz * gz > radius_sq:
-            continue
-        bw = closest_point_triangle(x, ta, tb, tc)
-        d = wp.length(x - (ta * bw[0] + tb * bw[1] + tc * bw[2]))
-        if d < best_d:
-            best_d = d
-            best = f
-            best_bw = bw
+            for f in range(leaf * surface.leaf_size, wp.min((leaf + 1) * surface.leaf_size, ntri)):
+                if surface.face_col.shape[0] > 0:
+                    # cuttable surface: removed triangles / tet faces off the current surface do not collide
+                    if surface.face_active[env, surface.face_col[f]] == 0:
+                        continue
+                t = tris[f]
+                ta = q[env, t[0]]
+                tb = q[env, t[1]]
+                tc = q[env, t[2]]
+                if box_gap_sq(centre, wp.min(wp.min(ta, tb), tc), wp.max(wp.max(ta, tb), tc)) > radius_sq:
+                    continue
+                bw = closest_point_triangle(x, ta, tb, tc)
+                d = wp.length(x - (ta * bw[0] + tb * bw[1] + tc * bw[2]))
+                if d < best_d:
+                    best_d = d
+                    best = f
+                    best_bw = bw
     if best < 0:
         return
     t = tris[best]
@@ -1046,7 +1056,10 @@ def collide_surface(
     q[env, i] = x + dp * (w / (w + wt))
     for j in range(3):
         wj = solve.inv_mass[pe, t[j]]
-        if wj > 0.0:
+        # only a vertex the contact moves counts in its average: the far vertex of a triangle touched on an edge
+        # (weight 0) would otherwise dilute that vertex's other corrections, and two triangles tied across that
+        # edge would move the surface differently
+        if wj > 0.0 and best_bw[j] > 0.0:
             share = -dp * node_share(best_bw[j], wj, w + wt)
             for axis in range(3):  # fixed point: integer sums do not depend on the order of the atomics
                 wp.atomic_add(surf_delta, env, t[j], axis, wp.int64(wp.round(share[axis] * SURFACE_DELTA_SCALE)))
@@ -1055,30 +1068,34 @@ def collide_surface(
 
 
 @wp.kernel
-def surface_snapshot(verts: wp.array(dtype=wp.int32), q: wp.array2d(dtype=wp.vec3), snapshot: wp.array2d(dtype=wp.vec3),
-                     drift: wp.array(dtype=float)):
-    """The surface's vertices where its BVH was just refit (``drift`` measures from here); no drift yet."""
-    env, k = wp.tid()
-    snapshot[env, k] = q[env, verts[k]]
-    if k == 0:
-        drift[env] = 0.0
+def surface_leaf_bounds(leaf_vert_start: wp.array(dtype=wp.int32), leaf_verts: wp.array(dtype=wp.int32),
+                        q: wp.array2d(dtype=wp.vec3), leaf_lo: wp.array2d(dtype=wp.vec3),
+                        leaf_hi: wp.array2d(dtype=wp.vec3)):
+    """Each env's leaf boxes from its vertices as they are now (a thread per env and leaf)."""
+    env, leaf = wp.tid()
+    lo = wp.vec3(1.0e30)
+    hi = wp.vec3(-1.0e30)
+    for k in range(leaf_vert_start[leaf], leaf_vert_start[leaf + 1]):
+        x = q[env, leaf_verts[k]]
+        lo = wp.min(lo, x)
+        hi = wp.max(hi, x)
+    leaf_lo[env, leaf] = lo
+    leaf_hi[env, leaf] = hi
 
 
 @wp.kernel
-def surface_drift(verts: wp.array(dtype=wp.int32), q: wp.array2d(dtype=wp.vec3), snapshot: wp.array2d(dtype=wp.vec3),
-                  drift: wp.array(dtype=float)):
-    """Per env, the most any surface vertex moved since the refit: how much the BVH's bounds may be off. A thread
-    block per env: each lane takes every ``block_dim``-th vertex, a block reduction gives the env's largest move
-    (one atomic per vertex into the env's value cost LigatingLoop 2.9 ms per step). The drift only grows between
-    refits (a vertex that moved away and came back still counts its farthest excursion seen, a valid bound)."""
-    env, lane = wp.tid()
-    lanes = wp.block_dim()
-    d = float(0.0)
-    for k in range(lane, verts.shape[0], lanes):
-        d = wp.max(d, wp.length(q[env, verts[k]] - snapshot[env, k]))
-    most = wp.tile_max(wp.tile(d))
-    if lane == 0:
-        drift[env] = wp.max(drift[env], wp.tile_extract(most, 0))
+def surface_super_bounds(leaf_lo: wp.array2d(dtype=wp.vec3), leaf_hi: wp.array2d(dtype=wp.vec3),
+                         leaves_per_super: int, super_lo: wp.array2d(dtype=wp.vec3),
+                         super_hi: wp.array2d(dtype=wp.vec3)):
+    """Each env's super-leaf boxes: the union of their leaves' boxes (a thread per env and super leaf)."""
+    env, s = wp.tid()
+    lo = wp.vec3(1.0e30)
+    hi = wp.vec3(-1.0e30)
+    for leaf in range(s * leaves_per_super, wp.min((s + 1) * leaves_per_super, leaf_lo.shape[1])):
+        lo = wp.min(lo, leaf_lo[env, leaf])
+        hi = wp.max(hi, leaf_hi[env, leaf])
+    super_lo[env, s] = lo
+    super_hi[env, s] = hi
 
 
 @wp.kernel

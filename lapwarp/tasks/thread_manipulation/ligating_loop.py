@@ -719,9 +719,6 @@ class LigatingLoopEnv(BatchedEnv):
             loop_group = contact.add_particle_group(loop, radius=LOOP_SPHERE, name="loop")
             self.cavity_group = contact.add_particle_group(hole, radius=0.5 * MM, name="cavity")
             contact.add_surface(hole, groups=[loop_group], name="cavity_surface", mu_static=0.0)
-            # the cavity's BVH stays refit at every physics step (surface_refit_steps 1): once per env step the
-            # squeezed cavity's drift grows its queries more than the refit saves (H200, expert, 4,096 envs, same
-            # call: 92.4k against 95.4k env-steps/s; its surface contact is what grows as the loop closes on it)
             rig.add_colliders(contact, groups=[self.cavity_group], mu_static=0.0)
             contact.finalize()
         return world, rig, loop, hole, closure, contact

@@ -701,9 +701,6 @@ class ThreadInHoleEnv(BatchedEnv):
         thread_group = c.add_particle_group(self.thread, radius=radius, name="thread")
         self.hole_group = c.add_particle_group(self.hole, radius=0.5e-3, triangles=True, name="hole")
         c.add_surface(self.hole, groups=[thread_group], name="hole_surface", mu_static=0.0)
-        # the stiff hole barely moves within an env step: its BVH refit once per env step (the first of its physics
-        # steps) instead of at each, the queries grown by the drift since (the same contacts)
-        c.surface_refit_steps = cfg.frame_skip
         self.rig.add_colliders(c, groups=[self.hole_group])
         c.finalize()
         self.grasp = self.rig.add_grasping("gripper", c, groups=[thread_group], grasp_threshold=60.0,
