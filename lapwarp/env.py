@@ -529,9 +529,9 @@ class BatchedEnv(VecEnv):
         self._apply_actions(self.actions)
         if self._overflow_term >= 0:
             self.contact_overflow.zero_()
-        for index in range(self.cfg.frame_skip):
+        for _ in range(self.cfg.frame_skip):
             self._before_physics_step()
-            self.world.step(self.cfg.time_step, index)
+            self.world.step(self.cfg.time_step)
         for rows in self._state_rows:
             launching.launch(env_kernels.flag_nonfinite_rows, dim=self.num_envs, inputs=[rows],
                              outputs=[self.world.unstable],

@@ -101,7 +101,6 @@ class Sweep:
         h: substep length (s).
         blend_prev, blend: kinematic body poses at the start and end of this substep, as fractions of the way from
             ``body_q_previous`` to ``state.body_q`` (the World interpolates bodies linearly across a step).
-        step_index: the index of this physics step within its env step (``World.step``'s; 0 for a lone step).
     """
 
     substep: int
@@ -109,7 +108,6 @@ class Sweep:
     substeps: int
     iterations: int
     h: float
-    step_index: int = 0
 
     @property
     def first(self) -> bool:
@@ -287,9 +285,7 @@ class World:
         self.particle_force = None
         self._lam = {}
         self._alloc_lambdas()
-        # the recorded launches of a step per record key (World.step): most scenes record one; a solver that varies
-        # its launches with the step's place in the env step (``step_variant``) records one per variant
-        self._cmd_cache: dict = {}
+        self._cmds: list = []
         self._cmd_key = None
         self.solvers: list = []
 
@@ -412,13 +408,10 @@ class World:
         substep, after the built-in constraint groups, with the sweep's :class:`Sweep`; it must only
         ``launch(kernel, dim, inputs, outputs)`` (which records the launch for replay, so it ends up in the env's
         CUDA graph) or ``launch(fn)`` with a plain callable that only launches device work (e.g.
-        ``wp.Mesh.refit``). An optional ``solver.record_substep_end(world, launch, sweep)`` runs after the velocity
+        an array scan). An optional ``solver.record_substep_end(world, launch, sweep)`` runs after the velocity
         update of each substep (e.g. for velocity-level friction or restitution), and an optional
         ``solver.reset(env_mask)`` runs at the end of ``World.reset`` (launches only: clear the masked envs'
-        reports or grasps). An optional ``solver.step_variant(step_index)`` returns a hashable value per physics
-        step index within an env step (``World.step``'s ``step_index``): the World records a step per distinct
-        variant, and the solver's launches may depend on ``sweep.step_index`` only through it. Systems never
-        reallocate after being added.
+        reports or grasps). Systems never reallocate after being added.
         """
         self.solvers.append(solver)
         self._cmd_key = None
@@ -476,34 +469,22 @@ class World:
                          outputs=[self.rng], device=self.device)
 
     # ------------------------------------------------------------------------------------------------
-    def step(self, dt: float, step_index: int = 0) -> None:
+    def step(self, dt: float) -> None:
         """Advance the physics of every env by ``dt`` seconds. A kinematic scene has nothing to do.
 
         The launches of one step are recorded once per ``dt`` and replayed (less Python overhead); the
-        state arrays are updated in place and must not be re-assigned after ``finalize``. ``step_index``: this
-        step's index within its env step (the env's physics steps 0 .. frame_skip - 1; 0, the default, for a lone
-        step): a solver may keep work from an env step's earlier physics steps (``step_variant``, e.g. the contact's
-        surface BVHs, ``ContactSystem.surface_refit_steps``), since nothing but the physics moves particles between
-        them.
+        state arrays are updated in place and must not be re-assigned after ``finalize``.
         """
         if self.model.particle_count == 0:
             return
-        if isinstance(step_index, bool) or not isinstance(step_index, (int, np.integer)) or step_index < 0:
-            raise ValueError(f"step_index must be an int >= 0 (the physics step's index within its env step), "
-                             f"got {step_index!r}")
-        settings = (float(dt), self.substeps_for(float(dt)), self.iterations, self.rod_newton_steps,
-                    self.chain_newton_steps, self.tet_rotation_iterations, self.tet_rotation_update,
-                    self.tet_rotation_refresh, self.chain_block_links, self.chain_solver, self.chain_pcr_threads,
-                    self.chain_pcr_rows, self.chain_lane_rows, self.tet_solver, self.tet_block_threads,
-                    self.model.attachments_distinct, self.rod_solver, self.rod_block_threads, self.integrate_together,
-                    self.tet_method_in_use, self._register_caps_key(),
-                    *(solver.record_key() for solver in self.solvers if hasattr(solver, "record_key")))
-        # after the record keys: they check the settings the variants read
-        variant = tuple(solver.step_variant(int(step_index)) for solver in self.solvers
-                        if hasattr(solver, "step_variant"))
-        key = (*settings, variant)
-        cmds = self._cmd_cache.get(key) if self._cmd_key == settings else None
-        if cmds is None:
+        key = (float(dt), self.substeps_for(float(dt)), self.iterations, self.rod_newton_steps,
+               self.chain_newton_steps, self.tet_rotation_iterations, self.tet_rotation_update,
+               self.tet_rotation_refresh, self.chain_block_links, self.chain_solver, self.chain_pcr_threads,
+               self.chain_pcr_rows, self.chain_lane_rows, self.tet_solver, self.tet_block_threads,
+               self.model.attachments_distinct, self.rod_solver, self.rod_block_threads, self.integrate_together,
+               self.tet_method_in_use, self._register_caps_key(),
+               *(solver.record_key() for solver in self.solvers if hasattr(solver, "record_key")))
+        if self._cmd_key != key:
             if int(self.iterations) > 1 and not self._lam:
                 # iterations set directly (set_iterations allocates): the multipliers the sweeps index must exist
                 self._alloc_lambdas()
@@ -553,11 +534,9 @@ class World:
                 raise ValueError(f"world.tet_solver 'fused' keeps the tets' particles in shared memory: this scene's "
                                  f"window of {self._tet_window[1]} particles exceeds {FUSED_TET_MAX_PARTICLES}; use "
                                  f"'colored' or 'auto'")
-            if self._cmd_key != settings:
-                self._cmd_cache.clear()  # recorded under other settings
-            cmds = self._cmd_cache[key] = self._record_step(float(dt), int(step_index) if variant else 0)
-            self._cmd_key = settings
-        for cmd in cmds:
+            self._cmds = self._record_step(float(dt))
+            self._cmd_key = key
+        for cmd in self._cmds:
             cmd()
 
     @property
@@ -575,7 +554,7 @@ class World:
             launching.check_register_cap(cap)
         return tuple(sorted(self.register_caps.items()))
 
-    def _record_step(self, dt: float, step_index: int = 0) -> list:
+    def _record_step(self, dt: float) -> list:
         from lapwarp.kernels import xpbd
 
         m, n, dev, s = self.model, self.num_envs, self.device, self.state
@@ -586,7 +565,7 @@ class World:
         capped = set()
 
         def launch(kernel, dim=None, inputs=(), outputs=(), block_dim=None):
-            # A plain callable (e.g. ``mesh.refit``) is recorded as is: it must only launch device work.
+            # A plain callable (e.g. an array scan) is recorded as is: it must only launch device work.
             if dim is None and not isinstance(kernel, wp.Kernel):
                 cmds.append(kernel)
                 return
@@ -650,7 +629,7 @@ class World:
             for arr in lam.values():
                 cmds.append(arr.zero_)
             for it in range(iters):
-                sweep = Sweep(sub, it, substeps, iters, h, step_index)
+                sweep = Sweep(sub, it, substeps, iters, h)
                 self._record_sweep(launch, xpbd, inv_dt2, use_lam, sweep)
                 for solver in self.solvers:
                     solver.record_sweep(self, launch, sweep)
@@ -663,7 +642,7 @@ class World:
                            [s.segment_q, self._sq_prev, 1.0 / h], [s.segment_qd])
             for solver in self.solvers:
                 if hasattr(solver, "record_substep_end"):
-                    solver.record_substep_end(self, launch, Sweep(sub, iters - 1, substeps, iters, h, step_index))
+                    solver.record_substep_end(self, launch, Sweep(sub, iters - 1, substeps, iters, h))
         # the stability check also keeps the body poses as the next step's start (body_q_prev) and, fused, runs the
         # last substep's velocity update first: one launch
         finish = 1.0 / h if fuse else 0.0
