@@ -1126,6 +1126,10 @@ class RopeThreadingEnv(BatchedEnv):
         # uncapped step: 123.1k -> 125.0k env-steps/s (benchmarks/RESULTS.md, thirty-sixth session; the CPU
         # ignores the cap)
         world.default_register_caps["solve_rods_fused"] = 64
+        # the rope's hybrid chain solve at 128 registers instead of 217 (a 328 B spill frame, sm_90): twice the
+        # resident warps hide its loads better than the registers saved them. H200, expert, 4,096 envs, same call:
+        # 137.1k -> 156.8k env-steps/s (168: 148.0k; 2 rows per lane: 132.3k; fortieth session, results/session40)
+        world.default_register_caps["solve_chains_hybrid"] = 128
         rig.finalize(world)
         c = ContactSystem(world, capacity=cfg.contact_capacity, body_ignore_mask=True)
         group = c.add_particle_group(rope, radius=ROPE_RADIUS, name="rope")
