@@ -27,6 +27,7 @@ import torch
 import warp as wp
 
 import lapwarp
+import lapwarp.contact
 from lapwarp import launching
 from lapwarp.cli import default_device, non_negative_int, parse_overrides, positive_float, positive_int
 from lapwarp.contact import ContactSystem
@@ -87,10 +88,18 @@ def bench_one(task: str, num_envs: int, device: str, seconds: float, invalid_act
               policy: str = "random", tet_solver: str | None = None, cuda_graph: bool = True,
               triangle_sweep: str | None = None, triangle_block_threads: int | None = None,
               replay_steps: int = 600, max_registers: dict[str, int] | None = None, pcr_rows: int | None = None,
-              rod_solver: str | None = None, lane_rows: int | None = None) -> dict:
+              rod_solver: str | None = None, lane_rows: int | None = None,
+              surface_leaf_size: int | None = None) -> dict:
     def make_env():
-        env = lapwarp.make(task, num_envs=num_envs, device=device, invalid_actions=invalid_actions,
-                           use_cuda_graph=cuda_graph, **overrides)
+        # the leaf size is read when the task finalizes its contact system, i.e. while the env is built
+        default_leaf_size = lapwarp.contact.SURFACE_LEAF_SIZE
+        if surface_leaf_size is not None:
+            lapwarp.contact.SURFACE_LEAF_SIZE = surface_leaf_size
+        try:
+            env = lapwarp.make(task, num_envs=num_envs, device=device, invalid_actions=invalid_actions,
+                               use_cuda_graph=cuda_graph, **overrides)
+        finally:
+            lapwarp.contact.SURFACE_LEAF_SIZE = default_leaf_size
         if tet_solver is not None:
             env.world.tet_solver = tet_solver  # before the first step records (and the env captures) the launches
         # the task's own caps (ThreadInHole's lagged vertex sweep) stay unless named here
@@ -156,6 +165,8 @@ def bench_one(task: str, num_envs: int, device: str, seconds: float, invalid_act
         "resolution": list(env.cfg.image_shape) if env.uses_images else None,
         "triangle_sweep": next((c.resolved_triangle_sweep() for c in contact_systems(env)), None),
         "triangle_block_threads": next((c.triangle_block_threads for c in contact_systems(env)), None),
+        # (an older lapwarp, timed beside this one, has no clustered surfaces)
+        "surface_leaf_size": next((getattr(c, "surface_leaf_size", None) for c in contact_systems(env)), None),
         "tet_solver": ("fused" if env.world.fused_tets else "colored") if env.world.model.tet_count else None,
         # (an older lapwarp, timed beside this one, has max_registers only)
         "max_registers": dict(getattr(env.world, "register_caps", env.world.max_registers)),
@@ -191,6 +202,9 @@ def main(argv: list[str] | None = None) -> int:
                         help="the contact system's triangle sweep (default: its own)")
     parser.add_argument("--triangle-block-threads", type=positive_int, default=None,
                         help="threads per env block of the fused triangle sweep (default: the contact system's own)")
+    parser.add_argument("--surface-leaf-size", type=positive_int, default=None,
+                        help="triangles per leaf of deforming contact surfaces' clustering (default: "
+                             "lapwarp.contact.SURFACE_LEAF_SIZE)")
     parser.add_argument("--max-registers", nargs="*", default=[], metavar="KERNEL=N",
                         help="register caps of the world step's kernels by function name, e.g. "
                              "collide_triangle_colors=64 (launching.register_capped; CUDA only has an effect)")
@@ -230,7 +244,8 @@ def main(argv: list[str] | None = None) -> int:
                           cuda_graph=not args.no_graph, triangle_sweep=args.triangle_sweep,
                           triangle_block_threads=args.triangle_block_threads,
                           replay_steps=args.replay_steps, max_registers=max_registers, pcr_rows=args.pcr_rows,
-                          rod_solver=args.rod_solver, lane_rows=args.lane_rows)
+                          rod_solver=args.rod_solver, lane_rows=args.lane_rows,
+                          surface_leaf_size=args.surface_leaf_size)
             results.append(r)
             print(f"{r['task']:<10} {n:>9} {mode:>8} {r['env_steps_per_s']:>14,.0f} {r['step_ms']:>9.3f}", flush=True)
     regime = "the expert's recorded actions replayed" if args.policy == "replay" else f"{args.policy} actions"

@@ -34,6 +34,9 @@ from lapwarp.surface_clusters import SurfaceClusters
 # particle-particle sets with at least this many members per env use the per-env cell list (measured on CPU,
 # see docs/contact.md: brute force costs M^2 pair tests, the cell list ~27 buckets + a scan per sweep)
 GRID_THRESHOLD = 512
+#: triangles per leaf of a deforming surface's clustering (``ContactSystem.surface_leaf_size``'s default; a
+#: benchmark may set it before the envs are built, since a task finalizes its contact system when it builds)
+SURFACE_LEAF_SIZE = 8
 
 _KINDS = {"sphere": 0, "capsule": 1, "box": 2, "plane": 3, "cylinder": 4, "mesh": 5, "surface": 6}
 
@@ -146,7 +149,7 @@ class ContactSystem:
         self.triangle_sweep = "auto"
         self.triangle_block_threads = 32
         # deforming surfaces: triangles per leaf of their clustering (SurfaceClusters; read at finalize)
-        self.surface_leaf_size = 8
+        self.surface_leaf_size = SURFACE_LEAF_SIZE
         self.shapes: list[Shape] = []
         self.groups: list[ParticleGroup] = []
         self.self_sets: list[dict] = []
