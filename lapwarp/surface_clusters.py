@@ -67,7 +67,7 @@ class SurfaceClusters:
         self.order = cluster_order(rest[tris].mean(axis=1), self.leaf_size)
         self.num_leaves = -(-len(tris) // self.leaf_size)
         # about as many super leaves as leaves per super leaf: a query scans ~2 sqrt(leaves) boxes before its
-        # triangles (LigatingLoop's 1,500 triangles: 188 leaves in 12 super leaves of 16)
+        # triangles (LigatingLoop's 1,500 triangles: 188 leaves in 14 super leaves of 14)
         self.leaves_per_super = int(leaves_per_super or max(2, math.ceil(math.sqrt(self.num_leaves))))
         self.num_supers = -(-self.num_leaves // self.leaves_per_super)
         ordered = tris[self.order]

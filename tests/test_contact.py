@@ -506,10 +506,11 @@ def _bead_over_surface(device, **settings):
     return w
 
 
-def test_bad_surface_leaf_size_is_rejected(device):
+@pytest.mark.parametrize("size", [0, -8, 1.5, True])
+def test_bad_surface_leaf_size_is_rejected(device, size):
     """``surface_leaf_size`` must be an int >= 1: anything else is a clear error at finalize."""
     with pytest.raises(ValueError, match="leaf_size"):
-        _bead_over_surface(device, surface_leaf_size=0)
+        _bead_over_surface(device, surface_leaf_size=size)
 
 
 def test_cell_list_matches_brute_force(device):
