@@ -105,6 +105,33 @@ def _bounding_radius(shape: Shape) -> float:
     return bound * (1.0 + 1.0e-4) + 1.0e-6
 
 
+def _cull_groups(shapes: list[Shape]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The particles' cull groups (``ck.ShapePoses``): runs of consecutive shapes on one body with finite bounds,
+    each shape of infinite bound (planes, meshes, surfaces) a group of its own. Returns ``group_start`` (G + 1), each
+    group's centre in its first shape's frame (the mean of its shapes' origins) and its radius: the largest distance
+    from the centre to a shape's origin plus that shape's bound and thickness (rounded up as the bounds are)."""
+    if not shapes:  # the kernels loop over no group
+        return np.zeros(1, np.int32), np.zeros((1, 3), np.float32), np.zeros(1, np.float32)
+    bounds = [_bounding_radius(s) for s in shapes]
+    start = [0]
+    for k in range(1, len(shapes)):
+        joins = shapes[k].body == shapes[k - 1].body and np.isfinite(bounds[k]) and np.isfinite(bounds[k - 1])
+        if not joins:
+            start.append(k)
+    start.append(len(shapes))
+    centres, radii = [], []
+    for a, b in zip(start[:-1], start[1:], strict=True):
+        first = wp.transform_inverse(shapes[a].transform)
+        origins = np.array([wp.transform_point(first, wp.transform_get_translation(shapes[k].transform))
+                            for k in range(a, b)], dtype=np.float64).reshape(-1, 3)
+        centre = origins.mean(axis=0)
+        reach = max(float(np.linalg.norm(o - centre)) + bounds[k] + shapes[k].thickness
+                    for o, k in zip(origins, range(a, b), strict=True))
+        centres.append(centre)
+        radii.append(reach * (1.0 + 1.0e-4) + 1.0e-6 if np.isfinite(reach) else np.inf)
+    return (np.asarray(start, np.int32), np.asarray(centres, np.float32), np.asarray(radii, np.float32))
+
+
 class ContactSystem:
     """Contact between the particles of a World and colliders, plus particle-particle contact.
 
@@ -419,10 +446,13 @@ class ContactSystem:
             self.shape_kind = wp.zeros(0, dtype=wp.int32, device=dev)
         self.pair_index = arr(pair, wp.int32)
         S1 = max(S, 1)
+        group_start, group_centre, group_radius = _cull_groups(self.shapes)
         self._shape_poses = make_struct(ck.ShapePoses, tf=wp.zeros((n, S1), dtype=wp.transform, device=dev),
                                         tf_inv=wp.zeros((n, S1), dtype=wp.transform, device=dev),
                                         bound=arr(np.array([_bounding_radius(s) for s in self.shapes] or [0.0],
-                                                           np.float32), float))
+                                                           np.float32), float),
+                                        group_start=arr(group_start, wp.int32), group_centre=arr(group_centre, wp.vec3),
+                                        group_radius=arr(group_radius, float))
         self.shape_table = make_struct(ck.ShapeTable, kind=self.shape_kind, body=self.shape_body,
                                        local=self.shape_local, params=self.shape_params, mesh=self.shape_mesh,
                                        thickness=self.shape_thickness, mu=self.shape_mu, pair_index=self.pair_index)

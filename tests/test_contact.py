@@ -620,3 +620,34 @@ def test_particle_kernel_without_meshes_matches_the_full_one(device, monkeypatch
         np.testing.assert_array_equal(out[0], out[1])
     else:
         np.testing.assert_allclose(out[0], out[1], atol=1e-6)
+
+
+def test_shapes_on_one_body_are_culled_as_a_group_with_the_same_contacts(device):
+    """A 6 x 6 sheet of free particles (r = 2 mm) dropped onto a ring of six 6 mm spheres on one tilted body:
+    culling the six as one group (their bounding sphere, 21.2 mm about the ring's centre, then each shape's) gives
+    exactly the trajectories and contact counts of the same spheres each on a body of its own (no group), and the
+    particles did land on the ring (a group sphere too small, e.g. half as large, drops them through)."""
+    offsets = [(0.015 * math.cos(a), 0.015 * math.sin(a), 0.0) for a in np.linspace(0.0, 2 * math.pi, 7)[:-1]]
+    xs, ys = np.meshgrid(np.linspace(-0.02, 0.02, 6), np.linspace(-0.02, 0.02, 6), indexing="ij")
+    sheet = np.stack([xs.ravel(), ys.ravel(), np.full(xs.size, 0.02)], axis=1)
+    pose = (0.001, -0.002, 0.0, *_quat_axis_angle((1, 1, 0), 0.3))
+    runs = []
+    for grouped in (True, False):
+        b = SceneBuilder()
+        b.add_particles(sheet, mass=1.0e-3)
+        bodies = [b.add_body("ring", pose=pose)] * len(offsets) if grouped else \
+            [b.add_body(f"ring{k}", pose=pose) for k in range(len(offsets))]
+        w = b.finalize(num_envs=2, device=device, substeps=10)
+        cs = ContactSystem(w)
+        cs.add_particle_group(np.arange(len(sheet)), radius=0.002, name="sheet")
+        for k, (body, off) in enumerate(zip(bodies, offsets, strict=True)):
+            cs.add_sphere(0.006, body=body, transform=off, thickness=2.0e-4, name=f"ball{k}")
+        cs.finalize()
+        starts = cs._shape_poses.group_start.numpy()
+        assert list(starts) == ([0, 6] if grouped else list(range(7)))
+        for _ in range(4):
+            w.step(0.05)
+        runs.append((w.positions(), cs.counts()))
+    (x, counts), (x_ref, counts_ref) = runs
+    assert np.array_equal(x, x_ref) and np.array_equal(counts, counts_ref)
+    assert counts.sum() > 0 and x[:, :, 2].max() > 0.005  # some particles rest on the ring (the rest fell through)

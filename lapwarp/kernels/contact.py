@@ -363,11 +363,18 @@ def shape_axis_end(shapes: ShapeTable, s: int, tf: wp.transform, side: float):
 @wp.struct
 class ShapePoses:
     """Every shape's world pose and inverse at the end of the current substep, per env (``pose_shapes``, once per
-    sweep), and its bounding radius about its local origin (``inf`` for planes and meshes: never culled)."""
+    sweep), and its bounding radius about its local origin (``inf`` for planes and meshes: never culled).
+
+    Cull groups: runs of consecutive shapes on one body (``group_start``, G + 1 entries) share a bounding sphere
+    about ``group_centre`` (in the frame of the group's first shape) of ``group_radius`` (thicknesses included), so a
+    particle far from, say, an eye's eleven spheres is culled once for all of them (``collide_particles``)."""
 
     tf: wp.array2d(dtype=wp.transform)
     tf_inv: wp.array2d(dtype=wp.transform)
     bound: wp.array(dtype=float)
+    group_start: wp.array(dtype=wp.int32)
+    group_centre: wp.array(dtype=wp.vec3)
+    group_radius: wp.array(dtype=float)
 
 
 @wp.kernel
@@ -423,40 +430,50 @@ def particle_collision_kernel(meshes: bool) -> wp.Kernel:
         # second shape: cached): most particles (a cavity's 750 nodes against an instrument) are culled for every
         # shape, and these loads were most of their memory traffic
         moved = int(0)
-        for s in range(shapes.kind.shape[0]):
-            pair = shapes.pair_index[s, g]
-            if pair < 0 or shapes.kind[s] == SHAPE_SURFACE:
-                continue
-            reach = r + shapes.thickness[s]
-            tf = poses.tf[env, s]
-            # exact cull: beyond the shape's bounding sphere by more than reach + report margin there is neither contact
-            # nor a report (pen <= -report_margin below)
-            if wp.length(x - wp.transform_get_translation(tf)) > poses.bound[s] + reach + report_margin:
-                continue
-            if passes_through(shapes, s, ignored_bodies(ignore, env, i)):
-                continue
-            pl = wp.transform_point(poses.tf_inv[env, s], x)
-            nd = wp.vec4()
-            if wp.static(meshes):
-                nd = sdf_local(shapes.kind[s], shapes.params[s], shapes.mesh[s], pl, reach + report_margin + 1.0e-3)
-            else:
-                nd = sdf_primitive(shapes.kind[s], shapes.params[s], pl)
-            d = nd[3]
-            pen = reach - d
-            if report != 0 and pen > -report_margin:
-                wp.atomic_add(reports.report_count, env, pair, 1)
-                record_contact(env, i, s, wp.transform_vector(tf, wp.vec3(nd[0], nd[1], nd[2])), pen, reports)
-            if pen <= 0.0:
-                continue
-            n = wp.transform_vector(tf, wp.vec3(nd[0], nd[1], nd[2]))
-            x = x + n * pen
-            x0 = start_position(solve, env, i)
-            # where the touched surface point was at the start of the substep (moving tools drag particles along)
-            tf0 = shape_pose(shapes, s, env, motion, motion.blend_prev)
-            xs0 = wp.transform_point(tf0, wp.transform_point(wp.transform_inverse(tf), x))
-            x = x + friction_correction((x - x0) - (x - xs0), n, pen, shapes.mu[s])
-            wp.atomic_add(reports.report_force, env, pair, pen / w * solve.force_scale)
-            moved = 1
+        for grp in range(poses.group_start.shape[0] - 1):
+            s0 = poses.group_start[grp]
+            s1 = poses.group_start[grp + 1]
+            # a group's bounding sphere holds each of its shapes' spheres grown by their thickness: beyond it by more
+            # than r + report margin, every shape below would be culled (x does not move while none is touched)
+            if s1 - s0 > 1:
+                centre = wp.transform_point(poses.tf[env, s0], poses.group_centre[grp])
+                if wp.length(x - centre) > poses.group_radius[grp] + r + report_margin:
+                    continue
+            for s in range(s0, s1):
+                pair = shapes.pair_index[s, g]
+                if pair < 0 or shapes.kind[s] == SHAPE_SURFACE:
+                    continue
+                reach = r + shapes.thickness[s]
+                tf = poses.tf[env, s]
+                # exact cull: beyond the shape's bounding sphere by more than reach + report margin there is neither
+                # contact nor a report (pen <= -report_margin below)
+                if wp.length(x - wp.transform_get_translation(tf)) > poses.bound[s] + reach + report_margin:
+                    continue
+                if passes_through(shapes, s, ignored_bodies(ignore, env, i)):
+                    continue
+                pl = wp.transform_point(poses.tf_inv[env, s], x)
+                nd = wp.vec4()
+                if wp.static(meshes):
+                    nd = sdf_local(shapes.kind[s], shapes.params[s], shapes.mesh[s], pl,
+                                   reach + report_margin + 1.0e-3)
+                else:
+                    nd = sdf_primitive(shapes.kind[s], shapes.params[s], pl)
+                d = nd[3]
+                pen = reach - d
+                if report != 0 and pen > -report_margin:
+                    wp.atomic_add(reports.report_count, env, pair, 1)
+                    record_contact(env, i, s, wp.transform_vector(tf, wp.vec3(nd[0], nd[1], nd[2])), pen, reports)
+                if pen <= 0.0:
+                    continue
+                n = wp.transform_vector(tf, wp.vec3(nd[0], nd[1], nd[2]))
+                x = x + n * pen
+                x0 = start_position(solve, env, i)
+                # where the touched surface point was at the start of the substep (moving tools drag particles along)
+                tf0 = shape_pose(shapes, s, env, motion, motion.blend_prev)
+                xs0 = wp.transform_point(tf0, wp.transform_point(wp.transform_inverse(tf), x))
+                x = x + friction_correction((x - x0) - (x - xs0), n, pen, shapes.mu[s])
+                wp.atomic_add(reports.report_force, env, pair, pen / w * solve.force_scale)
+                moved = 1
         # only a moved particle is written: a particle in two groups (GraspLiftAndTouch's gallbladder surface meets the
         # instruments in one and the liver in another) has two threads here, and an unconditional write of the other
         # thread's stale copy would race
