@@ -623,10 +623,11 @@ def test_particle_kernel_without_meshes_matches_the_full_one(device, monkeypatch
 
 
 def test_shapes_on_one_body_are_culled_as_a_group_with_the_same_contacts(device):
-    """A 6 x 6 sheet of free particles (r = 2 mm) dropped onto a ring of six 6 mm spheres on one tilted body:
-    culling the six as one group (their bounding sphere, 21.2 mm about the ring's centre, then each shape's) gives
-    exactly the trajectories and contact counts of the same spheres each on a body of its own (no group), and the
-    particles did land on the ring (a group sphere too small, e.g. half as large, drops them through)."""
+    """A 6 x 6 sheet of free particles (r = 2 mm) and a rod of 4 nodes 15 mm apart (its segments collide: its two
+    middle nodes straddle a 12 mm sphere, which only their segment meets) dropped onto a ring of six 6 mm spheres
+    on one tilted body: culling the six as one group (their bounding sphere, 21.2 mm about the ring's centre, then
+    each shape's) gives exactly the trajectories and contact counts of the same spheres each on a body of its own
+    (no group), and particles and rod landed on the ring (a group sphere too small drops them through)."""
     offsets = [(0.015 * math.cos(a), 0.015 * math.sin(a), 0.0) for a in np.linspace(0.0, 2 * math.pi, 7)[:-1]]
     xs, ys = np.meshgrid(np.linspace(-0.02, 0.02, 6), np.linspace(-0.02, 0.02, 6), indexing="ij")
     sheet = np.stack([xs.ravel(), ys.ravel(), np.full(xs.size, 0.02)], axis=1)
@@ -635,11 +636,14 @@ def test_shapes_on_one_body_are_culled_as_a_group_with_the_same_contacts(device)
     for grouped in (True, False):
         b = SceneBuilder()
         b.add_particles(sheet, mass=1.0e-3)
+        rod = b.add_rod(rod_polyline([[0.015, -0.0225, 0.03], [0.015, 0.0225, 0.03]], 4), radius=5e-4,
+                        youngs_modulus=1e6)
         bodies = [b.add_body("ring", pose=pose)] * len(offsets) if grouped else \
             [b.add_body(f"ring{k}", pose=pose) for k in range(len(offsets))]
         w = b.finalize(num_envs=2, device=device, substeps=10)
         cs = ContactSystem(w)
         cs.add_particle_group(np.arange(len(sheet)), radius=0.002, name="sheet")
+        cs.add_particle_group(rod, radius=5e-4, segments=True, name="rod")
         for k, (body, off) in enumerate(zip(bodies, offsets, strict=True)):
             cs.add_sphere(0.006, body=body, transform=off, thickness=2.0e-4, name=f"ball{k}")
         cs.finalize()
@@ -650,4 +654,6 @@ def test_shapes_on_one_body_are_culled_as_a_group_with_the_same_contacts(device)
         runs.append((w.positions(), cs.counts()))
     (x, counts), (x_ref, counts_ref) = runs
     assert np.array_equal(x, x_ref) and np.array_equal(counts, counts_ref)
-    assert counts.sum() > 0 and x[:, :, 2].max() > 0.005  # some particles rest on the ring (the rest fell through)
+    assert counts.sum() > 0 and x[:, :len(sheet), 2].max() > 0.005  # some rest on the ring (the rest fell through)
+    # the rod's middle nodes hang on the sphere between them (without its segment they fall through the ring)
+    assert x[:, rod.particle_start + 1:rod.particle_start + 3, 2].min() > 0.0

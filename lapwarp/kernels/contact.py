@@ -522,43 +522,52 @@ def collide_segment(
     xa = q[env, a]
     xb = q[env, b]
     ignore_bits = ignored_bodies(ignore, env, a) | ignored_bodies(ignore, env, b)
-    for s in range(shapes.kind.shape[0]):
-        kind = shapes.kind[s]
-        pair = shapes.pair_index[s, g]
-        if pair < 0 or kind > SHAPE_CAPSULE:
-            continue
-        if passes_through(shapes, s, ignore_bits):
-            continue
-        tf = poses.tf[env, s]
-        # exact cull: the segment's bounding sphere against the shape's
-        reach = segments.radius[k] + shapes.thickness[s] + poses.bound[s] + 0.5 * wp.length(xb - xa)
-        if wp.length(0.5 * (xa + xb) - wp.transform_get_translation(tf)) > reach:
-            continue
-        c0 = shape_axis_end(shapes, s, tf, -1.0)
-        c1 = shape_axis_end(shapes, s, tf, 1.0)
-        st = closest_segment_segment(xa, xb, c0, c1)
-        u = st[0]
-        # the nodes themselves are handled by collide_particles; here only the segment interior
-        if u <= 0.0 or u >= 1.0:
-            continue
-        p = xa * (1.0 - u) + xb * u
-        c = c0 * (1.0 - st[1]) + c1 * st[1]
-        n = safe_normalize(p - c, wp.vec3(0.0, 0.0, 1.0))
-        pen = segments.radius[k] + shapes.params[s][0] + shapes.thickness[s] - wp.length(p - c)
-        if pen <= 0.0:
-            continue
-        # point correction distributed to the nodes with barycentric weights (Mueller et al. 2020)
-        wsum = (1.0 - u) * (1.0 - u) * wa + u * u * wb
-        # friction on the relative motion of the contact point during this substep
-        pa0 = start_position(solve, env, a)
-        pb0 = start_position(solve, env, b)
-        tf0 = shape_pose(shapes, s, env, motion, motion.blend_prev)
-        c_0 = wp.transform_point(tf0, wp.transform_point(wp.transform_inverse(tf), c))
-        rel = (p + n * pen - (pa0 * (1.0 - u) + pb0 * u)) - (c - c_0)
-        dp = n * pen + friction_correction(rel, n, pen, shapes.mu[s])
-        xa = xa + dp * node_share(1.0 - u, wa, wsum)
-        xb = xb + dp * node_share(u, wb, wsum)
-        wp.atomic_add(reports.report_force, env, pair, pen / wsum * solve.force_scale)
+    for grp in range(poses.group_start.shape[0] - 1):
+        s0 = poses.group_start[grp]
+        s1 = poses.group_start[grp + 1]
+        # the group's bounding sphere first (ShapePoses), against the segment's: beyond it, every shape is culled
+        if s1 - s0 > 1:
+            centre = wp.transform_point(poses.tf[env, s0], poses.group_centre[grp])
+            reach = segments.radius[k] + poses.group_radius[grp] + 0.5 * wp.length(xb - xa)
+            if wp.length(0.5 * (xa + xb) - centre) > reach:
+                continue
+        for s in range(s0, s1):
+            kind = shapes.kind[s]
+            pair = shapes.pair_index[s, g]
+            if pair < 0 or kind > SHAPE_CAPSULE:
+                continue
+            if passes_through(shapes, s, ignore_bits):
+                continue
+            tf = poses.tf[env, s]
+            # exact cull: the segment's bounding sphere against the shape's
+            reach = segments.radius[k] + shapes.thickness[s] + poses.bound[s] + 0.5 * wp.length(xb - xa)
+            if wp.length(0.5 * (xa + xb) - wp.transform_get_translation(tf)) > reach:
+                continue
+            c0 = shape_axis_end(shapes, s, tf, -1.0)
+            c1 = shape_axis_end(shapes, s, tf, 1.0)
+            st = closest_segment_segment(xa, xb, c0, c1)
+            u = st[0]
+            # the nodes themselves are handled by collide_particles; here only the segment interior
+            if u <= 0.0 or u >= 1.0:
+                continue
+            p = xa * (1.0 - u) + xb * u
+            c = c0 * (1.0 - st[1]) + c1 * st[1]
+            n = safe_normalize(p - c, wp.vec3(0.0, 0.0, 1.0))
+            pen = segments.radius[k] + shapes.params[s][0] + shapes.thickness[s] - wp.length(p - c)
+            if pen <= 0.0:
+                continue
+            # point correction distributed to the nodes with barycentric weights (Mueller et al. 2020)
+            wsum = (1.0 - u) * (1.0 - u) * wa + u * u * wb
+            # friction on the relative motion of the contact point during this substep
+            pa0 = start_position(solve, env, a)
+            pb0 = start_position(solve, env, b)
+            tf0 = shape_pose(shapes, s, env, motion, motion.blend_prev)
+            c_0 = wp.transform_point(tf0, wp.transform_point(wp.transform_inverse(tf), c))
+            rel = (p + n * pen - (pa0 * (1.0 - u) + pb0 * u)) - (c - c_0)
+            dp = n * pen + friction_correction(rel, n, pen, shapes.mu[s])
+            xa = xa + dp * node_share(1.0 - u, wa, wsum)
+            xb = xb + dp * node_share(u, wb, wsum)
+            wp.atomic_add(reports.report_force, env, pair, pen / wsum * solve.force_scale)
     q[env, a] = xa
     q[env, b] = xb
 
