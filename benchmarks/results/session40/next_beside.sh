@@ -6,7 +6,9 @@
 #    668d57e's drift-grown BVH queries) and at steps 10-15;
 # 3. the surfaces' leaf size: 4 and 16 triangles against 8 (LigatingLoop, ThreadInHole, GraspLiftAndTouch);
 # 4. RopeThreading's hybrid chain solve at 96 / 112 / 144 registers against its new default 128 (156.8k; 168:
-#    148.0k; uncapped 217: 137.1k);
+#    148.0k; uncapped 217: 137.1k); the cull groups (a body's shapes culled by one bounding sphere first) against
+#    668d57e (.device/small/old, carried) on RopeThreading (the old code at the same cap), RopeCutting and
+#    TissueDissection;
 # 5. 10^7-step random-action soaks of LigatingLoop and ThreadInHole on the clustered query (the #18 fault bar);
 # 6. the step of the six tasks whose #17 / #18 targets are open, same call (expert, 4,096 envs).
 # DEVICE (cuda:3), NUM_ENVS (4096), JOBS (next_jobs_gpu3_next.txt) and DEADLINE (1400) override.
@@ -18,7 +20,15 @@ d=benchmarks/results/session40
 out=/tmp/r/beside41
 mkdir -p "$out"
 new=/tmp/site:$PWD
+old=/tmp/site:$PWD/.device/small/old
 . train/device/beside_lib.sh  # bench, run_queue
+bench_old() {  # NAME TASK POLICY [options]: bench on the old tree (668d57e)
+  local name=$1 task=$2 policy=$3
+  shift 3
+  PYTHONPATH=$old python3 benchmarks/bench_env.py --task "$task" --device "$dev" --num-envs "$n" --seconds 3 \
+    --obs STATE --policy "$policy" "$@" --out "$out/$name.json" > "$out/$name.txt" 2>&1
+  echo "$name rc=$? $(tail -1 "$out/$name.txt")"
+}
 PYTHONPATH=$new python3 -m pytest -q -p no:cacheprovider tests/test_contact.py tests/test_train_and_bench.py \
   -k "clustered or surface or leaf or contact_settings" --device "$dev" > "$out/pytest_cuda.txt" 2>&1
 echo "pytest rc=$? $(tail -1 "$out/pytest_cuda.txt")"
@@ -34,6 +44,7 @@ for task in LigatingLoop ThreadInHole GraspLiftAndTouch; do
   done
 done
 bench rt RopeThreading expert
+bench_old rt_old_cap128 RopeThreading expert --max-registers solve_chains_hybrid=128
 for cap in 96 112 144; do
   bench "rt_cap$cap" RopeThreading expert --max-registers solve_chains_hybrid="$cap"
 done
@@ -45,4 +56,6 @@ done
 for task in RopeCutting PrecisionCutting TissueDissection; do
   bench "step_$task" "$task" expert
 done
+bench_old step_old_RopeCutting RopeCutting expert
+bench_old step_old_TissueDissection TissueDissection expert
 run_queue "${JOBS:-$d/next_jobs_gpu3_next.txt}" "${DEADLINE:-1400}"
