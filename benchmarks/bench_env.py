@@ -91,15 +91,17 @@ def bench_one(task: str, num_envs: int, device: str, seconds: float, invalid_act
               rod_solver: str | None = None, lane_rows: int | None = None,
               surface_leaf_size: int | None = None) -> dict:
     def make_env():
-        # the leaf size is read when the task finalizes its contact system, i.e. while the env is built
-        default_leaf_size = lapwarp.contact.SURFACE_LEAF_SIZE
+        # the leaf size is read when the task finalizes its contact system, i.e. while the env is built (an older
+        # lapwarp, timed beside this one, has no clustered surfaces: it is left alone there)
+        default_leaf_size = getattr(lapwarp.contact, "SURFACE_LEAF_SIZE", None)
         if surface_leaf_size is not None:
             lapwarp.contact.SURFACE_LEAF_SIZE = surface_leaf_size
         try:
             env = lapwarp.make(task, num_envs=num_envs, device=device, invalid_actions=invalid_actions,
                                use_cuda_graph=cuda_graph, **overrides)
         finally:
-            lapwarp.contact.SURFACE_LEAF_SIZE = default_leaf_size
+            if default_leaf_size is not None:
+                lapwarp.contact.SURFACE_LEAF_SIZE = default_leaf_size
         if tet_solver is not None:
             env.world.tet_solver = tet_solver  # before the first step records (and the env captures) the launches
         # the task's own caps (ThreadInHole's lagged vertex sweep) stay unless named here
