@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # The GPU beside the next lease's learning queue (queue.sh's BESIDE; x4: GPU 3, x2: GPU 1 with DEVICE=cuda:1),
-# written in the fortieth session, in order of need (~16 min), then the learning queue JOBS until DEADLINE:
+# written in the fortieth session, in order of need (~18 min), then the learning queue JOBS until DEADLINE:
 # 1. GPU tests of the fortieth session's changes (the clustered surface query, bench_env --surface-leaf-size);
 # 2. LigatingLoop's profile at steps 60-65 on the clustered query (16.79 ms of surface contact per env step there on
 #    668d57e's drift-grown BVH queries) and at steps 10-15;
@@ -9,7 +9,9 @@
 #    148.0k; uncapped 217: 137.1k); the cull groups (a body's shapes culled by one bounding sphere first) against
 #    668d57e (.device/small/old, carried) on RopeThreading (the old code at the same cap), RopeCutting and
 #    TissueDissection;
-# 5. 10^7-step random-action soaks of LigatingLoop and ThreadInHole on the clustered query (the #18 fault bar);
+# 5. 10^7-step random-action soaks of LigatingLoop and ThreadInHole on the clustered query (the #18 fault bar), and
+#    GraspLiftAndTouch's continuous expert in its six configurations on it (its liver surface is queried the new way,
+#    and a surface vertex counts in its contact average only where its weight is above 0; 100 % each before);
 # 6. the step of the six tasks whose #17 / #18 targets are open, same call (expert, 4,096 envs).
 # DEVICE (cuda:3), NUM_ENVS (4096), JOBS (next_jobs_gpu3_next.txt) and DEADLINE (1400) override.
 set -u
@@ -53,6 +55,12 @@ for task in LigatingLoop ThreadInHole; do
     --tasks "$task" --action-types CONTINUOUS --out "$out/soak_$task.jsonl" > "$out/soak_$task.txt" 2>&1
   echo "soak_$task rc=$? $(tail -1 "$out/soak_$task.txt" | cut -c1-300)"
 done
+PYTHONPATH=$new timeout 300 python3 benchmarks/expert_success.py --task GraspLiftAndTouch --device "$dev" \
+  --num-envs 256 --action-types CONTINUOUS --config end_in_phase=LIFT --config end_in_phase=TOUCH \
+  --config end_in_phase=DONE --config start_in_phase=LIFT end_in_phase=TOUCH \
+  --config start_in_phase=LIFT end_in_phase=DONE --config start_in_phase=TOUCH end_in_phase=DONE \
+  --out "$out/expert_glt.jsonl" > "$out/expert_glt.txt" 2>&1
+echo "expert_glt rc=$? $(grep -o '"success_rate": [0-9.]*' "$out/expert_glt.jsonl" | tr '\n' ' ')"
 for task in RopeCutting PrecisionCutting TissueDissection; do
   bench "step_$task" "$task" expert
 done
