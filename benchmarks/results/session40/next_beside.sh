@@ -9,6 +9,8 @@
 #    148.0k; uncapped 217: 137.1k); the cull groups (a body's shapes culled by one bounding sphere first) against
 #    668d57e (.device/small/old, carried) on RopeThreading (the old code at the same cap), RopeCutting and
 #    TissueDissection;
+#    the shape contact kernels capped (collide_particles 71 -> 64 registers: 4 blocks of 256 per SM instead of 3;
+#    LigatingLoop's 750 cavity nodes, RopeThreading's rope, RopeCutting's ropes; RopeCutting's segment colours 96 -> 80);
 # 5. 10^7-step random-action soaks of LigatingLoop and ThreadInHole on the clustered query (the #18 fault bar), and
 #    GraspLiftAndTouch's continuous expert in its six configurations on it (its liver surface is queried the new way,
 #    and a surface vertex counts in its contact average only where its weight is above 0; 100 % each before);
@@ -50,6 +52,10 @@ bench_old rt_old_cap128 RopeThreading expert --max-registers solve_chains_hybrid
 for cap in 96 112 144; do
   bench "rt_cap$cap" RopeThreading expert --max-registers solve_chains_hybrid="$cap"
 done
+for task in LigatingLoop RopeThreading RopeCutting; do
+  bench "pcap64_$task" "$task" expert --max-registers collide_particles=64
+done
+bench segcap80_RopeCutting RopeCutting expert --max-registers collide_segment_colors=80
 for task in LigatingLoop ThreadInHole; do
   PYTHONPATH=$new timeout 300 python3 benchmarks/soak.py --device "$dev" --num-envs "$n" --env-steps 1e7 \
     --tasks "$task" --action-types CONTINUOUS --out "$out/soak_$task.jsonl" > "$out/soak_$task.txt" 2>&1
