@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # The GPU beside the next lease's learning queue (queue.sh's BESIDE; x4: GPU 3, x2: GPU 1 with DEVICE=cuda:1),
-# written in the fortieth session, in order of need (~18 min), then the learning queue JOBS until DEADLINE:
+# written in the fortieth session, in order of need (~23 min), then the learning queue JOBS until DEADLINE:
 # 1. GPU tests of the fortieth session's changes (the clustered surface query, bench_env --surface-leaf-size);
 # 2. LigatingLoop's profile at steps 60-65 on the clustered query (16.79 ms of surface contact per env step there on
 #    668d57e's drift-grown BVH queries) and at steps 10-15;
