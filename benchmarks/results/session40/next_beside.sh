@@ -14,7 +14,9 @@
 # 5. 10^7-step random-action soaks of LigatingLoop and ThreadInHole on the clustered query (the #18 fault bar), and
 #    GraspLiftAndTouch's continuous expert in its six configurations on it (its liver surface is queried the new way,
 #    and a surface vertex counts in its contact average only where its weight is above 0; 100 % each before);
-# 6. the step of the six tasks whose #17 / #18 targets are open, same call (expert, 4,096 envs).
+# 6. the step of the six tasks whose #17 / #18 targets are open, same call (expert, 4,096 envs);
+# 7. last (cut off if the lease ends first), their RGB 64x64 steps: #17 / #18 ask >= 200k each and none was measured
+#    since the thirtieth session (TissueDissection 193.9k then).
 # DEVICE (cuda:3), NUM_ENVS (4096), JOBS (next_jobs_gpu3_next.txt) and DEADLINE (1400) override.
 set -u
 t0=$(date +%s)
@@ -72,4 +74,7 @@ for task in RopeCutting PrecisionCutting TissueDissection; do
 done
 bench_old step_old_RopeCutting RopeCutting expert
 bench_old step_old_TissueDissection TissueDissection expert
+for task in TissueDissection RopeCutting ThreadInHole RopeThreading LigatingLoop PrecisionCutting; do
+  bench "rgb_$task" "$task" expert --obs RGB
+done
 run_queue "${JOBS:-$d/next_jobs_gpu3_next.txt}" "${DEADLINE:-1400}"
