@@ -781,10 +781,10 @@ class ContactSystem:
                 # one exclusive scan over every env's buckets gives global offsets (env e starts at e * M)
                 launch(lambda g=grid: wp.utils.array_scan(g.bucket_count, g.bucket_start, inclusive=False))
                 launch(ck.grid_scatter, (n, m), [grid])
-                launch(ck.collide_particle_pairs_grid, (n, m), [members, grid, solve, report],
+                launch(ck.collide_particle_pairs_grid, (n, m), [members, grid, solve, masks, report],
                        [q, a["delta"], reports])
             else:
-                launch(ck.collide_particle_pairs, (n, m), [members, solve, report], [q, a["delta"], reports])
+                launch(ck.collide_particle_pairs, (n, m), [members, solve, masks, report], [q, a["delta"], reports])
             launch(ck.apply_particle_deltas, (n, m), [members.particle, a["delta"]], [q])
 
     @property

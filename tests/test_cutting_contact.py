@@ -164,3 +164,37 @@ def test_tool_rests_on_faces_a_cut_opens(device, reverse):
     # 0.54 mm); a floor that does not collide leaves them at 5 mm
     assert x[0, floor, 2].mean() < 5e-3 - 3e-4, x[0, floor, 2]
     assert lowest_top < 0.01 - 1e-3, lowest_top  # uncut: the top is pressed down (measured: 2.1 mm)
+
+
+@pytest.mark.parametrize("method", ["brute", "grid"])
+def test_particle_contact_skips_particles_cut_loose(device, method):
+    """A bead sent down at 5 cm/s (no gravity) onto the middle node of a straight rope pinned at both ends, rope and
+    bead in one particle-contact set: where the rope is whole (env 1) the bead stops on the node and pushes the rope
+    down; where its middle segments are cut (env 0: nodes 9-11 lose every segment, stay where they were and belong
+    to nothing) the bead passes the loose node 10 that would otherwise stop it, an invisible obstacle."""
+    b = SceneBuilder(gravity=(0.0, 0.0, 0.0))
+    n = 21
+    pts = np.stack([np.linspace(0.0, 0.1, n), np.zeros(n), np.zeros(n)], axis=1)
+    rope = b.add_rod(pts, radius=1e-3, youngs_modulus=1e6, damping=0.5, cuttable=True)
+    b.fix_particles([rope.particle_start, rope.particle_start + n - 1])
+    bead = b.add_particles(np.array([[0.05, 0.0, 0.004]]), mass=1e-4)
+    world = b.finalize(2, device, substeps=10)
+    qd = world.state.particle_qd.numpy()
+    qd[:, bead.particle_start, 2] = -0.05
+    world.state.particle_qd.assign(qd)
+    cs = ContactSystem(world)
+    cs.add_particle_contact([(rope, 1e-3), (bead, 1e-3)], method=method)
+    cs.finalize()
+    _cut(world, rope, world.state.segment_active, 0, [8, 9, 10, 11])
+    assert world.state.particle_active.numpy()[0, rope.particle_start + 10] == 0
+    gaps, node = [], []
+    for _ in range(6):
+        world.step(DT)
+        z_bead, z_node = world.positions(bead)[:, 0, 2], world.positions(rope)[:, 10, 2]
+        gaps.append(z_bead - z_node)
+        node.append(z_node)
+    gaps, node = np.array(gaps), np.array(node)
+    # whole rope: the node is pushed down over 1 mm and the bead never gets closer to it than the contact distance
+    assert node[:, 1].min() < -1.0e-3 and gaps[:, 1].min() > 1.9e-3
+    np.testing.assert_allclose(node[:, 0], 0.0, atol=1e-9)  # the loose node stays put
+    assert gaps[-1, 0] < -0.005  # cut rope: the bead passed the loose node

@@ -1145,6 +1145,14 @@ def apply_surface_deltas(verts: wp.array(dtype=wp.int32), surf_delta: wp.array3d
 
 
 @wp.func
+def particle_live(masks: CutMasks, env: int, i: int):
+    """Particle ``i`` of ``env`` still belongs to a live element (always, where nothing is cut)."""
+    if masks.particle_active.shape[1] == 0:
+        return True
+    return masks.particle_active[env, i] != 0
+
+
+@wp.func
 def chain_skipped(k: int, m: int, members: ParticleContactSet):
     """Members ``k`` and ``m`` are close neighbours along one chain (they touch at rest): no contact."""
     if m == k:
@@ -1193,6 +1201,7 @@ def report_pair_contact(env: int, k: int, c: wp.vec4, members: ParticleContactSe
 def collide_particle_pairs(
     members: ParticleContactSet,
     solve: ParticleSolve,
+    masks: CutMasks,
     report: int,
     q: wp.array2d(dtype=wp.vec3),
     delta: wp.array2d(dtype=wp.vec3),
@@ -1204,7 +1213,8 @@ def collide_particle_pairs(
     i = members.particle[k]
     pe = env % solve.inv_mass.shape[0]
     wi = solve.inv_mass[pe, i]
-    if wi == 0.0:
+    # a particle left without a live element (cut away) stays where it is and touches nothing
+    if wi == 0.0 or not particle_live(masks, env, i):
         delta[env, k] = wp.vec3(0.0)
         return
     xi = q[env, i]
@@ -1212,7 +1222,7 @@ def collide_particle_pairs(
     acc = wp.vec3(0.0)
     cnt = int(0)
     for m in range(members.particle.shape[0]):
-        if chain_skipped(k, m, members):
+        if chain_skipped(k, m, members) or not particle_live(masks, env, members.particle[m]):
             continue
         c = pair_correction(env, k, m, members, pe, wi, xi, xi0, solve, q)
         if c[3] <= 0.0:
@@ -1261,6 +1271,7 @@ def collide_particle_pairs_grid(
     members: ParticleContactSet,
     grid: CellGrid,
     solve: ParticleSolve,
+    masks: CutMasks,
     report: int,
     q: wp.array2d(dtype=wp.vec3),
     delta: wp.array2d(dtype=wp.vec3),
@@ -1272,7 +1283,8 @@ def collide_particle_pairs_grid(
     i = members.particle[k]
     pe = env % solve.inv_mass.shape[0]
     wi = solve.inv_mass[pe, i]
-    if wi == 0.0:
+    # a particle left without a live element (cut away) stays where it is and touches nothing
+    if wi == 0.0 or not particle_live(masks, env, i):
         delta[env, k] = wp.vec3(0.0)
         return
     H = grid.buckets
@@ -1293,7 +1305,7 @@ def collide_particle_pairs_grid(
         s0 = grid.bucket_start[b]
         for e in range(grid.bucket_count[b]):
             m = grid.sorted_member[s0 + e]
-            if chain_skipped(k, m, members):
+            if chain_skipped(k, m, members) or not particle_live(masks, env, members.particle[m]):
                 continue
             c = pair_correction(env, k, m, members, pe, wi, xi, xi0, solve, q)
             if c[3] <= 0.0:
