@@ -295,6 +295,14 @@ def passes_through(shapes: ShapeTable, s: int, ignore: int):
 
 
 @wp.func
+def particle_live(masks: CutMasks, env: int, i: int):
+    """Particle ``i`` of ``env`` still belongs to a live element (always, where nothing is cut)."""
+    if masks.particle_active.shape[1] == 0:
+        return True
+    return masks.particle_active[env, i] != 0
+
+
+@wp.func
 def start_position(solve: ParticleSolve, env: int, i: int):
     """Position of particle ``i`` at the start of this substep: the World predicted ``q_pred = x0 + v h`` and keeps
     ``v`` until the velocity update."""
@@ -377,6 +385,18 @@ class ShapePoses:
     group_radius: wp.array(dtype=float)
 
 
+@wp.func
+def group_out_of_reach(poses: ShapePoses, env: int, grp: int, p: wp.vec3, reach: float):
+    """Whether every shape of cull group ``grp`` lies beyond ``reach`` of ``p`` (the group's bounding sphere, which
+    holds each shape's sphere grown by its thickness; ``ShapePoses``). A group of one shape is left to that shape's
+    own cull."""
+    s0 = poses.group_start[grp]
+    if poses.group_start[grp + 1] - s0 < 2:
+        return False
+    centre = wp.transform_point(poses.tf[env, s0], poses.group_centre[grp])
+    return wp.length(p - centre) > poses.group_radius[grp] + reach
+
+
 @wp.kernel
 def pose_shapes(shapes: ShapeTable, motion: BodyMotion, clear: int, reports: ContactReports, poses: ShapePoses):
     """The substep's shape poses, once per (env, shape) instead of once per (particle, shape): a pose interpolates
@@ -420,9 +440,8 @@ def particle_collision_kernel(meshes: bool) -> wp.Kernel:
         w = solve.inv_mass[env % solve.inv_mass.shape[0], i]
         if w == 0.0:
             return
-        if masks.particle_active.shape[1] > 0:
-            if masks.particle_active[env, i] == 0:
-                return  # every element of the particle was cut away
+        if not particle_live(masks, env, i):
+            return  # every element of the particle was cut away
         g = particles.group[k]
         r = particles.radius[k]
         x = q[env, i]
@@ -431,15 +450,11 @@ def particle_collision_kernel(meshes: bool) -> wp.Kernel:
         # shape, and these loads were most of their memory traffic
         moved = int(0)
         for grp in range(poses.group_start.shape[0] - 1):
-            s0 = poses.group_start[grp]
-            s1 = poses.group_start[grp + 1]
-            # a group's bounding sphere holds each of its shapes' spheres grown by their thickness: beyond it by more
-            # than r + report margin, every shape below would be culled (x does not move while none is touched)
-            if s1 - s0 > 1:
-                centre = wp.transform_point(poses.tf[env, s0], poses.group_centre[grp])
-                if wp.length(x - centre) > poses.group_radius[grp] + r + report_margin:
-                    continue
-            for s in range(s0, s1):
+            # beyond the group's sphere by more than r + report margin, every shape below would be culled (x does
+            # not move while none is touched)
+            if group_out_of_reach(poses, env, grp, x, r + report_margin):
+                continue
+            for s in range(poses.group_start[grp], poses.group_start[grp + 1]):
                 pair = shapes.pair_index[s, g]
                 if pair < 0 or shapes.kind[s] == SHAPE_SURFACE:
                     continue
@@ -523,15 +538,10 @@ def collide_segment(
     xb = q[env, b]
     ignore_bits = ignored_bodies(ignore, env, a) | ignored_bodies(ignore, env, b)
     for grp in range(poses.group_start.shape[0] - 1):
-        s0 = poses.group_start[grp]
-        s1 = poses.group_start[grp + 1]
-        # the group's bounding sphere first (ShapePoses), against the segment's: beyond it, every shape is culled
-        if s1 - s0 > 1:
-            centre = wp.transform_point(poses.tf[env, s0], poses.group_centre[grp])
-            reach = segments.radius[k] + poses.group_radius[grp] + 0.5 * wp.length(xb - xa)
-            if wp.length(0.5 * (xa + xb) - centre) > reach:
-                continue
-        for s in range(s0, s1):
+        # the group's bounding sphere against the segment's: beyond it, every shape is culled
+        if group_out_of_reach(poses, env, grp, 0.5 * (xa + xb), segments.radius[k] + 0.5 * wp.length(xb - xa)):
+            continue
+        for s in range(poses.group_start[grp], poses.group_start[grp + 1]):
             kind = shapes.kind[s]
             pair = shapes.pair_index[s, g]
             if pair < 0 or kind > SHAPE_CAPSULE:
@@ -982,9 +992,8 @@ def collide_surface(
     i = particles.particle[k]
     if i >= surface.owner_start and i < surface.owner_end:
         return  # a surface does not collide with its own vertices
-    if masks.particle_active.shape[1] > 0:
-        if masks.particle_active[env, i] == 0:
-            return
+    if not particle_live(masks, env, i):
+        return
     pe = env % solve.inv_mass.shape[0]
     w = solve.inv_mass[pe, i]
     x = q[env, i]
@@ -1142,14 +1151,6 @@ def apply_surface_deltas(verts: wp.array(dtype=wp.int32), surf_delta: wp.array3d
 # ----------------------------------------------------------------------------------------------------
 # particle-particle contact (deformable vs deformable, rod self-contact), Jacobi with averaging
 # ----------------------------------------------------------------------------------------------------
-
-
-@wp.func
-def particle_live(masks: CutMasks, env: int, i: int):
-    """Particle ``i`` of ``env`` still belongs to a live element (always, where nothing is cut)."""
-    if masks.particle_active.shape[1] == 0:
-        return True
-    return masks.particle_active[env, i] != 0
 
 
 @wp.func

@@ -2,14 +2,19 @@
 # Helpers for a lease's BESIDE script (train/device/queue.sh runs it from /tmp/queue_code), sourced after it sets
 # dev (the device), n (num_envs), out (its result folder), new (its PYTHONPATH) and t0 (its start, seconds):
 #   bench NAME TASK POLICY [bench_env.py options...]   one bench_env.py point (STATE, 3 s) into $out/NAME.json / .txt
+#   bench_old NAME TASK POLICY [options...]             the same on the old tree (PYTHONPATH=$old, set by the script)
 #   run_queue JOBS_FILE DEADLINE                         the learning queue on $dev until DEADLINE seconds after t0
-bench() {
-  local name=$1 task=$2 policy=$3
-  shift 3
-  PYTHONPATH=$new python3 benchmarks/bench_env.py --task "$task" --device "$dev" --num-envs "$n" --seconds 3 \
+bench_on() {  # PYTHONPATH NAME TASK POLICY [options...]
+  local path=$1 name=$2 task=$3 policy=$4
+  shift 4
+  PYTHONPATH=$path python3 benchmarks/bench_env.py --task "$task" --device "$dev" --num-envs "$n" --seconds 3 \
     --obs STATE --policy "$policy" "$@" --out "$out/$name.json" > "$out/$name.txt" 2>&1
   echo "$name rc=$? $(tail -1 "$out/$name.txt")"
 }
+
+bench() { bench_on "$new" "$@"; }
+
+bench_old() { bench_on "$old" "$@"; }
 
 run_queue() {
   local jobs=$1 deadline=$2

@@ -26,15 +26,8 @@ d=benchmarks/results/session40
 out=/tmp/r/beside41
 mkdir -p "$out"
 new=/tmp/site:$PWD
-old=/tmp/site:$PWD/.device/small/old
-. train/device/beside_lib.sh  # bench, run_queue
-bench_old() {  # NAME TASK POLICY [options]: bench on the old tree (668d57e)
-  local name=$1 task=$2 policy=$3
-  shift 3
-  PYTHONPATH=$old python3 benchmarks/bench_env.py --task "$task" --device "$dev" --num-envs "$n" --seconds 3 \
-    --obs STATE --policy "$policy" "$@" --out "$out/$name.json" > "$out/$name.txt" 2>&1
-  echo "$name rc=$? $(tail -1 "$out/$name.txt")"
-}
+old=/tmp/site:$PWD/.device/small/old  # 668d57e's lapwarp, for bench_old
+. train/device/beside_lib.sh  # bench, bench_old, run_queue
 PYTHONPATH=$new python3 -m pytest -q -p no:cacheprovider tests/test_contact.py tests/test_train_and_bench.py \
   -k "clustered or surface or leaf or contact_settings" --device "$dev" > "$out/pytest_cuda.txt" 2>&1
 echo "pytest rc=$? $(tail -1 "$out/pytest_cuda.txt")"
