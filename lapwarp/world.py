@@ -61,9 +61,9 @@ TET_ROTATION_UPDATES = ("vertex", "sweep")
 #: memory (kernels/chains_block.py), "hybrid" = the same packs, each lane ``chain_lane_rows`` consecutive rows
 #: eliminated in registers and PCR over one interface row per lane (kernels/chains_hybrid.py), "registers" = the serial
 #: walk's thread per chain with the whole chain in registers (kernels/chains_registers.py; families of open chains of
-#: at most chains_registers.MAX_LINKS links, the serial walk elsewhere), "shared" = a thread block per env with the chain
-#: set's nodes and scratch in shared memory, its lanes walking the chains family after family in one launch per sweep
-#: (kernels/chains_shared.py; chain sets of open chains within SHARED_CHAIN_MAX_BYTES, the serial walk elsewhere)
+#: at most chains_registers.MAX_LINKS links, the serial walk elsewhere), "shared" = a thread block per env with the
+#: chain set's nodes and scratch in shared memory, its lanes walking the chains family after family in one launch per
+#: sweep (kernels/chains_shared.py; chain sets of open chains within SHARED_CHAIN_MAX_BYTES, the serial walk elsewhere)
 CHAIN_SOLVERS = ("thomas", "pcr", "hybrid", "registers", "shared")
 #: the shared memory a block of the "shared" chain solve may take: 16 B per node of the chain set's particle window
 #: plus 16 B per (link + 1) of its longest chain per lane (PrecisionCutting's 40 x 40 cloth at 64 lanes: 66 KB, three
@@ -493,7 +493,8 @@ class World:
         key = (float(dt), self.substeps_for(float(dt)), self.iterations, self.rod_newton_steps,
                self.chain_newton_steps, self.tet_rotation_iterations, self.tet_rotation_update,
                self.tet_rotation_refresh, self.chain_block_links, self.chain_solver, self.chain_pcr_threads,
-               self.chain_pcr_rows, self.chain_lane_rows, self.chain_shared_lanes, self.tet_solver, self.tet_block_threads,
+               self.chain_pcr_rows, self.chain_lane_rows, self.chain_shared_lanes, self.tet_solver,
+               self.tet_block_threads,
                self.model.attachments_distinct, self.rod_solver, self.rod_block_threads, self.integrate_together,
                self.tet_method_in_use, self._register_caps_key(),
                *(solver.record_key() for solver in self.solvers if hasattr(solver, "record_key")))
