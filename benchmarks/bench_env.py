@@ -88,7 +88,7 @@ def bench_one(task: str, num_envs: int, device: str, seconds: float, invalid_act
               policy: str = "random", tet_solver: str | None = None, cuda_graph: bool = True,
               triangle_sweep: str | None = None, triangle_block_threads: int | None = None,
               replay_steps: int = 600, max_registers: dict[str, int] | None = None, pcr_rows: int | None = None,
-              rod_solver: str | None = None, lane_rows: int | None = None, shared_lanes: int | None = None,
+              rod_solver: str | None = None, lane_rows: int | None = None,
               surface_leaf_size: int | None = None) -> dict:
     def make_env():
         # the leaf size is read when the task finalizes its contact system, i.e. while the env is built (an older
@@ -110,8 +110,6 @@ def bench_one(task: str, num_envs: int, device: str, seconds: float, invalid_act
             env.world.chain_pcr_rows = pcr_rows
         if lane_rows is not None:
             env.world.chain_lane_rows = lane_rows
-        if shared_lanes is not None:
-            env.world.chain_shared_lanes = shared_lanes
         if rod_solver is not None:
             env.world.rod_solver = rod_solver
         apply_contact_settings(env, triangle_sweep, triangle_block_threads)
@@ -178,7 +176,6 @@ def bench_one(task: str, num_envs: int, device: str, seconds: float, invalid_act
         "rod_solver": env.world.rod_solver if env.world.model.segment_count else None,
         "chain_pcr_rows": env.world.chain_pcr_rows if env.world.chain_solver in ("pcr", "hybrid") else None,
         "chain_lane_rows": env.world.chain_lane_rows if env.world.chain_solver == "hybrid" else None,
-        "chain_shared_lanes": env.world.chain_shared_lanes if env.world.chain_solver == "shared" else None,
     }
     env.close()
     return result
@@ -219,9 +216,6 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--lane-rows", type=positive_int, default=None,
                         help="rows per lane of the 'hybrid' chain solve (--set chain_solver=hybrid; default: the "
                              "world's)")
-    parser.add_argument("--shared-lanes", type=positive_int, default=None,
-                        help="lanes per block of the 'shared' chain solve (--set chain_solver=shared; default: the "
-                             "world's)")
     parser.add_argument("--rod-solver", choices=list(ROD_SOLVERS), default=None,
                         help="the world's rod sweep: one launch per colour or all colours in one (default: its own)")
     parser.add_argument("--no-graph", action="store_true",
@@ -252,7 +246,7 @@ def main(argv: list[str] | None = None) -> int:
                           cuda_graph=not args.no_graph, triangle_sweep=args.triangle_sweep,
                           triangle_block_threads=args.triangle_block_threads,
                           replay_steps=args.replay_steps, max_registers=max_registers, pcr_rows=args.pcr_rows,
-                          rod_solver=args.rod_solver, lane_rows=args.lane_rows, shared_lanes=args.shared_lanes,
+                          rod_solver=args.rod_solver, lane_rows=args.lane_rows,
                           surface_leaf_size=args.surface_leaf_size)
             results.append(r)
             print(f"{r['task']:<10} {n:>9} {mode:>8} {r['env_steps_per_s']:>14,.0f} {r['step_ms']:>9.3f}", flush=True)

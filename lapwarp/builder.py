@@ -738,7 +738,7 @@ class SceneBuilder:
                 sweep's ``TET_BLOCK_LANES`` lanes: fewer passes per sweep, e.g. LigatingLoop's cavity 72 instead of
                 78; another Gauss-Seidel order, so a body's shape after a step differs slightly).
         """
-        from lapwarp.chains import build_chain_set, slot_order, straight_chains
+        from lapwarp.chains import build_chain_set, straight_chains
         from lapwarp.world import World
 
         if edge_solver not in ("chains", "colored"):
@@ -801,25 +801,13 @@ class SceneBuilder:
         if self._edges.count():
             idx = np.concatenate(self._edges.indices)
             order, offs = color_graph(idx)
-            if edge_solver == "chains":
-                # the edges numbered in the chain solve's slot order instead of by colour (which only the colored
-                # solve uses): a warp's threads, each at link k of its chain, read neighbouring edges' cutting masks,
-                # rest lengths and compliances (the chains are found on the colour order and numbered again: the same
-                # chains, families and walks, so the positions are bit-identical)
-                chain_list = straight_chains(idx[order], x)
-                walked = slot_order(build_chain_set(chain_list, n, "cpu"))
-                renumber = np.empty(len(walked), dtype=np.int64)
-                renumber[walked] = np.arange(len(walked))
-                order = order[walked]
-                offs = [0]  # no colours: the chain solve takes every edge
-                chain_list = [(nodes, [int(renumber[e]) for e in ids], closed) for nodes, ids, closed in chain_list]
             model.edge_count = len(idx)
             model.edge_indices = wp.array(idx[order].astype(np.int32), dtype=wp.vec2i, device=dev)
             model.edge_rest = wp.array(np.concatenate(self._edges.rest)[order].astype(f32), dtype=float, device=dev)
             model.edge_compliance = wp.array(build_comp(self._edges, order), dtype=float, device=dev)
             model.edge_color_offsets = offs
             if edge_solver == "chains":
-                model.edge_chains = build_chain_set(chain_list, n, dev)
+                model.edge_chains = build_chain_set(straight_chains(idx[order], x), n, dev)
             if self._cuttable:
                 etri = np.concatenate(self._edge_tris)[order]
                 model.edge_tris = wp.array(etri.astype(np.int32), dtype=wp.vec2i, device=dev)

@@ -180,53 +180,6 @@ def build_chain_set(chains: list[tuple[list, list, bool]], num_nodes: int, devic
                     node_host=node.astype(np.int32), constraint_host=link.astype(np.int32))
 
 
-def slot_order(cs: ChainSet) -> np.ndarray:
-    """The chain set's constraints in the order its kernels walk them: family by family, link-major across a family's
-    chains (link ``k`` of every chain, then link ``k + 1``), padding left out. Numbering the constraints this way
-    (``SceneBuilder.finalize`` does for cloth edges) puts the per-constraint arrays that a warp's threads read at
-    one link of their chains (masks, rest lengths, compliances, multipliers) side by side in memory."""
-    out = []
-    for first, count, link_base, _node_base in cs.families:
-        lengths = cs.lengths[first:first + count]
-        k = np.arange(int(lengths.max()))[:, None]
-        out.append(cs.constraint_host[link_base:link_base + k.size * count].reshape(k.size, count)[k < lengths])
-    return np.concatenate(out) if out else np.zeros(0, np.int64)
-
-
-@dataclass
-class SharedChainLayout:
-    """What the shared-memory chain solve (``kernels/chains_shared.py``) needs of a :class:`ChainSet`: its families as
-    a device array of ``(first chain, chains, link_base, node_base)`` rows, the window of particles its nodes lie in
-    (``node_start``, ``num_nodes``) and its longest chain (links)."""
-
-    families: wp.array
-    node_start: int
-    num_nodes: int
-    max_links: int
-
-
-def shared_chain_layout(cs: ChainSet, device) -> SharedChainLayout | None:
-    """The shared-memory solve's layout of a chain set, or None where it cannot take the set: a closed loop, or no
-    chain. Raises ``ValueError`` where a family's chains are not stored longest first (``build_chain_set``'s order,
-    which the solve's rounds rely on for their loop bound)."""
-    if cs is None or not cs.count or bool(np.any(cs.closed_host)):
-        return None
-    lo, hi = None, None
-    for first, count, _link_base, node_base in cs.families:
-        lengths = cs.lengths[first:first + count]
-        if np.any(np.diff(lengths) > 0):
-            raise ValueError("shared_chain_layout: a family's chains must be stored longest first (build_chain_set)")
-        # node j of the family's i-th chain at node_base + j * count + i, for j <= its length (the rest is padding)
-        j = np.arange(int(lengths.max()) + 1)[:, None]
-        used = j <= lengths[None, :]
-        nodes = cs.node_host[node_base:node_base + j.size * count].reshape(j.size, count)[used]
-        lo = int(nodes.min()) if lo is None else min(lo, int(nodes.min()))
-        hi = int(nodes.max()) if hi is None else max(hi, int(nodes.max()))
-    rows = np.asarray(cs.families, dtype=np.int32).reshape(-1, 4)
-    return SharedChainLayout(families=wp.array(rows, dtype=wp.vec4i, device=device), node_start=lo,
-                             num_nodes=hi - lo + 1, max_links=int(cs.lengths.max()))
-
-
 @dataclass
 class ChainPacks:
     """The chains of a :class:`ChainSet` packed into the thread blocks of the block (PCR) solve

@@ -28,7 +28,7 @@ import warp as wp
 
 from lapwarp import launching
 from lapwarp.builder import TET_BLOCK_LANES
-from lapwarp.chains import pack_chains, shared_chain_layout
+from lapwarp.chains import pack_chains
 from lapwarp.config import check_seed, rng_seed32
 from lapwarp.kernels import (
     chains,
@@ -36,7 +36,6 @@ from lapwarp.kernels import (
     chains_hybrid,
     chains_partitioned,
     chains_registers,
-    chains_shared,
     geodesic,
     world_kernels,
 )
@@ -61,14 +60,8 @@ TET_ROTATION_UPDATES = ("vertex", "sweep")
 #: memory (kernels/chains_block.py), "hybrid" = the same packs, each lane ``chain_lane_rows`` consecutive rows
 #: eliminated in registers and PCR over one interface row per lane (kernels/chains_hybrid.py), "registers" = the serial
 #: walk's thread per chain with the whole chain in registers (kernels/chains_registers.py; families of open chains of
-#: at most chains_registers.MAX_LINKS links, the serial walk elsewhere), "shared" = a thread block per env with the
-#: chain set's nodes and scratch in shared memory, its lanes walking the chains family after family in one launch per
-#: sweep (kernels/chains_shared.py; chain sets of open chains within SHARED_CHAIN_MAX_BYTES, the serial walk elsewhere)
-CHAIN_SOLVERS = ("thomas", "pcr", "hybrid", "registers", "shared")
-#: the shared memory a block of the "shared" chain solve may take: 16 B per node of the chain set's particle window
-#: plus 16 B per (link + 1) of its longest chain per lane (PrecisionCutting's 40 x 40 cloth at 64 lanes: 66 KB, three
-#: blocks per SM of the H100 / H200's 227 KB)
-SHARED_CHAIN_MAX_BYTES = 160 * 1024
+#: at most chains_registers.MAX_LINKS links, the serial walk elsewhere)
+CHAIN_SOLVERS = ("thomas", "pcr", "hybrid", "registers")
 #: the longest chain (links) the "pcr" solve takes: its block keeps ~33 floats per row in shared memory (~34 KB)
 PCR_MAX_LINKS = 256
 #: rows of the "pcr" solve's packs by default: the open chains of a family laid end to end in blocks of up to this
@@ -192,8 +185,6 @@ class World:
         # block: chain_pcr_threads (0 = the largest pack's rows rounded up to a warp, at most 128)
         self.chain_solver = "thomas"
         self.chain_pcr_threads = 0
-        # "shared": lanes per block (a lane walks a chain; a family takes rounds of this many chains)
-        self.chain_shared_lanes = 64
         # "hybrid": rows per lane (compile-time, unrolled in registers); the lanes follow from the largest pack
         self.chain_lane_rows = 4
         self._chain_pcr_rows = 0
@@ -281,10 +272,6 @@ class World:
         # device arrays are copied from the host, which a step recorded inside a CUDA graph capture must not do
         self._packs = {}
         self._lay_out_chain_packs()
-        # the shared-memory chain solve's layout per chain set (None: it cannot take the set), made here for the same
-        # reason as the packs
-        self._shared_chains = {id(cs): shared_chain_layout(cs, dev) for cs in (m.rod_chains, m.edge_chains)
-                               if cs is not None}
         if self.state.body_q is not None:
             self._body_q_prev = wp.clone(self.state.body_q)
         self._dummy_f = wp.zeros((1, 1), dtype=float, device=dev)
@@ -493,8 +480,7 @@ class World:
         key = (float(dt), self.substeps_for(float(dt)), self.iterations, self.rod_newton_steps,
                self.chain_newton_steps, self.tet_rotation_iterations, self.tet_rotation_update,
                self.tet_rotation_refresh, self.chain_block_links, self.chain_solver, self.chain_pcr_threads,
-               self.chain_pcr_rows, self.chain_lane_rows, self.chain_shared_lanes, self.tet_solver,
-               self.tet_block_threads,
+               self.chain_pcr_rows, self.chain_lane_rows, self.tet_solver, self.tet_block_threads,
                self.model.attachments_distinct, self.rod_solver, self.rod_block_threads, self.integrate_together,
                self.tet_method_in_use, self._register_caps_key(),
                *(solver.record_key() for solver in self.solvers if hasattr(solver, "record_key")))
@@ -534,10 +520,6 @@ class World:
                     raise ValueError(f"world.chain_solver {self.chain_solver!r} keeps a chain in one block: this "
                                      f"scene's longest chain has {longest} links, more than {PCR_MAX_LINKS}; use "
                                      f"'thomas'")
-            lanes = self.chain_shared_lanes
-            if isinstance(lanes, bool) or not isinstance(lanes, (int, np.integer)) or not 1 <= lanes <= 1024:
-                raise ValueError(f"world.chain_shared_lanes must be an int in [1, 1024] (lanes per block of the "
-                                 f"'shared' chain solve), got {lanes!r}")
             if not 0 <= int(self.chain_pcr_threads) <= 1024:
                 raise ValueError(f"world.chain_pcr_threads must be in [0, 1024] (0: automatic), got "
                                  f"{self.chain_pcr_threads!r}")
@@ -685,10 +667,6 @@ class World:
         seg_mask = s.segment_active if s.segment_active is not None else self._no_mask
 
         def solve_chains(cs, rest, compliance, lam_arr, scratch, mask, newton_steps, kernel):
-            if self.chain_solver == "shared" and self._record_shared_chains(launch, cs, rest, compliance, lam_arr,
-                                                                            scratch, mask, newton_steps, inv_dt2,
-                                                                            use_lam):
-                return
             if self.chain_solver in ("pcr", "hybrid"):
                 # a thread block per (env, pack of chains), one launch per family with every Newton step in it
                 packs = self._packs[id(cs)]
@@ -824,25 +802,6 @@ class World:
                          self._rod_scratch, seg_mask, self.rod_newton_steps, chains.solve_chains)
         if m.attachment_capacity:
             solve_attachments(0)
-
-    def _record_shared_chains(self, launch, cs, rest, compliance, lam_arr, scratch, mask, newton_steps: int,
-                              inv_dt2: float, use_lam: int) -> bool:
-        """One sweep of a chain set by the shared-memory solve (kernels/chains_shared.py), every family in one launch;
-        False where it cannot take the set (a closed loop, or more shared memory than SHARED_CHAIN_MAX_BYTES), which
-        the serial walk then solves."""
-        lay = self._shared_chains.get(id(cs))
-        if lay is None:
-            return False
-        lanes = launching.block_lanes(self.device, int(self.chain_shared_lanes))
-        if 16 * (lay.num_nodes + (lay.max_links + 1) * lanes) > SHARED_CHAIN_MAX_BYTES:
-            return False
-        kernel = chains_shared.shared_chain_kernel(lay.num_nodes, lay.max_links, lanes, masked=mask.shape[1] > 0)
-        # scratch[0]: the multipliers of a sweep's Newton steps, as the serial walk keeps them
-        launch(kernel, (self.num_envs, lanes),
-               [lay.families, lay.node_start, cs.edge_count, cs.node, cs.constraint, rest, compliance,
-                self._w_eff if self._w_eff is not None else self.model.particle_inv_mass, inv_dt2, use_lam,
-                newton_steps, lam_arr, scratch[0], mask], [self.state.particle_q], block_dim=lanes)
-        return True
 
     def _prediction_masks(self) -> tuple:
         """``(active, use_active, force, use_force)`` of the prediction (``xpbd.integrate_particles``) and of what

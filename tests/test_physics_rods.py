@@ -240,3 +240,18 @@ def test_rod_solver_settings_are_checked(device):
     world.rod_block_threads = 0
     with pytest.raises(ValueError, match="rod_block_threads"):
         world.step(0.02)
+
+def test_rod_frames_turn_a_right_angled_corner():
+    # a square loop: at each corner the first director lay along the next tangent, and projecting it off left nothing
+    # (NaN frames). Now every frame is finite and orthonormal with d3 along its segment
+    b = SceneBuilder()
+    corners = np.array([[0.0, 0.0, 0.0], [0.01, 0.0, 0.0], [0.01, 0.01, 0.0], [0.0, 0.01, 0.0]])
+    loop = b.add_rod(corners, radius=5e-4, youngs_modulus=1e5, closed=True)
+    world = b.finalize(1, "cpu")
+    q = world.state.segment_q.numpy()[0, loop.segments]
+    assert np.isfinite(q).all()
+    for s, quat in enumerate(q):
+        x, y, z, w = quat
+        d3 = np.array([2 * (x * z + w * y), 2 * (y * z - w * x), 1 - 2 * (x * x + y * y)])
+        tangent = corners[(s + 1) % 4] - corners[s]
+        assert np.allclose(d3, tangent / np.linalg.norm(tangent), atol=1e-6)

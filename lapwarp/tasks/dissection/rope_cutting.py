@@ -530,6 +530,10 @@ class RopeCuttingEnv(BatchedEnv):
         # ignores the cap). The segment contact's colour sweep at 64 too: 328.1k -> 329.6k (thirty-seventh session,
         # same call; +0.7 % alone in the thirty-sixth)
         world.default_register_caps.update(solve_rods_fused=64, collide_segment_colors=64)
+        # the shape contact's particle kernel (71 registers) at 64: 4 blocks of 256 per SM instead of 3. H200, expert,
+        # 4,096 envs, same call as the uncapped step (forty-first session, results/session41):
+        # 321.4k -> 324.4k env-steps/s
+        world.default_register_caps["collide_particles"] = 64
         self.rig.finalize(world)
         self.contact = ContactSystem(world, capacity=cfg.contact_capacity)
         for rope in self.ropes_obj:
