@@ -265,7 +265,7 @@ class EnvConfig:
         = (64, 64)
     seed: int = 0
     chain_block_links: Annotated[int, Range(ge=-1, le=4096)] = -1
-    chain_solver: Literal["auto", "thomas", "pcr", "hybrid", "registers"] = "auto"
+    chain_solver: Literal["auto", "thomas", "pcr", "hybrid", "registers", "open_walk"] = "auto"
 
     def validate(self, reward_features: tuple[str, ...], supported_observations: tuple[str, ...]) -> None:
         """Check (and coerce) every field; raise ``ValueError`` naming the offending field. Task configs extend it

@@ -60,8 +60,10 @@ TET_ROTATION_UPDATES = ("vertex", "sweep")
 #: memory (kernels/chains_block.py), "hybrid" = the same packs, each lane ``chain_lane_rows`` consecutive rows
 #: eliminated in registers and PCR over one interface row per lane (kernels/chains_hybrid.py), "registers" = the serial
 #: walk's thread per chain with the whole chain in registers (kernels/chains_registers.py; families of open chains of
-#: at most chains_registers.MAX_LINKS links, the serial walk elsewhere)
-CHAIN_SOLVERS = ("thomas", "pcr", "hybrid", "registers")
+#: at most chains_registers.MAX_LINKS links, the serial walk elsewhere), "open_walk" = the serial walk in three walks
+#: per Newton step for families without a loop (chains.solve_open_chains: the filter eliminated inside the back
+#: substitution), four for a family with one
+CHAIN_SOLVERS = ("thomas", "pcr", "hybrid", "registers", "open_walk")
 #: the longest chain (links) the "pcr" solve takes: its block keeps ~33 floats per row in shared memory (~34 KB)
 PCR_MAX_LINKS = 256
 #: rows of the "pcr" solve's packs by default: the open chains of a family laid end to end in blocks of up to this
@@ -79,7 +81,10 @@ def check_hybrid_lanes(device) -> None:
                          "chain_solver='thomas'")
 
 
-_REGISTER_HEAVY = frozenset({chains.solve_chains, chains.solve_cloth_chains, chains_partitioned.factor_link_blocks,
+# the "open_walk" kernel of each serial walk (rods, the cloth's capped one)
+_OPEN_WALKS = {chains.solve_chains: chains.solve_open_chains, chains.solve_cloth_chains: chains.solve_open_cloth_chains}
+_REGISTER_HEAVY = frozenset({chains.solve_chains, chains.solve_cloth_chains, chains.solve_open_chains,
+                             chains.solve_open_cloth_chains, chains_partitioned.factor_link_blocks,
                              chains_partitioned.solve_link_separators, chains_partitioned.solve_link_blocks,
                              chains_partitioned.solve_node_separators, chains_partitioned.solve_node_blocks})
 
@@ -704,6 +709,8 @@ class World:
                 family_kernel = kernel
                 if self.chain_solver == "registers":
                     family_kernel = chains_registers.family_kernel(cs, first, count) or kernel
+                elif self.chain_solver == "open_walk" and not cs.closed_host[first:first + count].any():
+                    family_kernel = _OPEN_WALKS[kernel]
                 launch(family_kernel, (n, count),
                        [first, count, link_base, node_base, cs.edge_count, cs.closed, cs.node, cs.constraint, rest,
                         compliance, w_eff, inv_dt2, use_lam, newton_steps, lam_arr, *scratch, mask],

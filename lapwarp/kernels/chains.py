@@ -351,3 +351,170 @@ def solve_chains(
 # the 40 x 40 cloth's chain families take 2.26 ms per substep instead of 2.77 (cloth_free, 10 substeps: 101.7k ->
 # 116.1k env-steps/s). A rod's few long chains are latency-bound and lose 5 % with the cap, so they keep solve_chains.
 solve_cloth_chains = wp.kernel(solve_chains.func, cuda_max_registers=96, module="unique", enable_backward=False)
+
+
+@wp.kernel
+def solve_open_chains(
+    family_start: int,
+    stride: int,
+    link_base: int,
+    node_base: int,
+    chain_edge_count: wp.array(dtype=wp.int32),
+    chain_closed: wp.array(dtype=wp.int32),
+    chain_node: wp.array(dtype=wp.int32),
+    chain_constraint: wp.array(dtype=wp.int32),
+    rest: wp.array(dtype=float),
+    compliance: wp.array2d(dtype=float),
+    inv_mass: wp.array2d(dtype=float),
+    inv_dt2: float,
+    use_lambda: int,
+    newton_steps: int,
+    lam: wp.array2d(dtype=float),
+    scratch_l: wp.array2d(dtype=float),
+    scratch_c: wp.array2d(dtype=float),
+    scratch_d: wp.array2d(dtype=float),
+    scratch_e: wp.array2d(dtype=float),
+    node_c: wp.array2d(dtype=float),
+    node_d: wp.array2d(dtype=wp.vec3),
+    node_par: wp.array2d(dtype=wp.vec3),
+    active: wp.array2d(dtype=wp.int32),
+    q: wp.array2d(dtype=wp.vec3),
+):
+    """``solve_chains`` for families of open chains (``chain_closed`` and ``scratch_e`` go unused) in three walks per
+    Newton step instead of four: the link system's back substitution also forms each node's filter row (with ``dl_k``
+    and ``dl_{k+1}`` known, node ``k + 1``'s row is the serial kernel's ``node_row``) and eliminates it at once, the
+    filter's Thomas run from the chain's far end; a last walk from node 0 substitutes and moves the nodes. Against the
+    serial kernel this drops the walk that re-reads every ``dl`` and re-loads each node's index, constraint and mask:
+    the same systems, the filter eliminated in the other direction, so the positions agree to round-off
+    (``tests/test_chains_partitioned.py``)."""
+    env, i = wp.tid()
+    r = family_start + i
+    s0 = link_base + i
+    nb = node_base + i
+    m = chain_edge_count[r]
+    pe = env % inv_mass.shape[0]
+    ce = env % compliance.shape[0]
+    masked = active.shape[1] > 0
+
+    for it in range(newton_steps):
+        # ---- 1. forward elimination of the link system (the serial kernel's, open chains) --------------------
+        node_k1 = chain_node[nb + stride]
+        x_k1 = q[env, node_k1]
+        n_cur, len_cur = segment_dir(q[env, chain_node[nb]], x_k1)
+        cons_k = chain_constraint[s0]
+        act_k = int(1)
+        if masked:
+            act_k = active[env, cons_k]
+        w_k = inv_mass[pe, chain_node[nb]]
+        c_prev = float(0.0)
+        d_prev = float(0.0)
+        a_k = float(0.0)
+        for k in range(m):
+            w_k1 = inv_mass[pe, node_k1]
+            n_next = wp.vec3(0.0)
+            len_next = float(0.0)
+            c_k = float(0.0)
+            node_k2 = node_k1
+            x_k2 = x_k1
+            cons_next = cons_k
+            act_next = act_k
+            if k + 1 < m:
+                node_k2 = chain_node[nb + (k + 2) * stride]
+                x_k2 = q[env, node_k2]
+                n_next, len_next = segment_dir(x_k1, x_k2)
+                c_k = -w_k1 * wp.dot(n_cur, n_next)
+                cons_next = chain_constraint[s0 + (k + 1) * stride]
+                if masked:
+                    act_next = active[env, cons_next]
+                    if act_k == 0 or act_next == 0:
+                        c_k = 0.0  # no coupling across a cut
+            alpha = compliance[ce, cons_k] * inv_dt2
+            b_k = w_k + w_k1 + alpha
+            rhs = rest[cons_k] - len_cur  # -C_k
+            lam_k = float(0.0)
+            if use_lambda != 0:
+                lam_k = lam[env, cons_k]
+            if it > 0:
+                lam_k = lam_k + scratch_l[env, s0 + k * stride]
+            rhs = rhs - alpha * lam_k
+            if b_k <= 0.0 or act_k == 0:
+                b_k = 1.0  # an empty row (both nodes pinned, rigid) or a removed link: dl = 0
+                rhs = 0.0
+            inv = 1.0 / (b_k - a_k * c_prev)
+            c_prev = c_k * inv
+            d_prev = (rhs - a_k * d_prev) * inv
+            scratch_c[env, s0 + k * stride] = c_prev
+            scratch_d[env, s0 + k * stride] = d_prev
+            a_k = c_k
+            n_cur = n_next
+            len_cur = len_next
+            w_k = w_k1
+            node_k1 = node_k2
+            x_k1 = x_k2
+            cons_k = cons_next
+            act_k = act_next
+
+        # ---- 2. back substitution of the links; node k + 1's filter row, eliminated from the far end ----------
+        # carried from link k + 1 to link k: its dl, direction (zero where removed) and tension weight, node k + 1
+        # (index and position before this Newton step) and its filter elimination (c, d)
+        node_hi = chain_node[nb + m * stride]
+        x_hi = q[env, node_hi]
+        dl_hi = float(0.0)
+        n_hi = wp.vec3(0.0)
+        k_hi = float(0.0)
+        ct_hi = float(0.0)
+        dt_hi = wp.vec3(0.0)
+        for kk in range(m):
+            k = m - 1 - kk
+            sk = s0 + k * stride
+            dl_k = scratch_d[env, sk] - scratch_c[env, sk] * dl_hi
+            cons = chain_constraint[sk]
+            # the multiplier of this sweep's Newton steps so far (the serial kernel's bookkeeping)
+            acc = dl_k
+            if it > 0:
+                acc = scratch_l[env, sk] + dl_k
+            if it < newton_steps - 1:
+                scratch_l[env, sk] = acc
+            if use_lambda != 0 and it == newton_steps - 1:
+                lam[env, cons] = lam[env, cons] + acc
+            node_k = chain_node[nb + k * stride]
+            x_k = q[env, node_k]
+            n_k, len_k = segment_dir(x_k, x_hi)
+            k_k = float(0.0)
+            if len_k > 1.0e-12:
+                k_k = wp.max(-dl_k, 0.0) / len_k
+            if masked:
+                if active[env, cons] == 0:
+                    n_k = wp.vec3(0.0)  # a removed link: the nodes beside it are free ends
+            lo, diag, up, rhs_j, par = node_row(n_k, dl_k, k_k, n_hi, dl_hi, k_hi, inv_mass[pe, node_hi], k + 1)
+            inv = 1.0 / (diag - up * ct_hi)
+            ct_hi = lo * inv
+            dt_hi = (rhs_j - dt_hi * up) * inv
+            slot = nb + (k + 1) * stride
+            node_c[env, slot] = ct_hi
+            node_d[env, slot] = dt_hi
+            node_par[env, slot] = par + x_hi
+            dl_hi = dl_k
+            n_hi = n_k
+            k_hi = k_k
+            x_hi = x_k
+            node_hi = node_k
+        # node 0: no link before it (lo = 0), so its filter value is its eliminated right-hand side
+        w0 = inv_mass[pe, node_hi]
+        lo0, diag0, up0, rhs0, par0 = node_row(wp.vec3(0.0), 0.0, 0.0, n_hi, dl_hi, k_hi, w0, 0)
+        y = (rhs0 - dt_hi * up0) / (diag0 - up0 * ct_hi)
+        if w0 > 0.0:
+            q[env, node_hi] = par0 + x_hi + y
+
+        # ---- 3. the filter's substitution from node 1 on: x_j = par_j + y_j where w_j > 0 --------------------
+        for j in range(1, m + 1):
+            slot = nb + j * stride
+            y = node_d[env, slot] - y * node_c[env, slot]
+            node = chain_node[slot]
+            if inv_mass[pe, node] > 0.0:
+                q[env, node] = node_par[env, slot] + y
+
+
+# capped at 96 registers as solve_cloth_chains (the cloth's chains are its launch's only user)
+solve_open_cloth_chains = wp.kernel(solve_open_chains.func, cuda_max_registers=96, module="unique",
+                                    enable_backward=False)
