@@ -172,7 +172,9 @@ class ContactSystem:
         # triangles' particle window fits its shared memory, else "fused" (the outcode sweep was 4.5 % faster on
         # TissueDissection's STATE step and 2.6 % on PrecisionCutting's, 4,096 envs on an H200, twenty-ninth session;
         # never slower; a variant starting each env's sweep at its first triangle past the cull gained <= 0.2 %,
-        # thirtieth session, and was dropped). Read when the World records a step (record_key)
+        # thirtieth session, and was dropped); "shape_codes" = the outcode sweep with a box per tool along its axis
+        # instead of one around all tools (systems of at most ck.SHAPE_CODE_MAX_SHAPES shapes). Read when the World
+        # records a step (record_key)
         self.triangle_sweep = "auto"
         self.triangle_block_threads = 32
         # deforming surfaces: triangles per leaf of their clustering (SurfaceClusters; read at finalize)
@@ -537,7 +539,8 @@ class ContactSystem:
                                           tf0=wp.zeros((n, S), dtype=wp.transform, device=dev),
                                           back=wp.zeros((n, S), dtype=wp.transform, device=dev),
                                           lo=wp.zeros(n, dtype=wp.vec3, device=dev),
-                                          hi=wp.zeros(n, dtype=wp.vec3, device=dev))
+                                          hi=wp.zeros(n, dtype=wp.vec3, device=dev),
+                                          **self._tool_box_arrays(n, dev))
             self._tri_pad = float(np.concatenate(trad).max())
             self._tri_color_table = arr(np.asarray(self.tri_color_offsets, dtype=np.int32), wp.int32)
             # the particles the triangles' nodes span (the outcode sweep's shared window)
@@ -683,10 +686,18 @@ class ContactSystem:
         return self._solves[key]
 
     #: the triangle sweeps ``triangle_sweep`` may name
-    TRIANGLE_SWEEPS = ("auto", "colored", "fused", "outcodes")
+    TRIANGLE_SWEEPS = ("auto", "colored", "fused", "outcodes", "shape_codes")
 
     def _outcode_window_fits(self) -> bool:
         return len(self.tri_color_offsets) <= 1 or self._tri_window[1] <= ck.OUTCODE_MAX_PARTICLES
+
+    def _tool_box_arrays(self, n: int, dev) -> dict:
+        """``ToolAxes``' oriented boxes of the shape-code sweep: ``(num_envs, shapes)`` where it can code every shape
+        (at most ``ck.SHAPE_CODE_MAX_SHAPES``), else ``(num_envs, 0)`` (the pose kernel then forms none)."""
+        S = len(self.shapes) if len(self.shapes) <= ck.SHAPE_CODE_MAX_SHAPES else 0
+        return {"box_centre": wp.zeros((n, S), dtype=wp.vec3, device=dev),
+                "box_frame": wp.zeros((n, S), dtype=wp.mat33, device=dev),
+                "box_half": wp.zeros((n, S), dtype=wp.vec3, device=dev)}
 
     def resolved_triangle_sweep(self) -> str:
         """The sweep the step launches: ``triangle_sweep`` with "auto" resolved."""
@@ -698,10 +709,13 @@ class ContactSystem:
         """The settings the recorded launches depend on (the World records a step again when they change)."""
         if self.triangle_sweep not in self.TRIANGLE_SWEEPS:
             raise ValueError(f"triangle_sweep must be one of {self.TRIANGLE_SWEEPS}, got {self.triangle_sweep!r}")
-        if self.triangle_sweep == "outcodes" and not self._outcode_window_fits():
+        if self.triangle_sweep in ("outcodes", "shape_codes") and not self._outcode_window_fits():
             raise ValueError(f"triangle_sweep {self.triangle_sweep!r} keeps an int per particle of the triangles' "
                              f"window in shared memory: this scene's window of {self._tri_window[1]} particles exceeds "
                              f"{ck.OUTCODE_MAX_PARTICLES}; use 'fused'")
+        if self.triangle_sweep == "shape_codes" and len(self.shapes) > ck.SHAPE_CODE_MAX_SHAPES:
+            raise ValueError(f"triangle_sweep 'shape_codes' codes 6 bits per shape in an int32: this system has "
+                             f"{len(self.shapes)} shapes, more than {ck.SHAPE_CODE_MAX_SHAPES}; use 'outcodes'")
         if not 1 <= int(self.triangle_block_threads) <= 1024:
             raise ValueError(f"triangle_block_threads must be in [1, 1024] (threads of one env's block), "
                              f"got {self.triangle_block_threads!r}")
@@ -750,10 +764,11 @@ class ContactSystem:
             launch(ck.collide_triangle_colors, (n, threads),
                    [self._triangles, self._tri_color_table, shapes, self._tool_axes, solve, ignore, masks],
                    [q, reports], block_dim=threads)
-        elif has_triangles and sweep_kind == "outcodes":
+        elif has_triangles and sweep_kind in ("outcodes", "shape_codes"):
             threads = launching.block_lanes(self.device, self.triangle_block_threads)
             first, window = self._tri_window
-            launch(ck.collide_triangle_outcodes_kernel(window), (n, threads),
+            kernel = ck.collide_triangle_outcodes_kernel(window, per_shape=sweep_kind == "shape_codes")
+            launch(kernel, (n, threads),
                    [self._triangles, self._tri_color_table, first, shapes, self._tool_axes, solve, ignore, masks],
                    [q, reports], block_dim=threads)
         elif has_triangles:

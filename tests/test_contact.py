@@ -182,13 +182,13 @@ def test_fused_triangle_sweep_matches_one_launch_per_colour(device):
     for bit on the CPU (one lane per block), within float32 rounding on the GPU; and they still stop the tool at
     0.1 m/s."""
     x = {}
-    for sweep in ("colored", "fused", "outcodes"):
+    for sweep in ("colored", "fused", "outcodes", "shape_codes"):
         out = []
         gap, ahead = _push_capsule(device, 0.1, kind="cloth", triangle_sweep=sweep, positions=out)
         assert gap > -1.0e-4 and ahead
         x[sweep] = out[0]
     assert np.abs(x["colored"][:, 2] - 0.005).max() > 1.0e-3  # the tool carried the cloth: contacts were projected
-    for sweep in ("fused", "outcodes"):
+    for sweep in ("fused", "outcodes", "shape_codes"):
         if device == "cpu":
             np.testing.assert_array_equal(x[sweep], x["colored"])
         else:
@@ -197,13 +197,14 @@ def test_fused_triangle_sweep_matches_one_launch_per_colour(device):
 
 def test_outcode_sweep_matches_the_fused_sweep_in_a_cutting_task(device):
     """TissueDissection (tissue surfaces of tet faces masked as the hook cuts, four tool shapes): 40 steps of the
-    scripted expert give the same particles, cut tets and contact reports under ``"outcodes"`` as under
-    ``"fused"`` (bit for bit on the CPU; float32 rounding on the GPU, where the reports are summed atomically)."""
+    scripted expert give the same particles, cut tets and contact reports under ``"outcodes"`` and ``"shape_codes"``
+    as under ``"fused"`` (bit for bit on the CPU; float32 rounding on the GPU, where the reports are summed
+    atomically)."""
     import lapwarp
     from lapwarp.experts import make_expert
 
     out = {}
-    for sweep in ("fused", "outcodes"):
+    for sweep in ("fused", "outcodes", "shape_codes"):
         env = lapwarp.make("TissueDissection", num_envs=2, device=device, seed=3)
         env.contact.triangle_sweep = sweep
         expert = make_expert(env)
@@ -215,11 +216,12 @@ def test_outcode_sweep_matches_the_fused_sweep_in_a_cutting_task(device):
         env.close()
     assert (out["fused"][1] == 0).any()  # the hook cut: masked faces were in play
     assert np.abs(out["fused"][2]).max() > 0.0  # and touched the tissue
-    for a, b in zip(out["outcodes"], out["fused"], strict=True):
-        if device == "cpu":
-            np.testing.assert_array_equal(a, b)
-        else:
-            np.testing.assert_allclose(a, b, atol=1e-6)
+    for sweep in ("outcodes", "shape_codes"):
+        for a, b in zip(out[sweep], out["fused"], strict=True):
+            if device == "cpu":
+                np.testing.assert_array_equal(a, b)
+            else:
+                np.testing.assert_allclose(a, b, atol=1e-6)
 
 
 def test_outcode_sweep_refuses_a_window_beyond_shared_memory(device, monkeypatch):
@@ -657,3 +659,48 @@ def test_shapes_on_one_body_are_culled_as_a_group_with_the_same_contacts(device)
     assert counts.sum() > 0 and x[:, :len(sheet), 2].max() > 0.005  # some rest on the ring (the rest fell through)
     # the rod's middle nodes hang on the sphere between them (without its segment they fall through the ring)
     assert x[:, rod.particle_start + 1:rod.particle_start + 3, 2].min() > 0.0
+
+
+def test_shape_code_sweep_culls_to_each_tool_in_precision_cutting(device):
+    """PrecisionCutting's scissors: a 147 mm shaft crosses the sheet at a slant, so the one box around every tool
+    spans a strip of the cloth. Each tool's own box along its axis (``"shape_codes"``) passes a small part of the
+    triangles that box does (counted here in numpy from the sweep's boxes: 160 against 21 after 25 expert steps,
+    CPU), and 60 expert steps give the same cloth and cuts as the union-box sweep (bit for bit on the CPU)."""
+    import lapwarp
+    from lapwarp.experts import make_expert
+
+    out = {}
+    for sweep in ("outcodes", "shape_codes"):
+        env = lapwarp.make("PrecisionCutting", num_envs=2, device=device, seed=3)
+        env.contact.triangle_sweep = sweep
+        expert = make_expert(env)
+        env.reset()
+        for step in range(60):
+            env.step(expert())
+            if step == 24 and sweep == "shape_codes":
+                ax, tri = env.contact._tool_axes, env.contact.tri_nodes.numpy()
+                x = env.world.state.particle_q.numpy()[0][tri]  # (triangles, 3 corners, 3)
+                lo, hi = ax.lo.numpy()[0], ax.hi.numpy()[0]
+                union = ~((x.max(1) < lo).any(1) | (x.min(1) > hi).any(1))
+                own = np.zeros(len(tri), dtype=bool)
+                for s in range(ax.box_centre.shape[1]):
+                    local = (x - ax.box_centre.numpy()[0, s]) @ ax.box_frame.numpy()[0, s].T
+                    half = ax.box_half.numpy()[0, s]
+                    own |= ~((local.max(1) < -half).any(1) | (local.min(1) > half).any(1))
+                assert union.sum() > 50 and 3 * own.sum() < union.sum()
+        out[sweep] = (env.world.state.particle_q.numpy(), env.world.state.tri_active.numpy())
+        env.close()
+    assert (out["outcodes"][1] == 0).any()  # the scissors cut: the sweep met the masks
+    for a, b in zip(out["shape_codes"], out["outcodes"], strict=True):
+        if device == "cpu":
+            np.testing.assert_array_equal(a, b)
+        else:
+            np.testing.assert_allclose(a, b, atol=1e-6)
+
+
+def test_shape_code_sweep_refuses_more_shapes_than_its_bits(device, monkeypatch):
+    from lapwarp.kernels import contact as ck
+
+    monkeypatch.setattr(ck, "SHAPE_CODE_MAX_SHAPES", 0)
+    with pytest.raises(ValueError, match="6 bits per shape .* more than 0; use 'outcodes'"):
+        _push_capsule(device, 0.1, kind="cloth", triangle_sweep="shape_codes")

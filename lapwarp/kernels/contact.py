@@ -647,6 +647,11 @@ class ToolAxes:
     back: wp.array2d(dtype=wp.transform)
     lo: wp.array(dtype=wp.vec3)
     hi: wp.array(dtype=wp.vec3)
+    # each tool's own box, oriented along its axis (the shape-code sweep, ``shape_codes``): centre, rotation into the
+    # box's frame (rows: two unit normals of the axis, then the axis) and half extents, padded like the env's box
+    box_centre: wp.array2d(dtype=wp.vec3)
+    box_frame: wp.array2d(dtype=wp.mat33)
+    box_half: wp.array2d(dtype=wp.vec3)
 
 
 @wp.kernel
@@ -679,6 +684,21 @@ def pose_shapes_and_tools(shapes: ShapeTable, motion: BodyMotion, pad: float, cl
         r = wp.vec3(shapes.params[s][0] + shapes.thickness[s])
         lo = wp.min(lo, wp.min(a, b) - r)
         hi = wp.max(hi, wp.max(a, b) + r)
+        if axes.box_centre.shape[1] > 0:
+            # the oriented box: half the axis plus the padded radius along it, the padded radius across
+            w = b - a
+            half_len = 0.5 * wp.length(w)
+            w = wp.vec3(0.0, 0.0, 1.0)
+            if half_len > 0.0:
+                w = (b - a) / (2.0 * half_len)
+            e = wp.vec3(1.0, 0.0, 0.0)
+            if wp.abs(w[0]) > 0.7:
+                e = wp.vec3(0.0, 1.0, 0.0)
+            u = wp.normalize(wp.cross(w, e))
+            reach = r[0] + pad
+            axes.box_centre[env, s] = 0.5 * (a + b)
+            axes.box_frame[env, s] = wp.matrix_from_rows(u, wp.cross(w, u), w)
+            axes.box_half[env, s] = wp.vec3(reach, reach, half_len + reach)
     box_lo = wp.vec3(wp.tile_extract(wp.tile_min(wp.tile(lo[0])), 0), wp.tile_extract(wp.tile_min(wp.tile(lo[1])), 0),
                      wp.tile_extract(wp.tile_min(wp.tile(lo[2])), 0))
     box_hi = wp.vec3(wp.tile_extract(wp.tile_max(wp.tile(hi[0])), 0), wp.tile_extract(wp.tile_max(wp.tile(hi[1])), 0),
@@ -875,12 +895,49 @@ def collide_triangle_colors(
         wp.tile_scatter_masked(barrier, 0, 0, False)
 
 
+#: the most shapes the shape-code sweep codes (6 bits each in an int32)
+SHAPE_CODE_MAX_SHAPES = 5
+
+
+@wp.func
+def shape_codes(x: wp.vec3, env: int, shapes: ShapeTable, axes: ToolAxes) -> int:
+    """``outcode`` of ``x`` against each tool's own oriented box (``ToolAxes.box_*``), 6 bits per shape (shape ``s``
+    in bits ``6 s .. 6 s + 5``); a shape that is no tool (not a sphere or capsule) sets all six, so it never passes a
+    triangle. A triangle misses a box when its three vertices' codes share a bit of that box's six (all beyond one
+    face plane of it): :func:`codes_meet` tells whether some box may meet it."""
+    code = int(0)
+    for s in range(shapes.kind.shape[0]):
+        bits = int(63)
+        if shapes.kind[s] <= SHAPE_CAPSULE:
+            local = axes.box_frame[env, s] * (x - axes.box_centre[env, s])
+            half = axes.box_half[env, s]
+            bits = int(0)
+            for a in range(3):
+                if local[a] < -half[a]:
+                    bits = bits | (1 << (2 * a))
+                if local[a] > half[a]:
+                    bits = bits | (1 << (2 * a + 1))
+        code = code | (bits << (6 * s))
+    return code
+
+
+@wp.func
+def codes_meet(shared: int, num_shapes: int) -> bool:
+    """Whether a triangle whose vertices' ``shape_codes`` AND to ``shared`` may meet some tool's box (a shape whose
+    six bits are all clear in ``shared``)."""
+    meet = int(0)
+    for s in range(num_shapes):
+        if (shared >> (6 * s)) & 63 == 0:
+            meet = 1
+    return meet != 0
+
+
 # the outcode sweep keeps one int per particle of the triangles' window in shared memory
 OUTCODE_MAX_PARTICLES = 8192
-_OUTCODE_KERNELS: dict[int, wp.Kernel] = {}
+_OUTCODE_KERNELS: dict[tuple[int, bool], wp.Kernel] = {}
 
 
-def collide_triangle_outcodes_kernel(window: int) -> wp.Kernel:
+def collide_triangle_outcodes_kernel(window: int, per_shape: bool = False) -> wp.Kernel:
     """``collide_triangle_colors`` for a triangle set whose nodes lie in a window of ``window`` particles (a tile's
     shape is a compile-time constant, so one kernel per window size, cached): the same contacts in the same order,
     with the box cull read from shared memory.
@@ -892,12 +949,19 @@ def collide_triangle_outcodes_kernel(window: int) -> wp.Kernel:
     positions only for the triangles that pass; a triangle a tool pushed rewrites its three nodes' codes (a block
     barrier), so a later colour's test sees the moved nodes, as the fused sweep's position test does. Exact: a
     triangle's box misses the tool box iff its vertices' codes share a bit, and positions change within a launch only
-    where a contact moves them (bit-identical to the fused sweep on the CPU, where a block has one lane)."""
-    key = int(window)
+    where a contact moves them (bit-identical to the fused sweep on the CPU, where a block has one lane).
+
+    ``per_shape`` (the "shape_codes" sweep): the codes are ``shape_codes``, against each tool's own box along its axis,
+    instead of one box around every tool: an instrument's shaft crossing a sheet at a slant spans a box over much of
+    it (PrecisionCutting's 147 mm shaft: a 7 mm x 42 mm strip of its 75 mm cloth), and every triangle in that box paid
+    the narrow phase's loads, one per lane of a warp that waited for all of them. The same contacts (a box never
+    culls a triangle the narrow phase would touch: it holds the capsule grown by the triangles' largest radius)."""
+    key = (int(window), bool(per_shape))
     kernel = _OUTCODE_KERNELS.get(key)
     if kernel is not None:
         return kernel
-    P = int(window)
+    P = key[0]
+    PER_SHAPE = key[1]
 
     def collide_triangle_outcodes(
         triangles: ContactTriangles,
@@ -915,10 +979,16 @@ def collide_triangle_outcodes_kernel(window: int) -> wp.Kernel:
         lanes = wp.block_dim()
         lo = axes.lo[env]
         hi = axes.hi[env]
+        num_shapes = shapes.kind.shape[0]
         codes = wp.tile_zeros(shape=P, dtype=int, storage="shared")
         for base in range(0, P, lanes):
             i = wp.min(base + lane, P - 1)
-            wp.tile_scatter_masked(codes, i, outcode(q[env, first + i], lo, hi), base + lane < P)
+            code = int(0)
+            if wp.static(PER_SHAPE):
+                code = shape_codes(q[env, first + i], env, shapes, axes)
+            else:
+                code = outcode(q[env, first + i], lo, hi)
+            wp.tile_scatter_masked(codes, i, code, base + lane < P)
         colors = color_offsets.shape[0] - 1
         for c in range(colors):
             start = color_offsets[c]
@@ -931,11 +1001,14 @@ def collide_triangle_outcodes_kernel(window: int) -> wp.Kernel:
                 i1 = tri[1] - first
                 i2 = tri[2] - first
                 shared = wp.tile_extract(codes, i0) & wp.tile_extract(codes, i1) & wp.tile_extract(codes, i2)
+                meet = bool(shared == 0)
+                if wp.static(PER_SHAPE):
+                    meet = codes_meet(shared, num_shapes)
                 x0 = wp.vec3(0.0)
                 x1 = wp.vec3(0.0)
                 x2 = wp.vec3(0.0)
                 touched = int(0)
-                if base + lane < end and shared == 0:
+                if base + lane < end and meet:
                     x0, x1, x2, touched = collide_triangle_at(env, k, tri, q[env, tri[0]], q[env, tri[1]],
                                                               q[env, tri[2]], triangles, shapes, axes, solve, ignore,
                                                               masks, reports)
@@ -944,9 +1017,21 @@ def collide_triangle_outcodes_kernel(window: int) -> wp.Kernel:
                         q[env, tri[1]] = x1
                         q[env, tri[2]] = x2
                 moved = touched != 0
-                wp.tile_scatter_masked(codes, i0, outcode(x0, lo, hi), moved)
-                wp.tile_scatter_masked(codes, i1, outcode(x1, lo, hi), moved)
-                wp.tile_scatter_masked(codes, i2, outcode(x2, lo, hi), moved)
+                code0 = int(0)
+                code1 = int(0)
+                code2 = int(0)
+                if moved:
+                    if wp.static(PER_SHAPE):
+                        code0 = shape_codes(x0, env, shapes, axes)
+                        code1 = shape_codes(x1, env, shapes, axes)
+                        code2 = shape_codes(x2, env, shapes, axes)
+                    else:
+                        code0 = outcode(x0, lo, hi)
+                        code1 = outcode(x1, lo, hi)
+                        code2 = outcode(x2, lo, hi)
+                wp.tile_scatter_masked(codes, i0, code0, moved)
+                wp.tile_scatter_masked(codes, i1, code1, moved)
+                wp.tile_scatter_masked(codes, i2, code2, moved)
 
     kernel = wp.kernel(collide_triangle_outcodes, module="unique", enable_backward=False)
     _OUTCODE_KERNELS[key] = kernel
