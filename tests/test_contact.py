@@ -234,11 +234,11 @@ def test_outcode_sweep_refuses_a_window_beyond_shared_memory(device, monkeypatch
 
 def test_auto_triangle_sweep_takes_outcodes_where_the_window_fits(device, monkeypatch):
     """The default ``"auto"`` launches the outcode sweep when the triangles' particle window fits its shared memory
-    (TissueDissection's does) and falls back to the fused one, without an error, when it does not."""
+    (ThreadInHole's does) and falls back to the fused one, without an error, when it does not."""
     import lapwarp
     from lapwarp.kernels import contact as ck
 
-    env = lapwarp.make("TissueDissection", num_envs=1, device=device, seed=0)
+    env = lapwarp.make("ThreadInHole", num_envs=1, device=device, seed=0)
     assert env.contact.triangle_sweep == "auto"
     assert env.contact.resolved_triangle_sweep() == "outcodes"
     monkeypatch.setattr(ck, "OUTCODE_MAX_PARTICLES", 10)
