@@ -1,0 +1,49 @@
+#!/usr/bin/env bash
+# The next lease's GPU checks (written in the forty-first session), run as queue.sh's BESIDE on one H200 (an empty
+# queue: DEVICE cuda:0) or beside a learning queue on the last GPU of a larger machine, in order of need, each item
+# skipped once DEADLINE (s, default 900) has passed, then the learning queue JOBS with the time left:
+# 1. the per-tool triangle boxes (triangle_sweep="shape_codes") on the tasks that keep "auto": ThreadInHole and
+#    GraspLiftAndTouch, same call (if both gain, "auto" can take them where a system has at most 5 shapes);
+#    TissueDissection's RGB 64x64 step with them (211.8k before);
+# 2. the steps of the six #17 / #18 tasks on the current defaults (PrecisionCutting's three-walk chain solve and
+#    per-tool boxes, the particle contact at 64 registers for LigatingLoop, RopeThreading, RopeCutting);
+# 3. PrecisionCutting's profile on its new defaults, after 20 warm-up steps;
+# 4. PrecisionCutting's experts (line / sine, fixed / random; 256 first episodes) on the three-walk solve (round-off
+#    from the serial walk's: its CPU experts are unchanged in kind, not re-run on the GPU).
+# DEVICE (cuda:0), NUM_ENVS (4096), JOBS (next_jobs_beside.txt), DEADLINE (900) and QUEUE_DEADLINE (1100) override.
+set -u
+t0=$(date +%s)
+dev=${DEVICE:-cuda:0}
+n=${NUM_ENVS:-4096}
+deadline=${DEADLINE:-900}
+d=benchmarks/results/session41
+out=/tmp/r/beside42
+mkdir -p "$out"
+new=/tmp/site:$PWD
+old=/tmp/site:$PWD/.device/small/old
+. train/device/beside_lib.sh  # bench, bench_old, run_queue
+in_time() { [ $(( $(date +%s) - t0 )) -lt "$deadline" ] || { echo "deadline: skipped $*"; return 1; }; }
+for task in ThreadInHole GraspLiftAndTouch; do
+  in_time "sc_$task" || continue
+  bench "oc_$task" "$task" expert
+  bench "sc_$task" "$task" expert --triangle-sweep shape_codes
+done
+in_time rgb_td && bench rgb_TissueDissection TissueDissection expert --obs RGB
+for task in PrecisionCutting TissueDissection RopeCutting ThreadInHole RopeThreading LigatingLoop; do
+  in_time "step_$task" && bench "step_$task" "$task" expert
+done
+if in_time profile_pc; then
+  PYTHONPATH=$new timeout 200 python3 benchmarks/profile_step.py --task PrecisionCutting --device "$dev" \
+    --num-envs "$n" --steps 5 --warmup 20 --top 30 --out "$out/profile_PrecisionCutting.json" \
+    > "$out/profile_PrecisionCutting.txt" 2>&1
+  echo "profile_PrecisionCutting rc=$? $(head -3 "$out/profile_PrecisionCutting.txt" | tr '\n' ' ' | cut -c1-300)"
+fi
+if in_time expert_pc; then
+  PYTHONPATH=$new timeout 300 python3 benchmarks/expert_success.py --task PrecisionCutting --device "$dev" \
+    --num-envs 256 --action-types CONTINUOUS --config path_function=line --config path_function=sine \
+    --config path_function=line randomize_path=true --config path_function=sine randomize_path=true \
+    --out "$out/expert_pc.jsonl" > "$out/expert_pc.txt" 2>&1
+  echo "expert_pc rc=$? $(grep -o '"success_rate": [0-9.]*' "$out/expert_pc.jsonl" | tr '\n' ' ')"
+fi
+echo "all checks done at $(( $(date +%s) - t0 )) s"
+run_queue "${JOBS:-$d/next_jobs_beside.txt}" "${QUEUE_DEADLINE:-1100}"
