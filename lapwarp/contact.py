@@ -733,7 +733,9 @@ class ContactSystem:
         clear = 1 if sweep.first else 0
         if has_triangles:  # the triangle passes' tool axes with the shape poses
             lanes = launching.block_lanes(self.device, 32)  # a block per env, its lanes over the shapes
-            launch(ck.pose_shapes_and_tools, (n, lanes), [shapes, motion, self._tri_pad, clear, reports],
+            # each tool's own box only for the sweep that reads it
+            boxes = 1 if self.resolved_triangle_sweep() == "shape_codes" else 0
+            launch(ck.pose_shapes_and_tools, (n, lanes), [shapes, motion, self._tri_pad, clear, boxes, reports],
                    [self._shape_poses, self._tool_axes], block_dim=lanes)
         elif len(self.shapes):
             launch(ck.pose_shapes, (n, len(self.shapes)), [shapes, motion, clear, reports], [self._shape_poses])

@@ -655,13 +655,14 @@ class ToolAxes:
 
 
 @wp.kernel
-def pose_shapes_and_tools(shapes: ShapeTable, motion: BodyMotion, pad: float, clear: int, reports: ContactReports,
-                          poses: ShapePoses, axes: ToolAxes):
+def pose_shapes_and_tools(shapes: ShapeTable, motion: BodyMotion, pad: float, clear: int, boxes: int,
+                          reports: ContactReports, poses: ShapePoses, axes: ToolAxes):
     """``pose_shapes`` and the tool axes of the triangle passes in one launch (a system with contact triangles): both
     are a few transforms per env, nearly all launch cost when apart. A thread block per env (launch ``(num_envs,
     lanes)``), its lanes over the shapes, then the env's tool box as a block-wide minimum and maximum: one thread
     walking the shapes was latency-bound (TissueDissection: 0.525 ms of its 21.1 ms step, H200). On the CPU one lane
-    walks them in order. With ``clear`` (a step's first sweep) lane 0 also clears the env's contact reports."""
+    walks them in order. With ``clear`` (a step's first sweep) lane 0 also clears the env's contact reports; with
+    ``boxes`` (the shape-code sweep) each tool's own box along its axis is formed too."""
     env, lane = wp.tid()
     lanes = wp.block_dim()
     if clear != 0 and lane == 0:
@@ -684,7 +685,7 @@ def pose_shapes_and_tools(shapes: ShapeTable, motion: BodyMotion, pad: float, cl
         r = wp.vec3(shapes.params[s][0] + shapes.thickness[s])
         lo = wp.min(lo, wp.min(a, b) - r)
         hi = wp.max(hi, wp.max(a, b) + r)
-        if axes.box_centre.shape[1] > 0:
+        if boxes != 0:
             # the oriented box: half the axis plus the padded radius along it, the padded radius across
             w = b - a
             half_len = 0.5 * wp.length(w)
