@@ -89,19 +89,26 @@ def bench_one(task: str, num_envs: int, device: str, seconds: float, invalid_act
               triangle_sweep: str | None = None, triangle_block_threads: int | None = None,
               replay_steps: int = 600, max_registers: dict[str, int] | None = None, pcr_rows: int | None = None,
               rod_solver: str | None = None, lane_rows: int | None = None,
-              surface_leaf_size: int | None = None) -> dict:
+              surface_leaf_size: int | None = None, cull_groups: bool = True) -> dict:
     def make_env():
-        # the leaf size is read when the task finalizes its contact system, i.e. while the env is built (an older
-        # lapwarp, timed beside this one, has no clustered surfaces: it is left alone there)
+        # the leaf size and the cull groups are read when the task finalizes its contact system, i.e. while the env is
+        # built (an older lapwarp, timed beside this one, may have neither: it is left alone there)
         default_leaf_size = getattr(lapwarp.contact, "SURFACE_LEAF_SIZE", None)
+        default_groups = getattr(lapwarp.contact, "CULL_GROUPS", None)
         if surface_leaf_size is not None:
             lapwarp.contact.SURFACE_LEAF_SIZE = surface_leaf_size
+        if not cull_groups:
+            if default_groups is None:
+                raise ValueError("--no-cull-groups: this lapwarp has no cull groups")
+            lapwarp.contact.CULL_GROUPS = False
         try:
             env = lapwarp.make(task, num_envs=num_envs, device=device, invalid_actions=invalid_actions,
                                use_cuda_graph=cuda_graph, **overrides)
         finally:
             if default_leaf_size is not None:
                 lapwarp.contact.SURFACE_LEAF_SIZE = default_leaf_size
+            if default_groups is not None:
+                lapwarp.contact.CULL_GROUPS = default_groups
         if tet_solver is not None:
             env.world.tet_solver = tet_solver  # before the first step records (and the env captures) the launches
         # the task's own caps (ThreadInHole's lagged vertex sweep) stay unless named here
@@ -169,6 +176,7 @@ def bench_one(task: str, num_envs: int, device: str, seconds: float, invalid_act
         "triangle_block_threads": next((c.triangle_block_threads for c in contact_systems(env)), None),
         # (an older lapwarp, timed beside this one, has no clustered surfaces)
         "surface_leaf_size": next((getattr(c, "surface_leaf_size", None) for c in contact_systems(env)), None),
+        "cull_groups": next((getattr(c, "cull_groups", None) for c in contact_systems(env)), None),
         "tet_solver": ("fused" if env.world.fused_tets else "colored") if env.world.model.tet_count else None,
         # (an older lapwarp, timed beside this one, has max_registers only)
         "max_registers": dict(getattr(env.world, "register_caps", env.world.max_registers)),
@@ -204,6 +212,9 @@ def main(argv: list[str] | None = None) -> int:
                         help="the contact system's triangle sweep (default: its own)")
     parser.add_argument("--triangle-block-threads", type=positive_int, default=None,
                         help="threads per env block of the fused triangle sweep (default: the contact system's own)")
+    parser.add_argument("--no-cull-groups", action="store_true",
+                        help="every contact shape culled alone (lapwarp.contact.CULL_GROUPS off while the env is "
+                             "built): to time the cull groups against their absence")
     parser.add_argument("--surface-leaf-size", type=positive_int, default=None,
                         help="triangles per leaf of deforming contact surfaces' clustering (default: "
                              "lapwarp.contact.SURFACE_LEAF_SIZE)")
@@ -247,7 +258,7 @@ def main(argv: list[str] | None = None) -> int:
                           triangle_block_threads=args.triangle_block_threads,
                           replay_steps=args.replay_steps, max_registers=max_registers, pcr_rows=args.pcr_rows,
                           rod_solver=args.rod_solver, lane_rows=args.lane_rows,
-                          surface_leaf_size=args.surface_leaf_size)
+                          surface_leaf_size=args.surface_leaf_size, cull_groups=not args.no_cull_groups)
             results.append(r)
             print(f"{r['task']:<10} {n:>9} {mode:>8} {r['env_steps_per_s']:>14,.0f} {r['step_ms']:>9.3f}", flush=True)
     regime = "the expert's recorded actions replayed" if args.policy == "replay" else f"{args.policy} actions"

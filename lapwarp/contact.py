@@ -37,6 +37,9 @@ GRID_THRESHOLD = 512
 #: triangles per leaf of a deforming surface's clustering (``ContactSystem.surface_leaf_size``'s default; a
 #: benchmark may set it before the envs are built, since a task finalizes its contact system when it builds)
 SURFACE_LEAF_SIZE = 8
+#: whether consecutive shapes on one body are culled as a group first (``ContactSystem.cull_groups``' default; a
+#: benchmark may clear it before the envs are built, to time the groups against their absence)
+CULL_GROUPS = True
 
 _KINDS = {"sphere": 0, "capsule": 1, "box": 2, "plane": 3, "cylinder": 4, "mesh": 5, "surface": 6}
 
@@ -105,17 +108,20 @@ def _bounding_radius(shape: Shape) -> float:
     return bound * (1.0 + 1.0e-4) + 1.0e-6
 
 
-def _cull_groups(shapes: list[Shape]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _cull_groups(shapes: list[Shape], grouped: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The particles' cull groups (``ck.ShapePoses``): runs of consecutive shapes on one body with finite bounds,
-    each shape of infinite bound (planes, meshes, surfaces) a group of its own. Returns ``group_start`` (G + 1), each
-    group's centre in its first shape's frame (the mean of its shapes' origins) and its radius: the largest distance
-    from the centre to a shape's origin plus that shape's bound and thickness (rounded up as the bounds are)."""
+    each shape of infinite bound (planes, meshes, surfaces) a group of its own; with ``grouped`` False every shape
+    alone (the kernels then skip the group test: a group of one is left to its shape's own cull). Returns
+    ``group_start`` (G + 1), each group's centre in its first shape's frame (the mean of its shapes' origins) and its
+    radius: the largest distance from the centre to a shape's origin plus that shape's bound and thickness (rounded up
+    as the bounds are)."""
     if not shapes:  # the kernels loop over no group
         return np.zeros(1, np.int32), np.zeros((1, 3), np.float32), np.zeros(1, np.float32)
     bounds = [_bounding_radius(s) for s in shapes]
     start = [0]
     for k in range(1, len(shapes)):
-        joins = shapes[k].body == shapes[k - 1].body and np.isfinite(bounds[k]) and np.isfinite(bounds[k - 1])
+        joins = grouped and shapes[k].body == shapes[k - 1].body and np.isfinite(bounds[k]) \
+            and np.isfinite(bounds[k - 1])
         if not joins:
             start.append(k)
     start.append(len(shapes))
@@ -179,6 +185,8 @@ class ContactSystem:
         self.triangle_block_threads = 32
         # deforming surfaces: triangles per leaf of their clustering (SurfaceClusters; read at finalize)
         self.surface_leaf_size = SURFACE_LEAF_SIZE
+        # cull consecutive shapes on one body by their group's bounding sphere first (_cull_groups; read at finalize)
+        self.cull_groups = CULL_GROUPS
         self.shapes: list[Shape] = []
         self.groups: list[ParticleGroup] = []
         self.self_sets: list[dict] = []
@@ -448,7 +456,7 @@ class ContactSystem:
             self.shape_kind = wp.zeros(0, dtype=wp.int32, device=dev)
         self.pair_index = arr(pair, wp.int32)
         S1 = max(S, 1)
-        group_start, group_centre, group_radius = _cull_groups(self.shapes)
+        group_start, group_centre, group_radius = _cull_groups(self.shapes, bool(self.cull_groups))
         self._shape_poses = make_struct(ck.ShapePoses, tf=wp.zeros((n, S1), dtype=wp.transform, device=dev),
                                         tf_inv=wp.zeros((n, S1), dtype=wp.transform, device=dev),
                                         bound=arr(np.array([_bounding_radius(s) for s in self.shapes] or [0.0],

@@ -635,15 +635,17 @@ def test_shapes_on_one_body_are_culled_as_a_group_with_the_same_contacts(device)
     sheet = np.stack([xs.ravel(), ys.ravel(), np.full(xs.size, 0.02)], axis=1)
     pose = (0.001, -0.002, 0.0, *_quat_axis_angle((1, 1, 0), 0.3))
     runs = []
-    for grouped in (True, False):
+    # grouped; each sphere on a body of its own; on one body with the groups switched off (cull_groups)
+    for grouped, one_body in ((True, True), (False, False), (False, True)):
         b = SceneBuilder()
         b.add_particles(sheet, mass=1.0e-3)
         rod = b.add_rod(rod_polyline([[0.015, -0.0225, 0.03], [0.015, 0.0225, 0.03]], 4), radius=5e-4,
                         youngs_modulus=1e6)
-        bodies = [b.add_body("ring", pose=pose)] * len(offsets) if grouped else \
+        bodies = [b.add_body("ring", pose=pose)] * len(offsets) if one_body else \
             [b.add_body(f"ring{k}", pose=pose) for k in range(len(offsets))]
         w = b.finalize(num_envs=2, device=device, substeps=10)
         cs = ContactSystem(w)
+        cs.cull_groups = grouped
         cs.add_particle_group(np.arange(len(sheet)), radius=0.002, name="sheet")
         cs.add_particle_group(rod, radius=5e-4, segments=True, name="rod")
         for k, (body, off) in enumerate(zip(bodies, offsets, strict=True)):
@@ -654,8 +656,9 @@ def test_shapes_on_one_body_are_culled_as_a_group_with_the_same_contacts(device)
         for _ in range(4):
             w.step(0.05)
         runs.append((w.positions(), cs.counts()))
-    (x, counts), (x_ref, counts_ref) = runs
+    (x, counts), (x_ref, counts_ref), (x_off, counts_off) = runs
     assert np.array_equal(x, x_ref) and np.array_equal(counts, counts_ref)
+    assert np.array_equal(x_off, x_ref) and np.array_equal(counts_off, counts_ref)
     assert counts.sum() > 0 and x[:, :len(sheet), 2].max() > 0.005  # some rest on the ring (the rest fell through)
     # the rod's middle nodes hang on the sphere between them (without its segment they fall through the ring)
     assert x[:, rod.particle_start + 1:rod.particle_start + 3, 2].min() > 0.0

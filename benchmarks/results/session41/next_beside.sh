@@ -2,6 +2,8 @@
 # The next lease's GPU checks (written in the forty-first session), run as queue.sh's BESIDE on one H200 (an empty
 # queue: DEVICE cuda:0) or beside a learning queue on the last GPU of a larger machine, in order of need, each item
 # skipped once DEADLINE (s, default 900) has passed, then the learning queue JOBS with the time left:
+# 0. the cull groups against their absence (--no-cull-groups, same code): RopeCutting, TissueDissection,
+#    RopeThreading (RopeCutting 321.4k against 330.3k at 668d57e in one pair of runs of the forty-first session);
 # 1. the per-tool triangle boxes (triangle_sweep="shape_codes") on the tasks that keep "auto": ThreadInHole and
 #    GraspLiftAndTouch, same call (if both gain, "auto" can take them where a system has at most 5 shapes);
 #    TissueDissection's RGB 64x64 step with them (211.8k before);
@@ -23,6 +25,11 @@ new=/tmp/site:$PWD
 old=/tmp/site:$PWD/.device/small/old
 . train/device/beside_lib.sh  # bench, bench_old, run_queue
 in_time() { [ $(( $(date +%s) - t0 )) -lt "$deadline" ] || { echo "deadline: skipped $*"; return 1; }; }
+for task in RopeCutting TissueDissection RopeThreading; do
+  in_time "groups_$task" || continue
+  bench "groups_$task" "$task" expert
+  bench "nogroups_$task" "$task" expert --no-cull-groups
+done
 for task in ThreadInHole GraspLiftAndTouch; do
   in_time "sc_$task" || continue
   bench "oc_$task" "$task" expert
