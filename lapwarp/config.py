@@ -245,9 +245,12 @@ class EnvConfig:
             per lane eliminated in registers and PCR over one row per lane, ``kernels/chains_hybrid.py``; on the CPU
             it needs ``wp.config.enable_cpu_blocks``), ``"registers"`` (the thread per chain of ``"thomas"`` with the
             whole chain in registers, its loops unrolled: families of open chains of at most 64 links,
-            ``kernels/chains_registers.py``; bit-identical to "thomas" on the CPU) or ``"auto"`` (default): the task's
+            ``kernels/chains_registers.py``; bit-identical to "thomas" on the CPU), ``"open_walk"`` (the thread per
+            chain of ``"thomas"`` in three walks per Newton step for families without a loop,
+            ``chains.solve_open_chains``; the same systems, round-off aside) or ``"auto"`` (default): the task's
             measured best on CUDA devices (``BatchedEnv.gpu_chain_solver``: "pcr" for LigatingLoop, PickAndPlace and
-            ThreadInHole, "hybrid" for RopeThreading, "registers" for RopeCutting) and "thomas" on the CPU.
+            ThreadInHole, "hybrid" for RopeThreading, "registers" for RopeCutting, "open_walk" for PrecisionCutting)
+            and "thomas" on the CPU.
     """
 
     observation_type: str = "STATE"

@@ -110,8 +110,8 @@ class BatchedEnv(VecEnv):
     #: ``chain_block_links`` that ``-1`` (automatic) means on CUDA devices: blocks of this many links when the task's
     #: few long rods per env leave the one-thread-per-chain solve latency-bound (benchmarks/RESULTS.md), else 0.
     gpu_chain_block_links: ClassVar[int] = 0
-    #: ``chain_solver`` that ``"auto"`` means on CUDA devices: ``"pcr"`` (a thread block per pack of chains,
-    #: kernels/chains_block.py) where the task's step measured faster with it, else ``"thomas"`` (benchmarks/RESULTS.md)
+    #: ``chain_solver`` that ``"auto"`` means on CUDA devices: the one the task's step measured fastest with
+    #: (``EnvConfig.chain_solver`` lists them; benchmarks/RESULTS.md), else ``"thomas"``
     gpu_chain_solver: ClassVar[str] = "thomas"
 
     @classmethod
