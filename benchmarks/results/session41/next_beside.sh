@@ -6,7 +6,7 @@
 #    RopeThreading (RopeCutting 321.4k against 330.3k at 668d57e in one pair of runs of the forty-first session);
 # 1. the per-tool triangle boxes (triangle_sweep="shape_codes") on the tasks that keep "auto": ThreadInHole and
 #    GraspLiftAndTouch, same call (if both gain, "auto" can take them where a system has at most 5 shapes);
-#    TissueDissection's RGB 64x64 step with them (211.8k before);
+#    TissueDissection's RGB 64x64 step with them (211.8k before); PrecisionCutting's triangle sweep at 64 / 128 lanes;
 # 2. the steps of the six #17 / #18 tasks on the current defaults (PrecisionCutting's three-walk chain solve and
 #    per-tool boxes, the particle contact at 64 registers for LigatingLoop, RopeThreading, RopeCutting);
 # 3. PrecisionCutting's profile on its new defaults, after 20 warm-up steps;
@@ -36,6 +36,11 @@ for task in ThreadInHole GraspLiftAndTouch; do
   bench "sc_$task" "$task" expert --triangle-sweep shape_codes
 done
 in_time rgb_td && bench rgb_TissueDissection TissueDissection expert --obs RGB
+# PrecisionCutting's triangle sweep (23.2 ms of its 162.3 ms step, 8 colours of ~380 triangles) in blocks of 64 /
+# 128 lanes instead of 32: a third of the chunks (and their three barriers each) per colour at 128
+for lanes in 64 128; do
+  in_time "pc_tri$lanes" && bench "pc_tri$lanes" PrecisionCutting expert --triangle-block-threads "$lanes"
+done
 for task in PrecisionCutting TissueDissection RopeCutting ThreadInHole RopeThreading LigatingLoop; do
   in_time "step_$task" && bench "step_$task" "$task" expert
 done
