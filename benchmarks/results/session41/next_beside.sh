@@ -6,7 +6,8 @@
 #    RopeThreading (RopeCutting 321.4k against 330.3k at 668d57e in one pair of runs of the forty-first session);
 # 1. the per-tool triangle boxes (triangle_sweep="shape_codes") on the tasks that keep "auto": ThreadInHole and
 #    GraspLiftAndTouch, same call (if both gain, "auto" can take them where a system has at most 5 shapes);
-#    TissueDissection's RGB 64x64 step with them (211.8k before); PrecisionCutting's triangle sweep at 64 / 128 lanes;
+#    TissueDissection's RGB 64x64 step with them (211.8k before); PrecisionCutting's triangle sweep at 64 / 128 lanes and its
+#    three-walk chain solve at 80 / 64 registers;
 # 2. the steps of the six #17 / #18 tasks on the current defaults (PrecisionCutting's three-walk chain solve and
 #    per-tool boxes, the particle contact at 64 registers for LigatingLoop, RopeThreading, RopeCutting);
 # 3. PrecisionCutting's profile on its new defaults, after 20 warm-up steps;
@@ -40,6 +41,11 @@ in_time rgb_td && bench rgb_TissueDissection TissueDissection expert --obs RGB
 # 128 lanes instead of 32: a third of the chunks (and their three barriers each) per colour at 128
 for lanes in 64 128; do
   in_time "pc_tri$lanes" && bench "pc_tri$lanes" PrecisionCutting expert --triangle-block-threads "$lanes"
+done
+# its three-walk chain solve (its default, 96 registers and a 64 B spill frame, sm_90) at 80 / 64 registers (112 /
+# 176 B frames): 768 / 1,024 threads per SM instead of 640 for a walk that waits on each link's loads
+for cap in 80 64; do
+  in_time "pc_open_cap$cap" && bench "pc_open_cap$cap" PrecisionCutting expert --max-registers solve_open_chains="$cap"
 done
 for task in PrecisionCutting TissueDissection RopeCutting ThreadInHole RopeThreading LigatingLoop; do
   in_time "step_$task" && bench "step_$task" "$task" expert
