@@ -6,13 +6,13 @@
 #    RopeThreading (RopeCutting 321.4k against 330.3k at 668d57e in one pair of runs of the forty-first session);
 # 1. the per-tool triangle boxes (triangle_sweep="shape_codes") on the tasks that keep "auto": ThreadInHole and
 #    GraspLiftAndTouch, same call (if both gain, "auto" can take them where a system has at most 5 shapes);
-#    TissueDissection's RGB 64x64 step with them (211.8k before); PrecisionCutting's triangle sweep at 64 / 128 lanes and its
-#    three-walk chain solve at 80 / 64 registers;
+#    TissueDissection's RGB 64x64 step with them (211.8k before); PrecisionCutting's triangle sweep at 64 / 128
+#    lanes and its three-walk chain solve at 80 / 64 registers;
 # 2. the steps of the six #17 / #18 tasks on the current defaults (PrecisionCutting's three-walk chain solve and
 #    per-tool boxes, the particle contact at 64 registers for LigatingLoop, RopeThreading, RopeCutting);
 # 3. PrecisionCutting's profile on its new defaults, after 20 warm-up steps;
 # 4. PrecisionCutting's experts (line / sine, fixed / random; 256 first episodes) on the three-walk solve (round-off
-#    from the serial walk's: its CPU experts are unchanged in kind, not re-run on the GPU).
+#    from the serial walk's; 8 / 8 per path on the CPU).
 # DEVICE (cuda:0), NUM_ENVS (4096), JOBS (next_jobs_beside.txt), DEADLINE (900) and QUEUE_DEADLINE (1100) override.
 set -u
 t0=$(date +%s)
