@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # The next lease's GPU checks (written in the forty-first session), run as queue.sh's BESIDE on one H200 (an empty
 # queue: DEVICE cuda:0) or beside a learning queue on the last GPU of a larger machine, in order of need, each item
-# skipped once DEADLINE (s, default 900) has passed, then the learning queue JOBS with the time left:
+# skipped once DEADLINE (s, default 1000) has passed, then the learning queue JOBS with the time left:
 # 0. the cull groups against their absence (--no-cull-groups, same code): RopeCutting, TissueDissection,
 #    RopeThreading (RopeCutting 321.4k against 330.3k at 668d57e in one pair of runs of the forty-first session);
 # 1. the per-tool triangle boxes (triangle_sweep="shape_codes") on the tasks that keep "auto": ThreadInHole and
@@ -13,12 +13,12 @@
 # 3. PrecisionCutting's profile on its new defaults, after 20 warm-up steps;
 # 4. PrecisionCutting's experts (line / sine, fixed / random; 256 first episodes) on the three-walk solve (round-off
 #    from the serial walk's; 8 / 8 per path on the CPU).
-# DEVICE (cuda:0), NUM_ENVS (4096), JOBS (next_jobs_beside.txt), DEADLINE (900) and QUEUE_DEADLINE (1100) override.
+# DEVICE (cuda:0), NUM_ENVS (4096), JOBS (next_jobs_beside.txt), DEADLINE (1000) and QUEUE_DEADLINE (1100) override.
 set -u
 t0=$(date +%s)
 dev=${DEVICE:-cuda:0}
 n=${NUM_ENVS:-4096}
-deadline=${DEADLINE:-900}
+deadline=${DEADLINE:-1000}
 d=benchmarks/results/session41
 out=/tmp/r/beside42
 mkdir -p "$out"
