@@ -11,29 +11,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from test_chains_partitioned import OPEN, SEG, TOL, _cloth_world, _cut_rods, _perturb, _rod_world, _worst
-
-from lapwarp.builder import SceneBuilder
-
-
-def _open_rod_world(device, newton_steps: int, iterations: int, rigid: bool, cuttable: bool):
-    """tests/test_chains_partitioned.py's open rods without its loops (one family of open chains), 3 envs at 5
-    substeps per step, perturbed (and cut)."""
-    b = SceneBuilder()
-    rods = []
-    for row, (m, pinned) in enumerate(OPEN):
-        th = np.pi * row / len(OPEN)
-        pts = np.linspace(0.0, SEG * m, m + 1)[:, None] * np.array([np.cos(th), np.sin(th), 0.0])
-        rods.append((b.add_rod(pts, radius=1e-3, youngs_modulus=1e6, damping=1.0, fixed=pinned, cuttable=cuttable),
-                     SEG * m))
-    world = b.finalize(3, device, substeps=5, iterations=iterations)
-    world.rod_newton_steps = newton_steps
-    if rigid:
-        world.model.rod_stretch_compliance.zero_()
-    _perturb(world, 0.1 * SEG)
-    if cuttable:
-        _cut_rods(world, rods)
-    return world, rods
+from test_chains_partitioned import TOL, _cloth_world, _rod_world, _worst
+from test_chains_registers import _open_rod_world
 
 
 def _launched(monkeypatch) -> list:

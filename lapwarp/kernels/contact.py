@@ -910,14 +910,8 @@ def shape_codes(x: wp.vec3, env: int, shapes: ShapeTable, axes: ToolAxes) -> int
     for s in range(shapes.kind.shape[0]):
         bits = int(63)
         if shapes.kind[s] <= SHAPE_CAPSULE:
-            local = axes.box_frame[env, s] * (x - axes.box_centre[env, s])
             half = axes.box_half[env, s]
-            bits = int(0)
-            for a in range(3):
-                if local[a] < -half[a]:
-                    bits = bits | (1 << (2 * a))
-                if local[a] > half[a]:
-                    bits = bits | (1 << (2 * a + 1))
+            bits = outcode(axes.box_frame[env, s] * (x - axes.box_centre[env, s]), -half, half)
         code = code | (bits << (6 * s))
     return code
 
