@@ -58,12 +58,19 @@ def bumped_rope(device: str, substeps: int, newton: int, push: float, axis: int)
     return world, rope
 
 
-def settle(device: str, substeps: int, newton: int, push: float, axis: int, seconds: float) -> dict:
+def settle(device: str, substeps: int, newton: int, push: float, axis: int, seconds: float,
+           tolerance: float = 0.0) -> dict:
+    """The bumped rope after ``seconds``; ``tolerance`` > 0 runs the register-resident chain solve with that Newton
+    tolerance (m; ``World.rod_newton_tolerance``, RopeCutting's GPU setting) instead of the serial walk."""
     world, rope = bumped_rope(device, substeps, newton, push, axis)
+    if tolerance > 0.0:
+        world.chain_solver = "registers"
+        world.rod_newton_tolerance = tolerance
     world.simulate(seconds, dt=0.1)
     p = world.positions(rope)[0]
     sag = -p[NODES // 2 - 1:NODES // 2 + 1, 2].mean()
-    return {"substeps": substeps, "newton_steps": newton, "push_m": push, "axis": "xyz"[axis], "seconds": seconds,
+    return {"substeps": substeps, "newton_steps": newton, "newton_tolerance_m": tolerance, "push_m": push,
+            "axis": "xyz"[axis], "seconds": seconds,
             "sag_over_closed_form": float(sag / taut_string_sag()), "max_sideways_m": float(np.abs(p[:, 1]).max()),
             "unstable": bool(world.unstable.numpy().any())}
 
@@ -74,17 +81,21 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--settings", nargs="+", type=parse_setting, default=[(40, 6)], metavar="SxN")
     parser.add_argument("--pushes", nargs="+", type=float, default=[0.005, 0.01, 0.02], help="bump heights (m)")
     parser.add_argument("--seconds", type=float, default=3.0)
+    parser.add_argument("--newton-tolerance", type=float, default=0.0,
+                        help="m; > 0: the register-resident solve stopping its Newton steps there (0: every step)")
     parser.add_argument("--out", default=None, help="JSON lines output")
     args = parser.parse_args(argv)
     if not args.seconds > 0 or not all(0 < p < 0.05 for p in args.pushes):
         parser.error("--seconds must be positive and every push in (0, 0.05) m")
+    if not 0.0 <= args.newton_tolerance < 1.0:
+        parser.error("--newton-tolerance must be in [0, 1) m")
     wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)
     rows = []
     for substeps, newton in args.settings:
         cells = []
         for push in args.pushes:
             for axis in (1, 2):
-                row = settle(args.device, substeps, newton, push, axis, args.seconds)
+                row = settle(args.device, substeps, newton, push, axis, args.seconds, args.newton_tolerance)
                 rows.append(row)
                 cells.append(f"{1e3 * push:g} mm {row['axis']}: {row['sag_over_closed_form']:.3f}")
         print(f"{substeps:3d} x {newton:2d}: sag / closed form after {args.seconds:g} s  " + "  ".join(cells),

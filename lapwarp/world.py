@@ -174,6 +174,9 @@ class World:
         # removes what the first leaves on curved rods (its transverse filter keeps kinks stable but is not
         # exact in length where the rod bends); its residual is small, so its tension filter barely acts
         self.rod_newton_steps = 2
+        # (m) a rod chain stops its Newton steps early once one corrected no link by this much (0: every step); only
+        # the register-resident and hybrid solves take it (chains_registers.register_chain_kernel)
+        self.rod_newton_tolerance = 0.0
         # Newton steps of each cloth edge-chain solve per sweep (the families' solves follow each other)
         self.chain_newton_steps = 1
         # passes over a particle's geodesic tethers (one per anchor group, kernels/geodesic.py), group after group,
@@ -483,6 +486,7 @@ class World:
         if self.model.particle_count == 0:
             return
         key = (float(dt), self.substeps_for(float(dt)), self.iterations, self.rod_newton_steps,
+               self.rod_newton_tolerance,
                self.chain_newton_steps, self.tet_rotation_iterations, self.tet_rotation_update,
                self.tet_rotation_refresh, self.chain_block_links, self.chain_solver, self.chain_pcr_threads,
                self.chain_pcr_rows, self.chain_lane_rows, self.tet_solver, self.tet_block_threads,
@@ -525,6 +529,7 @@ class World:
                     raise ValueError(f"world.chain_solver {self.chain_solver!r} keeps a chain in one block: this "
                                      f"scene's longest chain has {longest} links, more than {PCR_MAX_LINKS}; use "
                                      f"'thomas'")
+            self._check_rod_newton_tolerance()
             if not 0 <= int(self.chain_pcr_threads) <= 1024:
                 raise ValueError(f"world.chain_pcr_threads must be in [0, 1024] (0: automatic), got "
                                  f"{self.chain_pcr_threads!r}")
@@ -543,6 +548,29 @@ class World:
             self._cmd_key = key
         for cmd in self._cmds:
             cmd()
+
+    def _check_rod_newton_tolerance(self) -> None:
+        """``rod_newton_tolerance`` is a finite length >= 0, and where it is set the rods run a chain solve that
+        stops early ("registers" on every family, or "hybrid"; the others run every Newton step)."""
+        tol = self.rod_newton_tolerance
+        if isinstance(tol, (np.floating, np.integer)):
+            tol = float(tol)
+        try:
+            chains.check_newton_tolerance(tol)
+        except ValueError:
+            raise ValueError(f"world.rod_newton_tolerance must be a finite length >= 0 (m), got {tol!r}") from None
+        cs = self.model.rod_chains
+        if float(tol) == 0.0 or cs is None or not cs.count or self.chain_solver == "hybrid":
+            return
+        if self.chain_solver != "registers":
+            raise ValueError(f"world.rod_newton_tolerance stops the Newton steps of the register-resident and hybrid "
+                             f"chain solves only: set chain_solver 'registers' or 'hybrid' (it is "
+                             f"{self.chain_solver!r}) or the tolerance to 0")
+        for first, count, _, _ in cs.families:
+            if chains_registers.family_kernel(cs, first, count) is None:
+                raise ValueError(f"world.rod_newton_tolerance: the rod chains {first}..{first + count - 1} run the "
+                                 f"serial walk (a loop, or longer than {chains_registers.MAX_LINKS} links), which "
+                                 f"runs every Newton step; set the tolerance to 0")
 
     @property
     def register_caps(self) -> dict[str, int]:
@@ -671,7 +699,7 @@ class World:
         tet_map = m.tet_element if s.tet_active is not None else self._no_map_i
         seg_mask = s.segment_active if s.segment_active is not None else self._no_mask
 
-        def solve_chains(cs, rest, compliance, lam_arr, scratch, mask, newton_steps, kernel):
+        def solve_chains(cs, rest, compliance, lam_arr, scratch, mask, newton_steps, kernel, tolerance=0.0):
             if self.chain_solver in ("pcr", "hybrid"):
                 # a thread block per (env, pack of chains), one launch per family with every Newton step in it
                 packs = self._packs[id(cs)]
@@ -688,7 +716,8 @@ class World:
                     lanes = 32 * ((held + 31) // 32) if self.device.is_cuda else held
                     # compiled without the loop and cut branches where the family has no loop / the scene no masks
                     kernel = chains_hybrid.hybrid_chain_kernel(packs.max_rows, int(self.chain_lane_rows),
-                                                               loops=packs.any_closed, masked=mask.shape[1] > 0)
+                                                               loops=packs.any_closed, masked=mask.shape[1] > 0,
+                                                               newton_tolerance=tolerance)
                 for pack_base, count in packs.families:
                     launch(kernel, (n, count, lanes),
                            [pack_base, packs.pack_start, packs.pack_rows, packs.pack_closed, packs.rows, rest,
@@ -708,7 +737,7 @@ class World:
             for first, count, link_base, node_base in cs.families:
                 family_kernel = kernel
                 if self.chain_solver == "registers":
-                    family_kernel = chains_registers.family_kernel(cs, first, count) or kernel
+                    family_kernel = chains_registers.family_kernel(cs, first, count, tolerance) or kernel
                 elif self.chain_solver == "open_walk" and not cs.closed_host[first:first + count].any():
                     family_kernel = _OPEN_WALKS[kernel]
                 launch(family_kernel, (n, count),
@@ -806,7 +835,8 @@ class World:
         if m.rod_count:
             # after shear and bend-twist so every sweep ends with the rods at their length
             solve_chains(m.rod_chains, m.rod_stretch_rest, m.rod_stretch_compliance, lam.get("rod", self._dummy_f),
-                         self._rod_scratch, seg_mask, self.rod_newton_steps, chains.solve_chains)
+                         self._rod_scratch, seg_mask, self.rod_newton_steps, chains.solve_chains,
+                         float(self.rod_newton_tolerance))
         if m.attachment_capacity:
             solve_attachments(0)
 

@@ -142,7 +142,8 @@ def test_hybrid_long_rope_matches_serial(device, monkeypatch):
     _, out, rods = _step_both(make, device, simulate=(0.5, 0.1))
     assert out[1][0, 200, 2] < -0.05  # the tip fell and swings
     assert _worst(out[0], out[1], rods) <= TOL * 0.2
-    assert variants and all(v == {"loops": False, "masked": False} for v in variants), variants
+    assert variants and all(v == {"loops": False, "masked": False, "newton_tolerance": 0.0} for v in variants), \
+        variants
 
 
 def test_hybrid_setting_is_checked(device, monkeypatch):
@@ -175,3 +176,40 @@ def test_env_refuses_the_hybrid_solve_without_cpu_blocks(monkeypatch):
     monkeypatch.setattr(wp.config, "enable_cpu_blocks", False)
     with pytest.raises(ValueError, match="chain_solver='hybrid'.*enable_cpu_blocks"):
         lapwarp.make("RopeCutting", num_envs=1, device="cpu", chain_solver="hybrid")
+
+
+def _hybrid_rods(device, newton_steps: int, iterations: int, tolerance: float):
+    """tests/test_chains_partitioned.py's open rods and loops (perturbed, cut) on the hybrid solve stopping at
+    ``tolerance``: their positions after 0.04 s."""
+    world, rods = _rod_world(device, 0, newton_steps, iterations, False, True)
+    world.chain_solver = "hybrid"
+    world.rod_newton_tolerance = tolerance
+    world.simulate(0.04, 0.02)
+    assert world.unstable.numpy().sum() == 0
+    return world.positions(), rods
+
+
+def _same(device, a, b, rods):
+    if wp.get_device(device).is_cpu:
+        np.testing.assert_array_equal(a, b)
+    else:  # the variants may contract multiply-adds differently
+        assert _worst(a, b, rods) <= TOL
+
+
+@pytest.mark.parametrize("iterations", [1, 2])
+def test_hybrid_newton_tolerance_stops_the_steps(device, iterations):
+    # A tolerance above any correction stops every pack after its first Newton step, the block's lanes together:
+    # the positions of one step (bit for bit on the CPU), with 2 sweeps also the multipliers the first step leaves
+    # for the second sweep. 1e-30 m stops only a pack whose step corrected nothing: every step's positions.
+    one, rods = _hybrid_rods(device, 1, iterations, 0.0)
+    three, _ = _hybrid_rods(device, 3, iterations, 0.0)
+    assert _worst(one, three, rods) > 10 * TOL  # the later Newton steps move the rods
+    _same(device, one, _hybrid_rods(device, 3, iterations, 1.0)[0], rods)
+    _same(device, three, _hybrid_rods(device, 3, iterations, 1e-30)[0], rods)
+
+
+def test_hybrid_newton_tolerance_keeps_the_converged_result(device):
+    # at 1e-7 m within that tolerance of running every step (open rods and loops, cut)
+    three, rods = _hybrid_rods(device, 3, 1, 0.0)
+    early, _ = _hybrid_rods(device, 3, 1, 1e-7)
+    assert np.abs(three - early).max() <= 1e-7

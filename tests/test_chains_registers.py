@@ -112,7 +112,8 @@ def test_env_config_selects_the_register_solve(device):
     steps, lift, pluck = (3, 0.3, 2e-3) if cpu else (1, 0.0, 2e-4)
     out, cut = [], []
     for solver in ("thomas", "registers"):
-        env = lapwarp.make("RopeCutting", num_envs=2, device=device, chain_solver=solver)
+        # every Newton step both ways (the register solve's default tolerance off): the kernels' arithmetic compared
+        env = lapwarp.make("RopeCutting", num_envs=2, device=device, chain_solver=solver, rope_newton_tolerance=0.0)
         assert env.world.chain_solver == solver
         env.reset(seed=3)
         actions = np.tile(np.array([[0.0, 0.0, 1.0, lift, 0.0]], dtype=np.float32), (2, 1))[:, :env.action_dim]
@@ -131,3 +132,62 @@ def test_env_config_selects_the_register_solve(device):
         np.testing.assert_array_equal(out[0], out[1])
     else:
         np.testing.assert_allclose(out[0], out[1], atol=1e-5)
+
+
+def _rods_stepped(device, newton_steps: int, tolerance: float, simulate=(0.04, 0.02)):
+    """The open rods (perturbed, compliant, intact) on the register solve after ``simulate``."""
+    world, rods = _open_rod_world(device, newton_steps, 1, False, False)
+    world.chain_solver = "registers"
+    world.rod_newton_tolerance = tolerance
+    start = world.positions()
+    world.simulate(*simulate)
+    assert world.unstable.numpy().sum() == 0
+    return start, world.positions(), rods
+
+
+def test_newton_tolerance_stops_the_steps(device):
+    # A tolerance above any correction stops every chain after its first Newton step: the positions of one step,
+    # bit for bit on the CPU (the same code runs, then the loop breaks). 1e-30 m stops only a chain whose step
+    # corrected nothing at all, which the next would not either: the positions of every step (the exit is the only
+    # difference).
+    _, one, rods = _rods_stepped(device, 1, 0.0)
+    _, four, _ = _rods_stepped(device, 4, 0.0)
+    _, stopped, _ = _rods_stepped(device, 4, 1.0)
+    _, tiny, _ = _rods_stepped(device, 4, 1e-30)
+    assert _worst(one, four, rods) > 100 * TOL  # the later Newton steps move the rods
+    _assert_same(device, one, stopped, rods)
+    _assert_same(device, four, tiny, rods)
+
+
+def test_newton_tolerance_keeps_the_converged_result(device):
+    # At 1e-7 m the rods end within that tolerance of running every step, measured 7e-9 m (CPU: a float32 step at
+    # these positions): each Newton step corrects far less than the one before. The perturbed rods move by up to 0.63
+    # of their length, and the later steps matter (one step against four: 0.048 of a rod's length)
+    start, four, rods = _rods_stepped(device, 4, 0.0)
+    _, early, _ = _rods_stepped(device, 4, 1e-7)
+    assert _worst(start, four, rods) > 1e4 * TOL
+    assert np.abs(four - early).max() <= 1e-7
+
+
+@pytest.mark.parametrize("value, message", [(-1e-7, "finite length >= 0"), (float("nan"), "finite length >= 0"),
+                                            (float("inf"), "finite length >= 0"), (True, "finite length >= 0"),
+                                            (1e-7, "register-resident and hybrid")])
+def test_newton_tolerance_rejects_bad_values(device, value, message):
+    # a bad length, or a tolerance the chain solver in use would not honour (the serial walk runs every step)
+    world, _ = _open_rod_world(device, 2, 1, False, False)
+    world.chain_solver = "registers" if message.startswith("finite") else "thomas"
+    world.rod_newton_tolerance = value
+    with pytest.raises(ValueError, match=message):
+        world.simulate(0.02, 0.02)
+    with pytest.raises(ValueError, match="finite length"):
+        from lapwarp.kernels import chains_registers
+        chains_registers.register_chain_kernel(4, -1.0)
+
+
+def test_newton_tolerance_refused_where_a_family_walks(device):
+    # rods with a loop in their family run the serial walk, which takes no tolerance
+    world, _ = _rod_world(device, 0, 2, 1, False, True)
+    world.chain_solver = "registers"
+    world.rod_newton_tolerance = 1e-7
+    with pytest.raises(ValueError, match="serial walk"):
+        world.simulate(0.02, 0.02)

@@ -535,6 +535,18 @@ def test_bending_stiffness_matches_closed_form(substeps, droop_env, device):
         assert abs(slope) < 2.0, (index, slope, k)
 
 
+def test_rope_newton_tolerance_follows_the_chain_solver(device, monkeypatch):
+    # None: the tolerance where the hybrid solve runs the rope (the GPU's default), every Newton step on the serial
+    # walk; a value the serial walk would not honour is refused (before the bank settles)
+    from lapwarp.tasks.thread_manipulation.rope_threading import ROPE_NEWTON_TOLERANCE
+
+    monkeypatch.setattr(wp.config, "enable_cpu_blocks", True)  # the hybrid solve's lanes as fibers on the CPU
+    assert make(device, chain_solver="hybrid").world.rod_newton_tolerance == ROPE_NEWTON_TOLERANCE > 0.0
+    assert make(device, chain_solver="thomas").world.rod_newton_tolerance == 0.0
+    with pytest.raises(ValueError, match="register-resident and hybrid chain solves only"):
+        make(device, chain_solver="thomas", rope_newton_tolerance=1e-4)
+
+
 # ---------------------------------------------------------------------------- contact: no tunnelling
 @wp.kernel
 def ptsd_towards(ptsd: wp.array2d(dtype=wp.vec4), rcm: wp.array2d(dtype=wp.transform),

@@ -56,6 +56,13 @@ import warp as wp
 wp.set_module_options({"enable_backward": False})
 
 
+def check_newton_tolerance(value) -> float:
+    """A Newton tolerance of the chain solves that stop early (m): a finite float >= 0 (0 = every step)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0.0 <= float(value) < float("inf"):
+        raise ValueError(f"newton_tolerance must be a finite length >= 0 (m), got {value!r}")
+    return float(value)
+
+
 @wp.func
 def segment_dir(a: wp.vec3, b: wp.vec3):
     """Unit vector a -> b and the length; a zero vector for a degenerate segment (its row then acts not)."""

@@ -41,7 +41,7 @@ lanes as fibers with real barriers, so the CPU tests run the GPU's partition, re
 # the factory, which Warp can evaluate only as objects
 import warp as wp
 
-from lapwarp.kernels.chains import link_row_terms, node_row, segment_dir
+from lapwarp.kernels.chains import check_newton_tolerance, link_row_terms, node_row, segment_dir
 from lapwarp.kernels.chains_block import pack_setup_func, pcr_round_func, vec6
 
 wp.set_module_options({"enable_backward": False})
@@ -164,18 +164,23 @@ def partition_solver(P: int, L: int) -> wp.Function:
     return solve_partition
 
 
-def hybrid_chain_kernel(max_rows: int, rows_per_lane: int, loops: bool = True, masked: bool = True) -> wp.Kernel:
+def hybrid_chain_kernel(max_rows: int, rows_per_lane: int, loops: bool = True, masked: bool = True,
+                        newton_tolerance: float = 0.0) -> wp.Kernel:
     """The partitioned block solve for packs of at most ``max_rows`` rows, ``rows_per_lane`` rows per lane (cached):
     launch ``(num_envs, packs, lanes)`` with ``block_dim=lanes``, ``lanes >= lanes_for(max_rows, rows_per_lane)``
     (extra lanes idle), one family at a time. ``loops`` / ``masked`` (compile-time): whether the family may hold a
     closed loop / the scene has cutting masks; without them the variant holds no registers for their branches
-    (RopeThreading's open, uncut rope: 255 registers and a 112-byte spill frame -> 217 and none at 4 rows, sm_90)."""
+    (RopeThreading's open, uncut rope: 255 registers and a 112-byte spill frame -> 217 and none at 4 rows, sm_90).
+    ``newton_tolerance`` (m, compile-time; 0 = off): a pack stops its Newton steps once one has corrected none of its
+    links by that much (``chains_registers.register_chain_kernel``'s rule; the block's largest correction, a tile
+    reduction, decides for all its lanes)."""
     P = int(rows_per_lane)
     if not 1 <= P <= 16:
         raise ValueError(f"rows per lane must be in [1, 16] (unrolled per lane), got {rows_per_lane!r}")
+    tol = check_newton_tolerance(newton_tolerance)
     L = lanes_for(max_rows, P)
     LOOPS, MASKED = bool(loops), bool(masked)
-    key = (L * P, P, LOOPS, MASKED)
+    key = (L * P, P, LOOPS, MASKED, tol)
     cached = _KERNELS.get(key)
     if cached is not None:
         return cached
@@ -217,6 +222,8 @@ def hybrid_chain_kernel(max_rows: int, rows_per_lane: int, loops: bool = True, m
         red1 = wp.tile_zeros(shape=L, dtype=vec6, storage="shared")
         ends = wp.tile_zeros(shape=2, dtype=wp.vec3, storage="shared")  # a loop's rows 0 and n - 1 (y, z)
         dl_tot = vec_p()  # this sweep's multipliers so far, per row
+        if wp.static(tol > 0.0):
+            largest = wp.tile_zeros(shape=L, dtype=float, storage="shared")  # each lane's largest link correction
         for it in range(newton_steps):
             # the previous Newton step's node writes before this step's reads (a barrier; nothing written)
             wp.tile_scatter_masked(ends, 0, wp.vec3(0.0), False)
@@ -241,6 +248,7 @@ def hybrid_chain_kernel(max_rows: int, rows_per_lane: int, loops: bool = True, m
             lb = vec_p()
             lc = vec_p()
             ld = mat_p3()
+            wsum = vec_p()  # w_k + w_{k+1} of each row's link (only with a tolerance)
             p_dir, p_len, p_cons, p_act = link_at(rows, r0, n, s_row - 1, wraps, masked, active, env, q)
             c_dir, c_len, c_cons, c_act = link_at(rows, r0, n, s_row, wraps, masked, active, env, q)
             for i in range(P):
@@ -268,6 +276,8 @@ def hybrid_chain_kernel(max_rows: int, rows_per_lane: int, loops: bool = True, m
                                                    lam_k, k, n, cyclic, g, s, c_act)
                     lb[i] = b_k
                     ld[i] = wp.vec3(rhs, u_k, 0.0)
+                    if wp.static(tol > 0.0):
+                        wsum[i] = w_k + w_k1
                 p_dir = c_dir
                 p_act = c_act
                 c_dir = x_dir
@@ -296,6 +306,16 @@ def hybrid_chain_kernel(max_rows: int, rows_per_lane: int, loops: bool = True, m
             for i in range(P):
                 dl[i] = yz[i, 0] - f * yz[i, 1]
                 dl_tot[i] = dl_tot[i] + dl[i]
+            final_step = int(0)  # this sweep's last Newton step: the multipliers go out
+            if it == newton_steps - 1:
+                final_step = 1
+            if wp.static(tol > 0.0):
+                mine = float(0.0)
+                for i in range(P):
+                    mine = wp.max(mine, wp.abs(dl[i]) * wsum[i])
+                wp.tile_scatter_masked(largest, wp.min(lane, L - 1), mine, lane < nl)
+                if wp.tile_extract(wp.tile_max(largest), 0) < tol:
+                    final_step = 1  # converged: this step is applied, then the pack stops
             dl_before = yz_prev[0] - f * yz_prev[1]  # link s - 1's
             if s_row == 0:
                 dl_before = dl_last  # a loop's closing link (0 for an open pack: no link before row 0)
@@ -313,7 +333,7 @@ def hybrid_chain_kernel(max_rows: int, rows_per_lane: int, loops: bool = True, m
                 c_dir, c_len, c_cons, c_act = link_at(rows, r0, n, j, wraps, masked, active, env, q)
                 fb[i] = 1.0
                 if j < n:
-                    if use_lambda != 0 and it == newton_steps - 1 and c_cons >= 0:
+                    if use_lambda != 0 and final_step != 0 and c_cons >= 0:
                         lam[env, c_cons] = lam[env, c_cons] + dl_tot[i]
                     start = rows[r0 + j][2]
                     n_prev = wp.vec3(0.0)
@@ -353,6 +373,9 @@ def hybrid_chain_kernel(max_rows: int, rows_per_lane: int, loops: bool = True, m
                     node = rows[r0 + j][0]
                     if inv_mass[pe, node] > 0.0:
                         q[env, node] = par[i] + y[i]
+            if wp.static(tol > 0.0):
+                if final_step != 0:
+                    break  # every lane alike (the block's one largest correction)
 
     kernel = wp.kernel(solve_chains_hybrid, module="unique", enable_backward=False)
     _KERNELS[key] = kernel

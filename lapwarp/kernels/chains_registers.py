@@ -31,7 +31,7 @@ spills than the walk does through its scratch.
 # factory, which Warp can evaluate only as objects
 import warp as wp
 
-from lapwarp.kernels.chains import node_row, segment_dir
+from lapwarp.kernels.chains import check_newton_tolerance, node_row, segment_dir
 
 wp.set_module_options({"enable_backward": False})
 
@@ -47,17 +47,24 @@ def link_bit(lo: int, hi: int, k: int) -> int:
     return (hi >> (k - 32)) & 1
 
 
-# the kernels by chain length (links)
-_KERNELS: dict[int, wp.Kernel] = {}
+# the kernels by (chain length in links, Newton tolerance)
+_KERNELS: dict[tuple[int, float], wp.Kernel] = {}
 
 
-def register_chain_kernel(max_links: int) -> wp.Kernel:
+def register_chain_kernel(max_links: int, newton_tolerance: float = 0.0) -> wp.Kernel:
     """The register-resident solve of open chains of at most ``max_links`` links (cached): launch ``(num_envs,
-    chains of the family)`` with ``chains.solve_chains``'s arguments (its scratch arrays go unused)."""
+    chains of the family)`` with ``chains.solve_chains``'s arguments (its scratch arrays go unused).
+
+    ``newton_tolerance`` (m, 0 = off): a chain stops its Newton steps once one has corrected none of its links by
+    ``tolerance`` or more (a link's correction ``|dl_k| (w_k + w_{k+1})``, the length change its own row asks for),
+    the step itself applied. The next step would correct by far less (RopeCutting's 5x pre-stretched ropes: each step
+    ~10x less than the one before, CPU), so the result stays within about the tolerance of running every step. A
+    compile-time constant: 0 compiles the check away."""
     L = int(max_links)
     if not 1 <= L <= MAX_LINKS:
         raise ValueError(f"the register chain solve takes chains of 1..{MAX_LINKS} links, got {max_links!r}")
-    cached = _KERNELS.get(L)
+    tol = check_newton_tolerance(newton_tolerance)
+    cached = _KERNELS.get((L, tol))
     if cached is not None:
         return cached
     N = L + 1  # nodes of the longest chain
@@ -171,11 +178,14 @@ def register_chain_kernel(max_links: int) -> wp.Kernel:
                     len_cur = len_next
             # ---- back substitution: dp becomes dl
             y_next = float(0.0)
+            largest = float(0.0)  # the step's largest link correction (only with a tolerance)
             for kk in range(L):
                 k = L_1 - kk
                 if k < m:
                     y_next = dp[k] - cp[k] * y_next
                     dp[k] = y_next
+                    if wp.static(tol > 0.0):
+                        largest = wp.max(largest, wp.abs(y_next) * (w[k] + w[k + 1]))
             # ---- the transverse filter (chains.py: the implicit geometric-stiffness smoothing of dx's transverse
             # part), rows formed from the positions before this step's update; a node's position takes its part
             # along the tangent as soon as its row is formed (no later row reads it), the filtered rest below
@@ -221,6 +231,9 @@ def register_chain_kernel(max_links: int) -> wp.Kernel:
                     y = nd[j] - y * nc[j]
                     if w[j] > 0.0:
                         x[j] = x[j] + y
+            if wp.static(tol > 0.0):
+                if largest < tol:
+                    break  # converged: this step's update applied, the next would move the chain by far less
         # the moved nodes and this sweep's multipliers, once per launch
         for j in range(N):
             if j < nodes:
@@ -234,17 +247,17 @@ def register_chain_kernel(max_links: int) -> wp.Kernel:
 
     kernel = wp.kernel(solve_chains_in_registers, module="unique", enable_backward=False,
                        module_options={"max_unroll": N})
-    _KERNELS[L] = kernel
+    _KERNELS[(L, tol)] = kernel
     return kernel
 
 
-def family_kernel(cs, first: int, count: int) -> wp.Kernel | None:
+def family_kernel(cs, first: int, count: int, newton_tolerance: float = 0.0) -> wp.Kernel | None:
     """The register solve for the chains ``first .. first + count - 1`` of a ``chains.ChainSet`` (one family), or
     ``None`` where it does not take them (a closed chain, or one longer than ``MAX_LINKS``): the serial walk then."""
     lengths = cs.lengths[first:first + count]
     if count == 0 or cs.closed_host[first:first + count].any() or int(lengths.max()) > MAX_LINKS:
         return None
-    return register_chain_kernel(int(lengths.max()))
+    return register_chain_kernel(int(lengths.max()), newton_tolerance)
 
 
 def is_register_kernel(kernel) -> bool:

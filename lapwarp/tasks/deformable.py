@@ -6,6 +6,7 @@ sofa_env's ``RestShapeSpringsForceField``: springs of stiffness ``k`` (complianc
 of the env frame. A task's reset kernel draws each env's anchor points and stiffnesses; :meth:`place_anchors` then
 moves the anchors there and puts the particles at rest at ``anchor + rest_offset`` (e.g. the gravity sag), writing
 only ``world.state`` rows of the masked envs (the env base saves them as the World's start state).
+:func:`rope_newton_tolerance` resolves a rope task's Newton tolerance against the chain solver in use.
 """
 
 from __future__ import annotations
@@ -16,6 +17,18 @@ import warp as wp
 from lapwarp import launching
 
 wp.set_module_options({"enable_backward": False})
+
+
+def rope_newton_tolerance(value: float | None, chain_solver: str, stopping_solver: str, default: float) -> float:
+    """``World.rod_newton_tolerance`` for a rope task's config ``value``: ``None`` means ``default`` where the ropes
+    run ``stopping_solver`` (the task's GPU chain solve, one that stops early) and 0 elsewhere (every Newton step);
+    a value > 0 with a solver that runs every step is refused rather than ignored."""
+    if value is None:
+        return default if chain_solver == stopping_solver else 0.0
+    if value and chain_solver not in ("registers", "hybrid"):
+        raise ValueError(f"rope_newton_tolerance stops the Newton steps of the register-resident and hybrid chain "
+                         f"solves only; this env runs chain_solver {chain_solver!r}: leave it None or 0")
+    return value
 
 
 @wp.kernel

@@ -57,6 +57,7 @@ from lapwarp.experts import Expert
 from lapwarp.instruments import TPSDConfig, tpsd_from_config
 from lapwarp.kernels.geometry import closest_segment_segment
 from lapwarp.kernels.kinematics import point_to_ptsd
+from lapwarp.tasks.deformable import rope_newton_tolerance
 from lapwarp.tasks.rig import (
     CAUTER_CUTTING_CENTER,
     STATE_LIMITS_VIOLATED,
@@ -94,6 +95,8 @@ CRITIC = OBS.extend("rope_cut", "offset_to_active", "distance_to_active")
 
 NODES = 20  # per rope, both ends included (sofa_env)
 SEGMENTS = NODES - 1
+#: the ropes' Newton tolerance (m) where the register solve runs them (``RopeCuttingConfig.rope_newton_tolerance``)
+ROPE_NEWTON_TOLERANCE = 1.0e-7
 TRACKED = (0, 9, 19)  # tracking nodes of every rope
 INTACT, CUT = 0, 1
 LAYOUT_TRIES = wp.constant(1000)
@@ -135,6 +138,13 @@ class RopeCuttingConfig(EnvConfig):
             steps settle within 0.2 % too, 3 do not after 20 mm, and 30 substeps need 6. The default is 4 since the
             twenty-ninth session: the step is 29 % faster than at 6 (244k against 190k env-steps/s, 4,096 envs, H200;
             5 steps: 213k), the settle test runs at this default and the scripted expert still solves 32 / 32.
+        rope_newton_tolerance: (m) a rope stops its Newton steps once one corrected none of its links by this much
+            (``World.rod_newton_tolerance``; the register-resident solve only). ``None`` (default): 1e-7 m where the
+            ropes run that solve (``chain_solver`` "registers", the GPU's "auto"), else 0 (every step; the CPU's
+            serial walk). Each Newton step corrects the taut ropes ~10x less than the one before: along the expert's
+            episodes the third step's largest correction is below 0.1 um for nearly every rope and sweep (3.01 of the
+            4 steps run on average, CPU, 8 envs, 60 env steps), so the fourth moves a rope by less than float32
+            resolves at its position. A value with another chain solver raises ``ValueError``.
         contact_capacity: contact records kept per env per step (counted when exceeded, never silent).
         max_episode_steps: time limit; ``None`` = max(400, 200 C) (Table C).
     """
@@ -159,6 +169,7 @@ class RopeCuttingConfig(EnvConfig):
     carving_distance: NonNegative = 8.0e-4
     physics_substeps: Count(10_000) = 40
     rope_newton_steps: Count(64) = 4
+    rope_newton_tolerance: NonNegative | None = None
     contact_capacity: Count(4096) = 64
 
     def validate(self, reward_features, supported_observations) -> None:
@@ -524,6 +535,8 @@ class RopeCuttingEnv(BatchedEnv):
                                  builder)
         world = builder.finalize(num_envs=n, device=str(dev), substeps=cfg.physics_substeps, seed=cfg.seed)
         world.rod_newton_steps = cfg.rope_newton_steps
+        world.rod_newton_tolerance = rope_newton_tolerance(cfg.rope_newton_tolerance, self.chain_solver,
+                                                           "registers", ROPE_NEWTON_TOLERANCE)
         # the rods' fused sweep (one warp per env) at 64 registers instead of 71: 32 blocks per SM hold 4,096 envs
         # in one wave instead of 1.11 (sm_90; a 16 B spill frame). H200, expert, 4,096 envs, same call as the
         # uncapped step: 320.2k -> 326.6k env-steps/s (benchmarks/RESULTS.md, thirty-sixth session; the CPU

@@ -84,6 +84,7 @@ from lapwarp.kernels.bodies import hinged_jaw_pose
 from lapwarp.kernels.geometry import closest_segment_segment
 from lapwarp.kernels.kinematics import point_to_ptsd, ptsd_to_transform
 from lapwarp.kernels.random import rand_uniform
+from lapwarp.tasks.deformable import rope_newton_tolerance
 from lapwarp.tasks.rig import (
     PTSD_STEPS,
     STATE_LIMITS_VIOLATED,
@@ -110,6 +111,12 @@ from lapwarp.tasks.spec import (
 )
 from lapwarp.visuals import CameraSpec, VisualObject, VisualScene
 from lapwarp.world import World
+
+#: the rope's Newton tolerance (m) where the hybrid solve runs it (``RopeThreadingConfig.rope_newton_tolerance``): the
+#: second Newton step runs only after a first that corrected a link by this much or more. Along the expert's episodes
+#: (CPU, 8 envs, 60 env steps) 53 % of the first steps corrected less, and the second steps those skip would have
+#: corrected 5e-8 m at most
+ROPE_NEWTON_TOLERANCE = 3.0e-5
 
 wp.set_module_options({"enable_backward": False})
 
@@ -185,6 +192,11 @@ class RopeThreadingConfig(EnvConfig):
         physics_substeps: XPBD substeps per physics step (10 physics steps per env step). 10 with the inertia
             scaling (before it: 40, 4 x the cost; the scripted expert solves about as many first episodes either way,
             CPU samples 37 / 48 against 24 / 32).
+        rope_newton_steps: Newton steps of the rope's stretch solve per sweep (``World.rod_newton_steps``).
+        rope_newton_tolerance: (m) the rope stops its Newton steps once one corrected none of its links by this much
+            (``World.rod_newton_tolerance``; the register-resident and hybrid solves only). ``None`` (default):
+            ``ROPE_NEWTON_TOLERANCE`` where the hybrid solve runs the rope (the GPU's ``chain_solver`` "auto"), else
+            0 (every step; the CPU's serial walk). A value with another chain solver raises ``ValueError``.
         max_episode_steps: None = 200 + 150 per eye after the first (Table C).
         contact_capacity: contact records kept per env per step (the rope lying on the floor alone makes ~80; the
             grasp reads the jaws' records from them).
@@ -217,6 +229,8 @@ class RopeThreadingConfig(EnvConfig):
     gravity: NonNegative = 0.981
     settle_steps: Annotated[int, Range(ge=1, le=10_000)] = 100
     physics_substeps: Count(10_000) = 10
+    rope_newton_steps: Count(64) = 2
+    rope_newton_tolerance: NonNegative | None = None
     contact_capacity: Count(4096) = 256
 
     def validate(self, reward_features, supported_observations) -> None:
@@ -1121,6 +1135,7 @@ class RopeThreadingEnv(BatchedEnv):
         eye_bodies = [builder.add_body(f"eye{e}") for e in range(eyes)]
         world = builder.finalize(num_envs=num_envs, device=str(dev), substeps=cfg.physics_substeps, seed=cfg.seed,
                                  attachment_capacity=2)
+        world.rod_newton_steps = cfg.rope_newton_steps
         # the rods' fused sweep (one warp per env) at 64 registers instead of 71: 32 blocks per SM hold 4,096 envs
         # in one wave instead of 1.11 (sm_90; a 16 B spill frame). H200, expert, 4,096 envs, same call as the
         # uncapped step: 123.1k -> 125.0k env-steps/s (benchmarks/RESULTS.md, thirty-sixth session; the CPU
@@ -1154,11 +1169,15 @@ class RopeThreadingEnv(BatchedEnv):
     def _build(self) -> World:
         cfg, n, dev = self.cfg, self.num_envs, self.wp_device
         self._start_tip = start_tip(self.cfg.grasper_tpsd("right"))
+        # checked first: a value the chain solver would not honour is refused before the bank settles
+        tolerance = rope_newton_tolerance(cfg.rope_newton_tolerance, self.chain_solver, "hybrid", ROPE_NEWTON_TOLERANCE)
         low, high = cfg.grasp_index_noise
         self._bank_first = cfg.grasp_index + low
         self._settle_bank(high - low)
         world, self.rig, self.rope, self.contact, grasps, eye_bodies = self._rope_scene(n, cfg.bimanual,
                                                                                        len(cfg.eyes))
+        # the env's world only: the bank above settled on the World's own serial walk, every Newton step
+        world.rod_newton_tolerance = tolerance
         self.right_grasp = grasps["right"]
         self.left_grasp = grasps.get("left")
         self._eye_body_ids = wp.array(np.asarray(eye_bodies, np.int32), dtype=wp.int32, device=dev)
