@@ -15,7 +15,7 @@ import warp as wp
 import lapwarp
 from lapwarp.cutting import CuttingSystem
 from lapwarp.experts import make_expert
-from lapwarp.tasks.dissection.rope_cutting import NODES, ROPE_NEWTON_TOLERANCE, SEGMENTS, TRACKED
+from lapwarp.tasks.dissection.rope_cutting import NODES, SEGMENTS, TRACKED
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 import rope_settle  # noqa: E402
@@ -49,13 +49,12 @@ def test_pretensioned_rope_sags_like_a_taut_string(device):
     assert abs(x[:, 1]).max() < 1e-7  # stays in its vertical plane
 
 
-@pytest.mark.parametrize("newton, tolerance, settles", [(None, 0.0, True), (None, ROPE_NEWTON_TOLERANCE, True),
-                                                       (3, 0.0, False)])
+@pytest.mark.parametrize("newton, tolerance, settles", [(None, 0.0, True), (None, 1e-7, True), (3, 0.0, False)])
 def test_bumped_rope_settles_on_the_taut_string(device, newton, tolerance, settles):
     """The rope with its middle third pushed 20 mm down (tapering to the walls), released at rest: at the env's solver
     setting (40 substeps, 4 Newton steps per sweep) it settles on the taut-string closed form within 3 % and stays in
-    its vertical plane, also on the GPU's register solve stopping its Newton steps at the task's tolerance; with 3
-    Newton steps the tension's transverse response overshoots and it is still swinging after 3 s
+    its vertical plane, also on the register solve stopping its Newton steps at 1e-7 m (``rope_newton_tolerance``);
+    with 3 Newton steps the tension's transverse response overshoots and it is still swinging after 3 s
     (benchmarks/rope_settle.py sweeps the settings)."""
     from lapwarp.tasks.dissection.rope_cutting import RopeCuttingConfig
 
@@ -268,12 +267,12 @@ def test_expert_solves_the_paper_configurations(device, action_type, ropes, to_c
 
 
 def test_rope_newton_tolerance_follows_the_chain_solver(device):
-    # None: the tolerance where the register solve runs the ropes, every Newton step elsewhere; a value with the
-    # serial walk, which would not honour it, is refused at build
+    # every Newton step by default; a tolerance where the register solve runs the ropes; one with the serial walk,
+    # which would not honour it, is refused at build
     assert lapwarp.make("RopeCutting", num_envs=1, device=device, chain_solver="registers").world \
-        .rod_newton_tolerance == ROPE_NEWTON_TOLERANCE
-    assert lapwarp.make("RopeCutting", num_envs=1, device=device, chain_solver="thomas").world \
         .rod_newton_tolerance == 0.0
+    assert lapwarp.make("RopeCutting", num_envs=1, device=device, chain_solver="registers",
+                        rope_newton_tolerance=1e-7).world.rod_newton_tolerance == 1e-7
     with pytest.raises(ValueError, match="register-resident and hybrid chain solves only"):
         lapwarp.make("RopeCutting", num_envs=1, device=device, chain_solver="thomas", rope_newton_tolerance=1e-7)
     with pytest.raises(ValueError, match="rope_newton_tolerance"):

@@ -95,8 +95,6 @@ CRITIC = OBS.extend("rope_cut", "offset_to_active", "distance_to_active")
 
 NODES = 20  # per rope, both ends included (sofa_env)
 SEGMENTS = NODES - 1
-#: the ropes' Newton tolerance (m) where the register solve runs them (``RopeCuttingConfig.rope_newton_tolerance``)
-ROPE_NEWTON_TOLERANCE = 1.0e-7
 TRACKED = (0, 9, 19)  # tracking nodes of every rope
 INTACT, CUT = 0, 1
 LAYOUT_TRIES = wp.constant(1000)
@@ -139,12 +137,11 @@ class RopeCuttingConfig(EnvConfig):
             twenty-ninth session: the step is 29 % faster than at 6 (244k against 190k env-steps/s, 4,096 envs, H200;
             5 steps: 213k), the settle test runs at this default and the scripted expert still solves 32 / 32.
         rope_newton_tolerance: (m) a rope stops its Newton steps once one corrected none of its links by this much
-            (``World.rod_newton_tolerance``; the register-resident solve only). ``None`` (default): 1e-7 m where the
-            ropes run that solve (``chain_solver`` "registers", the GPU's "auto"), else 0 (every step; the CPU's
-            serial walk). Each Newton step corrects the taut ropes ~10x less than the one before: along the expert's
-            episodes the third step's largest correction is below 0.1 um for nearly every rope and sweep (3.01 of the
-            4 steps run on average, CPU, 8 envs, 60 env steps), so the fourth moves a rope by less than float32
-            resolves at its position. A value with another chain solver raises ``ValueError``.
+            (``World.rod_newton_tolerance``; the register-resident and hybrid solves only, a value with another chain
+            solver raises ``ValueError``). Default 0: every step. Each step corrects the taut ropes ~10x less than
+            the one before (at 1e-7 m a rope runs 3.01 of its 4 steps, CPU, the expert's episodes), but on the
+            register solve the check slowed the step: H200, expert, 4,096 envs, same call, 318.2k env-steps/s at 0
+            against 286.9k at 1e-7 (twice each; the check's 160 B more spill frame, sm_90).
         contact_capacity: contact records kept per env per step (counted when exceeded, never silent).
         max_episode_steps: time limit; ``None`` = max(400, 200 C) (Table C).
     """
@@ -169,7 +166,7 @@ class RopeCuttingConfig(EnvConfig):
     carving_distance: NonNegative = 8.0e-4
     physics_substeps: Count(10_000) = 40
     rope_newton_steps: Count(64) = 4
-    rope_newton_tolerance: NonNegative | None = None
+    rope_newton_tolerance: NonNegative = 0.0
     contact_capacity: Count(4096) = 64
 
     def validate(self, reward_features, supported_observations) -> None:
@@ -536,7 +533,7 @@ class RopeCuttingEnv(BatchedEnv):
         world = builder.finalize(num_envs=n, device=str(dev), substeps=cfg.physics_substeps, seed=cfg.seed)
         world.rod_newton_steps = cfg.rope_newton_steps
         world.rod_newton_tolerance = rope_newton_tolerance(cfg.rope_newton_tolerance, self.chain_solver,
-                                                           "registers", ROPE_NEWTON_TOLERANCE)
+                                                           "registers", 0.0)
         # the rods' fused sweep (one warp per env) at 64 registers instead of 71: 32 blocks per SM hold 4,096 envs
         # in one wave instead of 1.11 (sm_90; a 16 B spill frame). H200, expert, 4,096 envs, same call as the
         # uncapped step: 320.2k -> 326.6k env-steps/s (benchmarks/RESULTS.md, thirty-sixth session; the CPU
