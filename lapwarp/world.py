@@ -175,7 +175,7 @@ class World:
         # exact in length where the rod bends); its residual is small, so its tension filter barely acts
         self.rod_newton_steps = 2
         # (m) a rod chain stops its Newton steps early once one corrected no link by this much (0: every step); only
-        # the register-resident and hybrid solves take it (chains_registers.register_chain_kernel)
+        # the register-resident, hybrid and pcr solves take it (chains_registers.register_chain_kernel)
         self.rod_newton_tolerance = 0.0
         # Newton steps of each cloth edge-chain solve per sweep (the families' solves follow each other)
         self.chain_newton_steps = 1
@@ -551,7 +551,7 @@ class World:
 
     def _check_rod_newton_tolerance(self) -> None:
         """``rod_newton_tolerance`` is a finite length >= 0, and where it is set the rods run a chain solve that
-        stops early ("registers" on every family, or "hybrid"; the others run every Newton step)."""
+        stops early ("registers" on every family, "hybrid" or "pcr"; the serial walks run every Newton step)."""
         tol = self.rod_newton_tolerance
         if isinstance(tol, (np.floating, np.integer)):
             tol = float(tol)
@@ -560,11 +560,11 @@ class World:
         except ValueError:
             raise ValueError(f"world.rod_newton_tolerance must be a finite length >= 0 (m), got {tol!r}") from None
         cs = self.model.rod_chains
-        if float(tol) == 0.0 or cs is None or not cs.count or self.chain_solver == "hybrid":
+        if float(tol) == 0.0 or cs is None or not cs.count or self.chain_solver in ("hybrid", "pcr"):
             return
         if self.chain_solver != "registers":
-            raise ValueError(f"world.rod_newton_tolerance stops the Newton steps of the register-resident and hybrid "
-                             f"chain solves only: set chain_solver 'registers' or 'hybrid' (it is "
+            raise ValueError(f"world.rod_newton_tolerance stops the Newton steps of the register-resident, hybrid and "
+                             f"pcr chain solves only: set chain_solver 'registers', 'hybrid' or 'pcr' (it is "
                              f"{self.chain_solver!r}) or the tolerance to 0")
         for first, count, _, _ in cs.families:
             if chains_registers.family_kernel(cs, first, count) is None:
@@ -708,7 +708,7 @@ class World:
                     lanes = launching.block_lanes(self.device, lanes)
                     # compiled without the loop and cut branches where the family has no loop / the scene no masks
                     kernel = chains_block.block_chain_kernel(packs.max_rows, loops=packs.any_closed,
-                                                             masked=mask.shape[1] > 0)
+                                                             masked=mask.shape[1] > 0, newton_tolerance=tolerance)
                 else:
                     # chain_lane_rows rows per lane: a warp's multiple of lanes on the GPU; on the CPU exactly the
                     # lanes that hold rows, as Warp's cooperative fibers

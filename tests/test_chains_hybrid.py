@@ -178,11 +178,11 @@ def test_env_refuses_the_hybrid_solve_without_cpu_blocks(monkeypatch):
         lapwarp.make("RopeCutting", num_envs=1, device="cpu", chain_solver="hybrid")
 
 
-def _hybrid_rods(device, newton_steps: int, iterations: int, tolerance: float):
-    """tests/test_chains_partitioned.py's open rods and loops (perturbed, cut) on the hybrid solve stopping at
-    ``tolerance``: their positions after 0.04 s."""
+def _stopping_rods(device, solver: str, newton_steps: int, iterations: int, tolerance: float):
+    """tests/test_chains_partitioned.py's open rods and loops (perturbed, cut) on a block solve (``solver``: "hybrid"
+    or "pcr") stopping at ``tolerance``: their positions after 0.04 s."""
     world, rods = _rod_world(device, 0, newton_steps, iterations, False, True)
-    world.chain_solver = "hybrid"
+    world.chain_solver = solver
     world.rod_newton_tolerance = tolerance
     world.simulate(0.04, 0.02)
     assert world.unstable.numpy().sum() == 0
@@ -196,20 +196,23 @@ def _same(device, a, b, rods):
         assert _worst(a, b, rods) <= TOL
 
 
+@pytest.mark.parametrize("solver", ["hybrid", "pcr"])
 @pytest.mark.parametrize("iterations", [1, 2])
-def test_hybrid_newton_tolerance_stops_the_steps(device, iterations):
+def test_block_newton_tolerance_stops_the_steps(device, solver, iterations):
     # A tolerance above any correction stops every pack after its first Newton step, the block's lanes together:
     # the positions of one step (bit for bit on the CPU), with 2 sweeps also the multipliers the first step leaves
-    # for the second sweep. 1e-30 m stops only a pack whose step corrected nothing: every step's positions.
-    one, rods = _hybrid_rods(device, 1, iterations, 0.0)
-    three, _ = _hybrid_rods(device, 3, iterations, 0.0)
+    # for the second sweep. 1e-30 m stops only a pack whose step corrected nothing: every step's positions. The pcr
+    # solve (kernels/chains_block.py) the same way.
+    one, rods = _stopping_rods(device, solver, 1, iterations, 0.0)
+    three, _ = _stopping_rods(device, solver, 3, iterations, 0.0)
     assert _worst(one, three, rods) > 10 * TOL  # the later Newton steps move the rods
-    _same(device, one, _hybrid_rods(device, 3, iterations, 1.0)[0], rods)
-    _same(device, three, _hybrid_rods(device, 3, iterations, 1e-30)[0], rods)
+    _same(device, one, _stopping_rods(device, solver, 3, iterations, 1.0)[0], rods)
+    _same(device, three, _stopping_rods(device, solver, 3, iterations, 1e-30)[0], rods)
 
 
-def test_hybrid_newton_tolerance_keeps_the_converged_result(device):
+@pytest.mark.parametrize("solver", ["hybrid", "pcr"])
+def test_block_newton_tolerance_keeps_the_converged_result(device, solver):
     # at 1e-7 m within that tolerance of running every step (open rods and loops, cut)
-    three, rods = _hybrid_rods(device, 3, 1, 0.0)
-    early, _ = _hybrid_rods(device, 3, 1, 1e-7)
+    three, rods = _stopping_rods(device, solver, 3, 1, 0.0)
+    early, _ = _stopping_rods(device, solver, 3, 1, 1e-7)
     assert np.abs(three - early).max() <= 1e-7

@@ -171,7 +171,7 @@ def test_newton_tolerance_keeps_the_converged_result(device):
 
 @pytest.mark.parametrize("value, message", [(-1e-7, "finite length >= 0"), (float("nan"), "finite length >= 0"),
                                             (float("inf"), "finite length >= 0"), (True, "finite length >= 0"),
-                                            (1e-7, "register-resident and hybrid")])
+                                            (1e-7, "register-resident, hybrid and pcr")])
 def test_newton_tolerance_rejects_bad_values(device, value, message):
     # a bad length, or a tolerance the chain solver in use would not honour (the serial walk runs every step)
     world, _ = _open_rod_world(device, 2, 1, False, False)

@@ -302,6 +302,25 @@ def test_invalid_configuration_raises(overrides, message):
         make(**overrides)
 
 
+def test_thread_newton_tolerance():
+    """The thread's Newton tolerance reaches the World where the pcr solve runs the thread and is refused with the
+    serial walk (which runs every step); with 3e-4 m the thread of 2 envs ends 10 no-op env steps within 1e-6 m of
+    every step's (measured 1.4e-7 m on the CPU: the second steps skipped correct at most 2.4e-7 m along the expert's
+    episodes, docs/physics.md)."""
+    assert make().world.rod_newton_tolerance == 0.0
+    with pytest.raises(ValueError, match="register-resident, hybrid and pcr chain solves only"):
+        make(chain_solver="thomas", thread_newton_tolerance=3e-4)
+    out = []
+    for tolerance in (0.0, 3e-4):
+        env = make(num_envs=2, chain_solver="pcr", thread_newton_tolerance=tolerance)
+        assert env.world.rod_newton_tolerance == tolerance
+        env.reset()
+        for _ in range(10):
+            env.step(zeros(env))
+        out.append(env.world.positions(env.thread))
+    assert np.abs(out[0] - out[1]).max() <= 1e-6
+
+
 # ---------------------------------------------------------------------------- the grasp and the hanging thread
 def test_grasp_holds_and_thread_settles_hanging():
     """4 envs (seed 1, the reset noise), 30 no-op steps after reset: the grasper does not move, the thread's first

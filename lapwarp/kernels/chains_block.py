@@ -36,12 +36,13 @@ round's reads of the previous round's values intact.
 # the factory, which Warp can evaluate only as objects
 import warp as wp
 
-from lapwarp.kernels.chains import link_row_terms, node_row, segment_dir
+from lapwarp.kernels.chains import check_newton_tolerance, link_row_terms, node_row, segment_dir
 
 wp.set_module_options({"enable_backward": False})
 
-# the kernels by (tile length: the most rows of a pack, a compile-time constant of the shared tiles; loops; masked)
-_KERNELS: dict[tuple[int, bool, bool], wp.Kernel] = {}
+# the kernels by (tile length: the most rows of a pack, a compile-time constant of the shared tiles; loops; masked;
+# Newton tolerance)
+_KERNELS: dict[tuple[int, bool, bool, float], wp.Kernel] = {}
 # a row of either system, one shared element (so a PCR round writes it with one scatter and one block barrier): sub-,
 # main and super-diagonal, then the right-hand sides: a link row's (-C - alpha lambda, loop vector u, 0), a filter
 # row's vec3
@@ -132,14 +133,18 @@ def pcr_round_func(N: int) -> wp.Function:
     return pcr_round
 
 
-def block_chain_kernel(max_rows: int, loops: bool = True, masked: bool = True) -> wp.Kernel:
+def block_chain_kernel(max_rows: int, loops: bool = True, masked: bool = True,
+                       newton_tolerance: float = 0.0) -> wp.Kernel:
     """The block solve for packs (``chains.ChainPacks``) of at most ``max_rows`` rows (cached per length and flags):
     launch ``(num_envs, packs, lanes)`` with ``block_dim=lanes`` (``launching.block_lanes``), one family at a time.
     ``loops`` / ``masked`` (compile-time): whether the family may hold a closed loop / the scene has cutting masks
-    (without them the variant compiles neither branch)."""
+    (without them the variant compiles neither branch). ``newton_tolerance`` (m, compile-time; 0 = off): a pack stops
+    its Newton steps once one has corrected none of its links by that much (``chains_registers``' rule; the largest
+    of the pack's rows, a tile reduction, decides for the whole block)."""
     N = max(int(max_rows), 1)
     LOOPS, MASKED = bool(loops), bool(masked)
-    key = (N, LOOPS, MASKED)
+    tol = check_newton_tolerance(newton_tolerance)
+    key = (N, LOOPS, MASKED, tol)
     cached = _KERNELS.get(key)
     if cached is not None:
         return cached
@@ -185,6 +190,8 @@ def block_chain_kernel(max_rows: int, loops: bool = True, masked: bool = True) -
         node0 = wp.tile_zeros(shape=N, dtype=vec6, storage="shared")  # filter rows (a, b, c, d), PCR buffer 0
         node1 = wp.tile_zeros(shape=N, dtype=vec6, storage="shared")  # ... and 1
         par_tile = wp.tile_zeros(shape=N, dtype=wp.vec3, storage="shared")  # the tangential part plus the position
+        if wp.static(tol > 0.0):
+            corrections = wp.tile_zeros(shape=N, dtype=float, storage="shared")  # per link: |dl| (w_k + w_{k+1})
         # the nodes' positions and inverse masses, loaded once: the rows read each node up to four times
         xw = wp.tile_zeros(shape=N, dtype=wp.vec4, storage="shared")
         for base in range(0, n, lanes):
@@ -275,11 +282,31 @@ def block_chain_kernel(max_rows: int, loops: bool = True, masked: bool = True) -
                 dl = (row[3] - f * row[4]) / row[1]
                 total = wp.tile_extract(dl_acc, k)[1] + dl
                 write = base + lane < n
-                if write and use_lambda != 0 and it == newton_steps - 1:
-                    cons = rows[r0 + k][1]
-                    if cons >= 0:
-                        lam[env, cons] = lam[env, cons] + total
+                if wp.static(tol > 0.0):
+                    correction = float(0.0)
+                    if rows[r0 + k][1] >= 0:
+                        k1 = k + 1
+                        if k1 == n:
+                            k1 = 0
+                        correction = wp.abs(dl) * (wp.tile_extract(xw, k)[3] + wp.tile_extract(xw, k1)[3])
+                    wp.tile_scatter_masked(corrections, k, correction, write)
+                else:
+                    if write and use_lambda != 0 and it == newton_steps - 1:
+                        cons = rows[r0 + k][1]
+                        if cons >= 0:
+                            lam[env, cons] = lam[env, cons] + total
                 wp.tile_scatter_masked(dl_acc, k, wp.vec2(dl, total), write)
+            final_step = int(0)  # this sweep's last Newton step (only with a tolerance: it may come early)
+            if wp.static(tol > 0.0):
+                if it == newton_steps - 1 or wp.tile_extract(wp.tile_max(corrections), 0) < tol:
+                    final_step = 1
+                if use_lambda != 0 and final_step != 0:
+                    # the multipliers go out at the step that stops
+                    for base in range(0, n, lanes):
+                        k = wp.min(base + lane, n - 1)
+                        cons = rows[r0 + k][1]
+                        if base + lane < n and cons >= 0:
+                            lam[env, cons] = lam[env, cons] + wp.tile_extract(dl_acc, k)[1]
             # ---- the transverse filter's rows over the nodes (buffers 0), positions before this step's update
             for base in range(0, n, lanes):
                 j = wp.min(base + lane, n - 1)
@@ -338,6 +365,9 @@ def block_chain_kernel(max_rows: int, loops: bool = True, masked: bool = True) -
                     q[env, rows[r0 + j][0]] = x
                 # the shared copy too (its scatter is the barrier before the next Newton step reads it)
                 wp.tile_scatter_masked(xw, j, wp.vec4(x[0], x[1], x[2], xwj[3]), moved)
+            if wp.static(tol > 0.0):
+                if final_step != 0:
+                    break  # converged (every lane alike: the block's one largest correction)
 
     kernel = wp.kernel(solve_chains_block, module="unique", enable_backward=False)
     _KERNELS[key] = kernel

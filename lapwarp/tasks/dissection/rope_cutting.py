@@ -137,8 +137,8 @@ class RopeCuttingConfig(EnvConfig):
             twenty-ninth session: the step is 29 % faster than at 6 (244k against 190k env-steps/s, 4,096 envs, H200;
             5 steps: 213k), the settle test runs at this default and the scripted expert still solves 32 / 32.
         rope_newton_tolerance: (m) a rope stops its Newton steps once one corrected none of its links by this much
-            (``World.rod_newton_tolerance``; the register-resident and hybrid solves only, a value with another chain
-            solver raises ``ValueError``). Default 0: every step. Each step corrects the taut ropes ~10x less than
+            (``World.rod_newton_tolerance``; the register-resident, hybrid and pcr solves only, a value with another
+            chain solver raises ``ValueError``). Default 0: every step. Each step corrects the taut ropes ~10x less than
             the one before (at 1e-7 m a rope runs 3.01 of its 4 steps, CPU, the expert's episodes), but on the
             register solve the check slowed the step: H200, expert, 4,096 envs, same call, 318.2k env-steps/s at 0
             against 286.9k at 1e-7 (twice each; the check's 160 B more spill frame, sm_90).

@@ -196,7 +196,7 @@ class RopeThreadingConfig(EnvConfig):
             CPU samples 37 / 48 against 24 / 32).
         rope_newton_steps: Newton steps of the rope's stretch solve per sweep (``World.rod_newton_steps``).
         rope_newton_tolerance: (m) the rope stops its Newton steps once one corrected none of its links by this much
-            (``World.rod_newton_tolerance``; the register-resident and hybrid solves only). ``None`` (default):
+            (``World.rod_newton_tolerance``; the register-resident, hybrid and pcr solves only). ``None`` (default):
             ``ROPE_NEWTON_TOLERANCE`` = 1e-4 m where the hybrid solve runs the rope (the GPU's ``chain_solver``
             "auto"; a first step under it leaves at most 3.1e-7 m for the second, CPU; 161.6k -> 188.2k env-steps/s,
             H200), else 0 (every step; the CPU's serial walk). A value with another chain solver raises
