@@ -562,6 +562,10 @@ class World:
         cs = self.model.rod_chains
         if float(tol) == 0.0 or cs is None or not cs.count or self.chain_solver in ("hybrid", "pcr"):
             return
+        if int(self.chain_block_links) > 1:
+            raise ValueError(f"world.rod_newton_tolerance: chain_block_links={self.chain_block_links} runs the "
+                             f"partitioned solve, which runs every Newton step; set chain_block_links to 0 or the "
+                             f"tolerance to 0")
         if self.chain_solver != "registers":
             raise ValueError(f"world.rod_newton_tolerance stops the Newton steps of the register-resident, hybrid and "
                              f"pcr chain solves only: set chain_solver 'registers', 'hybrid' or 'pcr' (it is "

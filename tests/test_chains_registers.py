@@ -185,9 +185,16 @@ def test_newton_tolerance_rejects_bad_values(device, value, message):
 
 
 def test_newton_tolerance_refused_where_a_family_walks(device):
-    # rods with a loop in their family run the serial walk, which takes no tolerance
+    # rods with a loop in their family run the serial walk, which takes no tolerance; neither does the partitioned
+    # solve (chain_block_links > 1, which takes precedence over the register solve)
     world, _ = _rod_world(device, 0, 2, 1, False, True)
     world.chain_solver = "registers"
     world.rod_newton_tolerance = 1e-7
     with pytest.raises(ValueError, match="serial walk"):
+        world.simulate(0.02, 0.02)
+    world, _ = _open_rod_world(device, 2, 1, False, False)
+    world.chain_solver = "registers"
+    world.chain_block_links = 4
+    world.rod_newton_tolerance = 1e-7
+    with pytest.raises(ValueError, match="partitioned solve"):
         world.simulate(0.02, 0.02)

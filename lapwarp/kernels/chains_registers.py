@@ -56,10 +56,11 @@ def register_chain_kernel(max_links: int, newton_tolerance: float = 0.0) -> wp.K
     chains of the family)`` with ``chains.solve_chains``'s arguments (its scratch arrays go unused).
 
     ``newton_tolerance`` (m, 0 = off): a chain stops its Newton steps once one has corrected none of its links by
-    ``tolerance`` or more (a link's correction ``|dl_k| (w_k + w_{k+1})``, the length change its own row asks for),
-    the step itself applied. The next step would correct by far less (RopeCutting's 5x pre-stretched ropes: each step
+    that much or more (a link's correction ``|dl_k| (w_k + w_{k+1})``, the length change its own row asks for), the
+    step itself applied. The next step would correct by far less (RopeCutting's 5x pre-stretched ropes: each step
     ~10x less than the one before, CPU), so the result stays within about the tolerance of running every step. A
-    compile-time constant: 0 compiles the check away."""
+    compile-time constant: 0 compiles the check away. Measured slower where timed (RopeCutting, H200: 318.2k
+    env-steps/s without, 286.9k at 1e-7 m: the check grows the spill frame of 19 links from 1,760 to 1,920 B)."""
     L = int(max_links)
     if not 1 <= L <= MAX_LINKS:
         raise ValueError(f"the register chain solve takes chains of 1..{MAX_LINKS} links, got {max_links!r}")
