@@ -737,7 +737,9 @@ class LigatingLoopEnv(BatchedEnv):
         cfg, n, dev = self.cfg, self.num_envs, self.wp_device
         N = cfg.num_loop_points
         self._start_tip = start_tip(cfg.loop_tpsd())
-        tolerance = rope_newton_tolerance(cfg.loop_newton_tolerance, self.chain_solver, "pcr", 0.0)  # before the bank
+        # checked before the bank settles (which runs on the serial walk, every Newton step)
+        tolerance = rope_newton_tolerance("loop_newton_tolerance", cfg.loop_newton_tolerance, self.chain_solver,
+                                          "pcr", 0.0)
         self._settle_bank()
         world, self.rig, self.loop, self.cavity, self.closure, self.contact = self._scene(n, cavity=True)
         world.rod_newton_tolerance = tolerance  # the env's world only: the bank settled on the serial walk
