@@ -51,14 +51,20 @@ def contact_systems(env) -> list:
     return [solver for solver in env.world.solvers if hasattr(solver, "triangle_sweep")]
 
 
-def apply_contact_settings(env, triangle_sweep: str | None = None, triangle_block_threads: int | None = None) -> None:
-    """Set the contact systems' triangle sweep and the fused sweep's threads per env block (None: keep theirs),
-    before the first step records the launches (and the env captures them)."""
+def apply_contact_settings(env, triangle_sweep: str | None = None, triangle_block_threads: int | None = None,
+                           pose_per_step: bool | None = None) -> None:
+    """Set the contact systems' triangle sweep, the fused sweep's threads per env block and whether their shapes are
+    posed once per step (None: keep theirs), before the first step records the launches (and the env captures
+    them)."""
     for contact in contact_systems(env):
         if triangle_sweep is not None:
             contact.triangle_sweep = triangle_sweep
         if triangle_block_threads is not None:
             contact.triangle_block_threads = triangle_block_threads
+        if pose_per_step is not None:
+            if not hasattr(contact, "pose_per_step"):  # an older lapwarp, timed beside this one
+                raise ValueError("--pose-per-step: this lapwarp's contact systems pose their shapes every sweep")
+            contact.pose_per_step = pose_per_step
 
 
 def parse_register_caps(items: list[str]) -> dict[str, int]:
@@ -89,7 +95,8 @@ def bench_one(task: str, num_envs: int, device: str, seconds: float, invalid_act
               triangle_sweep: str | None = None, triangle_block_threads: int | None = None,
               replay_steps: int = 600, max_registers: dict[str, int] | None = None, pcr_rows: int | None = None,
               rod_solver: str | None = None, lane_rows: int | None = None,
-              surface_leaf_size: int | None = None, cull_groups: bool = True) -> dict:
+              surface_leaf_size: int | None = None, cull_groups: bool = True,
+              pose_per_step: bool | None = None) -> dict:
     def make_env():
         # the leaf size and the cull groups are read when the task finalizes its contact system, i.e. while the env is
         # built (an older lapwarp, timed beside this one, may have neither: it is left alone there)
@@ -119,7 +126,7 @@ def bench_one(task: str, num_envs: int, device: str, seconds: float, invalid_act
             env.world.chain_lane_rows = lane_rows
         if rod_solver is not None:
             env.world.rod_solver = rod_solver
-        apply_contact_settings(env, triangle_sweep, triangle_block_threads)
+        apply_contact_settings(env, triangle_sweep, triangle_block_threads, pose_per_step)
         return env
 
     env = make_env()
@@ -177,6 +184,7 @@ def bench_one(task: str, num_envs: int, device: str, seconds: float, invalid_act
         # (an older lapwarp, timed beside this one, has no clustered surfaces)
         "surface_leaf_size": next((getattr(c, "surface_leaf_size", None) for c in contact_systems(env)), None),
         "cull_groups": next((getattr(c, "cull_groups", None) for c in contact_systems(env)), None),
+        "pose_per_step": next((getattr(c, "pose_per_step", None) for c in contact_systems(env)), None),
         "tet_solver": ("fused" if env.world.fused_tets else "colored") if env.world.model.tet_count else None,
         # (an older lapwarp, timed beside this one, has max_registers only)
         "max_registers": dict(getattr(env.world, "register_caps", env.world.max_registers)),
@@ -215,6 +223,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--no-cull-groups", action="store_true",
                         help="every contact shape culled alone (lapwarp.contact.CULL_GROUPS off while the env is "
                              "built): to time the cull groups against their absence")
+    parser.add_argument("--pose-per-step", choices=["on", "off"], default=None,
+                        help="the contact systems' shapes posed for every substep in one launch per step, or a launch "
+                             "per sweep (ContactSystem.pose_per_step; default: theirs)")
     parser.add_argument("--surface-leaf-size", type=positive_int, default=None,
                         help="triangles per leaf of deforming contact surfaces' clustering (default: "
                              "lapwarp.contact.SURFACE_LEAF_SIZE)")
@@ -258,7 +269,8 @@ def main(argv: list[str] | None = None) -> int:
                           triangle_block_threads=args.triangle_block_threads,
                           replay_steps=args.replay_steps, max_registers=max_registers, pcr_rows=args.pcr_rows,
                           rod_solver=args.rod_solver, lane_rows=args.lane_rows,
-                          surface_leaf_size=args.surface_leaf_size, cull_groups=not args.no_cull_groups)
+                          surface_leaf_size=args.surface_leaf_size, cull_groups=not args.no_cull_groups,
+                          pose_per_step=None if args.pose_per_step is None else args.pose_per_step == "on")
             results.append(r)
             print(f"{r['task']:<10} {n:>9} {mode:>8} {r['env_steps_per_s']:>14,.0f} {r['step_ms']:>9.3f}", flush=True)
     regime = "the expert's recorded actions replayed" if args.policy == "replay" else f"{args.policy} actions"

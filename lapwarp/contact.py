@@ -40,6 +40,8 @@ SURFACE_LEAF_SIZE = 8
 #: whether consecutive shapes on one body are culled as a group first (``ContactSystem.cull_groups``' default; a
 #: benchmark may clear it before the envs are built, to time the groups against their absence)
 CULL_GROUPS = True
+#: ``ContactSystem.pose_per_step``'s default (a benchmark may set it before the envs are built, to time it)
+POSE_PER_STEP = False
 
 _KINDS = {"sphere": 0, "capsule": 1, "box": 2, "plane": 3, "cylinder": 4, "mesh": 5, "surface": 6}
 
@@ -187,6 +189,10 @@ class ContactSystem:
         self.surface_leaf_size = SURFACE_LEAF_SIZE
         # cull consecutive shapes on one body by their group's bounding sphere first (_cull_groups; read at finalize)
         self.cull_groups = CULL_GROUPS
+        # pose the shapes of every substep in one launch at a step's first sweep (ck.pose_shapes_substeps) instead of
+        # a launch per sweep: the bodies move only between steps. Systems without triangles (their tool axes are
+        # posed per sweep with the shapes); read when the World records a step (record_key)
+        self.pose_per_step = POSE_PER_STEP
         self.shapes: list[Shape] = []
         self.groups: list[ParticleGroup] = []
         self.self_sets: list[dict] = []
@@ -657,6 +663,7 @@ class ContactSystem:
         self.ignore = make_struct(ck.IgnoreMask, bodies=self.ignore_bodies, enabled=int(self.body_ignore_mask))
         # per-substep bundles, built when a step is first recorded and kept: recorded launches read them
         self._motions: dict = {}
+        self._step_pose_cache: dict = {}
         self._solves: dict = {}
         self._finalized = True
         self.world.add_solver(self)
@@ -682,6 +689,28 @@ class ContactSystem:
             self._motions[key] = make_struct(BodyMotion, body_q_prev=bqp, body_q=bq, blend_prev=sweep.blend_prev,
                                              blend=sweep.blend)
         return self._motions[key]
+
+    def _step_poses(self, substeps: int) -> tuple:
+        """``pose_per_step``'s arrays for steps of ``substeps`` (cached): the step's poses ``(num_envs, substeps x
+        shapes)`` as a ``ShapePoses``, one ``ShapePoses`` per substep viewing its columns (the cull bounds and groups
+        shared), and the substeps' blends (float32, as the per-sweep structs carry them)."""
+        cached = self._step_pose_cache.get(substeps)
+        if cached is not None:
+            return cached
+        n, S, dev = self.num_envs, len(self.shapes), self.device
+        base = self._shape_poses
+        tf = wp.zeros((n, substeps * S), dtype=wp.transform, device=dev)
+        tf_inv = wp.zeros((n, substeps * S), dtype=wp.transform, device=dev)
+
+        def poses(a, b):
+            return make_struct(ck.ShapePoses, tf=a, tf_inv=b, bound=base.bound, group_start=base.group_start,
+                               group_centre=base.group_centre, group_radius=base.group_radius)
+
+        per_substep = [poses(tf[:, k * S:(k + 1) * S], tf_inv[:, k * S:(k + 1) * S]) for k in range(substeps)]
+        blends = wp.array(np.array([(k + 1) / substeps for k in range(substeps)], np.float32), dtype=float,
+                          device=dev)
+        cached = self._step_pose_cache[substeps] = (poses(tf, tf_inv), per_substep, blends)
+        return cached
 
     def _particle_solve(self, world, sweep) -> ck.ParticleSolve:
         # impulse m * dx / h summed over the sweeps, divided by the step duration -> mean force over the step
@@ -728,7 +757,7 @@ class ContactSystem:
             raise ValueError(f"triangle_block_threads must be in [1, 1024] (threads of one env's block), "
                              f"got {self.triangle_block_threads!r}")
         return (self.resolved_triangle_sweep(), int(self.triangle_block_threads), id(self.overflow_sink),
-                bool(self.fuse_segment_colors))
+                bool(self.fuse_segment_colors), bool(self.pose_per_step))
 
     def record_sweep(self, world, launch, sweep) -> None:
         """Record the contact projections of one sweep (called by the World while it records a step)."""
@@ -739,12 +768,20 @@ class ContactSystem:
         has_triangles = len(self.tri_color_offsets) > 1
         # a step's reports are cleared by its first sweep's pose kernel (or alone where there is none)
         clear = 1 if sweep.first else 0
+        poses = self._shape_poses
         if has_triangles:  # the triangle passes' tool axes with the shape poses
             lanes = launching.block_lanes(self.device, 32)  # a block per env, its lanes over the shapes
             # each tool's own box only for the sweep that reads it
             boxes = 1 if self.resolved_triangle_sweep() == "shape_codes" else 0
             launch(ck.pose_shapes_and_tools, (n, lanes), [shapes, motion, self._tri_pad, clear, boxes, reports],
                    [self._shape_poses, self._tool_axes], block_dim=lanes)
+        elif len(self.shapes) and self.pose_per_step:
+            # this substep's columns of the step's poses, every substep's posed by the step's first sweep
+            step_poses, per_substep, blends = self._step_poses(sweep.substeps)
+            poses = per_substep[sweep.substep]
+            if sweep.first:
+                launch(ck.pose_shapes_substeps, (n, sweep.substeps, len(self.shapes)),
+                       [shapes, motion, blends, clear, reports], [step_poses.tf, step_poses.tf_inv])
         elif len(self.shapes):
             launch(ck.pose_shapes, (n, len(self.shapes)), [shapes, motion, clear, reports], [self._shape_poses])
         elif clear:
@@ -753,19 +790,19 @@ class ContactSystem:
             # the variant without the mesh SDF query where no shape is a mesh (fewer registers)
             meshes = any(sh.kind == "mesh" for sh in self.shapes)
             launch(ck.particle_collision_kernel(meshes), (n, len(self.cp_particle)),
-                   [self._particles, shapes, motion, self._shape_poses, solve, ignore, masks, report,
+                   [self._particles, shapes, motion, poses, solve, ignore, masks, report,
                     self.report_margin], [q, reports])
         off = self.seg_color_offsets
         if len(off) > 2 and self.fuse_segment_colors:
             # every colour in one launch, a block per env with barriers between colours
             lanes = launching.block_lanes(self.device, 32)
             launch(ck.collide_segment_colors, (n, lanes),
-                   [self._segments, self._seg_color_table, shapes, motion, self._shape_poses, solve, ignore, masks],
+                   [self._segments, self._seg_color_table, shapes, motion, poses, solve, ignore, masks],
                    [q, reports], block_dim=lanes)
         else:
             for c in range(len(off) - 1):
                 launch(ck.collide_segments, (n, off[c + 1] - off[c]),
-                       [self._segments, off[c], shapes, motion, self._shape_poses, solve, ignore, masks],
+                       [self._segments, off[c], shapes, motion, poses, solve, ignore, masks],
                        [q, reports])
         off = self.tri_color_offsets
         sweep_kind = self.resolved_triangle_sweep()

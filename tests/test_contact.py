@@ -707,3 +707,45 @@ def test_shape_code_sweep_refuses_more_shapes_than_its_bits(device, monkeypatch)
     monkeypatch.setattr(ck, "SHAPE_CODE_MAX_SHAPES", 0)
     with pytest.raises(ValueError, match="6 bits per shape .* more than 0; use 'outcodes'"):
         _push_capsule(device, 0.1, kind="cloth", triangle_sweep="shape_codes")
+
+
+@pytest.mark.parametrize("iterations", [1, 2])
+def test_shapes_posed_once_per_step_give_the_same_contacts(device, iterations):
+    """``ContactSystem.pose_per_step`` (every substep's shape poses in one launch at a step's first sweep) against a
+    pose launch per sweep: a capsule and a sphere on a body that moves (and turns) during each step sweep through a
+    rod (segment contact) and loose particles lying on a plane; the same positions, contact counts and reported
+    forces (bit for bit on the CPU), at 1 and 2 sweeps per substep, with substeps x sweeps - 1 launches fewer per
+    step."""
+    runs = []
+    for once in (False, True):
+        b = SceneBuilder()
+        rod = b.add_rod(rod_polyline([[-0.03, 0.0, 0.002], [0.03, 0.0, 0.002]], 13), radius=5e-4, youngs_modulus=1e6)
+        loose = b.add_particles(np.array([[0.0, 0.01, 0.002], [0.005, -0.01, 0.002], [-0.01, 0.004, 0.002]]),
+                                mass=1.0e-3)
+        body = b.add_body("tool", pose=(-0.04, 0.0, 0.004, *_quat_axis_angle((1, 0, 0), math.pi / 2)))
+        w = b.finalize(num_envs=2, device=device, substeps=6, iterations=iterations)
+        cs = ContactSystem(w)
+        cs.add_particle_group(rod, radius=5e-4, segments=True, name="rod")
+        cs.add_particle_group(loose, radius=1e-3, name="loose")
+        cs.add_plane(thickness=5e-4)
+        cs.add_capsule(1e-3, 0.015, body=body, name="shaft")
+        cs.add_sphere(2e-3, body=body, transform=(0.0, 0.0, 0.012), name="tip")
+        cs.finalize()
+        cs.pose_per_step = once
+        pose = w.state.body_q.numpy()
+        for k in range(8):
+            pose[:, 0, 0] = -0.04 + 0.01 * (k + 1)  # 10 mm per step along x, through the rod's middle
+            pose[1, 0, 3:] = _quat_axis_angle((1.0, 0.2, 0.0), math.pi / 2 + 0.05 * (k + 1))  # env 1 also turns
+            w.state.body_q.assign(pose)
+            w.step(0.05)
+        launches = len(w._cmds)
+        runs.append((w.positions(), cs.counts(), cs.report_force.numpy(), launches))
+    (x0, c0, f0, n0), (x1, c1, f1, n1) = runs
+    assert n0 - n1 == 6 * iterations - 1
+    assert np.abs(x0[:, rod.particles, 0]).max() > 1e-3  # the tool carried the rod along x: contacts were projected
+    if device == "cpu":
+        np.testing.assert_array_equal(x0, x1)
+        np.testing.assert_array_equal(f0, f1)
+    else:
+        np.testing.assert_allclose(x0, x1, atol=1e-6)
+    np.testing.assert_array_equal(c0, c1)

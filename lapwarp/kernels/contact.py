@@ -410,6 +410,22 @@ def pose_shapes(shapes: ShapeTable, motion: BodyMotion, clear: int, reports: Con
     poses.tf_inv[env, s] = wp.transform_inverse(tf)
 
 
+@wp.kernel
+def pose_shapes_substeps(shapes: ShapeTable, motion: BodyMotion, blends: wp.array(dtype=float), clear: int,
+                         reports: ContactReports, tf: wp.array2d(dtype=wp.transform),
+                         tf_inv: wp.array2d(dtype=wp.transform)):
+    """``pose_shapes`` for every substep of a step in one launch (``ContactSystem.pose_per_step``): substep ``sub``'s
+    poses (at the fraction ``blends[sub]`` of the step) at columns ``sub * S .. sub * S + S - 1``. The bodies move
+    only between steps, so their poses at every substep are known at its start; ``motion``'s own blends go unused."""
+    env, sub, s = wp.tid()
+    if clear != 0 and sub == 0 and s == 0:
+        clear_env_reports(env, reports)
+    t = shape_pose(shapes, s, env, motion, blends[sub])
+    column = sub * shapes.kind.shape[0] + s
+    tf[env, column] = t
+    tf_inv[env, column] = wp.transform_inverse(t)
+
+
 _PARTICLE_KERNELS: dict = {}
 
 

@@ -4,7 +4,8 @@
 # skipped once DEADLINE (s, default 1000) has passed, then the learning queue JOBS with the time left:
 # 0. ThreadInHole's thread_newton_tolerance at 3e-4 m against 0 (the pcr solve stopping the thread's second Newton
 #    step, skipped in 97-99.9 % of sweeps on the CPU), twice each alternated, and its experts at 3e-4 (256 first
-#    episodes, three configurations); LigatingLoop's loop_newton_tolerance at 1e-4 m against 0;
+#    episodes, three configurations); LigatingLoop's loop_newton_tolerance at 1e-4 m against 0; the contact's shapes
+#    posed once per step (--pose-per-step on / off) on RopeThreading, RopeCutting and LigatingLoop;
 # 1. RopeThreading on its new default (the hybrid solve at 1e-4 m, 188.2k in the forty-second session): its profile
 #    after 20 warm-up steps, its RGB 64x64 step (146.2k before), the hybrid solve at 112 / 144 / 168 registers (128)
 #    and 3 / 5 rows per lane (4) now that the second Newton step mostly does not run;
@@ -36,6 +37,13 @@ if in_time ll_tol; then
   bench ll LigatingLoop expert
   bench ll_tol1e4 LigatingLoop expert --set loop_newton_tolerance=1e-4
 fi
+# the contact's shapes posed once per step (ContactSystem.pose_per_step, off by default until timed; bit-identical
+# on the CPU): the rod tasks without triangles
+for task in RopeThreading RopeCutting LigatingLoop; do
+  in_time "pose_$task" || continue
+  bench "pose_off_$task" "$task" expert --pose-per-step off
+  bench "pose_on_$task" "$task" expert --pose-per-step on
+done
 if in_time expert_tih; then
   PYTHONPATH=$new timeout 200 python3 benchmarks/expert_success.py --task ThreadInHole --device "$dev" \
     --num-envs 256 --action-types CONTINUOUS --config thread_newton_tolerance=3e-4 \
@@ -64,7 +72,8 @@ if in_time soak_rt; then
 fi
 if in_time pytest_tol; then
   PYTHONPATH=$new timeout 200 python3 -m pytest -q -p no:cacheprovider tests/test_chains_hybrid.py \
-    tests/test_thread_in_hole.py tests/test_ligating_loop.py -k "tolerance" --device "$dev" > "$out/pytest_cuda.txt" 2>&1
+    tests/test_thread_in_hole.py tests/test_ligating_loop.py tests/test_contact.py -k "tolerance or posed_once" \
+    --device "$dev" > "$out/pytest_cuda.txt" 2>&1
   echo "pytest rc=$? $(tail -1 "$out/pytest_cuda.txt")"
 fi
 for task in PrecisionCutting TissueDissection RopeCutting ThreadInHole RopeThreading LigatingLoop; do
