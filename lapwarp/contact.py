@@ -189,9 +189,9 @@ class ContactSystem:
         self.surface_leaf_size = SURFACE_LEAF_SIZE
         # cull consecutive shapes on one body by their group's bounding sphere first (_cull_groups; read at finalize)
         self.cull_groups = CULL_GROUPS
-        # pose the shapes of every substep in one launch at a step's first sweep (ck.pose_shapes_substeps) instead of
-        # a launch per sweep: the bodies move only between steps. Systems without triangles (their tool axes are
-        # posed per sweep with the shapes); read when the World records a step (record_key)
+        # pose the shapes (and the triangle passes' tool axes) of every substep in one launch at a step's first sweep
+        # (ck.pose_shapes_substeps, ck.pose_shapes_and_tools_substeps) instead of a launch per sweep: the bodies move
+        # only between steps; read when the World records a step (record_key)
         self.pose_per_step = POSE_PER_STEP
         self.shapes: list[Shape] = []
         self.groups: list[ParticleGroup] = []
@@ -528,6 +528,7 @@ class ContactSystem:
                 tgrp.append(np.full(len(g.triangles), k))
                 trad.append(np.full(len(g.triangles), g.radius))
         self.tri_color_offsets = [0]
+        self._tool_axes = None  # the triangle passes' tools (systems with triangles)
         if tris:
             tri_all = np.concatenate(tris)
             order, self.tri_color_offsets = color_graph(tri_all)
@@ -690,27 +691,54 @@ class ContactSystem:
                                              blend=sweep.blend)
         return self._motions[key]
 
-    def _step_poses(self, substeps: int) -> tuple:
+    def _step_poses(self, substeps: int) -> dict:
         """``pose_per_step``'s arrays for steps of ``substeps`` (cached): the step's poses ``(num_envs, substeps x
-        shapes)`` as a ``ShapePoses``, one ``ShapePoses`` per substep viewing its columns (the cull bounds and groups
-        shared), and the substeps' blends (float32, as the per-sweep structs carry them)."""
+        shapes)`` as a ``ShapePoses`` (``all_poses``) and one ``ShapePoses`` per substep viewing its columns
+        (``poses``; the cull bounds and groups shared); with triangles the tool axes likewise (``all_axes``,
+        ``axes``; each substep's env boxes at column ``sub`` of ``lo`` / ``hi``, viewed as its ``ToolAxes.lo`` /
+        ``hi``); the substeps' blends and their starts' (float32, as the per-sweep structs carry them)."""
         cached = self._step_pose_cache.get(substeps)
         if cached is not None:
             return cached
         n, S, dev = self.num_envs, len(self.shapes), self.device
         base = self._shape_poses
-        tf = wp.zeros((n, substeps * S), dtype=wp.transform, device=dev)
-        tf_inv = wp.zeros((n, substeps * S), dtype=wp.transform, device=dev)
 
-        def poses(a, b):
-            return make_struct(ck.ShapePoses, tf=a, tf_inv=b, bound=base.bound, group_start=base.group_start,
+        def zeros(dtype, columns=substeps * S):
+            return wp.zeros((n, columns), dtype=dtype, device=dev)
+
+        def cols(a, k):
+            return a[:, k * S:(k + 1) * S]
+
+        def shape_poses(tf, tf_inv):
+            return make_struct(ck.ShapePoses, tf=tf, tf_inv=tf_inv, bound=base.bound, group_start=base.group_start,
                                group_centre=base.group_centre, group_radius=base.group_radius)
 
-        per_substep = [poses(tf[:, k * S:(k + 1) * S], tf_inv[:, k * S:(k + 1) * S]) for k in range(substeps)]
-        blends = wp.array(np.array([(k + 1) / substeps for k in range(substeps)], np.float32), dtype=float,
-                          device=dev)
-        cached = self._step_pose_cache[substeps] = (poses(tf, tf_inv), per_substep, blends)
-        return cached
+        tf, tf_inv = zeros(wp.transform), zeros(wp.transform)
+        step = {"all_poses": shape_poses(tf, tf_inv),
+                "poses": [shape_poses(cols(tf, k), cols(tf_inv, k)) for k in range(substeps)],
+                "blends": wp.array(np.array([(k + 1) / substeps for k in range(substeps)], np.float32), dtype=float,
+                                   device=dev),
+                "blends_prev": wp.array(np.array([k / substeps for k in range(substeps)], np.float32), dtype=float,
+                                        device=dev)}
+        if len(self.tri_color_offsets) > 1:
+            one = self._tool_axes
+            boxes = one.box_centre.shape[1] > 0  # the shape-code sweep's boxes: a column per shape, else none
+            arrays = {"c0": zeros(wp.vec3), "c1": zeros(wp.vec3), "tf0": zeros(wp.transform),
+                      "back": zeros(wp.transform)}
+            if boxes:
+                arrays.update(box_centre=zeros(wp.vec3), box_frame=zeros(wp.mat33), box_half=zeros(wp.vec3))
+            lo, hi = zeros(wp.vec3, substeps), zeros(wp.vec3, substeps)
+
+            def axes(k):
+                views = {name: (a if k is None else cols(a, k)) for name, a in arrays.items()}
+                if not boxes:
+                    views.update(box_centre=one.box_centre, box_frame=one.box_frame, box_half=one.box_half)
+                return make_struct(ck.ToolAxes, lo=one.lo if k is None else lo[:, k],
+                                   hi=one.hi if k is None else hi[:, k], **views)
+
+            step.update(all_axes=axes(None), axes=[axes(k) for k in range(substeps)], lo=lo, hi=hi)
+        self._step_pose_cache[substeps] = step
+        return step
 
     def _particle_solve(self, world, sweep) -> ck.ParticleSolve:
         # impulse m * dx / h summed over the sweeps, divided by the step duration -> mean force over the step
@@ -768,20 +796,30 @@ class ContactSystem:
         has_triangles = len(self.tri_color_offsets) > 1
         # a step's reports are cleared by its first sweep's pose kernel (or alone where there is none)
         clear = 1 if sweep.first else 0
-        poses = self._shape_poses
+        poses, axes = self._shape_poses, self._tool_axes
         if has_triangles:  # the triangle passes' tool axes with the shape poses
             lanes = launching.block_lanes(self.device, 32)  # a block per env, its lanes over the shapes
             # each tool's own box only for the sweep that reads it
             boxes = 1 if self.resolved_triangle_sweep() == "shape_codes" else 0
-            launch(ck.pose_shapes_and_tools, (n, lanes), [shapes, motion, self._tri_pad, clear, boxes, reports],
-                   [self._shape_poses, self._tool_axes], block_dim=lanes)
+            if self.pose_per_step:
+                # this substep's columns of the step's poses and axes, every substep's formed by the step's first sweep
+                step = self._step_poses(sweep.substeps)
+                poses, axes = step["poses"][sweep.substep], step["axes"][sweep.substep]
+                if sweep.first:
+                    launch(ck.pose_shapes_and_tools_substeps, (n, lanes),
+                           [shapes, motion, step["blends"], step["blends_prev"], self._tri_pad, clear, boxes,
+                            reports], [step["all_poses"], step["all_axes"], step["lo"], step["hi"]], block_dim=lanes)
+            else:
+                launch(ck.pose_shapes_and_tools, (n, lanes), [shapes, motion, self._tri_pad, clear, boxes, reports],
+                       [self._shape_poses, self._tool_axes], block_dim=lanes)
         elif len(self.shapes) and self.pose_per_step:
             # this substep's columns of the step's poses, every substep's posed by the step's first sweep
-            step_poses, per_substep, blends = self._step_poses(sweep.substeps)
-            poses = per_substep[sweep.substep]
+            step = self._step_poses(sweep.substeps)
+            poses = step["poses"][sweep.substep]
             if sweep.first:
                 launch(ck.pose_shapes_substeps, (n, sweep.substeps, len(self.shapes)),
-                       [shapes, motion, blends, clear, reports], [step_poses.tf, step_poses.tf_inv])
+                       [shapes, motion, step["blends"], clear, reports],
+                       [step["all_poses"].tf, step["all_poses"].tf_inv])
         elif len(self.shapes):
             launch(ck.pose_shapes, (n, len(self.shapes)), [shapes, motion, clear, reports], [self._shape_poses])
         elif clear:
@@ -809,19 +847,19 @@ class ContactSystem:
         if has_triangles and sweep_kind == "fused":
             threads = launching.block_lanes(self.device, self.triangle_block_threads)
             launch(ck.collide_triangle_colors, (n, threads),
-                   [self._triangles, self._tri_color_table, shapes, self._tool_axes, solve, ignore, masks],
+                   [self._triangles, self._tri_color_table, shapes, axes, solve, ignore, masks],
                    [q, reports], block_dim=threads)
         elif has_triangles and sweep_kind in ("outcodes", "shape_codes"):
             threads = launching.block_lanes(self.device, self.triangle_block_threads)
             first, window = self._tri_window
             kernel = ck.collide_triangle_outcodes_kernel(window, per_shape=sweep_kind == "shape_codes")
             launch(kernel, (n, threads),
-                   [self._triangles, self._tri_color_table, first, shapes, self._tool_axes, solve, ignore, masks],
+                   [self._triangles, self._tri_color_table, first, shapes, axes, solve, ignore, masks],
                    [q, reports], block_dim=threads)
         elif has_triangles:
             for c in range(len(off) - 1):
                 launch(ck.collide_triangles, (n, off[c + 1] - off[c]),
-                       [self._triangles, off[c], shapes, self._tool_axes, solve, ignore, masks], [q, reports])
+                       [self._triangles, off[c], shapes, axes, solve, ignore, masks], [q, reports])
         for sf in self._surfaces:
             if len(sf["candidates"]) == 0:
                 continue  # nothing queries this surface

@@ -670,34 +670,28 @@ class ToolAxes:
     box_half: wp.array2d(dtype=wp.vec3)
 
 
-@wp.kernel
-def pose_shapes_and_tools(shapes: ShapeTable, motion: BodyMotion, pad: float, clear: int, boxes: int,
-                          reports: ContactReports, poses: ShapePoses, axes: ToolAxes):
-    """``pose_shapes`` and the tool axes of the triangle passes in one launch (a system with contact triangles): both
-    are a few transforms per env, nearly all launch cost when apart. A thread block per env (launch ``(num_envs,
-    lanes)``), its lanes over the shapes, then the env's tool box as a block-wide minimum and maximum: one thread
-    walking the shapes was latency-bound (TissueDissection: 0.525 ms of its 21.1 ms step, H200). On the CPU one lane
-    walks them in order. With ``clear`` (a step's first sweep) lane 0 also clears the env's contact reports; with
-    ``boxes`` (the shape-code sweep) each tool's own box along its axis is formed too."""
-    env, lane = wp.tid()
-    lanes = wp.block_dim()
-    if clear != 0 and lane == 0:
-        clear_env_reports(env, reports)
+@wp.func
+def pose_env_shapes_and_tools(shapes: ShapeTable, motion: BodyMotion, blend: float, blend_prev: float, pad: float,
+                              boxes: int, env: int, lane: int, lanes: int, col: int, poses: ShapePoses,
+                              axes: ToolAxes):
+    """One env's shape poses and tool axes at the fraction ``blend`` of the step (the substep's start at
+    ``blend_prev``), written at columns ``col + s``; every lane of the env's block calls it (its box is a block-wide
+    minimum and maximum). Returns the env's padded tool box ``(lo, hi)``."""
     lo = wp.vec3(1.0e30)
     hi = wp.vec3(-1.0e30)
     for s in range(lane, shapes.kind.shape[0], lanes):
-        tf = shape_pose(shapes, s, env, motion, motion.blend)
-        poses.tf[env, s] = tf
-        poses.tf_inv[env, s] = wp.transform_inverse(tf)
+        tf = shape_pose(shapes, s, env, motion, blend)
+        poses.tf[env, col + s] = tf
+        poses.tf_inv[env, col + s] = wp.transform_inverse(tf)
         if shapes.kind[s] > SHAPE_CAPSULE:
             continue
         a = shape_axis_end(shapes, s, tf, -1.0)
         b = shape_axis_end(shapes, s, tf, 1.0)
-        axes.c0[env, s] = a
-        axes.c1[env, s] = b
-        tf0 = shape_pose(shapes, s, env, motion, motion.blend_prev)
-        axes.tf0[env, s] = tf0
-        axes.back[env, s] = wp.transform_multiply(tf0, wp.transform_inverse(tf))
+        axes.c0[env, col + s] = a
+        axes.c1[env, col + s] = b
+        tf0 = shape_pose(shapes, s, env, motion, blend_prev)
+        axes.tf0[env, col + s] = tf0
+        axes.back[env, col + s] = wp.transform_multiply(tf0, wp.transform_inverse(tf))
         r = wp.vec3(shapes.params[s][0] + shapes.thickness[s])
         lo = wp.min(lo, wp.min(a, b) - r)
         hi = wp.max(hi, wp.max(a, b) + r)
@@ -713,16 +707,55 @@ def pose_shapes_and_tools(shapes: ShapeTable, motion: BodyMotion, pad: float, cl
                 e = wp.vec3(0.0, 1.0, 0.0)
             u = wp.normalize(wp.cross(w, e))
             reach = r[0] + pad
-            axes.box_centre[env, s] = 0.5 * (a + b)
-            axes.box_frame[env, s] = wp.matrix_from_rows(u, wp.cross(w, u), w)
-            axes.box_half[env, s] = wp.vec3(reach, reach, half_len + reach)
+            axes.box_centre[env, col + s] = 0.5 * (a + b)
+            axes.box_frame[env, col + s] = wp.matrix_from_rows(u, wp.cross(w, u), w)
+            axes.box_half[env, col + s] = wp.vec3(reach, reach, half_len + reach)
     box_lo = wp.vec3(wp.tile_extract(wp.tile_min(wp.tile(lo[0])), 0), wp.tile_extract(wp.tile_min(wp.tile(lo[1])), 0),
                      wp.tile_extract(wp.tile_min(wp.tile(lo[2])), 0))
     box_hi = wp.vec3(wp.tile_extract(wp.tile_max(wp.tile(hi[0])), 0), wp.tile_extract(wp.tile_max(wp.tile(hi[1])), 0),
                      wp.tile_extract(wp.tile_max(wp.tile(hi[2])), 0))
+    return box_lo - wp.vec3(pad), box_hi + wp.vec3(pad)
+
+
+@wp.kernel
+def pose_shapes_and_tools(shapes: ShapeTable, motion: BodyMotion, pad: float, clear: int, boxes: int,
+                          reports: ContactReports, poses: ShapePoses, axes: ToolAxes):
+    """``pose_shapes`` and the tool axes of the triangle passes in one launch (a system with contact triangles): both
+    are a few transforms per env, nearly all launch cost when apart. A thread block per env (launch ``(num_envs,
+    lanes)``), its lanes over the shapes, then the env's tool box as a block-wide minimum and maximum: one thread
+    walking the shapes was latency-bound (TissueDissection: 0.525 ms of its 21.1 ms step, H200). On the CPU one lane
+    walks them in order. With ``clear`` (a step's first sweep) lane 0 also clears the env's contact reports; with
+    ``boxes`` (the shape-code sweep) each tool's own box along its axis is formed too."""
+    env, lane = wp.tid()
+    lanes = wp.block_dim()
+    if clear != 0 and lane == 0:
+        clear_env_reports(env, reports)
+    lo, hi = pose_env_shapes_and_tools(shapes, motion, motion.blend, motion.blend_prev, pad, boxes, env, lane, lanes,
+                                       0, poses, axes)
     if lane == 0:
-        axes.lo[env] = box_lo - wp.vec3(pad)
-        axes.hi[env] = box_hi + wp.vec3(pad)
+        axes.lo[env] = lo
+        axes.hi[env] = hi
+
+
+@wp.kernel
+def pose_shapes_and_tools_substeps(shapes: ShapeTable, motion: BodyMotion, blends: wp.array(dtype=float),
+                                   blends_prev: wp.array(dtype=float), pad: float, clear: int, boxes: int,
+                                   reports: ContactReports, poses: ShapePoses, axes: ToolAxes,
+                                   lo_all: wp.array2d(dtype=wp.vec3), hi_all: wp.array2d(dtype=wp.vec3)):
+    """``pose_shapes_and_tools`` for every substep of a step in one launch (``ContactSystem.pose_per_step``):
+    substep ``sub``'s poses and axes at columns ``sub * S ..`` of ``poses`` / ``axes`` and its box at
+    ``lo_all[env, sub]``, ``hi_all[env, sub]`` (``axes.lo`` / ``axes.hi`` go unused)."""
+    env, lane = wp.tid()
+    lanes = wp.block_dim()
+    if clear != 0 and lane == 0:
+        clear_env_reports(env, reports)
+    S = shapes.kind.shape[0]
+    for sub in range(blends.shape[0]):
+        lo, hi = pose_env_shapes_and_tools(shapes, motion, blends[sub], blends_prev[sub], pad, boxes, env, lane,
+                                           lanes, sub * S, poses, axes)
+        if lane == 0:
+            lo_all[env, sub] = lo
+            hi_all[env, sub] = hi
 
 
 @wp.func

@@ -5,7 +5,8 @@
 # 0. ThreadInHole's thread_newton_tolerance at 3e-4 m against 0 (the pcr solve stopping the thread's second Newton
 #    step, skipped in 97-99.9 % of sweeps on the CPU), twice each alternated, and its experts at 3e-4 (256 first
 #    episodes, three configurations); LigatingLoop's loop_newton_tolerance at 1e-4 m against 0; the contact's shapes
-#    posed once per step (--pose-per-step on / off) on RopeThreading, RopeCutting and LigatingLoop;
+#    posed once per step (--pose-per-step on / off) on RopeThreading, RopeCutting, LigatingLoop, ThreadInHole and
+#    TissueDissection;
 # 1. RopeThreading on its new default (the hybrid solve at 1e-4 m, 188.2k in the forty-second session): its profile
 #    after 20 warm-up steps, its RGB 64x64 step (146.2k before), the hybrid solve at 112 / 144 / 168 registers (128)
 #    and 3 / 5 rows per lane (4) now that the second Newton step mostly does not run;
@@ -37,9 +38,9 @@ if in_time ll_tol; then
   bench ll LigatingLoop expert
   bench ll_tol1e4 LigatingLoop expert --set loop_newton_tolerance=1e-4
 fi
-# the contact's shapes posed once per step (ContactSystem.pose_per_step, off by default until timed; bit-identical
-# on the CPU): the rod tasks without triangles
-for task in RopeThreading RopeCutting LigatingLoop; do
+# the contact's shapes (and tool axes) posed once per step (ContactSystem.pose_per_step, off by default until timed;
+# bit-identical on the CPU)
+for task in RopeThreading RopeCutting LigatingLoop ThreadInHole TissueDissection; do
   in_time "pose_$task" || continue
   bench "pose_off_$task" "$task" expert --pose-per-step off
   bench "pose_on_$task" "$task" expert --pose-per-step on
