@@ -801,7 +801,7 @@ class ContactSystem:
             lanes = launching.block_lanes(self.device, 32)  # a block per env, its lanes over the shapes
             # each tool's own box only for the sweep that reads it
             boxes = 1 if self.resolved_triangle_sweep() == "shape_codes" else 0
-            if self.pose_per_step:
+            if self.pose_per_step and len(self.shapes):
                 # this substep's columns of the step's poses and axes, every substep's formed by the step's first sweep
                 step = self._step_poses(sweep.substeps)
                 poses, axes = step["poses"][sweep.substep], step["axes"][sweep.substep]

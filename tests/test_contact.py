@@ -770,3 +770,22 @@ def test_tool_axes_formed_once_per_step_give_the_same_contacts(device, sweep_kin
         np.testing.assert_array_equal(runs[0], runs[1])
     else:
         np.testing.assert_allclose(runs[0], runs[1], atol=1e-6)
+
+
+def test_pose_per_step_without_shapes(device):
+    """A system with triangles and particles but no shape (nothing to pose) steps with ``pose_per_step`` as without:
+    the cloth falls freely, the same positions."""
+    out = []
+    for once in (False, True):
+        b = SceneBuilder()
+        v, tri = cloth_grid(4, 4, 0.01, 0.01, plane="xy", origin=(0.0, 0.0, 0.05))
+        cloth = b.add_cloth(v, tri, areal_density=0.2, stretch_stiffness=100.0, bend_stiffness=0.0)
+        w = b.finalize(num_envs=1, device=device, substeps=3)
+        cs = ContactSystem(w)
+        cs.add_particle_group(cloth, radius=2.5e-4, triangles=True)
+        cs.finalize()
+        cs.pose_per_step = once
+        w.simulate(0.1, 0.05)
+        out.append(w.positions())
+    assert out[0][0, :, 2].max() < 0.05  # it fell
+    np.testing.assert_array_equal(out[0], out[1])
