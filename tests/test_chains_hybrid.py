@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 import warp as wp
 from test_chains_partitioned import TOL, _cloth_world, _rod_world, _worst
+from test_chains_registers import _assert_same
 
 
 @pytest.fixture(autouse=True)
@@ -189,13 +190,6 @@ def _stopping_rods(device, solver: str, newton_steps: int, iterations: int, tole
     return world.positions(), rods
 
 
-def _same(device, a, b, rods):
-    if wp.get_device(device).is_cpu:
-        np.testing.assert_array_equal(a, b)
-    else:  # the variants may contract multiply-adds differently
-        assert _worst(a, b, rods) <= TOL
-
-
 @pytest.mark.parametrize("solver", ["hybrid", "pcr"])
 @pytest.mark.parametrize("iterations", [1, 2])
 def test_block_newton_tolerance_stops_the_steps(device, solver, iterations):
@@ -206,8 +200,8 @@ def test_block_newton_tolerance_stops_the_steps(device, solver, iterations):
     one, rods = _stopping_rods(device, solver, 1, iterations, 0.0)
     three, _ = _stopping_rods(device, solver, 3, iterations, 0.0)
     assert _worst(one, three, rods) > 10 * TOL  # the later Newton steps move the rods
-    _same(device, one, _stopping_rods(device, solver, 3, iterations, 1.0)[0], rods)
-    _same(device, three, _stopping_rods(device, solver, 3, iterations, 1e-30)[0], rods)
+    _assert_same(device, one, _stopping_rods(device, solver, 3, iterations, 1.0)[0], rods)
+    _assert_same(device, three, _stopping_rods(device, solver, 3, iterations, 1e-30)[0], rods)
 
 
 @pytest.mark.parametrize("solver", ["hybrid", "pcr"])

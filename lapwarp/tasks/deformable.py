@@ -19,13 +19,14 @@ from lapwarp import launching
 wp.set_module_options({"enable_backward": False})
 
 
-def rope_newton_tolerance(field: str, value: float | None, chain_solver: str, stopping_solver: str,
-                          default: float) -> float:
-    """``World.rod_newton_tolerance`` for a rope (thread) task's config ``field`` of ``value``: ``None`` means
-    ``default`` where the ropes run ``stopping_solver`` (the task's GPU chain solve, one that stops early) and 0
-    elsewhere (every Newton step); a value > 0 with a solver that runs every step is refused rather than ignored."""
+def rope_newton_tolerance(field: str, value: float | None, chain_solver: str,
+                          default_on: tuple[str, float] | None = None) -> float:
+    """``World.rod_newton_tolerance`` for a rope (thread) task's config ``field`` of ``value``: ``None`` means the
+    tolerance of ``default_on = (solver, tolerance)`` where the ropes run that solver (the task's GPU chain solve,
+    one that stops early) and 0 elsewhere (every Newton step); a value > 0 with a solver that runs every step is
+    refused rather than ignored."""
     if value is None:
-        return default if chain_solver == stopping_solver else 0.0
+        return default_on[1] if default_on is not None and chain_solver == default_on[0] else 0.0
     if value and chain_solver not in ("registers", "hybrid", "pcr"):
         raise ValueError(f"{field}={value!r} stops the Newton steps of the register-resident, hybrid and pcr chain "
                          f"solves only; this env runs chain_solver {chain_solver!r}: leave it None or 0")

@@ -533,7 +533,7 @@ class RopeCuttingEnv(BatchedEnv):
         world = builder.finalize(num_envs=n, device=str(dev), substeps=cfg.physics_substeps, seed=cfg.seed)
         world.rod_newton_steps = cfg.rope_newton_steps
         world.rod_newton_tolerance = rope_newton_tolerance("rope_newton_tolerance", cfg.rope_newton_tolerance,
-                                                           self.chain_solver, "registers", 0.0)
+                                                           self.chain_solver)
         # the rods' fused sweep (one warp per env) at 64 registers instead of 71: 32 blocks per SM hold 4,096 envs
         # in one wave instead of 1.11 (sm_90; a 16 B spill frame). H200, expert, 4,096 envs, same call as the
         # uncapped step: 320.2k -> 326.6k env-steps/s (benchmarks/RESULTS.md, thirty-sixth session; the CPU

@@ -738,8 +738,7 @@ class LigatingLoopEnv(BatchedEnv):
         N = cfg.num_loop_points
         self._start_tip = start_tip(cfg.loop_tpsd())
         # checked before the bank settles (which runs on the serial walk, every Newton step)
-        tolerance = rope_newton_tolerance("loop_newton_tolerance", cfg.loop_newton_tolerance, self.chain_solver,
-                                          "pcr", 0.0)
+        tolerance = rope_newton_tolerance("loop_newton_tolerance", cfg.loop_newton_tolerance, self.chain_solver)
         self._settle_bank()
         world, self.rig, self.loop, self.cavity, self.closure, self.contact = self._scene(n, cavity=True)
         world.rod_newton_tolerance = tolerance  # the env's world only: the bank settled on the serial walk

@@ -1175,7 +1175,7 @@ class RopeThreadingEnv(BatchedEnv):
         self._start_tip = start_tip(self.cfg.grasper_tpsd("right"))
         # checked first: a value the chain solver would not honour is refused before the bank settles
         tolerance = rope_newton_tolerance("rope_newton_tolerance", cfg.rope_newton_tolerance, self.chain_solver,
-                                          "hybrid", ROPE_NEWTON_TOLERANCE)
+                                          default_on=("hybrid", ROPE_NEWTON_TOLERANCE))
         low, high = cfg.grasp_index_noise
         self._bank_first = cfg.grasp_index + low
         self._settle_bank(high - low)

@@ -694,8 +694,7 @@ class ThreadInHoleEnv(BatchedEnv):
                                  attachment_capacity=1)
         world.tet_method = cfg.hole_solver
         # checked here, set after the settle below (which runs on the World's own serial walk, every Newton step)
-        tolerance = rope_newton_tolerance("thread_newton_tolerance", cfg.thread_newton_tolerance, self.chain_solver,
-                                          "pcr", 0.0)
+        tolerance = rope_newton_tolerance("thread_newton_tolerance", cfg.thread_newton_tolerance, self.chain_solver)
         world.tet_rotation_update = cfg.hole_rotation_update
         world.tet_rotation_refresh = cfg.hole_rotation_refresh
         if cfg.hole_solver == "vbd" and cfg.hole_rotation_update == "sweep":
