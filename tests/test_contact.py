@@ -208,6 +208,7 @@ def test_outcode_sweep_matches_the_fused_sweep_in_a_cutting_task(device):
     for sweep in ("fused", "outcodes", "shape_codes"):
         env = lapwarp.make("TissueDissection", num_envs=2, device=device, seed=3)
         env.contact.triangle_sweep = sweep
+        env.contact.pose_per_step = False  # the boxes read below are the per-sweep ones (the same values either way)
         expert = make_expert(env)
         env.reset()
         for _ in range(40):
@@ -677,6 +678,7 @@ def test_shape_code_sweep_culls_to_each_tool_in_precision_cutting(device):
     for sweep in ("outcodes", "shape_codes"):
         env = lapwarp.make("PrecisionCutting", num_envs=2, device=device, seed=3)
         env.contact.triangle_sweep = sweep
+        env.contact.pose_per_step = False  # the boxes read below are the per-sweep ones (the same values either way)
         expert = make_expert(env)
         env.reset()
         for step in range(60):

@@ -24,6 +24,7 @@ from lapwarp.assets import hollow_cylinder_tets
 from lapwarp.kernels.kinematics import point_to_ptsd
 from lapwarp.tasks.thread_manipulation.thread_in_hole import (
     CONFIGURATIONS,
+    THREAD_NEWTON_TOLERANCE,
     WORKSPACE,
     ThreadInHoleEnv,
     ThreadInHoleExpert,
@@ -303,17 +304,18 @@ def test_invalid_configuration_raises(overrides, message):
 
 
 def test_thread_newton_tolerance():
-    """The thread's Newton tolerance reaches the World where the pcr solve runs the thread and is refused with the
-    serial walk (which runs every step); with 3e-4 m the thread of 2 envs ends 10 no-op env steps within 1e-6 m of
-    every step's (measured 1.4e-7 m on the CPU: the second steps skipped correct at most 2.4e-7 m along the expert's
-    episodes, docs/physics.md)."""
+    """The thread's Newton tolerance reaches the World where the pcr solve runs the thread (its default there
+    ``THREAD_NEWTON_TOLERANCE``, 0 on the serial walk, which runs every step, and a value with it refused); with the
+    default 3e-4 m the thread of 2 envs ends 10 no-op env steps within 1e-6 m of every step's (measured 1.4e-7 m on the
+    CPU: the second steps skipped correct at most 2.4e-7 m along the expert's episodes, docs/physics.md)."""
     assert make().world.rod_newton_tolerance == 0.0
+    assert THREAD_NEWTON_TOLERANCE == 3e-4
     with pytest.raises(ValueError, match="thread_newton_tolerance=.*register-resident, hybrid and pcr chain solves"):
         make(chain_solver="thomas", thread_newton_tolerance=3e-4)
     out = []
-    for tolerance in (0.0, 3e-4):
+    for tolerance, expected in ((0.0, 0.0), (None, THREAD_NEWTON_TOLERANCE)):
         env = make(num_envs=2, chain_solver="pcr", thread_newton_tolerance=tolerance)
-        assert env.world.rod_newton_tolerance == tolerance
+        assert env.world.rod_newton_tolerance == expected
         env.reset()
         for _ in range(10):
             env.step(zeros(env))

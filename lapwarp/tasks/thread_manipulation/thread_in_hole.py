@@ -102,6 +102,11 @@ from lapwarp.tasks.spec import Feature, ObservationLayout, ObservationSpec, Rewa
 from lapwarp.visuals import CameraSpec, VisualObject, VisualScene, look_at_transform
 from lapwarp.world import World
 
+#: the thread's Newton tolerance (m) where the pcr solve runs it (``ThreadInHoleConfig.thread_newton_tolerance``): the
+#: second Newton step runs only after a first that corrected a link by this much or more (skipped in 97-99.9 % of the
+#: expert's sweeps, CPU, those corrections <= 2.4e-7 m); H200, 4,096 envs, same call: 199.9k -> 204.9k env-steps/s
+THREAD_NEWTON_TOLERANCE = 3.0e-4
+
 wp.set_module_options({"enable_backward": False})
 
 REWARDS = RewardSpec(
@@ -175,10 +180,13 @@ class ThreadInHoleConfig(EnvConfig):
             thread at 4 lies within 6 um of its shape at 40 (normal; inverted 8 um; CPU).
         thread_newton_tolerance: (m) the thread stops its 2 Newton steps per sweep once one corrected none of its
             links by this much (``World.rod_newton_tolerance``; the register-resident, hybrid and pcr solves only, a
-            value with another chain solver raises ``ValueError``). Default 0: every step. Along the expert's
-            episodes (CPU, 8 envs, 60 env steps, an instrumented copy of the solve) the first steps corrected 1e-4 to
-            3e-4 m and the second never more than 2.4e-7 m; 3e-4 m would skip the second in 99.9 % of sweeps (normal),
-            96.8 % (flexible), 99.8 % (inverted): a candidate default, untimed on the GPU.
+            value with another chain solver raises ``ValueError``). ``None`` (default): ``THREAD_NEWTON_TOLERANCE`` =
+            3e-4 m where the pcr solve runs the thread (the GPU's ``chain_solver`` "auto"), else 0 (every step; the
+            CPU's serial walk). Along the expert's episodes (CPU, 8 envs, 60 env steps, an instrumented copy of the
+            solve) the first steps corrected 1e-4 to 3e-4 m and the second never more than 2.4e-7 m; 3e-4 m skips the
+            second in 99.9 % of sweeps (normal), 96.8 % (flexible), 99.8 % (inverted). H200, expert, 4,096 envs, same
+            call: 199.9k / 200.0k -> 204.9k / 204.9k env-steps/s; the expert 256 / 256 first episodes in each
+            configuration (forty-third session).
         camera_position / camera_look_at: sofa_env's camera (vertical FoV 62 degrees), m.
         camera_reset_noise: uniform +- noise of the camera's position and look-at point per reset, m (the paper's
             image configuration with camera noise: 0.02; 0: none).
@@ -208,7 +216,7 @@ class ThreadInHoleConfig(EnvConfig):
     poisson_ratio: Annotated[float, Range(ge=0.0, lt=0.5)] = 0.3
     settle_steps: Annotated[int, Range(ge=1, le=10_000)] = 50
     physics_substeps: Count(10_000) = 4
-    thread_newton_tolerance: NonNegative = 0.0
+    thread_newton_tolerance: NonNegative | None = None
     camera_position: tuple[float, float, float] = (0.0, -0.135, 0.1)
     camera_look_at: tuple[float, float, float] = (0.0, 0.0, 0.045)
     camera_reset_noise: NonNegative = 0.0
@@ -694,7 +702,8 @@ class ThreadInHoleEnv(BatchedEnv):
                                  attachment_capacity=1)
         world.tet_method = cfg.hole_solver
         # checked here, set after the settle below (which runs on the World's own serial walk, every Newton step)
-        tolerance = rope_newton_tolerance("thread_newton_tolerance", cfg.thread_newton_tolerance, self.chain_solver)
+        tolerance = rope_newton_tolerance("thread_newton_tolerance", cfg.thread_newton_tolerance, self.chain_solver,
+                                          default_on=("pcr", THREAD_NEWTON_TOLERANCE))
         world.tet_rotation_update = cfg.hole_rotation_update
         world.tet_rotation_refresh = cfg.hole_rotation_refresh
         if cfg.hole_solver == "vbd" and cfg.hole_rotation_update == "sweep":
