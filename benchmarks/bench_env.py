@@ -96,7 +96,7 @@ def bench_one(task: str, num_envs: int, device: str, seconds: float, invalid_act
               replay_steps: int = 600, max_registers: dict[str, int] | None = None, pcr_rows: int | None = None,
               rod_solver: str | None = None, lane_rows: int | None = None,
               surface_leaf_size: int | None = None, cull_groups: bool = True,
-              pose_per_step: bool | None = None) -> dict:
+              pose_per_step: bool | None = None, rod_block_threads: int | None = None) -> dict:
     def make_env():
         # the leaf size and the cull groups are read when the task finalizes its contact system, i.e. while the env is
         # built (an older lapwarp, timed beside this one, may have neither: it is left alone there)
@@ -126,6 +126,8 @@ def bench_one(task: str, num_envs: int, device: str, seconds: float, invalid_act
             env.world.chain_lane_rows = lane_rows
         if rod_solver is not None:
             env.world.rod_solver = rod_solver
+        if rod_block_threads is not None:
+            env.world.rod_block_threads = rod_block_threads
         apply_contact_settings(env, triangle_sweep, triangle_block_threads, pose_per_step)
         return env
 
@@ -190,6 +192,7 @@ def bench_one(task: str, num_envs: int, device: str, seconds: float, invalid_act
         "max_registers": dict(getattr(env.world, "register_caps", env.world.max_registers)),
         "chain_solver": env.world.chain_solver,
         "rod_solver": env.world.rod_solver if env.world.model.segment_count else None,
+        "rod_block_threads": env.world.rod_block_threads if env.world.model.segment_count else None,
         "chain_pcr_rows": env.world.chain_pcr_rows if env.world.chain_solver in ("pcr", "hybrid") else None,
         "chain_lane_rows": env.world.chain_lane_rows if env.world.chain_solver == "hybrid" else None,
     }
@@ -240,6 +243,9 @@ def main(argv: list[str] | None = None) -> int:
                              "world's)")
     parser.add_argument("--rod-solver", choices=list(ROD_SOLVERS), default=None,
                         help="the world's rod sweep: one launch per colour or all colours in one (default: its own)")
+    parser.add_argument("--rod-block-threads", type=positive_int, default=None,
+                        help="lanes of the fused rod sweep's block per env (world.rod_block_threads; default: the "
+                             "world's)")
     parser.add_argument("--no-graph", action="store_true",
                         help="launch the step's kernels one by one instead of replaying a CUDA graph")
     parser.add_argument("--out", default=None, help="JSON output path")
@@ -270,7 +276,8 @@ def main(argv: list[str] | None = None) -> int:
                           replay_steps=args.replay_steps, max_registers=max_registers, pcr_rows=args.pcr_rows,
                           rod_solver=args.rod_solver, lane_rows=args.lane_rows,
                           surface_leaf_size=args.surface_leaf_size, cull_groups=not args.no_cull_groups,
-                          pose_per_step=None if args.pose_per_step is None else args.pose_per_step == "on")
+                          pose_per_step=None if args.pose_per_step is None else args.pose_per_step == "on",
+                          rod_block_threads=args.rod_block_threads)
             results.append(r)
             print(f"{r['task']:<10} {n:>9} {mode:>8} {r['env_steps_per_s']:>14,.0f} {r['step_ms']:>9.3f}", flush=True)
     regime = "the expert's recorded actions replayed" if args.policy == "replay" else f"{args.policy} actions"

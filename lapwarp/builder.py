@@ -953,6 +953,12 @@ class SceneBuilder:
             state.attach_body = wp.array(ab, dtype=wp.int32, device=dev)
             state.attach_offset = wp.array(ao, dtype=wp.vec3, device=dev)
             state.attach_compliance = wp.array(ac, dtype=float, device=dev)
+            # held rod segments (grasping writes them; the attachment pass turns a held segment with its body)
+            state.attach_segment = wp.array(np.full((N, cap), -1, dtype=np.int32), dtype=wp.int32, device=dev)
+            rot = np.zeros((N, cap, 4), dtype=f32)
+            rot[..., 3] = 1.0
+            state.attach_rotation = wp.array(rot, dtype=wp.quat, device=dev)
+            model.attach_hold_up = wp.zeros(cap, dtype=wp.vec3, device=dev)
         surf = [o.surface_tris for o in self.objects if o.surface_tris is not None and len(o.surface_tris)]
         if surf:
             model.surface_tris = wp.array(np.concatenate(surf).astype(np.int32), dtype=wp.vec3i, device=dev)

@@ -11,7 +11,10 @@ orientation at grasp time (projected in every sweep). Held particles stop collid
 ContactSystem's ``ignore_bodies`` mask), so the jaws do not squeeze them out. Opening the jaws to
 ``release_threshold`` or more releases them (with ``jaws_pass_while_grasped``, sofa_env's rule, no graspable particle
 collides with the jaws while the env holds a grasp); a held particle dragged farther than ``max_offset`` from its jaw
-target (torn out by the scene) releases the grasp and raises ``lost_grasp`` for that step.
+target (torn out by the scene) releases the grasp and raises ``lost_grasp`` for that step. The held segment and its
+orientation relative to the jaw sit in the particle's slot (``state.attach_segment`` / ``attach_rotation``, the jaw's
+twist axis in ``model.attach_hold_up``), so the World's closing attachment pass of every sweep turns it with the jaw
+(before this system's own launch per sweep did, after the contact pass, which does not touch orientations).
 
 State: ``grasped`` ``(num_envs,)`` int32 (sticky), ``lost_grasp`` ``(num_envs,)`` int32 (the event of the last
 step). ``start_grasped(particle, env_mask)`` attaches a given particle at reset, as sofa_env's ``start_grasped``.
@@ -88,7 +91,11 @@ class GraspSystem:
         self.particle_segment = wp.array(seg_of, dtype=wp.int32, device=dev)
         self.grasped = wp.zeros(n, dtype=wp.int32, device=dev)
         self.lost_grasp = wp.zeros(n, dtype=wp.int32, device=dev)
-        self.grasp_delta = wp.zeros((n, self.slots), dtype=wp.quat, device=dev)
+        if self.hold_orientation and hold_up is not None:
+            # the World's attachment pass reads each slot's axis (a zero axis: the jaw's whole rotation)
+            axes = m.attach_hold_up.numpy()
+            axes[self.slot_start:self.slot_start + self.slots] = np.asarray(hold_up, float) / np.linalg.norm(hold_up)
+            m.attach_hold_up.assign(axes)
         self._dummy_q = wp.zeros((1, 1), dtype=wp.quat, device=dev)
         self._no_particles = wp.zeros(0, dtype=wp.int32, device=dev)
         self.jaw_mask = (1 << instrument.jaw_a) | (1 << instrument.jaw_b)
@@ -100,13 +107,14 @@ class GraspSystem:
                                     cone_margin=self.cone_margin, max_offset=self.max_offset,
                                     slot_start=self.slot_start, slots=self.slots, compliance=self.compliance,
                                     graspable=self.graspable, particle_segment=self.particle_segment,
+                                    hold=int(self.hold_orientation),
                                     hold_up=wp.vec3(*(np.zeros(3) if hold_up is None else
                                                       np.asarray(hold_up, float) / np.linalg.norm(hold_up))))
         s = world.state
         attach = make_struct(gk.Attachments, particle=s.attach_particle, body=s.attach_body, offset=s.attach_offset,
-                             compliance=s.attach_compliance)
-        self._state = make_struct(gk.GraspState, grasped=self.grasped, lost_grasp=self.lost_grasp,
-                                  grasp_delta=self.grasp_delta, attach=attach, ignore=contact.ignore)
+                             compliance=s.attach_compliance, segment=s.attach_segment, rotation=s.attach_rotation)
+        self._state = make_struct(gk.GraspState, grasped=self.grasped, lost_grasp=self.lost_grasp, attach=attach,
+                                  ignore=contact.ignore)
         self._scene = make_struct(gk.GraspScene, body_q=s.body_q, particle_q=s.particle_q, segment_q=self._segq())
         world.add_solver(self)
 
@@ -116,12 +124,8 @@ class GraspSystem:
 
     # World hooks ------------------------------------------------------------------------------------
     def record_sweep(self, world, launch, sweep) -> None:
-        """Hold the orientation of grasped rod segments (every sweep); after the last sweep of the step, grasp or
-        release from the contact records that the ContactSystem (added before this system) just wrote."""
-        if self.hold_orientation:
-            launch(gk.hold_grasped_orientations, (self.world.num_envs, self.slots),
-                   [self._grasper, self._state, self.contact.body_motion(world, sweep)],
-                   [world.state.segment_q])
+        """After the last sweep of the step, grasp or release from the contact records that the ContactSystem (added
+        before this system) just wrote (the held segments turn with their jaws in the World's attachment pass)."""
         if sweep.last:
             c = self.contact
             launch(gk.update_grasp, world.num_envs,
@@ -161,10 +165,11 @@ class GraspSystem:
             return wp.clone(a)
 
         attach = make_struct(gk.Attachments, particle=copy(s.attach.particle), body=copy(s.attach.body),
-                             offset=copy(s.attach.offset), compliance=copy(s.attach.compliance))
+                             offset=copy(s.attach.offset), compliance=copy(s.attach.compliance),
+                             segment=copy(s.attach.segment), rotation=copy(s.attach.rotation))
         ignore = make_struct(IgnoreMask, bodies=copy(s.ignore.bodies), enabled=s.ignore.enabled)
         return make_struct(gk.GraspState, grasped=copy(s.grasped), lost_grasp=copy(s.lost_grasp),
-                           grasp_delta=copy(s.grasp_delta), attach=attach, ignore=ignore)
+                           attach=attach, ignore=ignore)
 
     def restore(self, env_mask: wp.array, snapshot) -> None:
         """Put the masked envs' grasps back to a :meth:`snapshot` (after ``world.reset``, whose reset of this system

@@ -153,6 +153,9 @@ class Model:
     # grasping; LigatingLoop's closure: slot k only ever holds loop node k): the attachment pass may run a thread per
     # slot (xpbd.solve_attachment_slots)
     attachments_distinct: bool = False
+    # (C,) vec3 per attachment slot: a segment it holds turns only with its body's rotation about this unit axis
+    # (zero: with the body's rotation; GraspSystem's ``hold_up``)
+    attach_hold_up: wp.array | None = None
 
     objects: list = field(default_factory=list)  # SceneObject handles, in insertion order
     # built values of the material arrays when every env has its own row (finalize(per_env_materials=True))
@@ -173,6 +176,8 @@ class State:
     attach_body: wp.array2d | None = None  # (N, C) int32 body index, -1 = world frame
     attach_offset: wp.array2d | None = None  # (N, C) vec3 target in the body frame
     attach_compliance: wp.array2d | None = None  # (N, C) float m/N
+    attach_segment: wp.array2d | None = None  # (N, C) int32 rod segment whose orientation the slot holds, -1 = none
+    attach_rotation: wp.array2d | None = None  # (N, C) quat the held segment's orientation in its body's frame
     # cutting (only when the scene has a cuttable object; 1 = present, 0 = removed; insertion order)
     tet_active: wp.array2d | None = None  # (N, T) int32
     tri_active: wp.array2d | None = None  # (N, F) int32 cloth triangles (also their render face mask)

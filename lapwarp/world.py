@@ -756,16 +756,19 @@ class World:
         if m.attachment_capacity:
             bq = s.body_q if s.body_q is not None else self._dummy_tf()
             bqp = self._body_q_prev if self._body_q_prev is not None else bq
-            attachment_args = [s.attach_particle, s.attach_body, s.attach_offset, s.attach_compliance, bqp, bq, blend,
+            attachment_args = [s.attach_particle, s.attach_body, s.attach_offset, s.attach_compliance,
+                               s.attach_segment, s.attach_rotation, m.attach_hold_up, bqp, bq, blend,
                                m.particle_inv_mass, inv_dt2]
+            # the held segments' orientations (a world without rods holds none: attach_segment stays -1)
+            attachment_out = [s.particle_q, s.segment_q if s.segment_q is not None else self._dummy_quat()]
 
             def solve_attachments(stiff_only: int):
                 if m.attachments_distinct:
                     # distinct static slots: a thread each (the order is immaterial)
                     launch(xpbd.solve_attachment_slots, (n, m.attachment_capacity), [*attachment_args, stiff_only],
-                           [s.particle_q])
+                           attachment_out)
                 else:
-                    launch(xpbd.solve_attachments, n, [*attachment_args, stiff_only], [s.particle_q])
+                    launch(xpbd.solve_attachments, n, [*attachment_args, stiff_only], attachment_out)
             if m.geo_particles is not None:
                 # held points first where their bodies hold them, so that the tethers see their anchors there, not
                 # one substep of gravity below (stiff attachments only: a soft one projected twice per sweep would be
@@ -923,6 +926,11 @@ class World:
         if not hasattr(self, "_dummy_tf_arr"):
             self._dummy_tf_arr = wp.zeros((1, 1), dtype=wp.transform, device=self.device)
         return self._dummy_tf_arr
+
+    def _dummy_quat(self) -> wp.array:
+        if not hasattr(self, "_dummy_quat_arr"):
+            self._dummy_quat_arr = wp.zeros((1, 1), dtype=wp.quat, device=self.device)
+        return self._dummy_quat_arr
 
     def check_stability(self, end_of_step: bool = False) -> None:
         """Flag envs with NaN or speed above ``model.max_speed``; optionally reset just those envs. One launch

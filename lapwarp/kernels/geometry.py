@@ -17,6 +17,20 @@ def safe_normalize(v: wp.vec3, fallback: wp.vec3):
 
 
 @wp.func
+def twist_about(rot: wp.quat, up: wp.vec3) -> wp.quat:
+    """``rot``'s twist about the unit axis ``up`` (swing-twist split; the identity where ``rot`` has no twist about
+    it), or ``rot`` itself for a zero ``up``."""
+    if wp.length(up) == 0.0:
+        return rot
+    v = wp.vec3(rot[0], rot[1], rot[2])
+    p = up * wp.dot(v, up)
+    twist = wp.quat(p[0], p[1], p[2], rot[3])
+    if wp.length(twist) < 1.0e-9:
+        return wp.quat_identity()
+    return wp.normalize(twist)
+
+
+@wp.func
 def horizontal_distance(a: wp.vec3, b: wp.vec3) -> float:
     """Distance between two points in the horizontal (x, z) plane; y is up in every scene."""
     return wp.sqrt((a[0] - b[0]) * (a[0] - b[0]) + (a[2] - b[2]) * (a[2] - b[2]))

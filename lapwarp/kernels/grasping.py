@@ -3,14 +3,15 @@
 Attachments are written into the per-env slots ``[slot_start, slot_start + slots)`` of ``state.attach_*``
 (:class:`Attachments`, part of the :class:`GraspState` the kernels write); the contact records and the shape table
 come from :mod:`lapwarp.kernels.contact`, and the ``ignore_bodies`` bits of held particles
-(:class:`lapwarp.kernels.contact.IgnoreMask`) keep the jaws from squeezing them out. One thread per env, except
-for the per-slot orientation hold.
+(:class:`lapwarp.kernels.contact.IgnoreMask`) keep the jaws from squeezing them out. A held rod node's segment is
+written into its slot too (``state.attach_segment`` / ``attach_rotation``): the World's attachment pass turns it with
+the jaw in every sweep. One thread per env.
 """
 
 import warp as wp
 
 from lapwarp.kernels.contact import ContactReports, IgnoreMask, ShapeTable
-from lapwarp.kernels.geometry import BodyMotion, body_pose
+from lapwarp.kernels.geometry import twist_about
 
 wp.set_module_options({"enable_backward": False})
 
@@ -32,21 +33,14 @@ class Grasper:
     compliance: float
     graspable: wp.array(dtype=wp.int32)  # per particle
     particle_segment: wp.array(dtype=wp.int32)  # per particle: an adjacent rod segment, -1 for none
+    hold: int  # 1: a held rod node's segment turns with the jaw (its slot's attach_segment), 0: it turns freely
     hold_up: wp.vec3  # zero: held segments turn with the jaw; else only with the jaw's turn about this axis
 
 
 @wp.func
 def held_rotation(grasper: Grasper, rot: wp.quat) -> wp.quat:
     """The rotation a held segment follows: the jaw's, or only its twist about ``hold_up`` (swing-twist split)."""
-    up = grasper.hold_up
-    if wp.length(up) == 0.0:
-        return rot
-    v = wp.vec3(rot[0], rot[1], rot[2])
-    p = up * wp.dot(v, up)
-    twist = wp.quat(p[0], p[1], p[2], rot[3])
-    if wp.length(twist) < 1.0e-9:
-        return wp.quat_identity()
-    return wp.normalize(twist)
+    return twist_about(rot, grasper.hold_up)
 
 
 @wp.struct
@@ -57,6 +51,8 @@ class Attachments:
     body: wp.array2d(dtype=wp.int32)
     offset: wp.array2d(dtype=wp.vec3)
     compliance: wp.array2d(dtype=float)
+    segment: wp.array2d(dtype=wp.int32)
+    rotation: wp.array2d(dtype=wp.quat)
 
 
 @wp.struct
@@ -71,13 +67,12 @@ class GraspScene:
 
 @wp.struct
 class GraspState:
-    """What grasping writes: per env ``grasped`` (sticky) and ``lost_grasp`` (event of the last step), per slot the
-    held segment's orientation relative to its jaw at grasp time, the attachment slots and the contact ignore mask
+    """What grasping writes: per env ``grasped`` (sticky) and ``lost_grasp`` (event of the last step), the attachment
+    slots (with the held segment and its orientation relative to its jaw at grasp time) and the contact ignore mask
     of held particles."""
 
     grasped: wp.array(dtype=wp.int32)
     lost_grasp: wp.array(dtype=wp.int32)
-    grasp_delta: wp.array2d(dtype=wp.quat)
     attach: Attachments
     ignore: IgnoreMask
 
@@ -94,6 +89,7 @@ def release_slots(env: int, grasper: Grasper, grasp: GraspState):
         if i >= 0 and grasp.ignore.enabled != 0:
             grasp.ignore.bodies[env, i] = grasp.ignore.bodies[env, i] & (~jaw_mask(grasper))
         grasp.attach.particle[env, grasper.slot_start + k] = -1
+        grasp.attach.segment[env, grasper.slot_start + k] = -1
 
 
 @wp.func
@@ -107,10 +103,13 @@ def attach_to_jaw(env: int, k: int, particle: int, body: int, grasper: Grasper, 
     grasp.attach.body[env, s] = body
     grasp.attach.offset[env, s] = wp.transform_point(wp.transform_inverse(jaw), scene.particle_q[env, particle])
     grasp.attach.compliance[env, s] = grasper.compliance
-    seg = grasper.particle_segment[particle]
+    seg = int(-1)
+    if grasper.hold != 0:
+        seg = grasper.particle_segment[particle]
+    grasp.attach.segment[env, s] = seg
     if seg >= 0:
         rot = held_rotation(grasper, wp.transform_get_rotation(jaw))
-        grasp.grasp_delta[env, k] = wp.mul(wp.quat_inverse(rot), scene.segment_q[env, seg])
+        grasp.attach.rotation[env, s] = wp.mul(wp.quat_inverse(rot), scene.segment_q[env, seg])
     if grasp.ignore.enabled != 0:
         grasp.ignore.bodies[env, particle] = grasp.ignore.bodies[env, particle] | jaw_mask(grasper)
 
@@ -209,26 +208,6 @@ def update_grasp(
 
 
 @wp.kernel
-def hold_grasped_orientations(
-    grasper: Grasper,
-    grasp: GraspState,
-    motion: BodyMotion,
-    segment_q: wp.array2d(dtype=wp.quat),
-):
-    # a grasped rod frame turns with its jaw: its segment orientation is projected onto jaw rotation * delta
-    env, k = wp.tid()
-    i = grasp.attach.particle[env, grasper.slot_start + k]
-    if i < 0:
-        return
-    seg = grasper.particle_segment[i]
-    if seg < 0:
-        return
-    tf = body_pose(motion, env, grasp.attach.body[env, grasper.slot_start + k], motion.blend)
-    segment_q[env, seg] = wp.normalize(wp.mul(held_rotation(grasper, wp.transform_get_rotation(tf)),
-                                              grasp.grasp_delta[env, k]))
-
-
-@wp.kernel
 def sync_jaw_contact(grasper: Grasper, grasp: GraspState):
     """Thread (env, particle): every graspable particle ignores the jaws while its env holds a grasp (sofa_env
     switches the jaws' collision models off while grasping)."""
@@ -286,7 +265,8 @@ def restore_grasp(env_mask: wp.array(dtype=wp.int32), grasper: Grasper, saved: G
         grasp.attach.body[env, s] = saved.attach.body[env, s]
         grasp.attach.offset[env, s] = saved.attach.offset[env, s]
         grasp.attach.compliance[env, s] = saved.attach.compliance[env, s]
-        grasp.grasp_delta[env, k] = saved.grasp_delta[env, k]
+        grasp.attach.segment[env, s] = saved.attach.segment[env, s]
+        grasp.attach.rotation[env, s] = saved.attach.rotation[env, s]
     if grasp.ignore.enabled != 0:
         m = jaw_mask(grasper)
         for i in range(grasp.ignore.bodies.shape[1]):

@@ -21,7 +21,7 @@ on a uniform value, no memory traffic.
 import warp as wp
 
 from lapwarp.kernels.geodesic import ANCHOR_MASS_RATIO
-from lapwarp.kernels.geometry import interpolate_transform
+from lapwarp.kernels.geometry import interpolate_transform, twist_about
 
 wp.set_module_options({"enable_backward": False})
 
@@ -740,6 +740,9 @@ def solve_attachment_slot(
     attach_body: wp.array2d(dtype=wp.int32),
     attach_offset: wp.array2d(dtype=wp.vec3),
     attach_compliance: wp.array2d(dtype=float),
+    attach_segment: wp.array2d(dtype=wp.int32),
+    attach_rotation: wp.array2d(dtype=wp.quat),
+    attach_hold_up: wp.array(dtype=wp.vec3),
     body_q_prev: wp.array2d(dtype=wp.transform),
     body_q: wp.array2d(dtype=wp.transform),
     blend: float,
@@ -747,24 +750,33 @@ def solve_attachment_slot(
     inv_dt2: float,
     stiff_only: int,
     q: wp.array2d(dtype=wp.vec3),
+    sq: wp.array2d(dtype=wp.quat),
 ):
-    """Attachment slot ``s`` of env ``env``: its particle pulled towards its body's point (``solve_attachments``)."""
+    """Attachment slot ``s`` of env ``env``: its particle pulled towards its body's point (``solve_attachments``)
+    and, in the closing pass (``stiff_only`` 0), the rod segment it holds (``attach_segment`` >= 0) set to the body's
+    rotation (its twist about ``attach_hold_up[s]`` where that is not zero) times ``attach_rotation``."""
     i = attach_particle[env, s]
     if i < 0:
         return
-    w = inv_mass[env % inv_mass.shape[0], i]
-    if w == 0.0:
-        return
     b = attach_body[env, s]
-    target = attach_offset[env, s]
+    tf = wp.transform_identity()
     if b >= 0:
         # the body pose moves linearly across the substeps of one step, not in one jump
         tf = interpolate_transform(body_q_prev[env, b], body_q[env, b], blend)
-        target = wp.transform_point(tf, target)
-    x = q[env, i]
-    alpha = attach_compliance[env, s] * inv_dt2
-    if stiff_only == 0 or alpha * STIFF_ATTACHMENT <= w:
-        q[env, i] = x + (target - x) * (w / (w + alpha))
+    w = inv_mass[env % inv_mass.shape[0], i]
+    if w != 0.0:
+        target = attach_offset[env, s]
+        if b >= 0:
+            target = wp.transform_point(tf, target)
+        x = q[env, i]
+        alpha = attach_compliance[env, s] * inv_dt2
+        if stiff_only == 0 or alpha * STIFF_ATTACHMENT <= w:
+            q[env, i] = x + (target - x) * (w / (w + alpha))
+    seg = attach_segment[env, s]
+    if seg >= 0 and stiff_only == 0:
+        # a grasped rod frame turns with its jaw (GraspSystem): a projection, like a pinned node's position
+        sq[env, seg] = wp.normalize(wp.mul(twist_about(wp.transform_get_rotation(tf), attach_hold_up[s]),
+                                           attach_rotation[env, s]))
 
 
 @wp.kernel
@@ -773,6 +785,9 @@ def solve_attachments(
     attach_body: wp.array2d(dtype=wp.int32),
     attach_offset: wp.array2d(dtype=wp.vec3),
     attach_compliance: wp.array2d(dtype=float),
+    attach_segment: wp.array2d(dtype=wp.int32),
+    attach_rotation: wp.array2d(dtype=wp.quat),
+    attach_hold_up: wp.array(dtype=wp.vec3),
     body_q_prev: wp.array2d(dtype=wp.transform),
     body_q: wp.array2d(dtype=wp.transform),
     blend: float,
@@ -780,17 +795,20 @@ def solve_attachments(
     inv_dt2: float,
     stiff_only: int,
     q: wp.array2d(dtype=wp.vec3),
+    sq: wp.array2d(dtype=wp.quat),
 ):
-    """Pull attached particles towards their bodies' points (compliance ``attach_compliance``). ``stiff_only``: only
-    the attachments that make their particle an anchor (``h^2 / alpha`` over ``STIFF_ATTACHMENT`` times its inverse
-    mass): the sweep starts with those, so that the constraints solved before the closing attachment pass see a held
+    """Pull attached particles towards their bodies' points (compliance ``attach_compliance``) and set the rod
+    segments they hold to their bodies' rotation (``solve_attachment_slot``). ``stiff_only``: only the attachments
+    that make their particle an anchor (``h^2 / alpha`` over ``STIFF_ATTACHMENT`` times its inverse mass), and no
+    segment: the sweep starts with those, so that the constraints solved before the closing attachment pass see a held
     point where its body holds it, not where gravity's prediction moved it (a sheet held at two corners at 10
     substeps: the corner edges ended 12 % long, stretched towards the corners' predicted positions 1 mm below)."""
     # one thread per env walks its few slots in order: several slots may hold the same particle
     env = wp.tid()
     for s in range(attach_particle.shape[1]):
-        solve_attachment_slot(env, s, attach_particle, attach_body, attach_offset, attach_compliance, body_q_prev,
-                              body_q, blend, inv_mass, inv_dt2, stiff_only, q)
+        solve_attachment_slot(env, s, attach_particle, attach_body, attach_offset, attach_compliance, attach_segment,
+                              attach_rotation, attach_hold_up, body_q_prev, body_q, blend, inv_mass, inv_dt2,
+                              stiff_only, q, sq)
 
 
 @wp.kernel
@@ -799,6 +817,9 @@ def solve_attachment_slots(
     attach_body: wp.array2d(dtype=wp.int32),
     attach_offset: wp.array2d(dtype=wp.vec3),
     attach_compliance: wp.array2d(dtype=float),
+    attach_segment: wp.array2d(dtype=wp.int32),
+    attach_rotation: wp.array2d(dtype=wp.quat),
+    attach_hold_up: wp.array(dtype=wp.vec3),
     body_q_prev: wp.array2d(dtype=wp.transform),
     body_q: wp.array2d(dtype=wp.transform),
     blend: float,
@@ -806,6 +827,7 @@ def solve_attachment_slots(
     inv_dt2: float,
     stiff_only: int,
     q: wp.array2d(dtype=wp.vec3),
+    sq: wp.array2d(dtype=wp.quat),
 ):
     """``solve_attachments`` with a thread per (env, slot), for worlds where no particle is ever in two slots
     (``Model.attachments_distinct``: static anchors, or LigatingLoop's slot k that only ever holds node k): each slot
@@ -813,8 +835,9 @@ def solve_attachment_slots(
     slots in one thread was latency-bound (TissueDissection: 36 anchors, 1.5 ms of its ~20 ms step on the H200, 40
     launches)."""
     env, s = wp.tid()
-    solve_attachment_slot(env, s, attach_particle, attach_body, attach_offset, attach_compliance, body_q_prev, body_q,
-                          blend, inv_mass, inv_dt2, stiff_only, q)
+    solve_attachment_slot(env, s, attach_particle, attach_body, attach_offset, attach_compliance, attach_segment,
+                          attach_rotation, attach_hold_up, body_q_prev, body_q, blend, inv_mass, inv_dt2, stiff_only,
+                          q, sq)
 
 
 # ----------------------------------------------------------------------------------------------------
