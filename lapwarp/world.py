@@ -39,6 +39,7 @@ from lapwarp.kernels import (
     geodesic,
     world_kernels,
 )
+from lapwarp.launching import make_struct
 from lapwarp.model import Control, Model, State
 from lapwarp.vbd import tet_components, vertex_layout
 
@@ -202,6 +203,9 @@ class World:
         self.rod_block_threads = 32
         # a substep's prediction of particles and rod segments in one launch (False: a launch each, as before)
         self.integrate_together = True
+        # in a world whose only constraints are rods: the substep's prediction inside its first sweep's fused rod
+        # launch (xpbd.predict_and_solve_rods_fused; _predicts_in_rod_sweep says where), one launch fewer per substep
+        self.predict_in_rod_sweep = True
         # tets' rotation: warm-started extraction iterations per projection (0 = SVD polar decomposition)
         self.tet_rotation_iterations = 2
         # TET_ROTATION_UPDATES, how a sweep updates its tets' rotations: "vertex" = where it uses them (XPBD: each
@@ -491,7 +495,7 @@ class World:
                self.tet_rotation_refresh, self.chain_block_links, self.chain_solver, self.chain_pcr_threads,
                self.chain_pcr_rows, self.chain_lane_rows, self.tet_solver, self.tet_block_threads,
                self.model.attachments_distinct, self.rod_solver, self.rod_block_threads, self.integrate_together,
-               self.tet_method_in_use, self._register_caps_key(),
+               self.predict_in_rod_sweep, self.tet_method_in_use, self._register_caps_key(),
                *(solver.record_key() for solver in self.solvers if hasattr(solver, "record_key")))
         if self._cmd_key != key:
             if int(self.iterations) > 1 and not self._lam:
@@ -641,10 +645,20 @@ class World:
         fuse = not any(hasattr(solver, "record_substep_end") for solver in self.solvers)
         # the empty int32 array where the prediction writes no tet solve's start
         start_flags = self._vbd_start_flags if self._vbd_start_in_prediction() else self._no_map_i
+        in_rod_sweep = self._predicts_in_rod_sweep()
         for sub in range(substeps):
             particle_args = [m.particle_inv_mass, m.particle_damping, m.gravity, h, *self._prediction_masks(),
                              start_flags, s.particle_q, s.particle_qd]
-            if m.segment_count and self.integrate_together:
+            prediction = None
+            if in_rod_sweep:
+                # predicted by the first sweep's rod launch (nothing else moves the particles before it)
+                active, use_active, force, use_force = self._prediction_masks()
+                prediction = make_struct(xpbd.Prediction, finish=int(sub > 0 and fuse), inv_dt_prev=1.0 / h,
+                                         inv_mass=m.particle_inv_mass, damping=m.particle_damping, gravity=m.gravity,
+                                         dt=h, active=active, use_active=use_active, force=force, use_force=use_force,
+                                         vbd_start=start_flags, qd=s.particle_qd, q_pred=self._q_pred,
+                                         segment_damping=m.segment_damping, sqd=s.segment_qd, sq_prev=self._sq_prev)
+            elif m.segment_count and self.integrate_together:
                 # particles and segments in one launch (the same arithmetic on independent elements)
                 both = (n, max(m.particle_count, m.segment_count))
                 segment_args = [m.segment_inv_inertia, m.segment_damping, s.segment_q, s.segment_qd]
@@ -655,7 +669,7 @@ class World:
                        [self._q_pred])
             else:
                 launch(xpbd.integrate_particles, (n, m.particle_count), particle_args, [self._q_pred])
-            if m.segment_count and not self.integrate_together:
+            if m.segment_count and not self.integrate_together and not in_rod_sweep:
                 if sub > 0 and fuse:
                     launch(xpbd.finish_and_integrate_segments, (n, m.segment_count),
                            [1.0 / h, m.segment_inv_inertia, m.segment_damping, h, s.segment_q, s.segment_qd],
@@ -667,7 +681,7 @@ class World:
                 cmds.append(arr.zero_)
             for it in range(iters):
                 sweep = Sweep(sub, it, substeps, iters, h)
-                self._record_sweep(launch, xpbd, inv_dt2, use_lam, sweep)
+                self._record_sweep(launch, xpbd, inv_dt2, use_lam, sweep, prediction if it == 0 else None)
                 for solver in self.solvers:
                     solver.record_sweep(self, launch, sweep)
             # the last substep's velocity update: in the stability check's launch below where nothing comes between
@@ -689,7 +703,19 @@ class World:
             raise ValueError(f"world.max_registers names kernels this world's step does not launch: {unknown}")
         return cmds
 
-    def _record_sweep(self, launch, xpbd, inv_dt2: float, use_lam: int, sweep: Sweep) -> None:
+    def _predicts_in_rod_sweep(self) -> bool:
+        """Whether a substep's prediction runs in its first sweep's fused rod launch
+        (``xpbd.predict_and_solve_rods_fused``): ``predict_in_rod_sweep`` set, particles and segments predicted
+        together, the rods' colours fused, and no other constraint (tethers, edges, tets, hinges) solved before them in
+        the sweep. RopeThreading, RopeCutting and PickAndPlace are such worlds."""
+        m = self.model
+        return (bool(self.predict_in_rod_sweep) and m.segment_count > 0 and bool(self.integrate_together)
+                and self.rod_solver in ("auto", "fused") and m.geo_particles is None and m.edge_count == 0
+                and m.tet_count == 0 and m.hinge_count == 0)
+
+    def _record_sweep(self, launch, xpbd, inv_dt2: float, use_lam: int, sweep: Sweep, prediction=None) -> None:
+        """Record one sweep's projections; ``prediction`` (an ``xpbd.Prediction``, a substep's first sweep where
+        ``_predicts_in_rod_sweep``): the substep's prediction goes into the fused rod launch."""
         m, n, s = self.model, self.num_envs, self.state
         lam = self._lam
         blend = sweep.blend
@@ -822,8 +848,10 @@ class World:
         if m.segment_count and self.rod_solver in ("auto", "fused"):
             # every colour of both groups in one launch, a block per env (on the CPU one lane: the same order)
             lanes = launching.block_lanes(self.device, self.rod_block_threads)
-            launch(xpbd.solve_rods_fused, (n, lanes),
-                   [self._segment_color_offsets, m.segment_particles, m.segment_rest, m.segment_compliance,
+            rods = xpbd.solve_rods_fused if prediction is None else xpbd.predict_and_solve_rods_fused
+            launch(rods, (n, lanes),
+                   [*([] if prediction is None else [prediction]), self._segment_color_offsets, m.segment_particles,
+                    m.segment_rest, m.segment_compliance,
                     self._bend_color_offsets, m.bend_segments, m.bend_rest, m.bend_compliance, m.segment_inv_inertia,
                     w_eff, inv_dt2, use_lam, lam.get("segment", self._dummy_v3), lam.get("bend", self._dummy_v3),
                     seg_mask], [s.particle_q, s.segment_q], block_dim=lanes)

@@ -281,6 +281,37 @@ def test_fused_velocity_update_and_prediction_match_the_separate_kernels(device)
         assert np.abs(out[0][0] - other[0]).max() <= 1e-6
 
 
+def test_prediction_in_the_rod_sweep_matches_the_separate_launch(device):
+    # in a world whose only constraints are rods the substep's prediction runs in its first sweep's fused rod launch
+    # (xpbd.predict_and_solve_rods_fused, World.predict_in_rod_sweep): the same arithmetic on the same elements, so a
+    # swinging rod held at one end ends where the separate prediction launch leaves it (bit for bit on the CPU, to
+    # float32 round-off on a GPU), at 1 and 2 sweeps per substep; a world with a cloth keeps the separate launch
+    out = []
+    for in_sweep, iterations in ((True, 1), (False, 1), (True, 2), (False, 2)):
+        b = SceneBuilder()
+        pts = np.stack([np.linspace(0.0, 0.1, 11), np.zeros(11), np.zeros(11)], axis=1)
+        b.add_rod(pts, radius=1e-3, youngs_modulus=1e6, damping=0.3, fixed=[0])
+        world = b.finalize(2, device, substeps=6)
+        world.predict_in_rod_sweep = in_sweep
+        world.set_iterations(iterations)
+        assert world._predicts_in_rod_sweep() == in_sweep
+        world.simulate(0.1, 0.02)
+        st = world.state
+        out.append([a.numpy() for a in (st.particle_q, st.particle_qd, st.segment_q, st.segment_qd)])
+    assert np.abs(out[0][1]).max() > 0.1 and out[0][0][:, -1, 2].min() < -0.01  # the rod swings down
+    for fused, separate in ((out[0], out[1]), (out[2], out[3])):
+        for a, b_ in zip(fused, separate, strict=True):
+            if device == "cpu":
+                np.testing.assert_array_equal(a, b_)
+            else:
+                np.testing.assert_allclose(a, b_, rtol=1e-5, atol=1e-5 * np.abs(b_).max())
+    b = SceneBuilder()
+    b.add_rod(pts, radius=1e-3, youngs_modulus=1e6, damping=0.3, fixed=[0])
+    v, t = cloth_grid(4, 4, 0.03, 0.03, plane="xz", origin=(0.2, 0.0, 0.0))
+    b.add_cloth(v, t, areal_density=0.2, stretch_stiffness=1e3, bend_stiffness=1e-6, damping=0.5, fixed=[0])
+    assert not b.finalize(1, device, substeps=6)._predicts_in_rod_sweep()  # the cloth's edges come first
+
+
 def test_instability_restores_cut_masks_and_rotations(device):
     # the stability check (world_kernels.check_and_restore, one launch per step) restores every state array of a
     # failed env, its tet rotations and its cut masks, and marks its cut surfaces dirty; the other envs keep theirs

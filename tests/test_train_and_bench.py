@@ -148,6 +148,18 @@ def test_bench_env_applies_and_records_the_contact_settings(device, tmp_path):
     assert r["env_steps_per_s"] > 0
 
 
+def test_bench_env_predicts_in_the_rod_sweep_where_asked(device, tmp_path):
+    """``--predict-in-rod-sweep off`` gives a rods-only world (RopeCutting) its separate prediction launch back; the
+    result records where the prediction ran (on by default there)."""
+    runs = []
+    for flag in ([], ["--predict-in-rod-sweep", "off"]):
+        out = tmp_path / f"bench{len(flag)}.json"
+        assert bench_env.main(["--device", device, "--task", "RopeCutting", "--num-envs", "1", "--seconds", "0.05",
+                               *flag, "--out", str(out)]) == 0
+        runs.append(json.loads(out.read_text())["results"][0]["predict_in_rod_sweep"])
+    assert runs == [True, False]
+
+
 def test_bench_env_applies_and_records_register_caps(device, tmp_path, capsys):
     """``--max-registers KERNEL=N`` caps a kernel of the world's step (recorded with the result, beside the task's
     own caps: ThreadInHole's lagged vertex sweep, rods and pose kernel at 64); a malformed item or a cap out of range

@@ -919,6 +919,45 @@ def update_segment_velocities(
     sqd_out[env, s] = segment_velocity(sq[env, s], sq_prev[env, s], inv_dt)
 
 
+@wp.func
+def predict_particle_and_segment(
+    env: int,
+    k: int,
+    finish: int,
+    inv_dt_prev: float,
+    inv_mass: wp.array2d(dtype=float),
+    damping: wp.array2d(dtype=float),
+    gravity: wp.vec3,
+    dt: float,
+    active: wp.array2d(dtype=wp.int32),
+    use_active: int,
+    force: wp.array2d(dtype=wp.vec3),
+    use_force: int,
+    vbd_start: wp.array(dtype=wp.int32),
+    q: wp.array2d(dtype=wp.vec3),
+    qd: wp.array2d(dtype=wp.vec3),
+    q_pred_out: wp.array2d(dtype=wp.vec3),
+    inv_inertia: wp.array2d(dtype=float),
+    segment_damping: wp.array2d(dtype=float),
+    sq: wp.array2d(dtype=wp.quat),
+    sqd: wp.array2d(dtype=wp.vec3),
+    sq_prev_out: wp.array2d(dtype=wp.quat),
+):
+    """Particle ``k`` and segment ``k`` of ``env`` (where they exist) predicted, with ``finish`` != 0 after the substep
+    before's velocity update (``inv_dt_prev``): a thread of ``integrate_particles_and_segments``."""
+    if k < q.shape[1]:
+        v_old = qd[env, k]
+        if finish != 0:
+            v_old = v_old + (q[env, k] - q_pred_out[env, k]) * inv_dt_prev
+        integrate_particle(env, k, v_old, inv_mass, damping, gravity, dt, active, use_active, force, use_force,
+                           vbd_start, q, qd, q_pred_out)
+    if k < sq.shape[1]:
+        om_old = sqd[env, k]
+        if finish != 0:
+            om_old = segment_velocity(sq[env, k], sq_prev_out[env, k], inv_dt_prev)
+        integrate_segment(env, k, om_old, inv_inertia, segment_damping, dt, sq, sqd, sq_prev_out)
+
+
 @wp.kernel
 def integrate_particles_and_segments(
     finish: int,
@@ -947,17 +986,32 @@ def integrate_particles_and_segments(
     the same arithmetic on independent elements, one launch fewer per substep in a scene with rods (RopeThreading: 99
     per env step)."""
     env, k = wp.tid()
-    if k < q.shape[1]:
-        v_old = qd[env, k]
-        if finish != 0:
-            v_old = v_old + (q[env, k] - q_pred_out[env, k]) * inv_dt_prev
-        integrate_particle(env, k, v_old, inv_mass, damping, gravity, dt, active, use_active, force, use_force,
-                           vbd_start, q, qd, q_pred_out)
-    if k < sq.shape[1]:
-        om_old = sqd[env, k]
-        if finish != 0:
-            om_old = segment_velocity(sq[env, k], sq_prev_out[env, k], inv_dt_prev)
-        integrate_segment(env, k, om_old, inv_inertia, segment_damping, dt, sq, sqd, sq_prev_out)
+    predict_particle_and_segment(env, k, finish, inv_dt_prev, inv_mass, damping, gravity, dt, active, use_active,
+                                 force, use_force, vbd_start, q, qd, q_pred_out, inv_inertia, segment_damping, sq,
+                                 sqd, sq_prev_out)
+
+
+@wp.struct
+class Prediction:
+    """A substep's prediction of particles and segments (``integrate_particles_and_segments``' inputs and its
+    outputs besides the positions and orientations), for ``predict_and_solve_rods_fused``."""
+
+    finish: int
+    inv_dt_prev: float
+    inv_mass: wp.array2d(dtype=float)  # the true inverse masses (not the attachment-weighted ones)
+    damping: wp.array2d(dtype=float)
+    gravity: wp.vec3
+    dt: float
+    active: wp.array2d(dtype=wp.int32)
+    use_active: int
+    force: wp.array2d(dtype=wp.vec3)
+    use_force: int
+    vbd_start: wp.array(dtype=wp.int32)
+    qd: wp.array2d(dtype=wp.vec3)
+    q_pred: wp.array2d(dtype=wp.vec3)
+    segment_damping: wp.array2d(dtype=float)
+    sqd: wp.array2d(dtype=wp.vec3)
+    sq_prev: wp.array2d(dtype=wp.quat)
 
 
 @wp.func
@@ -1130,6 +1184,44 @@ def solve_bend_twist(
                           segment_active, sq)
 
 
+@wp.func
+def solve_rod_colors(
+    env: int,
+    lane: int,
+    lanes: int,
+    barrier: wp.tile(dtype=int, shape=(1,), storage="shared"),
+    segment_offsets: wp.array(dtype=wp.int32),
+    particles: wp.array(dtype=wp.vec3i),
+    segment_rest: wp.array(dtype=float),
+    segment_compliance: wp.array2d(dtype=wp.vec3),
+    bend_offsets: wp.array(dtype=wp.int32),
+    bend_segments: wp.array(dtype=wp.vec2i),
+    bend_rest: wp.array(dtype=wp.quat),
+    bend_compliance: wp.array2d(dtype=wp.vec3),
+    inv_inertia: wp.array2d(dtype=float),
+    inv_mass: wp.array2d(dtype=float),
+    inv_dt2: float,
+    use_lambda: int,
+    segment_lam: wp.array2d(dtype=wp.vec3),
+    bend_lam: wp.array2d(dtype=wp.vec3),
+    segment_active: wp.array2d(dtype=wp.int32),
+    q: wp.array2d(dtype=wp.vec3),
+    sq: wp.array2d(dtype=wp.quat),
+):
+    """Lane ``lane`` of ``lanes``' share of every stretch-shear colour, then every bend-twist colour, of env ``env``,
+    a block barrier after each (``solve_rods_fused``)."""
+    for color in range(segment_offsets.shape[0] - 1):
+        for c in range(segment_offsets[color] + lane, segment_offsets[color + 1], lanes):
+            stretch_shear_constraint(env, c, particles, segment_rest, segment_compliance, inv_inertia, inv_mass,
+                                     inv_dt2, use_lambda, segment_lam, segment_active, q, sq)
+        wp.tile_scatter_masked(barrier, 0, 0, False)  # a block barrier (nothing written)
+    for color in range(bend_offsets.shape[0] - 1):
+        for b in range(bend_offsets[color] + lane, bend_offsets[color + 1], lanes):
+            bend_twist_constraint(env, b, bend_segments, bend_rest, bend_compliance, inv_inertia, inv_dt2, use_lambda,
+                                  bend_lam, segment_active, sq)
+        wp.tile_scatter_masked(barrier, 0, 0, False)
+
+
 @wp.kernel
 def solve_rods_fused(
     segment_offsets: wp.array(dtype=wp.int32),
@@ -1157,15 +1249,49 @@ def solve_rods_fused(
     Why: a rod task's colours are small (RopeCutting's 95 segments per env in 2 colours, RopeThreading's 100), so its
     four launches per sweep were mostly fixed cost."""
     env, lane = wp.tid()
+    barrier = wp.tile_zeros(shape=1, dtype=int, storage="shared")
+    solve_rod_colors(env, lane, wp.block_dim(), barrier, segment_offsets, particles, segment_rest, segment_compliance,
+                     bend_offsets, bend_segments, bend_rest, bend_compliance, inv_inertia, inv_mass, inv_dt2,
+                     use_lambda, segment_lam, bend_lam, segment_active, q, sq)
+
+
+@wp.kernel
+def predict_and_solve_rods_fused(
+    pred: Prediction,
+    segment_offsets: wp.array(dtype=wp.int32),
+    particles: wp.array(dtype=wp.vec3i),
+    segment_rest: wp.array(dtype=float),
+    segment_compliance: wp.array2d(dtype=wp.vec3),
+    bend_offsets: wp.array(dtype=wp.int32),
+    bend_segments: wp.array(dtype=wp.vec2i),
+    bend_rest: wp.array(dtype=wp.quat),
+    bend_compliance: wp.array2d(dtype=wp.vec3),
+    inv_inertia: wp.array2d(dtype=float),
+    inv_mass: wp.array2d(dtype=float),
+    inv_dt2: float,
+    use_lambda: int,
+    segment_lam: wp.array2d(dtype=wp.vec3),
+    bend_lam: wp.array2d(dtype=wp.vec3),
+    segment_active: wp.array2d(dtype=wp.int32),
+    q: wp.array2d(dtype=wp.vec3),
+    sq: wp.array2d(dtype=wp.quat),
+):
+    """``integrate_particles_and_segments`` for the env's particles and segments, a block barrier, then
+    ``solve_rods_fused``: the substep's prediction and its first sweep's rod colours in one launch, where nothing
+    comes between them (``World.predict_in_rod_sweep``: a world whose only constraints are rods, e.g. RopeThreading
+    and RopeCutting). Each lane predicts the elements ``lane, lane + lanes, ...`` of its env: the same arithmetic on
+    the same independent elements as the separate launch, so bit-identical on the CPU (one lane, in order); one launch
+    and a pass of the env's rods through memory fewer per substep, the prediction's writes read back by the same
+    block."""
+    env, lane = wp.tid()
     lanes = wp.block_dim()
     barrier = wp.tile_zeros(shape=1, dtype=int, storage="shared")
-    for color in range(segment_offsets.shape[0] - 1):
-        for c in range(segment_offsets[color] + lane, segment_offsets[color + 1], lanes):
-            stretch_shear_constraint(env, c, particles, segment_rest, segment_compliance, inv_inertia, inv_mass,
-                                     inv_dt2, use_lambda, segment_lam, segment_active, q, sq)
-        wp.tile_scatter_masked(barrier, 0, 0, False)  # a block barrier (nothing written)
-    for color in range(bend_offsets.shape[0] - 1):
-        for b in range(bend_offsets[color] + lane, bend_offsets[color + 1], lanes):
-            bend_twist_constraint(env, b, bend_segments, bend_rest, bend_compliance, inv_inertia, inv_dt2, use_lambda,
-                                  bend_lam, segment_active, sq)
-        wp.tile_scatter_masked(barrier, 0, 0, False)
+    for k in range(lane, wp.max(q.shape[1], sq.shape[1]), lanes):
+        predict_particle_and_segment(env, k, pred.finish, pred.inv_dt_prev, pred.inv_mass, pred.damping, pred.gravity,
+                                     pred.dt, pred.active, pred.use_active, pred.force, pred.use_force, pred.vbd_start,
+                                     q, pred.qd, pred.q_pred, inv_inertia, pred.segment_damping, sq, pred.sqd,
+                                     pred.sq_prev)
+    wp.tile_scatter_masked(barrier, 0, 0, False)  # every element predicted before any colour reads it
+    solve_rod_colors(env, lane, lanes, barrier, segment_offsets, particles, segment_rest, segment_compliance,
+                     bend_offsets, bend_segments, bend_rest, bend_compliance, inv_inertia, inv_mass, inv_dt2,
+                     use_lambda, segment_lam, bend_lam, segment_active, q, sq)

@@ -1145,6 +1145,9 @@ class RopeThreadingEnv(BatchedEnv):
         # uncapped step: 123.1k -> 125.0k env-steps/s (benchmarks/RESULTS.md, thirty-sixth session; the CPU
         # ignores the cap)
         world.default_register_caps["solve_rods_fused"] = 64
+        # the same for the launch that also predicts the substep (World.predict_in_rod_sweep; 72 registers, at 64 a
+        # 24 B spill frame, sm_90)
+        world.default_register_caps["predict_and_solve_rods_fused"] = 64
         # the rope's hybrid chain solve at 128 registers instead of 217 (a 328 B spill frame, sm_90): twice the
         # resident warps hide its loads better than the registers saved them. H200, expert, 4,096 envs, same call:
         # 137.1k -> 156.8k env-steps/s (168: 148.0k; 2 rows per lane: 132.3k; fortieth session, results/session40)
