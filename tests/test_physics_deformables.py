@@ -228,7 +228,9 @@ def test_attached_particles_inverse_mass_closed_form(device):
 def test_attachment_slots_pull_in_slot_order(device):
     # Slots that share a particle pull it in slot order, each from where the one before left it (reference below,
     # float64). Random slots with repeated particles, free slots (-1), a fixed particle, stiff, soft and (for the
-    # stiff-only pass) too soft compliances, world and body targets; both passes.
+    # stiff-only pass) too soft compliances, world and body targets; both passes. The closing pass also sets the rod
+    # segments the slots hold (GraspSystem's hold) to their body's rotation, or its twist about the slot's axis, times
+    # the slot's rotation, in slot order (a segment held twice ends with the later slot's); the stiff-only pass none.
     from lapwarp.kernels import xpbd
 
     rng = np.random.default_rng(3)
@@ -245,16 +247,44 @@ def test_attachment_slots_pull_in_slot_order(device):
     quat = rng.normal(size=(N, B, 4))
     poses[..., 3:] = quat / np.linalg.norm(quat, axis=-1, keepdims=True)
     h2 = 1.0 / (1e-3 * 1e-3)
+    G = 4  # rod segments
+    segment = np.where(slots >= 0, rng.integers(-1, G, size=(N, S)), -1).astype(np.int32)
+    rotation = rng.normal(size=(N, S, 4))
+    rotation = (rotation / np.linalg.norm(rotation, axis=-1, keepdims=True)).astype(np.float32)
+    hold_up = np.zeros((S, 3), dtype=np.float32)
+    hold_up[::2] = [0.0, 0.0, 1.0]  # every other slot follows only its body's turn about z
+    sq0 = np.tile(np.array([0.0, 0.0, 0.0, 1.0], np.float32), (N, G, 1))
 
     def arr(x, dtype):
         return wp.array(x, dtype=dtype, device=device)
 
+    def qmul(a, b):  # Hamilton product of (x, y, z, w) quaternions
+        (ax, ay, az, aw), (bx, by, bz, bw) = a, b
+        return np.array([aw * bx + ax * bw + ay * bz - az * by, aw * by - ax * bz + ay * bw + az * bx,
+                         aw * bz + ax * by - ay * bx + az * bw, aw * bw - ax * bx - ay * by - az * bz])
+
     for stiff_only in (0, 1):
         q = arr(q0, wp.vec3)
+        sq = arr(sq0, wp.quat)
         bq = arr(poses, wp.transform)
         wp.launch(xpbd.solve_attachments, dim=N,
                   inputs=[arr(slots, wp.int32), arr(body, wp.int32), arr(offset, wp.vec3), arr(compliance, float),
-                          bq, bq, 1.0, arr(inv_mass, float), h2, stiff_only], outputs=[q], device=device)
+                          arr(segment, wp.int32), arr(rotation, wp.quat), arr(hold_up, wp.vec3), bq, bq, 1.0,
+                          arr(inv_mass, float), h2, stiff_only], outputs=[q, sq], device=device)
+        expect_sq = sq0.astype(np.float64)
+        for env in range(N):
+            for s in range(S):
+                if stiff_only or slots[env, s] < 0 or segment[env, s] < 0:
+                    continue
+                rot = np.array([0.0, 0.0, 0.0, 1.0]) if body[env, s] < 0 else poses[env, body[env, s], 3:]
+                if hold_up[s].any():  # the twist about the axis
+                    twist = np.array([*(hold_up[s] * np.dot(rot[:3], hold_up[s])), rot[3]])
+                    rot = twist / np.linalg.norm(twist)
+                held = qmul(rot.astype(np.float64), rotation[env, s].astype(np.float64))
+                expect_sq[env, segment[env, s]] = held / np.linalg.norm(held)
+        if not stiff_only:
+            assert (expect_sq != sq0).any(axis=-1).sum() >= 4  # several segments held
+        np.testing.assert_allclose(sq.numpy(), expect_sq, atol=1e-6)
         expect = q0.astype(np.float64)
         for env in range(N):
             for s in range(S):
