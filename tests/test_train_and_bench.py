@@ -149,11 +149,11 @@ def test_bench_env_applies_and_records_the_contact_settings(device, tmp_path):
 
 
 def test_bench_env_predicts_in_the_rod_sweep_where_asked(device, tmp_path):
-    """``--predict-in-rod-sweep off`` gives a rods-only world (RopeCutting) its separate prediction launch back; the
-    result records where the prediction ran (on by default there)."""
+    """``--predict-in-rod-sweep on|off`` moves a rods-only world's (RopeCutting's) substep prediction into its fused rod
+    launch or gives it its own (RopeCutting's default); the result records where the prediction ran."""
     runs = []
-    for flag in ([], ["--predict-in-rod-sweep", "off"]):
-        out = tmp_path / f"bench{len(flag)}.json"
+    for flag in (["--predict-in-rod-sweep", "on"], ["--predict-in-rod-sweep", "off"]):
+        out = tmp_path / f"bench_{flag[1]}.json"
         assert bench_env.main(["--device", device, "--task", "RopeCutting", "--num-envs", "1", "--seconds", "0.05",
                                *flag, "--out", str(out)]) == 0
         runs.append(json.loads(out.read_text())["results"][0]["predict_in_rod_sweep"])

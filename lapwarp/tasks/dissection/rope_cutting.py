@@ -544,6 +544,12 @@ class RopeCuttingEnv(BatchedEnv):
         # 4,096 envs, same call as the uncapped step (forty-first session, results/session41):
         # 321.4k -> 324.4k env-steps/s
         world.default_register_caps["collide_particles"] = 64
+        # the rods' fused sweep with 64 lanes per env instead of 32, each substep's prediction in its own launch (in the
+        # rod launch it was slower here). H200, expert, 4,096 envs, same call (forty-third session, results/session43):
+        # 32 lanes 320.6k, 64 lanes 326.0k env-steps/s, 64 lanes with the prediction in the rod launch 324.8k (32:
+        # 310.9k against 320.3k without, another call)
+        world.rod_block_threads = 64
+        world.predict_in_rod_sweep = False
         self.rig.finalize(world)
         self.contact = ContactSystem(world, capacity=cfg.contact_capacity)
         for rope in self.ropes_obj:

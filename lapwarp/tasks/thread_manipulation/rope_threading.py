@@ -1146,8 +1146,11 @@ class RopeThreadingEnv(BatchedEnv):
         # ignores the cap)
         world.default_register_caps["solve_rods_fused"] = 64
         # the same for the launch that also predicts the substep (World.predict_in_rod_sweep; 72 registers, at 64 a
-        # 24 B spill frame, sm_90)
+        # 24 B spill frame, sm_90), which runs with 64 lanes per env instead of 32. H200, expert, 4,096 envs, same
+        # calls (forty-third session, results/session43): 32 lanes 194.4k / 194.5k env-steps/s, 64 lanes 199.8k /
+        # 199.9k / 199.8k, 96 190.4k, 128 192.8k; 64 lanes uncapped (72 registers) 197.0k
         world.default_register_caps["predict_and_solve_rods_fused"] = 64
+        world.rod_block_threads = 64
         # the rope's hybrid chain solve at 128 registers instead of 217 (a 328 B spill frame, sm_90): twice the
         # resident warps hide its loads better than the registers saved them. H200, expert, 4,096 envs, same call:
         # 137.1k -> 156.8k env-steps/s (168: 148.0k; 2 rows per lane: 132.3k; fortieth session, results/session40)
