@@ -650,26 +650,26 @@ class World:
             particle_args = [m.particle_inv_mass, m.particle_damping, m.gravity, h, *self._prediction_masks(),
                              start_flags, s.particle_q, s.particle_qd]
             prediction = None
-            if in_rod_sweep:
-                # predicted by the first sweep's rod launch (nothing else moves the particles before it)
+            if m.segment_count and self.integrate_together:
+                # particles and segments in one launch (the same arithmetic on independent elements), or where nothing
+                # else moves them before the rods, in the first sweep's rod launch
                 active, use_active, force, use_force = self._prediction_masks()
                 prediction = make_struct(xpbd.Prediction, finish=int(sub > 0 and fuse), inv_dt_prev=1.0 / h,
                                          inv_mass=m.particle_inv_mass, damping=m.particle_damping, gravity=m.gravity,
                                          dt=h, active=active, use_active=use_active, force=force, use_force=use_force,
                                          vbd_start=start_flags, qd=s.particle_qd, q_pred=self._q_pred,
-                                         segment_damping=m.segment_damping, sqd=s.segment_qd, sq_prev=self._sq_prev)
-            elif m.segment_count and self.integrate_together:
-                # particles and segments in one launch (the same arithmetic on independent elements)
-                both = (n, max(m.particle_count, m.segment_count))
-                segment_args = [m.segment_inv_inertia, m.segment_damping, s.segment_q, s.segment_qd]
-                launch(xpbd.integrate_particles_and_segments, both,
-                       [int(sub > 0 and fuse), 1.0 / h, *particle_args, self._q_pred, *segment_args], [self._sq_prev])
+                                         inv_inertia=m.segment_inv_inertia, segment_damping=m.segment_damping,
+                                         sqd=s.segment_qd, sq_prev=self._sq_prev)
+                if not in_rod_sweep:
+                    launch(xpbd.integrate_particles_and_segments, (n, max(m.particle_count, m.segment_count)),
+                           [prediction], [s.particle_q, s.segment_q])
+                    prediction = None
             elif sub > 0 and fuse:
                 launch(xpbd.finish_and_integrate_particles, (n, m.particle_count), [1.0 / h, *particle_args],
                        [self._q_pred])
             else:
                 launch(xpbd.integrate_particles, (n, m.particle_count), particle_args, [self._q_pred])
-            if m.segment_count and not self.integrate_together and not in_rod_sweep:
+            if m.segment_count and not self.integrate_together:
                 if sub > 0 and fuse:
                     launch(xpbd.finish_and_integrate_segments, (n, m.segment_count),
                            [1.0 / h, m.segment_inv_inertia, m.segment_damping, h, s.segment_q, s.segment_qd],

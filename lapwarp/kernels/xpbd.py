@@ -919,82 +919,11 @@ def update_segment_velocities(
     sqd_out[env, s] = segment_velocity(sq[env, s], sq_prev[env, s], inv_dt)
 
 
-@wp.func
-def predict_particle_and_segment(
-    env: int,
-    k: int,
-    finish: int,
-    inv_dt_prev: float,
-    inv_mass: wp.array2d(dtype=float),
-    damping: wp.array2d(dtype=float),
-    gravity: wp.vec3,
-    dt: float,
-    active: wp.array2d(dtype=wp.int32),
-    use_active: int,
-    force: wp.array2d(dtype=wp.vec3),
-    use_force: int,
-    vbd_start: wp.array(dtype=wp.int32),
-    q: wp.array2d(dtype=wp.vec3),
-    qd: wp.array2d(dtype=wp.vec3),
-    q_pred_out: wp.array2d(dtype=wp.vec3),
-    inv_inertia: wp.array2d(dtype=float),
-    segment_damping: wp.array2d(dtype=float),
-    sq: wp.array2d(dtype=wp.quat),
-    sqd: wp.array2d(dtype=wp.vec3),
-    sq_prev_out: wp.array2d(dtype=wp.quat),
-):
-    """Particle ``k`` and segment ``k`` of ``env`` (where they exist) predicted, with ``finish`` != 0 after the substep
-    before's velocity update (``inv_dt_prev``): a thread of ``integrate_particles_and_segments``."""
-    if k < q.shape[1]:
-        v_old = qd[env, k]
-        if finish != 0:
-            v_old = v_old + (q[env, k] - q_pred_out[env, k]) * inv_dt_prev
-        integrate_particle(env, k, v_old, inv_mass, damping, gravity, dt, active, use_active, force, use_force,
-                           vbd_start, q, qd, q_pred_out)
-    if k < sq.shape[1]:
-        om_old = sqd[env, k]
-        if finish != 0:
-            om_old = segment_velocity(sq[env, k], sq_prev_out[env, k], inv_dt_prev)
-        integrate_segment(env, k, om_old, inv_inertia, segment_damping, dt, sq, sqd, sq_prev_out)
-
-
-@wp.kernel
-def integrate_particles_and_segments(
-    finish: int,
-    inv_dt_prev: float,
-    inv_mass: wp.array2d(dtype=float),
-    damping: wp.array2d(dtype=float),
-    gravity: wp.vec3,
-    dt: float,
-    active: wp.array2d(dtype=wp.int32),
-    use_active: int,
-    force: wp.array2d(dtype=wp.vec3),
-    use_force: int,
-    vbd_start: wp.array(dtype=wp.int32),
-    q: wp.array2d(dtype=wp.vec3),
-    qd: wp.array2d(dtype=wp.vec3),
-    q_pred_out: wp.array2d(dtype=wp.vec3),
-    inv_inertia: wp.array2d(dtype=float),
-    segment_damping: wp.array2d(dtype=float),
-    sq: wp.array2d(dtype=wp.quat),
-    sqd: wp.array2d(dtype=wp.vec3),
-    sq_prev_out: wp.array2d(dtype=wp.quat),
-):
-    """``integrate_particles`` and ``integrate_segments`` in one launch over ``max(particles, segments)`` threads
-    per env (thread ``k`` takes particle ``k`` and segment ``k`` where they exist), with ``finish`` != 0 as
-    ``finish_and_integrate_particles`` / ``_segments`` (the substep before's velocity update, ``inv_dt_prev``, first):
-    the same arithmetic on independent elements, one launch fewer per substep in a scene with rods (RopeThreading: 99
-    per env step)."""
-    env, k = wp.tid()
-    predict_particle_and_segment(env, k, finish, inv_dt_prev, inv_mass, damping, gravity, dt, active, use_active,
-                                 force, use_force, vbd_start, q, qd, q_pred_out, inv_inertia, segment_damping, sq,
-                                 sqd, sq_prev_out)
-
-
 @wp.struct
 class Prediction:
-    """A substep's prediction of particles and segments (``integrate_particles_and_segments``' inputs and its
-    outputs besides the positions and orientations), for ``predict_and_solve_rods_fused``."""
+    """A substep's prediction of particles and rod segments: the inputs of ``predict_particle_and_segment`` and its
+    outputs besides the positions and orientations. ``finish`` != 0: the substep before's velocity update
+    (``inv_dt_prev``) first, as ``finish_and_integrate_particles`` / ``_segments``."""
 
     finish: int
     inv_dt_prev: float
@@ -1009,9 +938,38 @@ class Prediction:
     vbd_start: wp.array(dtype=wp.int32)
     qd: wp.array2d(dtype=wp.vec3)
     q_pred: wp.array2d(dtype=wp.vec3)
+    inv_inertia: wp.array2d(dtype=float)
     segment_damping: wp.array2d(dtype=float)
     sqd: wp.array2d(dtype=wp.vec3)
     sq_prev: wp.array2d(dtype=wp.quat)
+
+
+@wp.func
+def predict_particle_and_segment(env: int, k: int, p: Prediction, q: wp.array2d(dtype=wp.vec3),
+                                 sq: wp.array2d(dtype=wp.quat)):
+    """Particle ``k`` and segment ``k`` of ``env`` (where they exist) predicted: ``integrate_particles_and_segments``'
+    thread."""
+    if k < q.shape[1]:
+        v_old = p.qd[env, k]
+        if p.finish != 0:
+            v_old = v_old + (q[env, k] - p.q_pred[env, k]) * p.inv_dt_prev
+        integrate_particle(env, k, v_old, p.inv_mass, p.damping, p.gravity, p.dt, p.active, p.use_active, p.force,
+                           p.use_force, p.vbd_start, q, p.qd, p.q_pred)
+    if k < sq.shape[1]:
+        om_old = p.sqd[env, k]
+        if p.finish != 0:
+            om_old = segment_velocity(sq[env, k], p.sq_prev[env, k], p.inv_dt_prev)
+        integrate_segment(env, k, om_old, p.inv_inertia, p.segment_damping, p.dt, sq, p.sqd, p.sq_prev)
+
+
+@wp.kernel
+def integrate_particles_and_segments(pred: Prediction, q: wp.array2d(dtype=wp.vec3), sq: wp.array2d(dtype=wp.quat)):
+    """``integrate_particles`` and ``integrate_segments`` in one launch over ``max(particles, segments)`` threads
+    per env (thread ``k`` takes particle ``k`` and segment ``k`` where they exist), with ``pred.finish`` != 0 as
+    ``finish_and_integrate_particles`` / ``_segments``: the same arithmetic on independent elements, one launch fewer
+    per substep in a scene with rods (RopeThreading: 99 per env step)."""
+    env, k = wp.tid()
+    predict_particle_and_segment(env, k, pred, q, sq)
 
 
 @wp.func
@@ -1287,10 +1245,7 @@ def predict_and_solve_rods_fused(
     lanes = wp.block_dim()
     barrier = wp.tile_zeros(shape=1, dtype=int, storage="shared")
     for k in range(lane, wp.max(q.shape[1], sq.shape[1]), lanes):
-        predict_particle_and_segment(env, k, pred.finish, pred.inv_dt_prev, pred.inv_mass, pred.damping, pred.gravity,
-                                     pred.dt, pred.active, pred.use_active, pred.force, pred.use_force, pred.vbd_start,
-                                     q, pred.qd, pred.q_pred, inv_inertia, pred.segment_damping, sq, pred.sqd,
-                                     pred.sq_prev)
+        predict_particle_and_segment(env, k, pred, q, sq)
     wp.tile_scatter_masked(barrier, 0, 0, False)  # every element predicted before any colour reads it
     solve_rod_colors(env, lane, lanes, barrier, segment_offsets, particles, segment_rest, segment_compliance,
                      bend_offsets, bend_segments, bend_rest, bend_compliance, inv_inertia, inv_mass, inv_dt2,
