@@ -91,10 +91,11 @@ class GraspSystem:
         self.particle_segment = wp.array(seg_of, dtype=wp.int32, device=dev)
         self.grasped = wp.zeros(n, dtype=wp.int32, device=dev)
         self.lost_grasp = wp.zeros(n, dtype=wp.int32, device=dev)
+        up = np.zeros(3) if hold_up is None else np.asarray(hold_up, float) / np.linalg.norm(hold_up)
         if self.hold_orientation and hold_up is not None:
             # the World's attachment pass reads each slot's axis (a zero axis: the jaw's whole rotation)
             axes = m.attach_hold_up.numpy()
-            axes[self.slot_start:self.slot_start + self.slots] = np.asarray(hold_up, float) / np.linalg.norm(hold_up)
+            axes[self.slot_start:self.slot_start + self.slots] = up
             m.attach_hold_up.assign(axes)
         self._dummy_q = wp.zeros((1, 1), dtype=wp.quat, device=dev)
         self._no_particles = wp.zeros(0, dtype=wp.int32, device=dev)
@@ -108,8 +109,7 @@ class GraspSystem:
                                     slot_start=self.slot_start, slots=self.slots, compliance=self.compliance,
                                     graspable=self.graspable, particle_segment=self.particle_segment,
                                     hold=int(self.hold_orientation),
-                                    hold_up=wp.vec3(*(np.zeros(3) if hold_up is None else
-                                                      np.asarray(hold_up, float) / np.linalg.norm(hold_up))))
+                                    hold_up=wp.vec3(*up))
         s = world.state
         attach = make_struct(gk.Attachments, particle=s.attach_particle, body=s.attach_body, offset=s.attach_offset,
                              compliance=s.attach_compliance, segment=s.attach_segment, rotation=s.attach_rotation)
