@@ -143,8 +143,8 @@ def test_hybrid_long_rope_matches_serial(device, monkeypatch):
     _, out, rods = _step_both(make, device, simulate=(0.5, 0.1))
     assert out[1][0, 200, 2] < -0.05  # the tip fell and swings
     assert _worst(out[0], out[1], rods) <= TOL * 0.2
-    assert variants and all(v == {"loops": False, "masked": False, "newton_tolerance": 0.0} for v in variants), \
-        variants
+    assert variants and all(v == {"loops": False, "masked": False, "newton_tolerance": 0.0, "attachments": False}
+                            for v in variants), variants
 
 
 def test_hybrid_setting_is_checked(device, monkeypatch):
@@ -210,3 +210,51 @@ def test_block_newton_tolerance_keeps_the_converged_result(device, solver):
     three, rods = _stopping_rods(device, solver, 3, 1, 0.0)
     early, _ = _stopping_rods(device, solver, 3, 1, 1e-7)
     assert np.abs(three - early).max() <= 1e-7
+
+
+def test_hybrid_rod_solve_runs_the_closing_attachment_pass(device):
+    # World.attach_in_rod_solve: a 40-link rope whose first node a body drags and turns (its first segment's orientation
+    # held with it, as a grasp holds it) and whose middle node hangs from a soft world point, on the hybrid solve at 1
+    # and 2 sweeps per substep: the closing attachment pass run by the rod solve's block after the solve gives the
+    # separate launch's positions and orientations (bit for bit on the CPU); rods in two packs per env keep the launch
+    from lapwarp.builder import SceneBuilder
+
+    def build(ropes=1):
+        b = SceneBuilder()
+        body = b.add_body("holder")
+        for r in range(ropes):
+            pts = np.stack([np.linspace(0.0, 0.1, 41), np.full(41, 0.01 * r), np.zeros(41)], axis=1)
+            rod = b.add_rod(pts, radius=5e-4, youngs_modulus=1e6, damping=0.5)
+            b.add_attachment(rod.particle_start, body, compliance=0.0)
+            b.add_attachment(rod.particle_start + 20, -1, compliance=1e-3)
+        world = b.finalize(2, device, substeps=6)
+        world.chain_solver = "hybrid"
+        return world, rod
+
+    out = []
+    for iterations, fused in ((1, True), (1, False), (2, True), (2, False)):
+        world, rod = build()
+        world.set_iterations(iterations)
+        world.attach_in_rod_solve = fused
+        assert world._attaches_in_rod_solve() == fused
+        segment = world.state.attach_segment.numpy()
+        segment[:, 0] = rod.segment_start  # the held node's segment turns with the body
+        world.state.attach_segment.assign(segment)
+        pose = world.state.body_q.numpy()
+        for k in range(6):
+            angle = 0.2 * (k + 1)
+            pose[:, 0, :3] = [0.0, 0.0, 0.005 * (k + 1)]
+            pose[:, 0, 3:] = [0.0, np.sin(angle / 2), 0.0, np.cos(angle / 2)]  # about y
+            world.state.body_q.assign(pose)
+            world.step(0.02)
+        out.append([world.state.particle_q.numpy(), world.state.segment_q.numpy()])
+    q0 = out[0][1][0, rod.segment_start]
+    assert abs(abs(q0[1]) - np.sin(0.6)) < 1e-5  # the held segment turned with the body (1.2 rad about y)
+    for fused, separate in ((out[0], out[1]), (out[2], out[3])):
+        for a, b_ in zip(fused, separate, strict=True):
+            if device == "cpu":
+                np.testing.assert_array_equal(a, b_)
+            else:
+                np.testing.assert_allclose(a, b_, atol=1e-6)
+    world, _ = build(ropes=4)  # 164 rows: two packs of at most 128
+    assert world.model.rod_count == 4 and not world._attaches_in_rod_solve()

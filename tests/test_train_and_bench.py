@@ -160,6 +160,18 @@ def test_bench_env_predicts_in_the_rod_sweep_where_asked(device, tmp_path):
     assert runs == [True, False]
 
 
+def test_bench_env_runs_the_attachment_pass_in_the_rod_solve_where_asked(device, tmp_path):
+    """``--attach-in-rod-solve on`` gives RopeThreading's hybrid rope solve its closing attachment pass (off by
+    default until timed); the result records where the pass ran."""
+    runs = []
+    for flag in ([], ["--attach-in-rod-solve", "on"]):
+        out = tmp_path / f"bench{len(flag)}.json"
+        assert bench_env.main(["--device", device, "--task", "RopeThreading", "--num-envs", "1", "--seconds", "0.05",
+                               "--set", "chain_solver=hybrid", *flag, "--out", str(out)]) == 0
+        runs.append(json.loads(out.read_text())["results"][0]["attach_in_rod_solve"])
+    assert runs == [False, True]
+
+
 def test_bench_env_applies_and_records_register_caps(device, tmp_path, capsys):
     """``--max-registers KERNEL=N`` caps a kernel of the world's step (recorded with the result, beside the task's
     own caps: ThreadInHole's lagged vertex sweep, rods and pose kernel at 64); a malformed item or a cap out of range

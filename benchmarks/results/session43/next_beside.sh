@@ -2,8 +2,9 @@
 # The next lease's GPU checks (written in the forty-third session), run as queue.sh's BESIDE on one H200 (an empty
 # queue: DEVICE cuda:0) or beside a learning queue on the last GPU of a larger machine, in order of need, each item
 # skipped once DEADLINE (s, default 1000) has passed, then the learning queue JOBS with the time left:
-# 0. RopeThreading on its new defaults (199.8k in the forty-third session: #18's 200k), alternated with register caps
-#    not tried yet: its particle contact at 56 / 48 (64), its fused rod-and-prediction launch at 56 / 48 (64, 64
+# 0. RopeThreading on its new defaults (199.8k in the forty-third session: #18's 200k), alternated with its closing
+#    attachment pass at the end of the hybrid rope solve (--attach-in-rod-solve on: off until timed; if it gains, the
+#    World's default) and register caps not tried yet: its particle contact at 56 / 48 (64), its fused rod-and-prediction launch at 56 / 48 (64, 64
 #    lanes), its hybrid chain solve at 96 (128); then its RGB 64x64 step and profile;
 # 1. RopeCutting's prediction in the rod launch with that launch capped at 64 registers like its solve_rods_fused (the
 #    forty-third session timed it uncapped: 324.8k against 326.0k without), twice alternated;
@@ -26,6 +27,7 @@ in_time() { [ $(( $(date +%s) - t0 )) -lt "$deadline" ] || { echo "deadline: ski
 for round in a b; do
   in_time "rt_$round" || continue
   bench "rt_$round" RopeThreading expert
+  bench "rt_attach_$round" RopeThreading expert --attach-in-rod-solve on
   bench "rt_cp56_$round" RopeThreading expert --max-registers collide_particles=56
   bench "rt_cp48_$round" RopeThreading expert --max-registers collide_particles=48
 done
