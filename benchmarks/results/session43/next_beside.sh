@@ -4,8 +4,9 @@
 # skipped once DEADLINE (s, default 1000) has passed, then the learning queue JOBS with the time left:
 # 0. RopeThreading on its new defaults (199.8k in the forty-third session: #18's 200k), alternated with its closing
 #    attachment pass at the end of the hybrid rope solve (--attach-in-rod-solve on: off until timed; if it gains, the
-#    World's default) and register caps not tried yet: its particle contact at 56 / 48 (64), its fused rod-and-prediction launch at 56 / 48 (64, 64
-#    lanes), its hybrid chain solve at 96 (128); then its RGB 64x64 step and profile;
+#    World's default) and register caps not tried yet: its particle contact at 56 / 48 (64), its fused
+#    rod-and-prediction launch at 56 / 48 (64, 64 lanes), its hybrid chain solve at 96 (128); then its RGB 64x64 step
+#    and profile;
 # 1. RopeCutting's prediction in the rod launch with that launch capped at 64 registers like its solve_rods_fused (the
 #    forty-third session timed it uncapped: 324.8k against 326.0k without), twice alternated;
 # 2. a 10^6-step random-action soak of RopeThreading and RopeCutting on the new rod launch;
@@ -58,6 +59,7 @@ done
 if in_time pytest; then
   PYTHONPATH=$new timeout 240 python3 -m pytest -q -p no:cacheprovider tests/test_physics_basic.py \
     tests/test_physics_deformables.py tests/test_grasping.py tests/test_pick_and_place.py tests/test_physics_rods.py \
+    tests/test_chains_hybrid.py \
     -k "prediction or attachment or grasp or hold or fused" --device "$dev" > "$out/pytest_cuda.txt" 2>&1
   echo "pytest rc=$? $(tail -1 "$out/pytest_cuda.txt")"
 fi
