@@ -547,6 +547,9 @@ class World:
             if isinstance(self.rod_block_threads, bool) or not isinstance(self.rod_block_threads, int) \
                     or not 1 <= self.rod_block_threads <= 1024:
                 raise ValueError(f"world.rod_block_threads must be an int in [1, 1024], got {self.rod_block_threads!r}")
+            for name in ("integrate_together", "predict_in_rod_sweep", "attach_in_rod_solve"):
+                if not isinstance(getattr(self, name), (bool, np.bool_)):
+                    raise ValueError(f"world.{name} must be a bool, got {getattr(self, name)!r}")
             if self.tet_solver not in TET_SOLVERS:
                 raise ValueError(f"world.tet_solver must be one of {TET_SOLVERS}, got {self.tet_solver!r}")
             if self.tet_solver == "fused" and self._tet_window[1] > FUSED_TET_MAX_PARTICLES:

@@ -240,6 +240,14 @@ def test_rod_solver_settings_are_checked(device):
     world.rod_block_threads = 0
     with pytest.raises(ValueError, match="rod_block_threads"):
         world.step(0.02)
+    world.rod_block_threads = 32
+    for name in ("integrate_together", "predict_in_rod_sweep", "attach_in_rod_solve"):
+        setattr(world, name, "no")  # a truthy string would silently mean True
+        with pytest.raises(ValueError, match=f"world.{name} must be a bool, got 'no'"):
+            world.step(0.02)
+        setattr(world, name, True)
+    world.step(0.02)
+
 
 def test_rod_frames_turn_a_right_angled_corner():
     # a square loop: at each corner the first director lay along the next tangent, and projecting it off left nothing
