@@ -871,13 +871,18 @@ class World:
         if m.segment_count and self.rod_solver in ("auto", "fused"):
             # every colour of both groups in one launch, a block per env (on the CPU one lane: the same order)
             lanes = launching.block_lanes(self.device, self.rod_block_threads)
-            rods = xpbd.solve_rods_fused if prediction is None else xpbd.predict_and_solve_rods_fused
-            launch(rods, (n, lanes),
-                   [*([] if prediction is None else [prediction]), self._segment_color_offsets, m.segment_particles,
-                    m.segment_rest, m.segment_compliance,
-                    self._bend_color_offsets, m.bend_segments, m.bend_rest, m.bend_compliance, m.segment_inv_inertia,
-                    w_eff, inv_dt2, use_lam, lam.get("segment", self._dummy_v3), lam.get("bend", self._dummy_v3),
-                    seg_mask], [s.particle_q, s.segment_q], block_dim=lanes)
+            rods = make_struct(xpbd.RodSweep, segment_offsets=self._segment_color_offsets,
+                               particles=m.segment_particles, segment_rest=m.segment_rest,
+                               segment_compliance=m.segment_compliance, bend_offsets=self._bend_color_offsets,
+                               bend_segments=m.bend_segments, bend_rest=m.bend_rest, bend_compliance=m.bend_compliance,
+                               inv_inertia=m.segment_inv_inertia, inv_mass=w_eff, inv_dt2=inv_dt2, use_lambda=use_lam,
+                               segment_lam=lam.get("segment", self._dummy_v3), bend_lam=lam.get("bend", self._dummy_v3),
+                               segment_active=seg_mask)
+            if prediction is None:
+                launch(xpbd.solve_rods_fused, (n, lanes), [rods], [s.particle_q, s.segment_q], block_dim=lanes)
+            else:
+                launch(xpbd.predict_and_solve_rods_fused, (n, lanes), [prediction, rods], [s.particle_q, s.segment_q],
+                       block_dim=lanes)
         elif m.segment_count:
             off = m.segment_color_offsets
             for c in range(len(off) - 1):

@@ -52,7 +52,7 @@ def test_parse_refuses_a_non_elf(tmp_path):
 
 def test_block_waves_by_registers():
     """One-warp blocks, 4,096 of them (a block per env) on 132 SMs: registers allocated in units of 8 per thread, at
-    most 32 blocks per SM. <= 64 registers: one wave; 65-72: 28 blocks per SM, 1.11 waves (solve_rods_fused's 71);
+    most 32 blocks per SM. <= 64 registers: one wave; 65-72: 28 blocks per SM, 1.11 waves (solve_rods_fused's 71 once);
     80: 25, 1.24 (ThreadInHole's uncapped vertex sweep); 128: 16, 1.94. Wider blocks hold whole warps."""
     assert block_waves(64, 4096) == (32, pytest.approx(4096 / (32 * 132)))
     assert block_waves(71, 4096)[0] == 28 and block_waves(72, 4096)[0] == 28

@@ -1170,64 +1170,48 @@ def solve_bend_twist(
                           segment_active, sq)
 
 
+@wp.struct
+class RodSweep:
+    """The rods' constraints as one argument of the fused rod launches: the colour ranges of the stretch-shear and
+    bend-twist groups, their constraints, the segments' inverse inertias, the particles' (attachment-weighted)
+    inverse masses, ``1 / h^2``, the multipliers (``use_lambda``) and the cut mask."""
+
+    segment_offsets: wp.array(dtype=wp.int32)
+    particles: wp.array(dtype=wp.vec3i)
+    segment_rest: wp.array(dtype=float)
+    segment_compliance: wp.array2d(dtype=wp.vec3)
+    bend_offsets: wp.array(dtype=wp.int32)
+    bend_segments: wp.array(dtype=wp.vec2i)
+    bend_rest: wp.array(dtype=wp.quat)
+    bend_compliance: wp.array2d(dtype=wp.vec3)
+    inv_inertia: wp.array2d(dtype=float)
+    inv_mass: wp.array2d(dtype=float)
+    inv_dt2: float
+    use_lambda: int
+    segment_lam: wp.array2d(dtype=wp.vec3)
+    bend_lam: wp.array2d(dtype=wp.vec3)
+    segment_active: wp.array2d(dtype=wp.int32)
+
+
 @wp.func
-def solve_rod_colors(
-    env: int,
-    lane: int,
-    lanes: int,
-    barrier: wp.tile(dtype=int, shape=(1,), storage="shared"),
-    segment_offsets: wp.array(dtype=wp.int32),
-    particles: wp.array(dtype=wp.vec3i),
-    segment_rest: wp.array(dtype=float),
-    segment_compliance: wp.array2d(dtype=wp.vec3),
-    bend_offsets: wp.array(dtype=wp.int32),
-    bend_segments: wp.array(dtype=wp.vec2i),
-    bend_rest: wp.array(dtype=wp.quat),
-    bend_compliance: wp.array2d(dtype=wp.vec3),
-    inv_inertia: wp.array2d(dtype=float),
-    inv_mass: wp.array2d(dtype=float),
-    inv_dt2: float,
-    use_lambda: int,
-    segment_lam: wp.array2d(dtype=wp.vec3),
-    bend_lam: wp.array2d(dtype=wp.vec3),
-    segment_active: wp.array2d(dtype=wp.int32),
-    q: wp.array2d(dtype=wp.vec3),
-    sq: wp.array2d(dtype=wp.quat),
-):
+def solve_rod_colors(env: int, lane: int, lanes: int, barrier: wp.tile(dtype=int, shape=(1,), storage="shared"),
+                     r: RodSweep, q: wp.array2d(dtype=wp.vec3), sq: wp.array2d(dtype=wp.quat)):
     """Lane ``lane`` of ``lanes``' share of every stretch-shear colour, then every bend-twist colour, of env ``env``,
     a block barrier after each (``solve_rods_fused``)."""
-    for color in range(segment_offsets.shape[0] - 1):
-        for c in range(segment_offsets[color] + lane, segment_offsets[color + 1], lanes):
-            stretch_shear_constraint(env, c, particles, segment_rest, segment_compliance, inv_inertia, inv_mass,
-                                     inv_dt2, use_lambda, segment_lam, segment_active, q, sq)
+    for color in range(r.segment_offsets.shape[0] - 1):
+        for c in range(r.segment_offsets[color] + lane, r.segment_offsets[color + 1], lanes):
+            stretch_shear_constraint(env, c, r.particles, r.segment_rest, r.segment_compliance, r.inv_inertia,
+                                     r.inv_mass, r.inv_dt2, r.use_lambda, r.segment_lam, r.segment_active, q, sq)
         wp.tile_scatter_masked(barrier, 0, 0, False)  # a block barrier (nothing written)
-    for color in range(bend_offsets.shape[0] - 1):
-        for b in range(bend_offsets[color] + lane, bend_offsets[color + 1], lanes):
-            bend_twist_constraint(env, b, bend_segments, bend_rest, bend_compliance, inv_inertia, inv_dt2, use_lambda,
-                                  bend_lam, segment_active, sq)
+    for color in range(r.bend_offsets.shape[0] - 1):
+        for b in range(r.bend_offsets[color] + lane, r.bend_offsets[color + 1], lanes):
+            bend_twist_constraint(env, b, r.bend_segments, r.bend_rest, r.bend_compliance, r.inv_inertia, r.inv_dt2,
+                                  r.use_lambda, r.bend_lam, r.segment_active, sq)
         wp.tile_scatter_masked(barrier, 0, 0, False)
 
 
 @wp.kernel
-def solve_rods_fused(
-    segment_offsets: wp.array(dtype=wp.int32),
-    particles: wp.array(dtype=wp.vec3i),
-    segment_rest: wp.array(dtype=float),
-    segment_compliance: wp.array2d(dtype=wp.vec3),
-    bend_offsets: wp.array(dtype=wp.int32),
-    bend_segments: wp.array(dtype=wp.vec2i),
-    bend_rest: wp.array(dtype=wp.quat),
-    bend_compliance: wp.array2d(dtype=wp.vec3),
-    inv_inertia: wp.array2d(dtype=float),
-    inv_mass: wp.array2d(dtype=float),
-    inv_dt2: float,
-    use_lambda: int,
-    segment_lam: wp.array2d(dtype=wp.vec3),
-    bend_lam: wp.array2d(dtype=wp.vec3),
-    segment_active: wp.array2d(dtype=wp.int32),
-    q: wp.array2d(dtype=wp.vec3),
-    sq: wp.array2d(dtype=wp.quat),
-):
+def solve_rods_fused(rods: RodSweep, q: wp.array2d(dtype=wp.vec3), sq: wp.array2d(dtype=wp.quat)):
     """Every colour of the stretch-shear constraints, then every colour of the bend-twist ones, in one launch: a
     thread block per env whose lanes take a colour's constraints side by side, a block barrier between colours (the
     positions and orientations stay in global memory, which a barrier makes visible to the block). The same
@@ -1236,32 +1220,12 @@ def solve_rods_fused(
     four launches per sweep were mostly fixed cost."""
     env, lane = wp.tid()
     barrier = wp.tile_zeros(shape=1, dtype=int, storage="shared")
-    solve_rod_colors(env, lane, wp.block_dim(), barrier, segment_offsets, particles, segment_rest, segment_compliance,
-                     bend_offsets, bend_segments, bend_rest, bend_compliance, inv_inertia, inv_mass, inv_dt2,
-                     use_lambda, segment_lam, bend_lam, segment_active, q, sq)
+    solve_rod_colors(env, lane, wp.block_dim(), barrier, rods, q, sq)
 
 
 @wp.kernel
-def predict_and_solve_rods_fused(
-    pred: Prediction,
-    segment_offsets: wp.array(dtype=wp.int32),
-    particles: wp.array(dtype=wp.vec3i),
-    segment_rest: wp.array(dtype=float),
-    segment_compliance: wp.array2d(dtype=wp.vec3),
-    bend_offsets: wp.array(dtype=wp.int32),
-    bend_segments: wp.array(dtype=wp.vec2i),
-    bend_rest: wp.array(dtype=wp.quat),
-    bend_compliance: wp.array2d(dtype=wp.vec3),
-    inv_inertia: wp.array2d(dtype=float),
-    inv_mass: wp.array2d(dtype=float),
-    inv_dt2: float,
-    use_lambda: int,
-    segment_lam: wp.array2d(dtype=wp.vec3),
-    bend_lam: wp.array2d(dtype=wp.vec3),
-    segment_active: wp.array2d(dtype=wp.int32),
-    q: wp.array2d(dtype=wp.vec3),
-    sq: wp.array2d(dtype=wp.quat),
-):
+def predict_and_solve_rods_fused(pred: Prediction, rods: RodSweep, q: wp.array2d(dtype=wp.vec3),
+                                 sq: wp.array2d(dtype=wp.quat)):
     """``integrate_particles_and_segments`` for the env's particles and segments, a block barrier, then
     ``solve_rods_fused``: the substep's prediction and its first sweep's rod colours in one launch, where nothing
     comes between them (``World.predict_in_rod_sweep``: a world whose only constraints are rods, e.g. RopeThreading
@@ -1275,6 +1239,4 @@ def predict_and_solve_rods_fused(
     for k in range(lane, wp.max(q.shape[1], sq.shape[1]), lanes):
         predict_particle_and_segment(env, k, pred, q, sq)
     wp.tile_scatter_masked(barrier, 0, 0, False)  # every element predicted before any colour reads it
-    solve_rod_colors(env, lane, lanes, barrier, segment_offsets, particles, segment_rest, segment_compliance,
-                     bend_offsets, bend_segments, bend_rest, bend_compliance, inv_inertia, inv_mass, inv_dt2,
-                     use_lambda, segment_lam, bend_lam, segment_active, q, sq)
+    solve_rod_colors(env, lane, lanes, barrier, rods, q, sq)
