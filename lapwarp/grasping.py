@@ -27,6 +27,7 @@ import warp as wp
 
 from lapwarp import launching
 from lapwarp.kernels import grasping as gk
+from lapwarp.kernels import xpbd
 from lapwarp.kernels.contact import IgnoreMask
 from lapwarp.launching import make_struct
 
@@ -111,7 +112,7 @@ class GraspSystem:
                                     hold=int(self.hold_orientation),
                                     hold_up=wp.vec3(*up))
         s = world.state
-        attach = make_struct(gk.Attachments, particle=s.attach_particle, body=s.attach_body, offset=s.attach_offset,
+        attach = make_struct(xpbd.Attachments, particle=s.attach_particle, body=s.attach_body, offset=s.attach_offset,
                              compliance=s.attach_compliance, segment=s.attach_segment, rotation=s.attach_rotation)
         self._state = make_struct(gk.GraspState, grasped=self.grasped, lost_grasp=self.lost_grasp, attach=attach,
                                   ignore=contact.ignore)
@@ -164,7 +165,7 @@ class GraspSystem:
         def copy(a):
             return wp.clone(a)
 
-        attach = make_struct(gk.Attachments, particle=copy(s.attach.particle), body=copy(s.attach.body),
+        attach = make_struct(xpbd.Attachments, particle=copy(s.attach.particle), body=copy(s.attach.body),
                              offset=copy(s.attach.offset), compliance=copy(s.attach.compliance),
                              segment=copy(s.attach.segment), rotation=copy(s.attach.rotation))
         ignore = make_struct(IgnoreMask, bodies=copy(s.ignore.bodies), enabled=s.ignore.enabled)

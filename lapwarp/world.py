@@ -898,10 +898,12 @@ class World:
         attach = None
         if self._attaches_in_rod_solve():
             # the closing attachment pass by the rods' solve, after it (one block per env holds every rod)
-            attach = make_struct(xpbd.AttachmentPass, particle=s.attach_particle, body=s.attach_body,
-                                 offset=s.attach_offset, compliance=s.attach_compliance, segment=s.attach_segment,
-                                 rotation=s.attach_rotation, hold_up=m.attach_hold_up, body_q_prev=bqp, body_q=bq,
-                                 blend=blend, inv_mass=m.particle_inv_mass, inv_dt2=inv_dt2, sq=attachment_out[1])
+            slots = make_struct(xpbd.Attachments, particle=s.attach_particle, body=s.attach_body,
+                                offset=s.attach_offset, compliance=s.attach_compliance, segment=s.attach_segment,
+                                rotation=s.attach_rotation)
+            attach = make_struct(xpbd.AttachmentPass, slots=slots, hold_up=m.attach_hold_up, body_q_prev=bqp,
+                                 body_q=bq, blend=blend, inv_mass=m.particle_inv_mass, inv_dt2=inv_dt2,
+                                 sq=attachment_out[1])
         if m.rod_count:
             # after shear and bend-twist so every sweep ends with the rods at their length
             solve_chains(m.rod_chains, m.rod_stretch_rest, m.rod_stretch_compliance, lam.get("rod", self._dummy_f),

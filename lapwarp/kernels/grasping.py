@@ -1,8 +1,8 @@
 """Grasping kernels (see :mod:`lapwarp.grasping`): attach, hold and release particles with a two-jaw instrument.
 
 Attachments are written into the per-env slots ``[slot_start, slot_start + slots)`` of ``state.attach_*``
-(:class:`Attachments`, part of the :class:`GraspState` the kernels write); the contact records and the shape table
-come from :mod:`lapwarp.kernels.contact`, and the ``ignore_bodies`` bits of held particles
+(:class:`lapwarp.kernels.xpbd.Attachments`, part of the :class:`GraspState` the kernels write); the contact records
+and the shape table come from :mod:`lapwarp.kernels.contact`, and the ``ignore_bodies`` bits of held particles
 (:class:`lapwarp.kernels.contact.IgnoreMask`) keep the jaws from squeezing them out. A held rod node's segment is
 written into its slot too (``state.attach_segment`` / ``attach_rotation``): the World's attachment pass turns it with
 the jaw in every sweep. One thread per env.
@@ -12,6 +12,7 @@ import warp as wp
 
 from lapwarp.kernels.contact import ContactReports, IgnoreMask, ShapeTable
 from lapwarp.kernels.geometry import twist_about
+from lapwarp.kernels.xpbd import Attachments
 
 wp.set_module_options({"enable_backward": False})
 
@@ -41,18 +42,6 @@ class Grasper:
 def held_rotation(grasper: Grasper, rot: wp.quat) -> wp.quat:
     """The rotation a held segment follows: the jaw's, or only its twist about ``hold_up`` (swing-twist split)."""
     return twist_about(rot, grasper.hold_up)
-
-
-@wp.struct
-class Attachments:
-    """The World's attachment slots (``state.attach_*``, ``(num_envs, capacity)``)."""
-
-    particle: wp.array2d(dtype=wp.int32)
-    body: wp.array2d(dtype=wp.int32)
-    offset: wp.array2d(dtype=wp.vec3)
-    compliance: wp.array2d(dtype=float)
-    segment: wp.array2d(dtype=wp.int32)
-    rotation: wp.array2d(dtype=wp.quat)
 
 
 @wp.struct

@@ -841,9 +841,8 @@ def solve_attachment_slots(
 
 
 @wp.struct
-class AttachmentPass:
-    """A sweep's closing attachment pass (``solve_attachments`` with ``stiff_only`` 0) as one argument, for a kernel
-    that runs an env's pass after its own work (``chains_hybrid``'s rod solve, ``World.attach_in_rod_solve``)."""
+class Attachments:
+    """The World's attachment slots (``state.attach_*``, ``(num_envs, capacity)``; grasping writes them too)."""
 
     particle: wp.array2d(dtype=wp.int32)
     body: wp.array2d(dtype=wp.int32)
@@ -851,6 +850,14 @@ class AttachmentPass:
     compliance: wp.array2d(dtype=float)
     segment: wp.array2d(dtype=wp.int32)
     rotation: wp.array2d(dtype=wp.quat)
+
+
+@wp.struct
+class AttachmentPass:
+    """A sweep's closing attachment pass (``solve_attachments`` with ``stiff_only`` 0) as one argument, for a kernel
+    that runs an env's pass after its own work (``chains_hybrid``'s rod solve, ``World.attach_in_rod_solve``)."""
+
+    slots: Attachments
     hold_up: wp.array(dtype=wp.vec3)
     body_q_prev: wp.array2d(dtype=wp.transform)
     body_q: wp.array2d(dtype=wp.transform)
@@ -863,8 +870,9 @@ class AttachmentPass:
 @wp.func
 def solve_env_attachments(env: int, a: AttachmentPass, q: wp.array2d(dtype=wp.vec3)):
     """``solve_attachments``' thread for ``env``, closing pass: its slots in order."""
-    for s in range(a.particle.shape[1]):
-        solve_attachment_slot(env, s, a.particle, a.body, a.offset, a.compliance, a.segment, a.rotation, a.hold_up,
+    t = a.slots
+    for s in range(t.particle.shape[1]):
+        solve_attachment_slot(env, s, t.particle, t.body, t.offset, t.compliance, t.segment, t.rotation, a.hold_up,
                               a.body_q_prev, a.body_q, a.blend, a.inv_mass, a.inv_dt2, 0, q, a.sq)
 
 
