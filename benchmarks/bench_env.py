@@ -97,7 +97,8 @@ def bench_one(task: str, num_envs: int, device: str, seconds: float, invalid_act
               rod_solver: str | None = None, lane_rows: int | None = None,
               surface_leaf_size: int | None = None, cull_groups: bool = True,
               pose_per_step: bool | None = None, rod_block_threads: int | None = None,
-              predict_in_rod_sweep: bool | None = None, attach_in_rod_solve: bool | None = None) -> dict:
+              predict_in_rod_sweep: bool | None = None, attach_in_rod_solve: bool | None = None,
+              register_split: bool | None = None) -> dict:
     def make_env():
         # the leaf size and the cull groups are read when the task finalizes its contact system, i.e. while the env is
         # built (an older lapwarp, timed beside this one, may have neither: it is left alone there)
@@ -137,6 +138,10 @@ def bench_one(task: str, num_envs: int, device: str, seconds: float, invalid_act
             if not hasattr(env.world, "attach_in_rod_solve"):  # an older lapwarp, timed beside this one
                 raise ValueError("--attach-in-rod-solve: this lapwarp runs every attachment pass in its own launch")
             env.world.attach_in_rod_solve = attach_in_rod_solve
+        if register_split is not None:
+            if not hasattr(env.world, "chain_register_split"):  # an older lapwarp, timed beside this one
+                raise ValueError("--register-split: this lapwarp solves a chain with one thread")
+            env.world.chain_register_split = register_split
         apply_contact_settings(env, triangle_sweep, triangle_block_threads, pose_per_step)
         return env
 
@@ -206,6 +211,8 @@ def bench_one(task: str, num_envs: int, device: str, seconds: float, invalid_act
                                  if hasattr(env.world, "_predicts_in_rod_sweep") else None),
         "attach_in_rod_solve": (env.world._attaches_in_rod_solve()
                                 if hasattr(env.world, "_attaches_in_rod_solve") else None),
+        "chain_register_split": (env.world.chain_register_split if env.world.chain_solver == "registers"
+                                 and hasattr(env.world, "chain_register_split") else None),
         "chain_pcr_rows": env.world.chain_pcr_rows if env.world.chain_solver in ("pcr", "hybrid") else None,
         "chain_lane_rows": env.world.chain_lane_rows if env.world.chain_solver == "hybrid" else None,
     }
@@ -265,6 +272,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--attach-in-rod-solve", choices=["on", "off"], default=None,
                         help="the closing attachment pass at the end of the hybrid rod solve (one pack per env) or in "
                              "its own launch (world.attach_in_rod_solve; default: the world's)")
+    parser.add_argument("--register-split", choices=["on", "off"], default=None,
+                        help="the register chain solve with two threads per chain where a family's chains are all of "
+                             "one length (world.chain_register_split; default: the world's)")
     parser.add_argument("--no-graph", action="store_true",
                         help="launch the step's kernels one by one instead of replaying a CUDA graph")
     parser.add_argument("--out", default=None, help="JSON output path")
@@ -300,7 +310,8 @@ def main(argv: list[str] | None = None) -> int:
                           predict_in_rod_sweep=(None if args.predict_in_rod_sweep is None
                                                 else args.predict_in_rod_sweep == "on"),
                           attach_in_rod_solve=(None if args.attach_in_rod_solve is None
-                                               else args.attach_in_rod_solve == "on"))
+                                               else args.attach_in_rod_solve == "on"),
+                          register_split=None if args.register_split is None else args.register_split == "on")
             results.append(r)
             print(f"{r['task']:<10} {n:>9} {mode:>8} {r['env_steps_per_s']:>14,.0f} {r['step_ms']:>9.3f}", flush=True)
     regime = "the expert's recorded actions replayed" if args.policy == "replay" else f"{args.policy} actions"

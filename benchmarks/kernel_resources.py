@@ -9,7 +9,7 @@ spilled or doubled a kernel's registers.
 
     python benchmarks/kernel_resources.py --modules lapwarp.kernels.chains lapwarp.kernels.xpbd
     python benchmarks/kernel_resources.py --hybrid 128:4 128:2 --max-registers 128
-    python benchmarks/kernel_resources.py --registers 19 39
+    python benchmarks/kernel_resources.py --registers 19 19:exact 39
     python benchmarks/kernel_resources.py --modules lapwarp.kernels.xpbd --blocks 4096   # waves of a block per env
 """
 
@@ -107,8 +107,9 @@ def main(argv: list[str] | None = None) -> int:
                         "without closed loops, unmasked: without cutting masks)")
     p.add_argument("--block", nargs="*", default=[], metavar="ROWS[:open][:unmasked]",
                    help="the block (PCR) chain kernel for packs of ROWS rows (flags as for --hybrid)")
-    p.add_argument("--registers", nargs="*", type=int, default=[], metavar="LINKS",
-                   help="the register-resident chain kernel for chains of LINKS links (kernels/chains_registers.py)")
+    p.add_argument("--registers", nargs="*", default=[], metavar="LINKS[:exact]",
+                   help="the register-resident chain kernel for chains of at most LINKS links (exact: all of LINKS "
+                        "links, the variant a family of equal chains takes; kernels/chains_registers.py)")
     p.add_argument("--max-registers", type=int, default=None, help="compile the --hybrid kernels with this cap too")
     p.add_argument("--arch", type=int, default=90)
     p.add_argument("--blocks", type=int, default=None, metavar="N",
@@ -142,10 +143,11 @@ def main(argv: list[str] | None = None) -> int:
         kernel = chains_block.block_chain_kernel(int(n), loops="open" not in flags, masked="unmasked" not in flags)
         for name, res in module_resources(kernel.module, args.arch).items():
             rows.append({"module": f"block {spec}", "kernel": name, **res})
-    for links in args.registers:
-        kernel = chains_registers.register_chain_kernel(links)
+    for spec in args.registers:
+        links, *flags = spec.split(":")
+        kernel = chains_registers.register_chain_kernel(int(links), exact="exact" in flags)
         for name, res in module_resources(kernel.module, args.arch).items():
-            rows.append({"module": f"registers {links}", "kernel": name, **res})
+            rows.append({"module": f"registers {spec}", "kernel": name, **res})
     for r in rows:
         waves = ""
         if args.blocks and "registers" in r:

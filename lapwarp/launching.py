@@ -66,8 +66,11 @@ def register_capped(kernel: wp.Kernel, max_registers: int | None) -> wp.Kernel:
     check_register_cap(max_registers)
     key = (kernel, max_registers)
     if key not in _CAPPED:
+        # the kernel's own module options carried over where it has them (an unrolled kernel's max_unroll: without it
+        # the copy's loops past Warp's default 16 stay loops, their vectors in local memory)
+        options = {k: v for k, v in kernel.module.options.items() if k == "max_unroll"} if kernel.module else {}
         _CAPPED[key] = wp.kernel(kernel.func, cuda_max_registers=max_registers, module="unique",
-                                 enable_backward=False)
+                                 enable_backward=False, module_options=options or None)
     return _CAPPED[key]
 
 

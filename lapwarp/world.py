@@ -36,6 +36,7 @@ from lapwarp.kernels import (
     chains_hybrid,
     chains_partitioned,
     chains_registers,
+    chains_split,
     geodesic,
     world_kernels,
 )
@@ -211,6 +212,10 @@ class World:
         # (forty-third session: bit-identical on the CPU; RopeThreading's pass was 0.8 ms of its ~21 ms step, H200,
         # and the variant's spill frame at 128 registers grows from 360 to 400 B, sm_90)
         self.attach_in_rod_solve = False
+        # with chain_solver "registers": a family of open chains all of one length (2..chains_split.MAX_LINKS links)
+        # solved by two threads per chain, each half in registers (kernels/chains_split.py); families it does not
+        # take, and a nonzero rod_newton_tolerance, keep the one-thread register solve. Off until timed
+        self.chain_register_split = False
         # tets' rotation: warm-started extraction iterations per projection (0 = SVD polar decomposition)
         self.tet_rotation_iterations = 2
         # TET_ROTATION_UPDATES, how a sweep updates its tets' rotations: "vertex" = where it uses them (XPBD: each
@@ -500,7 +505,8 @@ class World:
                self.tet_rotation_refresh, self.chain_block_links, self.chain_solver, self.chain_pcr_threads,
                self.chain_pcr_rows, self.chain_lane_rows, self.tet_solver, self.tet_block_threads,
                self.model.attachments_distinct, self.rod_solver, self.rod_block_threads, self.integrate_together,
-               self.predict_in_rod_sweep, self.attach_in_rod_solve, self.tet_method_in_use, self._register_caps_key(),
+               self.predict_in_rod_sweep, self.attach_in_rod_solve, self.chain_register_split, self.tet_method_in_use,
+               self._register_caps_key(),
                *(solver.record_key() for solver in self.solvers if hasattr(solver, "record_key")))
         if self._cmd_key != key:
             if int(self.iterations) > 1 and not self._lam:
@@ -547,9 +553,14 @@ class World:
             if isinstance(self.rod_block_threads, bool) or not isinstance(self.rod_block_threads, int) \
                     or not 1 <= self.rod_block_threads <= 1024:
                 raise ValueError(f"world.rod_block_threads must be an int in [1, 1024], got {self.rod_block_threads!r}")
-            for name in ("integrate_together", "predict_in_rod_sweep", "attach_in_rod_solve"):
+            for name in ("integrate_together", "predict_in_rod_sweep", "attach_in_rod_solve", "chain_register_split"):
                 if not isinstance(getattr(self, name), (bool, np.bool_)):
                     raise ValueError(f"world.{name} must be a bool, got {getattr(self, name)!r}")
+            if self.chain_register_split and self.chain_solver == "registers" and self.device.is_cpu \
+                    and not wp.config.enable_cpu_blocks:
+                raise ValueError("world.chain_register_split runs a chain's two halves as threads of one block: on the "
+                                 "CPU set wp.config.enable_cpu_blocks = True first (Warp's cooperative CPU blocks), "
+                                 "or leave chain_register_split False")
             if self.tet_solver not in TET_SOLVERS:
                 raise ValueError(f"world.tet_solver must be one of {TET_SOLVERS}, got {self.tet_solver!r}")
             if self.tet_solver == "fused" and self._tet_window[1] > FUSED_TET_MAX_PARTICLES:
@@ -789,6 +800,15 @@ class World:
             # one launch per family of chains that share no node (Gauss-Seidel across families)
             for first, count, link_base, node_base in cs.families:
                 family_kernel = kernel
+                if self.chain_solver == "registers" and self.chain_register_split and float(tolerance) == 0.0:
+                    split = chains_split.family_kernel(cs, first, count)
+                    if split is not None:
+                        # two lanes per chain, a pair's lanes in one block (their exchanges in shared memory)
+                        launch(split, chains_split.launch_dim(n, count),
+                               [first, count, link_base, node_base, cs.edge_count, cs.closed, cs.node, cs.constraint,
+                                rest, compliance, w_eff, inv_dt2, use_lam, newton_steps, lam_arr, *scratch, mask],
+                               [s.particle_q], block_dim=chains_split.BLOCK)
+                        continue
                 if self.chain_solver == "registers":
                     family_kernel = chains_registers.family_kernel(cs, first, count, tolerance) or kernel
                 elif self.chain_solver == "open_walk" and not cs.closed_host[first:first + count].any():

@@ -16,14 +16,18 @@ from test_chains_partitioned import OPEN, SEG, TOL, _cloth_world, _cut_rods, _pe
 
 from lapwarp.builder import SceneBuilder
 
+# open rods all of 9 links (pinned at an end, both ends, inside, two adjacent nodes, nowhere): a family of equal
+# chains, which takes the register kernel's ``exact`` variant
+EQUAL = [(9, [0]), (9, [0, 9]), (9, [4]), (9, [4, 5]), (9, [])]
 
-def _open_rod_world(device, newton_steps: int, iterations: int, rigid: bool, cuttable: bool):
-    """tests/test_chains_partitioned.py's open rods alone (1..17 links, pinned at ends, inside, two adjacent nodes),
-    3 envs, perturbed (and cut)."""
+
+def _open_rod_world(device, newton_steps: int, iterations: int, rigid: bool, cuttable: bool, specs=OPEN):
+    """tests/test_chains_partitioned.py's open rods alone (``specs``; by default 1..17 links, pinned at ends, inside,
+    two adjacent nodes), 3 envs, perturbed (and cut)."""
     b = SceneBuilder()
     rods = []
-    for row, (m, pinned) in enumerate(OPEN):
-        th = np.pi * row / len(OPEN)
+    for row, (m, pinned) in enumerate(specs):
+        th = np.pi * row / len(specs)
         pts = np.linspace(0.0, SEG * m, m + 1)[:, None] * np.array([np.cos(th), np.sin(th), 0.0])
         rods.append((b.add_rod(pts, radius=1e-3, youngs_modulus=1e6, damping=1.0, fixed=pinned, cuttable=cuttable),
                      SEG * m))
@@ -63,6 +67,23 @@ def test_register_rods_match_serial(device, newton_steps, iterations, rigid, cut
     # steps (the multipliers of the earlier ones carried in registers), 1 or 2 sweeps (multipliers kept: use_lambda),
     # compliant or rigid (pinned neighbours: empty rows), intact or cut
     start, out, rods = _step_both(lambda: _open_rod_world(device, newton_steps, iterations, rigid, cuttable))
+    assert _worst(start, out[1], rods) > 100 * TOL  # the solves had work to do
+    _assert_same(device, out[0], out[1], rods)
+
+
+@pytest.mark.parametrize("newton_steps, iterations, rigid, cuttable", [(2, 1, False, True), (3, 2, True, False)])
+def test_register_equal_rods_match_serial(device, newton_steps, iterations, rigid, cuttable):
+    # a family of equal chains takes the exact-length variant (the chain length a constant, its guards folded): the
+    # serial walk's positions, intact and cut, compliant and rigid
+    from lapwarp.kernels import chains_registers
+
+    world, _ = _open_rod_world(device, newton_steps, iterations, rigid, cuttable, EQUAL)
+    cs = world.model.rod_chains
+    first, count, _, _ = cs.families[0]
+    assert cs.num_families == 1
+    assert chains_registers.family_kernel(cs, first, count) is chains_registers.register_chain_kernel(9, exact=True)
+    assert chains_registers.register_chain_kernel(9) is not chains_registers.register_chain_kernel(9, exact=True)
+    start, out, rods = _step_both(lambda: _open_rod_world(device, newton_steps, iterations, rigid, cuttable, EQUAL))
     assert _worst(start, out[1], rods) > 100 * TOL  # the solves had work to do
     _assert_same(device, out[0], out[1], rods)
 

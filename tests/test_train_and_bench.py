@@ -172,6 +172,18 @@ def test_bench_env_runs_the_attachment_pass_in_the_rod_solve_where_asked(device,
     assert runs == [False, True]
 
 
+def test_bench_env_splits_the_register_chain_solve_where_asked(device, tmp_path):
+    """``--register-split on`` solves RopeCutting's ropes (the register solve, equal chains) with two threads per
+    chain; the result records the setting."""
+    runs = []
+    for flag in ([], ["--register-split", "on"]):
+        out = tmp_path / f"bench{len(flag)}.json"
+        assert bench_env.main(["--device", device, "--task", "RopeCutting", "--num-envs", "1", "--seconds", "0.05",
+                               "--set", "chain_solver=registers", *flag, "--out", str(out)]) == 0
+        runs.append(json.loads(out.read_text())["results"][0]["chain_register_split"])
+    assert runs == [False, True]
+
+
 def test_bench_env_applies_and_records_register_caps(device, tmp_path, capsys):
     """``--max-registers KERNEL=N`` caps a kernel of the world's step (recorded with the result, beside the task's
     own caps: ThreadInHole's lagged vertex sweep, rods and pose kernel at 64); a malformed item or a cap out of range

@@ -47,13 +47,17 @@ def link_bit(lo: int, hi: int, k: int) -> int:
     return (hi >> (k - 32)) & 1
 
 
-# the kernels by (chain length in links, Newton tolerance)
-_KERNELS: dict[tuple[int, float], wp.Kernel] = {}
+# the kernels by (chain length in links, Newton tolerance, every chain exactly that long)
+_KERNELS: dict[tuple[int, float, bool], wp.Kernel] = {}
 
 
-def register_chain_kernel(max_links: int, newton_tolerance: float = 0.0) -> wp.Kernel:
+def register_chain_kernel(max_links: int, newton_tolerance: float = 0.0, exact: bool = False) -> wp.Kernel:
     """The register-resident solve of open chains of at most ``max_links`` links (cached): launch ``(num_envs,
     chains of the family)`` with ``chains.solve_chains``'s arguments (its scratch arrays go unused).
+
+    ``exact`` (compile-time): every chain of the family has exactly ``max_links`` links, so the chain length is a
+    constant and the unrolled links' guards (``k < m``) fold away. Same arithmetic; at 19 links (RopeCutting's ropes)
+    the spill frame shrinks from 1,760 to 672 B, at 10 from 512 B to none (sm_90, ``benchmarks/kernel_resources.py``).
 
     ``newton_tolerance`` (m, 0 = off): a chain stops its Newton steps once one has corrected none of its links by
     that much or more (a link's correction ``|dl_k| (w_k + w_{k+1})``, the length change its own row asks for), the
@@ -65,7 +69,8 @@ def register_chain_kernel(max_links: int, newton_tolerance: float = 0.0) -> wp.K
     if not 1 <= L <= MAX_LINKS:
         raise ValueError(f"the register chain solve takes chains of 1..{MAX_LINKS} links, got {max_links!r}")
     tol = check_newton_tolerance(newton_tolerance)
-    cached = _KERNELS.get((L, tol))
+    EXACT = bool(exact)
+    cached = _KERNELS.get((L, tol, EXACT))
     if cached is not None:
         return cached
     N = L + 1  # nodes of the longest chain
@@ -105,6 +110,8 @@ def register_chain_kernel(max_links: int, newton_tolerance: float = 0.0) -> wp.K
         s0 = link_base + i  # link k at s0 + k * stride, node j at nb + j * stride (chains.py's interleaved layout)
         nb = node_base + i
         m = chain_edge_count[r]
+        if wp.static(EXACT):
+            m = L  # a constant: the guards below fold (the load above is dead)
         nodes = m + 1
         pe = env % inv_mass.shape[0]
         ce = env % compliance.shape[0]
@@ -248,17 +255,18 @@ def register_chain_kernel(max_links: int, newton_tolerance: float = 0.0) -> wp.K
 
     kernel = wp.kernel(solve_chains_in_registers, module="unique", enable_backward=False,
                        module_options={"max_unroll": N})
-    _KERNELS[(L, tol)] = kernel
+    _KERNELS[(L, tol, EXACT)] = kernel
     return kernel
 
 
 def family_kernel(cs, first: int, count: int, newton_tolerance: float = 0.0) -> wp.Kernel | None:
     """The register solve for the chains ``first .. first + count - 1`` of a ``chains.ChainSet`` (one family), or
-    ``None`` where it does not take them (a closed chain, or one longer than ``MAX_LINKS``): the serial walk then."""
+    ``None`` where it does not take them (a closed chain, or one longer than ``MAX_LINKS``): the serial walk then.
+    Chains all of one length take the ``exact`` variant."""
     lengths = cs.lengths[first:first + count]
     if count == 0 or cs.closed_host[first:first + count].any() or int(lengths.max()) > MAX_LINKS:
         return None
-    return register_chain_kernel(int(lengths.max()), newton_tolerance)
+    return register_chain_kernel(int(lengths.max()), newton_tolerance, exact=bool(lengths.min() == lengths.max()))
 
 
 def is_register_kernel(kernel) -> bool:
