@@ -32,9 +32,15 @@ from lapwarp.experts import make_expert
 
 
 def run(task: str, overrides: dict, action_type: str, num_envs: int, episodes: int, max_steps: int,
-        device: str, seed: int, first_episodes: bool = False, action_noise: float = 0.0) -> dict:
+        device: str, seed: int, first_episodes: bool = False, action_noise: float = 0.0,
+        world: dict | None = None) -> dict:
     env = lapwarp.make(task, num_envs=num_envs, device=device, action_type=action_type, seed=seed,
                        invalid_actions="zero", **overrides)
+    for key, value in (world or {}).items():  # the World's own settings (checked by the World at its next step)
+        if key.startswith("_") or not hasattr(env.world, key) or callable(getattr(env.world, key)):
+            env.close()
+            raise ValueError(f"--world {key}: {task}'s World has no setting {key!r}")
+        setattr(env.world, key, value)
     expert = make_expert(env)
     noise = torch.Generator(device=env.device).manual_seed(seed)
     obs = env.get_observations()
@@ -62,7 +68,8 @@ def run(task: str, overrides: dict, action_type: str, num_envs: int, episodes: i
         if finished >= episodes:
             break
     env.close()
-    return {"task": task, "overrides": overrides, "action_type": action_type, "num_envs": num_envs,
+    return {"task": task, "overrides": overrides, "world": world or {}, "action_type": action_type,
+            "num_envs": num_envs,
             "action_noise": action_noise, "episodes": finished, "successes": succeeded,
             "success_rate": succeeded / max(finished, 1), "mean_return": return_sum / max(finished, 1),
             "mean_length": length_sum / max(finished, 1), "first_episodes": first_episodes, "steps": step + 1,
@@ -86,6 +93,10 @@ def main(argv: list[str] | None = None) -> int:
                         help="count episodes as they finish until --episodes (biased towards short episodes)")
     parser.add_argument("--action-noise", type=float, default=0.0, metavar="SIGMA",
                         help="Gaussian noise added to the expert's continuous actions (clipped to [-1, 1])")
+    parser.add_argument("--world", nargs="*", default=[], metavar="KEY=VALUE",
+                        help="settings of the env's World (JSON values) for every configuration, set after the env is "
+                             "made, e.g. chain_register_split=true: to check an expert on a solver option before it "
+                             "is a task's default")
     parser.add_argument("--out", default=None,
                         help="append one JSON line per result to this file (as bench_physics.py and soak.py do)")
     args = parser.parse_args(argv)
@@ -102,6 +113,7 @@ def main(argv: list[str] | None = None) -> int:
     wp.config.enable_cpu_blocks = True  # the 'hybrid' chain solve's lanes as Warp's fibers on a CPU
     try:  # every configuration before the first run takes device time
         configs = [parse_overrides(c) for c in (args.config or [[]])]
+        world = parse_overrides(args.world)
         for overrides in configs:
             for action_type in args.action_types:
                 lapwarp.check_config(args.task, **with_fixed(overrides, "--config", action_type=action_type,
@@ -111,8 +123,11 @@ def main(argv: list[str] | None = None) -> int:
     records = []
     for overrides in configs:
         for action_type in args.action_types:
-            r = run(args.task, overrides, action_type, args.num_envs, args.episodes, args.max_steps, args.device,
-                    args.seed, args.first_episodes, args.action_noise)
+            try:
+                r = run(args.task, overrides, action_type, args.num_envs, args.episodes, args.max_steps, args.device,
+                        args.seed, args.first_episodes, args.action_noise, world)
+            except ValueError as exc:
+                parser.error(str(exc))
             records.append(r)
             print(json.dumps(r), flush=True)
     append_json_lines(args.out, records)

@@ -718,6 +718,22 @@ def test_expert_success_with_action_noise():
     assert math.isfinite(clean["mean_return"]) and noisy["mean_return"] != clean["mean_return"]
 
 
+def test_expert_success_sets_world_settings(capsys):
+    """``--world KEY=VALUE``: a World setting applied before the first step and recorded; the World still checks
+    its value (a non-bool split is refused at the step)."""
+    r = expert_success.run("Reach", {}, "CONTINUOUS", 2, 2, 500, "cpu", 0, True, world={"iterations": 2})
+    assert r["world"] == {"iterations": 2} and r["episodes"] == 2
+    # names the World does not have, or its methods, are usage errors (checked on the first env made)
+    for key, message in (("chain_split", "--world chain_split: Reach's World has no setting 'chain_split'"),
+                         ("step", "has no setting 'step'")):
+        with pytest.raises(SystemExit):
+            expert_success.main(["--device", "cpu", "--task", "Reach", "--num-envs", "1", "--world", f"{key}=1"])
+        assert message in capsys.readouterr().err
+    with pytest.raises(ValueError, match="chain_register_split must be a bool"):
+        expert_success.run("RopeCutting", {}, "CONTINUOUS", 1, 1, 2, "cpu", 0, True,
+                           world={"chain_register_split": "yes"})
+
+
 def test_border_follower_records_each_cut_rule():
     """``benchmarks/border_follower.py`` on 2 envs for one rule: a record per rule with every first episode counted
     (the follower's success is measured in benchmarks/results/session24, not asserted: it is a diagnostic)."""
