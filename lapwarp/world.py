@@ -208,9 +208,9 @@ class World:
         # launch (xpbd.predict_and_solve_rods_fused; _predicts_in_rod_sweep says where), one launch fewer per substep
         self.predict_in_rod_sweep = True
         # with the hybrid chain solve and the rods in one pack per env: the sweep's closing attachment pass at the end
-        # of the rods' solve (chains_hybrid's attachments variant; _attaches_in_rod_solve says where). Off until timed
-        # (forty-third session: bit-identical on the CPU; RopeThreading's pass was 0.8 ms of its ~21 ms step, H200,
-        # and the variant's spill frame at 128 registers grows from 360 to 400 B, sm_90)
+        # of the rods' solve (chains_hybrid's attachments variant; _attaches_in_rod_solve says where). Off: slower
+        # where timed (RopeThreading, H200, expert, 4,096 envs, same call, forty-fourth session: 198.4k / 198.5k
+        # env-steps/s against 202.2k / 202.0k with the pass's own launch; bit-identical on the CPU)
         self.attach_in_rod_solve = False
         # with chain_solver "registers": a family of open chains all of one length (2..chains_split.MAX_LINKS links)
         # solved by two threads per chain, each half in registers (kernels/chains_split.py); families it does not

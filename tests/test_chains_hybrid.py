@@ -216,7 +216,9 @@ def test_hybrid_rod_solve_runs_the_closing_attachment_pass(device):
     # World.attach_in_rod_solve: a 40-link rope whose first node a body drags and turns (its first segment's orientation
     # held with it, as a grasp holds it) and whose middle node hangs from a soft world point, on the hybrid solve at 1
     # and 2 sweeps per substep: the closing attachment pass run by the rod solve's block after the solve gives the
-    # separate launch's positions and orientations (bit for bit on the CPU); rods in two packs per env keep the launch
+    # separate launch's positions and orientations (bit for bit on the CPU; on a GPU, where the two kernels contract
+    # multiply-adds differently, within 2e-5 after the 36 substeps: 5.3e-6 at most on an H200, forty-fourth session);
+    # rods in two packs per env keep the launch
     from lapwarp.builder import SceneBuilder
 
     def build(ropes=1):
@@ -255,6 +257,6 @@ def test_hybrid_rod_solve_runs_the_closing_attachment_pass(device):
             if device == "cpu":
                 np.testing.assert_array_equal(a, b_)
             else:
-                np.testing.assert_allclose(a, b_, atol=1e-6)
+                np.testing.assert_allclose(a, b_, atol=2e-5)
     world, _ = build(ropes=4)  # 164 rows: two packs of at most 128
     assert world.model.rod_count == 4 and not world._attaches_in_rod_solve()

@@ -210,7 +210,8 @@ def test_fused_rod_sweep_matches_the_per_colour_launches(device, iterations, cut
     # env, a barrier between colours): the same constraint functions in the same order, so open rods and loops of
     # many lengths and pins (3 envs perturbed differently, cut in the cuttable case; 1 sweep, or 2 with the
     # multipliers carried) end at the same positions and orientations as with a launch per colour (bit for bit on the
-    # CPU, where a block has one lane; to float32 round-off on a GPU)
+    # CPU, where a block has one lane; to float32 round-off on a GPU, where the kernels contract multiply-adds
+    # differently: 1.75e-6 at most on an H200, forty-fourth session, within 1e-5)
     from test_chains_partitioned import _rod_world
 
     out = []
@@ -226,7 +227,7 @@ def test_fused_rod_sweep_matches_the_per_colour_launches(device, iterations, cut
         if device == "cpu":
             np.testing.assert_array_equal(fused, colored)
         else:
-            np.testing.assert_allclose(fused, colored, atol=1e-6)
+            np.testing.assert_allclose(fused, colored, atol=1e-5)
 
 
 def test_rod_solver_settings_are_checked(device):

@@ -150,7 +150,8 @@ def test_bench_env_applies_and_records_the_contact_settings(device, tmp_path):
 
 def test_bench_env_predicts_in_the_rod_sweep_where_asked(device, tmp_path):
     """``--predict-in-rod-sweep on|off`` moves a rods-only world's (RopeCutting's) substep prediction into its fused rod
-    launch or gives it its own (RopeCutting's default); the result records where the prediction ran."""
+    launch (RopeCutting's default since the forty-fourth session) or gives it its own; the result records where the
+    prediction ran."""
     runs = []
     for flag in (["--predict-in-rod-sweep", "on"], ["--predict-in-rod-sweep", "off"]):
         out = tmp_path / f"bench_{flag[1]}.json"
@@ -162,7 +163,7 @@ def test_bench_env_predicts_in_the_rod_sweep_where_asked(device, tmp_path):
 
 def test_bench_env_runs_the_attachment_pass_in_the_rod_solve_where_asked(device, tmp_path):
     """``--attach-in-rod-solve on`` gives RopeThreading's hybrid rope solve its closing attachment pass (off by
-    default until timed); the result records where the pass ran."""
+    default: slower where timed); the result records where the pass ran."""
     runs = []
     for flag in ([], ["--attach-in-rod-solve", "on"]):
         out = tmp_path / f"bench{len(flag)}.json"

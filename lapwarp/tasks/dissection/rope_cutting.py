@@ -544,12 +544,13 @@ class RopeCuttingEnv(BatchedEnv):
         # 4,096 envs, same call as the uncapped step (forty-first session, results/session41):
         # 321.4k -> 324.4k env-steps/s
         world.default_register_caps["collide_particles"] = 64
-        # the rods' fused sweep with 64 lanes per env instead of 32, each substep's prediction in its own launch (in the
-        # rod launch it was slower here). H200, expert, 4,096 envs, same call (forty-third session, results/session43):
-        # 32 lanes 320.6k, 64 lanes 326.0k env-steps/s, 64 lanes with the prediction in the rod launch 324.8k (32:
-        # 310.9k against 320.3k without, another call)
+        # the rods' fused sweep with 64 lanes per env instead of 32 (H200, expert, 4,096 envs, same call, forty-third
+        # session: 320.6k -> 326.0k env-steps/s), each substep's prediction in its first sweep's rod launch
+        # (World.predict_in_rod_sweep) with that launch at 64 registers like the sweep's own (uncapped, 72, it was
+        # slower: 324.8k against 326.0k): H200, same call, twice alternated (forty-fourth session, results/session44):
+        # 332.0k / 331.9k against 330.6k / 330.5k with the prediction's own launch
         world.rod_block_threads = 64
-        world.predict_in_rod_sweep = False
+        world.default_register_caps["predict_and_solve_rods_fused"] = 64
         self.rig.finalize(world)
         self.contact = ContactSystem(world, capacity=cfg.contact_capacity)
         for rope in self.ropes_obj:
