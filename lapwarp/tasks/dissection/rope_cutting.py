@@ -508,7 +508,8 @@ class RopeCuttingEnv(BatchedEnv):
     task_name = "RopeCutting"
     # the register-resident chain solve (kernels/chains_registers.py): five 19-link ropes per env leave the serial
     # walk's few threads waiting on its loads; the expert's step 273,906 -> 306,287 env-steps/s (H200, 4,096 envs,
-    # same call, thirty-third session; the packed PCR blocks 184,560 and the hybrid 198,776 lost to the walk)
+    # same call, thirty-third session; the packed PCR blocks 184,560 and the hybrid 198,776 lost to the walk). On
+    # CUDA devices its split form, two threads per rope (World.chain_register_split, set in _build)
     gpu_chain_solver = "registers"
     rewards = REWARDS
     supported_observations = ("STATE", "RGB", "RGBD", "DEPTH")
@@ -551,6 +552,15 @@ class RopeCuttingEnv(BatchedEnv):
         # 332.0k / 331.9k against 330.6k / 330.5k with the prediction's own launch
         world.rod_block_threads = 64
         world.default_register_caps["predict_and_solve_rods_fused"] = 64
+        # the register chain solve with two threads per rope, each half in registers, the eliminations meeting in the
+        # middle (kernels/chains_split.py), capped at 168 registers (235: 1,280 warps in 1.2 waves of 8 per SM; 168:
+        # 12 per SM, one wave). H200, expert, 4,096 envs, same calls (forty-fourth session, results/session44): the
+        # one-thread solve 450.4k / 450.4k / 450.4k env-steps/s (its exact-length variant; 331.1k / 330.8k before
+        # it), split 489.0k / 488.7k uncapped, 486.6k / 486.6k at 200, 558.0k at 144, 548.2k at 128, **568.7k /
+        # 568.4k / 569.1k at 168**; expert 256 / 256 on it. CUDA only: on the CPU a pair's threads need Warp's
+        # cooperative blocks, and the CPU's default chain solver is the serial walk anyway
+        world.chain_register_split = bool(dev.is_cuda)
+        world.default_register_caps["solve_chains_split"] = 168
         self.rig.finalize(world)
         self.contact = ContactSystem(world, capacity=cfg.contact_capacity)
         for rope in self.ropes_obj:
