@@ -24,7 +24,9 @@ Measured (expert, 4,096 envs, H200, same call, thirty-third session): RopeCuttin
 for the serial walk (its GPU default since), ThreadInHole 95,635 against 95,427, the free 40 x 40 cloth 30,635 against
 65,184: from 8 links on the rows spill (sm_90: 1,760 B per thread at 19 links, 4,696 B at 39,
 ``benchmarks/kernel_resources.py --registers``), and the cloth's 164k threads per family move more through those
-spills than the walk does through its scratch.
+spills than the walk does through its scratch. A family of equal chains takes the ``exact`` variant (forty-fourth
+session: RopeCutting 331.1k -> 450.4k env-steps/s, its 19-link spill frame 1,760 -> 672 B), and on CUDA RopeCutting
+splits each chain between two threads (``kernels/chains_split.py``: 568.7k).
 """
 
 # no ``from __future__ import annotations``: the kernel's annotations name the factory's vector types, locals of the
