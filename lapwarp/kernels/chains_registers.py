@@ -49,6 +49,22 @@ def link_bit(lo: int, hi: int, k: int) -> int:
     return (hi >> (k - 32)) & 1
 
 
+@wp.func
+def eliminate_link(w_k: float, w_k1: float, alpha: float, residual: float, lam_k: float, active: int, c_k: float,
+                   a_k: float, c_prev: float, d_prev: float):
+    """One link of a chain's forward (Thomas) elimination, the register and split solves': its row ``a_k dl_{k-1} +
+    (w_k + w_{k+1} + alpha) dl_k + c_k dl_{k+1} = residual - alpha lam_k`` (``residual = -C_k``; both nodes pinned and
+    rigid, an empty row, or a removed link: the identity with a zero right-hand side) against the previous row's
+    modified super-diagonal and right-hand side: this row's ``(c, d)``."""
+    b_k = w_k + w_k1 + alpha
+    rhs = residual - alpha * lam_k
+    if b_k <= 0.0 or active == 0:
+        b_k = 1.0
+        rhs = 0.0
+    inv = 1.0 / (b_k - a_k * c_prev)
+    return c_k * inv, (rhs - a_k * d_prev) * inv
+
+
 # the kernels by (chain length in links, Newton tolerance, every chain exactly that long)
 _KERNELS: dict[tuple[int, float, bool], wp.Kernel] = {}
 
@@ -167,20 +183,11 @@ def register_chain_kernel(max_links: int, newton_tolerance: float = 0.0, exact: 
                         c_k = -w_k1 * wp.dot(n_cur, n_next)
                         if act_k == 0 or link_bit(acts_lo, acts_hi, k + 1) == 0:
                             c_k = 0.0  # no coupling across a cut
-                    alpha = alpha_v[k]
-                    b_k = w[k] + w_k1 + alpha
-                    rhs = rest_v[k] - len_cur  # -C_k
                     lam_k = lam0[k]
                     if it > 0:
                         lam_k = lam_k + acc[k]
-                    rhs = rhs - alpha * lam_k
-                    if b_k <= 0.0 or act_k == 0:
-                        # both nodes pinned and rigid (empty row) or a removed segment: dl = 0
-                        b_k = 1.0
-                        rhs = 0.0
-                    inv = 1.0 / (b_k - a_k * c_prev)
-                    c_prev = c_k * inv
-                    d_prev = (rhs - a_k * d_prev) * inv
+                    c_prev, d_prev = eliminate_link(w[k], w_k1, alpha_v[k], rest_v[k] - len_cur, lam_k, act_k, c_k,
+                                                    a_k, c_prev, d_prev)
                     cp[k] = c_prev
                     dp[k] = d_prev
                     a_k = c_k

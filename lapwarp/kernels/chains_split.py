@@ -36,7 +36,7 @@ import warp as wp
 
 from lapwarp.kernels.chains import node_row, segment_dir
 from lapwarp.kernels.chains_block import vec6
-from lapwarp.kernels.chains_registers import link_bit
+from lapwarp.kernels.chains_registers import eliminate_link, link_bit
 
 wp.set_module_options({"enable_backward": False})
 
@@ -162,19 +162,11 @@ def split_chain_kernel(links: int) -> wp.Kernel:
                     c_k = -w_k1 * wp.dot(n_cur, n_next)
                     if act_k == 0 or link_bit(acts, 0, k + 1) == 0:
                         c_k = 0.0  # no coupling across a cut
-                    alpha = alpha_v[k]
-                    b_k = w[k] + w_k1 + alpha
-                    rhs = rest_v[k] - len_cur
                     lam_k = lam0[k]
                     if it > 0:
                         lam_k = lam_k + acc[k]
-                    rhs = rhs - alpha * lam_k
-                    if b_k <= 0.0 or act_k == 0:
-                        b_k = 1.0
-                        rhs = 0.0
-                    inv = 1.0 / (b_k - a_k * c_prev)
-                    c_prev = c_k * inv
-                    d_prev = (rhs - a_k * d_prev) * inv
+                    c_prev, d_prev = eliminate_link(w[k], w_k1, alpha_v[k], rest_v[k] - len_cur, lam_k, act_k, c_k,
+                                                    a_k, c_prev, d_prev)
                     cp[k] = c_prev
                     dp[k] = d_prev
                     a_k = c_k
