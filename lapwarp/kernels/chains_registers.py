@@ -65,6 +65,17 @@ def eliminate_link(w_k: float, w_k1: float, alpha: float, residual: float, lam_k
     return c_k * inv, (rhs - a_k * d_prev) * inv
 
 
+@wp.func
+def eliminate_node(n_prev: wp.vec3, dl_prev: float, k_prev: float, n_j: wp.vec3, dl_j: float, k_j: float, w_j: float,
+                   j: int, cn_prev: float, dn_prev: wp.vec3):
+    """One node of the transverse filter's forward elimination, the register and split solves': its row
+    (``chains.node_row``) against the previous row's modified super-diagonal and right-hand side: this row's ``(c,
+    d)`` and the node's part along the tangent."""
+    lo, diag, up, rhs_j, par = node_row(n_prev, dl_prev, k_prev, n_j, dl_j, k_j, w_j, j)
+    inv = 1.0 / (diag - lo * cn_prev)
+    return up * inv, (rhs_j - dn_prev * lo) * inv, par
+
+
 # the kernels by (chain length in links, Newton tolerance, every chain exactly that long)
 _KERNELS: dict[tuple[int, float, bool], wp.Kernel] = {}
 
@@ -230,10 +241,8 @@ def register_chain_kernel(max_links: int, newton_tolerance: float = 0.0, exact: 
                         acc[jl] = total
                         if j + 1 < nodes and len_j > 1.0e-12:
                             k_j = wp.max(-dl_j, 0.0) / len_j
-                    lo, diag, up, rhs_j, par = node_row(n_prev, dl_prev, k_prev, n_j, dl_j, k_j, w[j], j)
-                    inv = 1.0 / (diag - lo * cn_prev)
-                    cn_prev = up * inv
-                    dn_prev = (rhs_j - dn_prev * lo) * inv
+                    cn_prev, dn_prev, par = eliminate_node(n_prev, dl_prev, k_prev, n_j, dl_j, k_j, w[j], j, cn_prev,
+                                                           dn_prev)
                     nc[j] = cn_prev
                     nd[j] = dn_prev
                     if w[j] > 0.0:

@@ -34,9 +34,9 @@ per SM; RopeCutting's CUDA default), at 144 558.0k, at 128 548.2k.
 # factory, which Warp can evaluate only as objects
 import warp as wp
 
-from lapwarp.kernels.chains import node_row, segment_dir
+from lapwarp.kernels.chains import segment_dir
 from lapwarp.kernels.chains_block import vec6
-from lapwarp.kernels.chains_registers import eliminate_link, link_bit
+from lapwarp.kernels.chains_registers import eliminate_link, eliminate_node, link_bit
 
 wp.set_module_options({"enable_backward": False})
 
@@ -225,10 +225,8 @@ def split_chain_kernel(links: int) -> wp.Kernel:
                     k_j = float(0.0)
                     if len_j > 1.0e-12:
                         k_j = wp.max(-dl_j, 0.0) / len_j
-                    lo, diag, up, rhs_j, par = node_row(n_prev, dl_prev, k_prev, n_j, dl_j, k_j, w[j], j)
-                    inv = 1.0 / (diag - lo * cn_prev)
-                    cn_prev = up * inv
-                    dn_prev = (rhs_j - dn_prev * lo) * inv
+                    cn_prev, dn_prev, par = eliminate_node(n_prev, dl_prev, k_prev, n_j, dl_j, k_j, w[j], j, cn_prev,
+                                                           dn_prev)
                     nc[j] = cn_prev
                     nd[j] = dn_prev
                     if w[j] > 0.0:
