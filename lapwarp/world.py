@@ -800,24 +800,21 @@ class World:
                 return
             # one launch per family of chains that share no node (Gauss-Seidel across families)
             for first, count, link_base, node_base in cs.families:
-                family_kernel = kernel
+                args = [first, count, link_base, node_base, cs.edge_count, cs.closed, cs.node, cs.constraint, rest,
+                        compliance, w_eff, inv_dt2, use_lam, newton_steps, lam_arr, *scratch, mask]
+                split = None
                 if self.chain_solver == "registers" and self.chain_register_split and float(tolerance) == 0.0:
                     split = chains_split.family_kernel(cs, first, count)
-                    if split is not None:
-                        # two lanes per chain, a pair's lanes in one block (their exchanges in shared memory)
-                        launch(split, chains_split.launch_dim(n, count),
-                               [first, count, link_base, node_base, cs.edge_count, cs.closed, cs.node, cs.constraint,
-                                rest, compliance, w_eff, inv_dt2, use_lam, newton_steps, lam_arr, *scratch, mask],
-                               [s.particle_q], block_dim=chains_split.BLOCK)
-                        continue
+                if split is not None:
+                    # two lanes per chain, a pair's lanes in one block (their exchanges in shared memory)
+                    launch(split, chains_split.launch_dim(n, count), args, [s.particle_q], block_dim=chains_split.BLOCK)
+                    continue
+                family_kernel = kernel
                 if self.chain_solver == "registers":
                     family_kernel = chains_registers.family_kernel(cs, first, count, tolerance) or kernel
                 elif self.chain_solver == "open_walk" and not cs.closed_host[first:first + count].any():
                     family_kernel = _OPEN_WALKS[kernel]
-                launch(family_kernel, (n, count),
-                       [first, count, link_base, node_base, cs.edge_count, cs.closed, cs.node, cs.constraint, rest,
-                        compliance, w_eff, inv_dt2, use_lam, newton_steps, lam_arr, *scratch, mask],
-                       [s.particle_q])
+                launch(family_kernel, (n, count), args, [s.particle_q])
 
         def solve_tethers():
             launch(geodesic.solve_geodesic_tethers, (n, m.geo_particles.shape[0]),
