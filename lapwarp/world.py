@@ -214,8 +214,8 @@ class World:
         self.attach_in_rod_solve = False
         # with chain_solver "registers": a family of open chains all of one length (2..chains_split.MAX_LINKS links)
         # solved by two threads per chain, each half in registers (kernels/chains_split.py); families it does not
-        # take, and a nonzero rod_newton_tolerance, keep the one-thread register solve. Off by default; RopeCutting
-        # turns it on on CUDA devices (568.7k against 450.4k env-steps/s, H200, forty-fourth session)
+        # take keep the one-thread register solve. Off by default; RopeCutting turns it on on CUDA devices (568.7k
+        # against 450.4k env-steps/s, H200, forty-fourth session)
         self.chain_register_split = False
         # tets' rotation: warm-started extraction iterations per projection (0 = SVD polar decomposition)
         self.tet_rotation_iterations = 2
@@ -803,8 +803,8 @@ class World:
                 args = [first, count, link_base, node_base, cs.edge_count, cs.closed, cs.node, cs.constraint, rest,
                         compliance, w_eff, inv_dt2, use_lam, newton_steps, lam_arr, *scratch, mask]
                 split = None
-                if self.chain_solver == "registers" and self.chain_register_split and float(tolerance) == 0.0:
-                    split = chains_split.family_kernel(cs, first, count)
+                if self.chain_solver == "registers" and self.chain_register_split:
+                    split = chains_split.family_kernel(cs, first, count, tolerance)
                 if split is not None:
                     # two lanes per chain, a pair's lanes in one block (their exchanges in shared memory)
                     launch(split, chains_split.launch_dim(n, count), args, [s.particle_q], block_dim=chains_split.BLOCK)

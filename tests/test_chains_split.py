@@ -59,26 +59,27 @@ def test_split_matches_serial(device, name, newton_steps, iterations, rigid, cut
 
 
 def test_split_takes_equal_open_chains_only(device):
-    # the family of EQUAL takes the split kernel; chains of different lengths, a length outside 2..MAX_LINKS or a
-    # Newton tolerance keep the one-thread register solve, bit for bit on the CPU
+    # the family of EQUAL takes the split kernel (with a Newton tolerance its own variant); chains of different
+    # lengths or a length outside 2..MAX_LINKS keep the one-thread register solve, bit for bit on the CPU
     world, _ = _open_rod_world(device, 2, 1, False, False, EQUAL)
     cs = world.model.rod_chains
     first, count, _, _ = cs.families[0]
     assert chains_split.family_kernel(cs, first, count) is chains_split.split_chain_kernel(9)
+    assert chains_split.family_kernel(cs, first, count, 1e-7) is chains_split.split_chain_kernel(9, 1e-7)
+    assert chains_split.split_chain_kernel(9, 1e-7) is not chains_split.split_chain_kernel(9)
     mixed = [(9, [0]), (8, [0]), (9, [])]
     world, _ = _open_rod_world(device, 2, 1, False, False, mixed)
     cs = world.model.rod_chains
     assert chains_split.family_kernel(cs, *cs.families[0][:2]) is None
     _, one, _ = _step(device, "registers", False, mixed)
     _, fallback, _ = _step(device, "registers", True, mixed)
-    _, with_tol, _ = _step(device, "registers", True, EQUAL, tolerance=1e-7)
-    _, one_tol, _ = _step(device, "registers", False, EQUAL, tolerance=1e-7)
     if wp.get_device(device).is_cpu:
         np.testing.assert_array_equal(one, fallback)
-        np.testing.assert_array_equal(with_tol, one_tol)
     for links in (1, chains_split.MAX_LINKS + 1):
         with pytest.raises(ValueError, match="split chain solve takes chains of 2"):
             chains_split.split_chain_kernel(links)
+    with pytest.raises(ValueError, match="finite length"):
+        chains_split.split_chain_kernel(9, -1.0)
     assert chains_split.launch_dim(3, 5) == (1, chains_split.BLOCK)  # 15 pairs, 30 lanes
     assert chains_split.launch_dim(3, 9) == (2, chains_split.BLOCK)  # 27 pairs, 54 lanes
 
@@ -116,3 +117,25 @@ def test_rope_cutting_on_the_split_solve(device):
     np.testing.assert_allclose(out[0], out[1], atol=1e-5)
     cs = env.world.model.rod_chains
     assert cs.num_families == 1 and chains_split.family_kernel(cs, *cs.families[0][:2]) is not None
+
+
+def test_split_newton_tolerance_stops_each_chain(device):
+    # A chain stops as on the one-thread register solve (its own corrections, not its block's): at 1 m every chain
+    # stops after its first Newton step (the positions of one step, bit for bit on the CPU); at 1e-30 m none stops
+    # early (every step's); at 1e-3 m some chains stop after fewer steps than others, and the split solve stops each
+    # where the one-thread solve does (the same positions to round-off; a block-wide stop would let converged chains
+    # run on, off by up to a step's correction, which at 1e-3 m exceeds the comparison's tolerance)
+    specs = SPECS["20 links, nine chains"]
+    _, one, rods = _step(device, "registers", True, specs, newton_steps=1)
+    _, four, _ = _step(device, "registers", True, specs, newton_steps=4)
+    _, stopped, _ = _step(device, "registers", True, specs, newton_steps=4, tolerance=1.0)
+    _, tiny, _ = _step(device, "registers", True, specs, newton_steps=4, tolerance=1e-30)
+    if wp.get_device(device).is_cpu:
+        np.testing.assert_array_equal(one, stopped)
+        np.testing.assert_array_equal(four, tiny)
+    else:
+        assert _worst(one, stopped, rods) <= TOL and _worst(four, tiny, rods) <= TOL
+    _, split_mm, _ = _step(device, "registers", True, specs, newton_steps=4, tolerance=1e-3)
+    _, single_mm, _ = _step(device, "registers", False, specs, newton_steps=4, tolerance=1e-3)
+    assert _worst(four, split_mm, rods) > 10 * TOL  # the tolerance stopped some chains early
+    assert _worst(single_mm, split_mm, rods) <= TOL

@@ -20,8 +20,9 @@ Three block barriers per Newton step (a pair's two threads sit side by side in o
 exchange has its own shared tile, so no thread writes one before its partner has read it). Each half is half the serial
 chain and half the registers; the arithmetic is the register solve's in another elimination order, so the result
 agrees to round-off, not bit for bit (``tests/test_chains_split.py``). Every chain of the family must have the same
-length ``L >= 2``; the Newton tolerance is not taken (``World.chain_register_split`` falls back to the register solve
-where either does not hold). On the CPU the pairs' threads are Warp's cooperative fibers
+length ``L >= 2`` (``World.chain_register_split`` falls back to the register solve elsewhere). With a Newton tolerance
+each chain stops as the register solve's does (its later steps computed with its block's but not applied), and a block
+leaves its loop once all its chains have stopped. On the CPU the pairs' threads are Warp's cooperative fibers
 (``wp.config.enable_cpu_blocks``).
 
 Measured (RopeCutting, expert, 4,096 envs, H200, same calls, forty-fourth session; ``benchmarks/RESULTS.md``): the
@@ -34,7 +35,7 @@ per SM; RopeCutting's CUDA default), at 144 558.0k, at 128 548.2k.
 # factory, which Warp can evaluate only as objects
 import warp as wp
 
-from lapwarp.kernels.chains import segment_dir
+from lapwarp.kernels.chains import check_newton_tolerance, segment_dir
 from lapwarp.kernels.chains_block import vec6
 from lapwarp.kernels.chains_registers import eliminate_link, eliminate_node, link_bit
 
@@ -45,17 +46,24 @@ MAX_LINKS = 62
 #: lanes per block: 16 chains' pairs (a pair's threads must share a block for their exchanges)
 BLOCK = 32
 
-_KERNELS: dict[int, wp.Kernel] = {}
+# the kernels by (chain length in links, Newton tolerance)
+_KERNELS: dict[tuple[int, float], wp.Kernel] = {}
 
 
-def split_chain_kernel(links: int) -> wp.Kernel:
+def split_chain_kernel(links: int, newton_tolerance: float = 0.0) -> wp.Kernel:
     """The two-threads-per-chain solve of open chains of exactly ``links`` links (cached): launch ``(blocks, BLOCK)``
     with ``block_dim=BLOCK``, ``blocks = ceil(2 num_envs chains / BLOCK)`` (:func:`launch_dim`), with
-    ``chains.solve_chains``'s arguments (its scratch arrays go unused)."""
+    ``chains.solve_chains``'s arguments (its scratch arrays go unused).
+
+    ``newton_tolerance`` (m, compile-time; 0 = off): ``chains_registers.register_chain_kernel``'s rule per chain (a
+    chain whose step corrected none of its links by that much stops after that step; the pair's two halves decide
+    together), so a chain's result does not depend on the others in its block; the block leaves its Newton loop once
+    all its chains have stopped (a fourth barrier per step: a block maximum)."""
     L = int(links)
     if not 2 <= L <= MAX_LINKS:
         raise ValueError(f"the split chain solve takes chains of 2..{MAX_LINKS} links, got {links!r}")
-    cached = _KERNELS.get(L)
+    tol = check_newton_tolerance(newton_tolerance)
+    cached = _KERNELS.get((L, tol))
     if cached is not None:
         return cached
     HA = (L + 1) // 2  # links of thread 0's half (thread 1: L - HA)
@@ -145,6 +153,9 @@ def split_chain_kernel(links: int) -> wp.Kernel:
         up_link = wp.tile_zeros(shape=BLOCK, dtype=vec6, storage="shared")  # each half's last link row
         up_node = wp.tile_zeros(shape=BLOCK, dtype=vec6, storage="shared")  # ... and last node row
         ghosts = wp.tile_zeros(shape=BLOCK, dtype=vec6, storage="shared")  # each half's two nodes by the middle
+        if wp.static(tol > 0.0):
+            busy = wp.tile_zeros(shape=BLOCK, dtype=float, storage="shared")  # 1: the lane's chain still iterates
+        running = int(1)  # 0 once the chain has converged: its later steps are computed (the block's) but not applied
         acc = vec_h()  # this sweep's multipliers so far (own links)
         for it in range(newton_steps):
             # ---- forward elimination of the own link rows (Thomas); the last couples to the other half's last
@@ -193,6 +204,7 @@ def split_chain_kernel(links: int) -> wp.Kernel:
                 dl_other = x_a
             # ---- back substitution down the own rows: dp becomes dl
             y_next = dl_me
+            largest = float(0.0)  # the step's largest correction of an own link (only with a tolerance)
             for kk in range(H):
                 k = H - 1 - kk
                 if k < h - 1:
@@ -200,6 +212,9 @@ def split_chain_kernel(links: int) -> wp.Kernel:
                     dp[k] = y_next
                 elif k == h - 1:
                     dp[k] = dl_me
+                if wp.static(tol > 0.0):
+                    if k < h:
+                        largest = wp.max(largest, wp.abs(dp[k]) * (w[k] + w[k + 1]))
             # ---- the transverse filter over the own nodes (chains_registers' order within each half); a node's
             # tangential part applied as its row is formed
             n_prev = wp.vec3(0.0)
@@ -221,7 +236,8 @@ def split_chain_kernel(links: int) -> wp.Kernel:
                         total = dl_j
                         if it > 0:
                             total = acc[jl] + dl_j
-                        acc[jl] = total
+                        if running != 0:
+                            acc[jl] = total
                     k_j = float(0.0)
                     if len_j > 1.0e-12:
                         k_j = wp.max(-dl_j, 0.0) / len_j
@@ -229,12 +245,14 @@ def split_chain_kernel(links: int) -> wp.Kernel:
                                                            dn_prev)
                     nc[j] = cn_prev
                     nd[j] = dn_prev
-                    if w[j] > 0.0:
+                    if w[j] > 0.0 and running != 0:
                         x[j] = par + x[j]
                     n_prev = n_j
                     dl_prev = dl_j
                     k_prev = k_j
-            wp.tile_scatter_masked(up_node, lane, vec6(cn_prev, dn_prev[0], dn_prev[1], dn_prev[2], 0.0, 0.0), True)
+            # (the spare slot: this half's largest link correction, for the pair's decision below)
+            wp.tile_scatter_masked(up_node, lane, vec6(cn_prev, dn_prev[0], dn_prev[1], dn_prev[2], largest, 0.0),
+                                   True)
             on = wp.tile_extract(up_node, partner)
             cn_a = cn_prev
             dn_a = dn_prev
@@ -254,7 +272,7 @@ def split_chain_kernel(links: int) -> wp.Kernel:
                 if j < nn:
                     if j < nn - 1:
                         y = nd[j] - y * nc[j]
-                    if w[j] > 0.0:
+                    if w[j] > 0.0 and running != 0:
                         x[j] = x[j] + y
             # ---- the two nodes by the middle to the other half (its ghosts, slots nn and nn + 1)
             last = wp.vec3(0.0)
@@ -272,6 +290,14 @@ def split_chain_kernel(links: int) -> wp.Kernel:
                     x[j] = wp.vec3(gh[0], gh[1], gh[2])
                 if j == nn + 1:
                     x[j] = wp.vec3(gh[3], gh[4], gh[5])
+            if wp.static(tol > 0.0):
+                # the pair stops once neither half corrected a link by tol (this step applied); the block leaves the
+                # loop once none of its chains iterates
+                if wp.max(largest, on[4]) < tol:
+                    running = 0
+                wp.tile_scatter_masked(busy, lane, float(running), True)
+                if wp.tile_extract(wp.tile_max(busy), 0) == 0.0:
+                    break
         # the moved own nodes and this sweep's multipliers of the own links
         if real:
             for j in range(NH):
@@ -290,7 +316,7 @@ def split_chain_kernel(links: int) -> wp.Kernel:
 
     kernel = wp.kernel(solve_chains_split, module="unique", enable_backward=False,
                        module_options={"max_unroll": S + 1, "block_dim": BLOCK})
-    _KERNELS[L] = kernel
+    _KERNELS[(L, tol)] = kernel
     return kernel
 
 
@@ -299,7 +325,7 @@ def launch_dim(num_envs: int, chains: int) -> tuple[int, int]:
     return (-(-2 * int(num_envs) * int(chains) // BLOCK), BLOCK)
 
 
-def family_kernel(cs, first: int, count: int) -> wp.Kernel | None:
+def family_kernel(cs, first: int, count: int, newton_tolerance: float = 0.0) -> wp.Kernel | None:
     """The split solve for the chains ``first .. first + count - 1`` of a ``chains.ChainSet`` (one family), or
     ``None`` where it does not take them (a closed chain, chains of different lengths, or a length outside
     ``2 .. MAX_LINKS``)."""
@@ -308,7 +334,7 @@ def family_kernel(cs, first: int, count: int) -> wp.Kernel | None:
         return None
     if not 2 <= int(lengths.max()) <= MAX_LINKS:
         return None
-    return split_chain_kernel(int(lengths.max()))
+    return split_chain_kernel(int(lengths.max()), newton_tolerance)
 
 
 def is_split_kernel(kernel) -> bool:

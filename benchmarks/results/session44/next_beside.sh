@@ -6,8 +6,10 @@
 #    session's quick calls), alternated with the split kernel's caps not tried yet (176 / 184 still fit one wave of
 #    1,280 warps; 152 / 160), then its RGB 64x64 step, its profile and a 10^7-step random-action soak (#17's soak on the
 #    new solve);
-# 1. ThreadInHole's thread (one 11-link chain per env, normal configuration) on the register solve (its exact-length
-#    variant: no spill at 10 links, sm_90) and on the split one, against its pcr default (204.9k-207.6k), alternated;
+# 1. RopeCutting's split solve with a Newton tolerance (1e-7 / 1e-6 m: per chain, a block leaves once all stopped;
+#    untimed), then ThreadInHole's thread (one 11-link chain per env, normal configuration) on the register solve (its
+#    exact-length variant: no spill at 10 links, sm_90) and on the split one, without and with its 3e-4 m tolerance,
+#    against its pcr default (204.9k-207.6k), alternated;
 # 2. GPU tests of the split and register solves, RopeCutting's env;
 # 3. the six #17 / #18 tasks' steps on the current defaults.
 # DEVICE (cuda:0), NUM_ENVS (4096), JOBS (next_jobs_beside.txt), DEADLINE (1000) and QUEUE_DEADLINE (1100) override.
@@ -43,10 +45,17 @@ if in_time soak_rc; then
   echo "soak_RopeCutting rc=$? $(tail -1 "$out/soak_RopeCutting.txt" | cut -c1-300)"
 fi
 for round in a b; do
+  in_time "rc_tol_$round" || continue
+  bench "rc_tol1e7_$round" RopeCutting expert --set rope_newton_tolerance=1e-7
+  bench "rc_tol1e6_$round" RopeCutting expert --set rope_newton_tolerance=1e-6
+done
+for round in a b; do
   in_time "tih_$round" || continue
   bench "tih_$round" ThreadInHole expert
   bench "tih_registers_$round" ThreadInHole expert --set chain_solver='"registers"'
   bench "tih_split_$round" ThreadInHole expert --set chain_solver='"registers"' --register-split on
+  bench "tih_split_tol_$round" ThreadInHole expert --set chain_solver='"registers"' thread_newton_tolerance=3e-4 \
+    --register-split on
 done
 if in_time pytest; then
   PYTHONPATH=$new timeout 240 python3 -m pytest -q -p no:cacheprovider tests/test_chains_split.py \

@@ -141,7 +141,8 @@ class RopeCuttingConfig(EnvConfig):
             chain solver raises ``ValueError``). Default 0: every step. Each step corrects the taut ropes ~10x less than
             the one before (at 1e-7 m a rope runs 3.01 of its 4 steps, CPU, the expert's episodes), but on the
             register solve the check slowed the step: H200, expert, 4,096 envs, same call, 318.2k env-steps/s at 0
-            against 286.9k at 1e-7 (twice each; the check's 160 B more spill frame, sm_90).
+            against 286.9k at 1e-7 (twice each; the check's 160 B more spill frame, sm_90). On the split solve (two
+            threads per rope, RopeCutting's CUDA default since the forty-fourth session) untimed.
         contact_capacity: contact records kept per env per step (counted when exceeded, never silent).
         max_episode_steps: time limit; ``None`` = max(400, 200 C) (Table C).
     """
