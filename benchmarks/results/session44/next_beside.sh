@@ -10,7 +10,8 @@
 #    untimed), then ThreadInHole's thread (one 11-link chain per env, normal configuration) on the register solve (its
 #    exact-length variant: no spill at 10 links, sm_90) and on the split one, without and with its 3e-4 m tolerance,
 #    against its pcr default (204.9k-207.6k), alternated;
-# 2. GPU tests of the split and register solves, RopeCutting's env;
+# 2. PrecisionCutting's cloth on the register solve with its equal rows and columns split (one point); GPU tests of the
+#    split and register solves, RopeCutting's env;
 # 3. the six #17 / #18 tasks' steps on the current defaults.
 # DEVICE (cuda:0), NUM_ENVS (4096), JOBS (next_jobs_beside.txt), DEADLINE (1000) and QUEUE_DEADLINE (1100) override.
 set -u
@@ -57,6 +58,9 @@ for round in a b; do
   bench "tih_split_tol_$round" ThreadInHole expert --set chain_solver='"registers"' thread_newton_tolerance=3e-4 \
     --register-split on
 done
+# PrecisionCutting's cloth on the register solve, its rows and columns (equal 39-link chains) split between two threads
+# (20 links a thread), its diagonals (1-39 links) on the one-thread kernel: against the serial walk (27.3k)
+in_time pc_split && bench pc_split PrecisionCutting expert --set chain_solver='"registers"' --register-split on
 if in_time pytest; then
   PYTHONPATH=$new timeout 240 python3 -m pytest -q -p no:cacheprovider tests/test_chains_split.py \
     tests/test_chains_registers.py tests/test_rope_cutting.py --device "$dev" > "$out/pytest_cuda.txt" 2>&1
