@@ -666,14 +666,14 @@ class World:
         # the empty int32 array where the prediction writes no tet solve's start
         start_flags = self._vbd_start_flags if self._vbd_start_in_prediction() else self._no_map_i
         in_rod_sweep = self._predicts_in_rod_sweep()
+        active, use_active, force, use_force = self._prediction_masks()
         for sub in range(substeps):
-            particle_args = [m.particle_inv_mass, m.particle_damping, m.gravity, h, *self._prediction_masks(),
-                             start_flags, s.particle_q, s.particle_qd]
+            particle_args = [m.particle_inv_mass, m.particle_damping, m.gravity, h, active, use_active, force,
+                             use_force, start_flags, s.particle_q, s.particle_qd]
             prediction = None
             if m.segment_count and self.integrate_together:
                 # particles and segments in one launch (the same arithmetic on independent elements), or where nothing
                 # else moves them before the rods, in the first sweep's rod launch
-                active, use_active, force, use_force = self._prediction_masks()
                 prediction = make_struct(xpbd.Prediction, finish=int(sub > 0 and fuse), inv_dt_prev=1.0 / h,
                                          inv_mass=m.particle_inv_mass, damping=m.particle_damping, gravity=m.gravity,
                                          dt=h, active=active, use_active=use_active, force=force, use_force=use_force,
