@@ -69,5 +69,12 @@ fi
 for task in PrecisionCutting TissueDissection RopeCutting ThreadInHole RopeThreading LigatingLoop; do
   in_time "step_$task" && bench "step_$task" "$task" expert
 done
+# ThreadInHole's profile on its defaults (the forty-fifth session's work on the hole's vertex sweep starts from it)
+if in_time profile_tih; then
+  PYTHONPATH=$new timeout 200 python3 benchmarks/profile_step.py --task ThreadInHole --device "$dev" \
+    --num-envs "$n" --steps 5 --warmup 20 --top 30 --out "$out/profile_ThreadInHole.json" \
+    > "$out/profile_ThreadInHole.txt" 2>&1
+  echo "profile_ThreadInHole rc=$? $(head -4 "$out/profile_ThreadInHole.txt" | tr '\n' ' ' | cut -c1-400)"
+fi
 echo "all checks done at $(( $(date +%s) - t0 )) s"
 run_queue "${JOBS:-$d/next_jobs_beside.txt}" "${QUEUE_DEADLINE:-1100}"
