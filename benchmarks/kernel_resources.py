@@ -29,7 +29,8 @@ _ATTRS = {0x2F: "registers", 0x11: "frame_bytes"}
 
 
 def parse_cubin(path: str | Path) -> dict[str, dict[str, int]]:
-    """Per kernel symbol of a cubin (ELF64): ``registers``, ``frame_bytes`` and ``shared_bytes`` (static)."""
+    """Per kernel symbol of a cubin (ELF64): ``registers``, ``frame_bytes``, ``shared_bytes`` (static) and
+    ``instructions`` (the static SASS count of its code section)."""
     data = Path(path).read_bytes()
     if data[:4] != b"\x7fELF" or data[4] != 2:
         raise ValueError(f"{path} is not an ELF64 cubin")
@@ -60,6 +61,9 @@ def parse_cubin(path: str | Path) -> dict[str, dict[str, int]]:
     for name, sec in by_name.items():
         if name.startswith(".nv.shared.") and name[len(".nv.shared."):] in out:
             out[name[len(".nv.shared."):]]["shared_bytes"] = sec[5]
+        if name.startswith(".text.") and name[len(".text."):] in out:
+            # static SASS instructions (16 bytes each from sm_70 on): a change's code size, not its run time
+            out[name[len(".text."):]]["instructions"] = sec[5] // 16
     return out
 
 

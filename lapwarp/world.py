@@ -42,7 +42,7 @@ from lapwarp.kernels import (
 )
 from lapwarp.launching import make_struct
 from lapwarp.model import Control, Model, State
-from lapwarp.vbd import tet_components, vertex_layout
+from lapwarp.vbd import lagged_incidence_terms, tet_components, vertex_layout
 
 # Kernels with ~150 registers per thread (the chain solves): in blocks of 256 only one block fits an SM's register
 # file, in blocks of 64 six do (measured on the H100: the cloth's three chain families take 2.77 ms per substep at 64
@@ -332,11 +332,15 @@ class World:
         flags = np.zeros(m.particle_count, dtype=np.int32)
         flags[np.asarray(lay.vertices, dtype=np.int64)] = 1
         self._vbd_start_flags = wp.array(flags, dtype=wp.int32, device=dev)
+        # the incidences' rest-shape factors of the sweep with stored rotations (kernels/vbd.py
+        # tet_vertex_terms_lagged); the tets' rest shapes are the model's, shared by every env and never changed
+        particles, coef0, coef1 = lagged_incidence_terms(idx, m.tet_inv_rest.numpy(), lay.adj_tets, lay.adj_corners)
         self._vbd_layout = (
             wp.array(lay.vertices, dtype=wp.int32, device=dev), lay.color_offsets,
             wp.array(np.asarray(lay.color_offsets, dtype=np.int32), dtype=wp.int32, device=dev),
             wp.array(lay.adj_offsets, dtype=wp.int32, device=dev), wp.array(lay.adj_tets, dtype=wp.int32, device=dev),
-            wp.array(lay.adj_corners, dtype=wp.int32, device=dev))
+            wp.array(lay.adj_corners, dtype=wp.int32, device=dev), wp.array(particles, dtype=wp.vec4i, device=dev),
+            wp.array(coef0, dtype=wp.vec4, device=dev), wp.array(coef1, dtype=wp.vec4, device=dev))
 
     def _chain_scratch(self, chains) -> tuple:
         """Per-env scratch of a chain set's direct solve: per link the multiplier of the Newton steps, modified
@@ -967,15 +971,15 @@ class World:
         from lapwarp.kernels import vbd
 
         m, n, s, dev = self.model, self.num_envs, self.state, self.device
-        vertices, offsets, offsets_dev, adj_offsets, adj_tets, adj_corners = self._vbd_layout
+        vertices, offsets, offsets_dev, adj_offsets, adj_tets, adj_corners, *lagged_terms = self._vbd_layout
         if sweep.iteration == 0 and not self._vbd_start_in_prediction():
             launch(vbd.begin_substep, (n, vertices.shape[0]),
                    [vertices, m.particle_inv_mass, m.gravity, sweep.h, *self._prediction_masks(), self._q_pred],
                    [s.particle_q])
         if refresh:
             self._record_rotation_refresh(launch, tet_map, tet_mask, rotation)
-        common = [vertices, adj_offsets, adj_tets, adj_corners, m.tet_indices, m.tet_inv_rest, m.tet_params, w_eff,
-                  self._q_pred, inv_dt2, tet_map, tet_mask, self.tet_rotation_iterations]
+        common = [vertices, adj_offsets, adj_tets, adj_corners, *lagged_terms, m.tet_indices, m.tet_inv_rest,
+                  m.tet_params, w_eff, self._q_pred, inv_dt2, tet_map, tet_mask, self.tet_rotation_iterations]
         if self.fused_tets:
             first, count = self._tet_window
             threads = launching.block_lanes(dev, self.tet_block_threads)
