@@ -318,6 +318,7 @@ class World:
         its host copies must not happen while a step is recorded inside a CUDA graph capture."""
         m, dev = self.model, self.device
         self._vbd_layout = None
+        self._tet_stiffness = None  # (P, T) vec2, set below where there are tets
         self._vbd_start_flags = None  # set below where there are tets (_vbd_start_in_prediction needs them)
         self._unanchored_tets: list[tuple[int, int]] = []
         if not m.tet_count:
@@ -335,12 +336,21 @@ class World:
         # the incidences' rest-shape factors of the sweep with stored rotations (kernels/vbd.py
         # tet_vertex_terms_lagged); the tets' rest shapes are the model's, shared by every env and never changed
         particles, coef0, coef1 = lagged_incidence_terms(idx, m.tet_inv_rest.numpy(), lay.adj_tets, lay.adj_corners)
+        # the tets' stiffnesses (the reciprocal compliances the solve multiplies by), kept with the compliances by
+        # set_materials, their only writer after the build
+        self._tet_stiffness = wp.empty(m.tet_params.shape, dtype=wp.vec2, device=dev)
+        self._refresh_tet_stiffness()
         self._vbd_layout = (
             wp.array(lay.vertices, dtype=wp.int32, device=dev), lay.color_offsets,
             wp.array(np.asarray(lay.color_offsets, dtype=np.int32), dtype=wp.int32, device=dev),
             wp.array(lay.adj_offsets, dtype=wp.int32, device=dev), wp.array(lay.adj_tets, dtype=wp.int32, device=dev),
             wp.array(lay.adj_corners, dtype=wp.int32, device=dev), wp.array(particles, dtype=wp.vec4i, device=dev),
             wp.array(coef0, dtype=wp.vec4, device=dev), wp.array(coef1, dtype=wp.vec4, device=dev))
+
+    def _refresh_tet_stiffness(self) -> None:
+        """``world_kernels.tet_stiffness`` of every tet's compliances."""
+        launching.launch(world_kernels.tet_stiffness, dim=self.model.tet_params.shape, inputs=[self.model.tet_params],
+                         outputs=[self._tet_stiffness], device=self.device)
 
     def _chain_scratch(self, chains) -> tuple:
         """Per-env scratch of a chain set's direct solve: per link the multiplier of the Newton steps, modified
@@ -979,7 +989,7 @@ class World:
         if refresh:
             self._record_rotation_refresh(launch, tet_map, tet_mask, rotation)
         common = [vertices, adj_offsets, adj_tets, adj_corners, *lagged_terms, m.tet_indices, m.tet_inv_rest,
-                  m.tet_params, w_eff, self._q_pred, inv_dt2, tet_map, tet_mask, self.tet_rotation_iterations]
+                  self._tet_stiffness, w_eff, self._q_pred, inv_dt2, tet_map, tet_mask, self.tet_rotation_iterations]
         if self.fused_tets:
             first, count = self._tet_window
             threads = launching.block_lanes(dev, self.tet_block_threads)
@@ -1168,6 +1178,7 @@ class World:
             if name == "tet_params" and stiffness_scale is not None:
                 launching.launch(world_kernels.scale_tet_compliance, dim=(n, columns.shape[0]),
                                  inputs=[env_mask, columns, base, stiffness_scale], outputs=[out], device=dev)
+                self._refresh_tet_stiffness()
             elif name.endswith("compliance") and inv_stiffness is not None:
                 launching.launch(world_kernels.scale_material_columns, dim=(n, columns.shape[0]),
                                  inputs=[env_mask, columns, base, inv_stiffness], outputs=[out], device=dev)

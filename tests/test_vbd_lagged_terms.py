@@ -3,13 +3,15 @@ their definition: each vertex's force ``-(F - R) m / alpha_D - cof(F) m (det F -
 Hessian block ``|m|^2 / alpha_D I + (cof(F) m)(cof(F) m)^T / alpha_H`` formed from ``F = Ds Dm^-1`` in float64 (NumPy),
 for every corner of tets of both orientations, stretched, sheared, inverted and at rest, with and without a volume
 term. The kernel forms them from ``F m``, a triple product and a cross product with the rest-shape factors of
-``lapwarp.vbd.lagged_incidence_terms`` instead of ``F``, its determinant and cofactor."""
+``lapwarp.vbd.lagged_incidence_terms`` instead of ``F``, its determinant and cofactor, and multiplies by the
+stiffnesses of ``world_kernels.tet_stiffness``."""
 
 import numpy as np
 import pytest
 import warp as wp
 
 from lapwarp.kernels import vbd as vbd_kernels
+from lapwarp.kernels.world_kernels import tet_stiffness
 from lapwarp.vbd import lagged_incidence_terms, vertex_layout
 
 
@@ -19,7 +21,7 @@ def eval_lagged_terms(
     adj_particles: wp.array(dtype=wp.vec4i),
     adj_coef0: wp.array(dtype=wp.vec4),
     adj_coef1: wp.array(dtype=wp.vec4),
-    params: wp.array2d(dtype=wp.vec3),
+    stiffness: wp.array2d(dtype=wp.vec2),
     tet_rotation: wp.array2d(dtype=wp.quat),
     q: wp.array2d(dtype=wp.vec3),
     f_out: wp.array(dtype=wp.vec3),
@@ -28,7 +30,7 @@ def eval_lagged_terms(
     e = wp.tid()
     k = adj_particles[e]
     f, H = vbd_kernels.tet_vertex_terms_lagged(0, adj_tets[e], q[0, k[0]], q[0, k[1]], q[0, k[2]], q[0, k[3]],
-                                                adj_coef0[e], adj_coef1[e], params, tet_rotation)
+                                                adj_coef0[e], adj_coef1[e], stiffness, tet_rotation)
     f_out[e] = f
     H_out[e] = H
 
@@ -78,14 +80,17 @@ def test_lagged_vertex_terms_match_the_deformation_gradient_form(device, volume)
     assert len(particles) == 4 * T
     alpha_D = 10.0 ** rng.uniform(-7, -5, size=T)
     alpha_H = 10.0 ** rng.uniform(-7, -5, size=T) if volume else -np.ones(T)
-    params = np.stack([alpha_D, alpha_H, np.zeros(T)], axis=1).astype(np.float32)[None]
+    params = wp.array(np.stack([alpha_D, alpha_H, np.zeros(T)], axis=1).astype(np.float32)[None], dtype=wp.vec3,
+                      device=device)
+    stiffness = wp.empty((1, T), dtype=wp.vec2, device=device)
+    wp.launch(tet_stiffness, dim=(1, T), inputs=[params], outputs=[stiffness], device=device)
     E = len(particles)
     f_out = wp.zeros(E, dtype=wp.vec3, device=device)
     H_out = wp.zeros(E, dtype=wp.mat33, device=device)
     wp.launch(eval_lagged_terms, dim=E, device=device, inputs=[
         wp.array(lay.adj_tets, dtype=wp.int32, device=device), wp.array(particles, dtype=wp.vec4i, device=device),
         wp.array(coef0, dtype=wp.vec4, device=device), wp.array(coef1, dtype=wp.vec4, device=device),
-        wp.array(params, dtype=wp.vec3, device=device), wp.array(rotations[None], dtype=wp.quat, device=device),
+        stiffness, wp.array(rotations[None], dtype=wp.quat, device=device),
         wp.array(positions[None], dtype=wp.vec3, device=device)], outputs=[f_out, H_out])
     f, H = f_out.numpy().astype(np.float64), H_out.numpy().astype(np.float64)
 

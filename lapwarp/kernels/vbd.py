@@ -28,7 +28,9 @@ that problem.
 
 The energy and its constraints are the XPBD tets' (``xpbd.tet_strain``: ``C_D = |F - R|``, ``C_H = det F - 1``
 with compliances ``alpha_D = 1 / (2 mu V)``, ``alpha_H = 1 / (lambda V)``, ``alpha_H < 0`` = no volume term), so the
-material, per-env parameters, cutting masks and the rotation warm start are shared with the XPBD path.
+material, per-env parameters, cutting masks and the rotation warm start are shared with the XPBD path; the kernels
+read the compliances' reciprocals (``world_kernels.tet_stiffness``, kept by the World), not dividing per incidence
+(two divisions per incidence held ThreadInHole's capped sweep at a 80-byte spill frame, sm_90).
 """
 
 import warp as wp
@@ -89,15 +91,14 @@ def corner_row(Dm_inv: wp.mat33, corner: int):
 
 
 @wp.func
-def add_volume_term(f: wp.vec3, mm: float, inv_aD: float, p: wp.vec3, C_H: float, g: wp.vec3):
+def add_volume_term(f: wp.vec3, mm: float, k: wp.vec2, C_H: float, g: wp.vec3):
     """The vertex's force and Gauss-Newton Hessian block from its deviatoric force ``f`` (the Hessian ``|m|^2 /
-    alpha_D I``, ``mm = |m|^2``) plus the volume term ``-g C_H / alpha_H``, ``g g^T / alpha_H`` (``alpha_H < 0``:
-    none)."""
-    H = wp.identity(3, dtype=float) * (mm * inv_aD)
-    if p[1] >= 0.0:  # alpha_H < 0 marks lambda = 0: no volume term
-        inv_aH = 1.0 / p[1]
-        f = f - g * (C_H * inv_aH)
-        H = H + wp.outer(g, g) * inv_aH
+    alpha_D I``, ``mm = |m|^2``) plus the volume term ``-g C_H / alpha_H``, ``g g^T / alpha_H``; ``k = (1 / alpha_D,
+    1 / alpha_H)`` (``world_kernels.tet_stiffness``; ``k_H < 0``: ``lambda = 0``, no volume term)."""
+    H = wp.identity(3, dtype=float) * (mm * k[0])
+    if k[1] >= 0.0:
+        f = f - g * (C_H * k[1])
+        H = H + wp.outer(g, g) * k[1]
     return f, H
 
 
@@ -108,7 +109,7 @@ def tet_vertex_terms(
     corner: int,
     x0: wp.vec3, x1: wp.vec3, x2: wp.vec3, x3: wp.vec3,
     inv_rest: wp.array(dtype=wp.mat33),
-    params: wp.array2d(dtype=wp.vec3),
+    stiffness: wp.array2d(dtype=wp.vec2),
     rotation_iterations: int,
     tet_rotation: wp.array2d(dtype=wp.quat),
 ):
@@ -126,12 +127,11 @@ def tet_vertex_terms(
     C_D, C_H, qr, DC, cof = tet_strain(x0, x1, x2, x3, Dm_inv, q0, iters)
     if corner == 0 and iters > 0:
         tet_rotation[env, c] = qr
-    p = params[env % params.shape[0], c]
+    k = stiffness[env % stiffness.shape[0], c]
     m = corner_row(Dm_inv, corner)
     d = DC * m
     g = cof * m
-    inv_aD = 1.0 / p[0]
-    return add_volume_term(-d * (C_D * inv_aD), wp.dot(m, m), inv_aD, p, C_H, g)
+    return add_volume_term(-d * (C_D * k[0]), wp.dot(m, m), k, C_H, g)
 
 
 @wp.func
@@ -141,7 +141,7 @@ def tet_vertex_terms_lagged(
     xp: wp.vec3, xa: wp.vec3, xb: wp.vec3, xc: wp.vec3,
     coef0: wp.vec4,
     coef1: wp.vec4,
-    params: wp.array2d(dtype=wp.vec3),
+    stiffness: wp.array2d(dtype=wp.vec2),
     tet_rotation: wp.array2d(dtype=wp.quat),
 ):
     """:func:`tet_vertex_terms` with the tet's rotation as stored at the sweep's start (``xpbd.refresh_tet_rotations``;
@@ -160,12 +160,11 @@ def tet_vertex_terms_lagged(
     dc = xc - xp
     Fm = da * coef0[0] + db * coef0[1] + dc * coef0[2]
     m = wp.vec3(coef1[0], coef1[1], coef1[2])
-    p = params[env % params.shape[0], c]
-    inv_aD = 1.0 / p[0]
-    f = -(Fm - wp.quat_rotate(tet_rotation[env, c], m)) * inv_aD
+    k = stiffness[env % stiffness.shape[0], c]
+    f = -(Fm - wp.quat_rotate(tet_rotation[env, c], m)) * k[0]
     n = wp.cross(db - da, dc - da)
     s = coef0[3]
-    return add_volume_term(f, coef1[3], inv_aD, p, -s * wp.dot(da, n) - 1.0, n * s)
+    return add_volume_term(f, coef1[3], k, -s * wp.dot(da, n) - 1.0, n * s)
 
 
 @wp.func
@@ -189,7 +188,7 @@ def solve_vertices(
     adj_coef1: wp.array(dtype=wp.vec4),
     indices: wp.array(dtype=wp.vec4i),
     inv_rest: wp.array(dtype=wp.mat33),
-    params: wp.array2d(dtype=wp.vec3),
+    stiffness: wp.array2d(dtype=wp.vec2),
     inv_mass: wp.array2d(dtype=float),
     q_pred: wp.array2d(dtype=wp.vec3),
     inv_dt2: float,
@@ -221,11 +220,11 @@ def solve_vertices(
         if lagged != 0:
             k = adj_particles[a]
             fa, Ha = tet_vertex_terms_lagged(env, c, xp, q[env, k[1]], q[env, k[2]], q[env, k[3]], adj_coef0[a],
-                                             adj_coef1[a], params, tet_rotation)
+                                             adj_coef1[a], stiffness, tet_rotation)
         else:
             k = indices[c]
             fa, Ha = tet_vertex_terms(env, c, adj_corners[a], q[env, k[0]], q[env, k[1]], q[env, k[2]], q[env, k[3]],
-                                      inv_rest, params, rotation_iterations, tet_rotation)
+                                      inv_rest, stiffness, rotation_iterations, tet_rotation)
         f = f + fa
         H = H + Ha
     q[env, i] = vertex_step(xp, q_pred[env, i], w, inv_dt2, f, H)
@@ -261,7 +260,7 @@ def fused_vertex_kernel(tile_particles: int, lagged: bool = False):
         adj_coef1: wp.array(dtype=wp.vec4),
         indices: wp.array(dtype=wp.vec4i),
         inv_rest: wp.array(dtype=wp.mat33),
-        params: wp.array2d(dtype=wp.vec3),
+        stiffness: wp.array2d(dtype=wp.vec2),
         inv_mass: wp.array2d(dtype=float),
         q_pred: wp.array2d(dtype=wp.vec3),
         inv_dt2: float,
@@ -304,14 +303,14 @@ def fused_vertex_kernel(tile_particles: int, lagged: bool = False):
                             k = adj_particles[a]
                             fa, Ha = tet_vertex_terms_lagged(
                                 env, c, xp, wp.tile_extract(xs, k[1] - first), wp.tile_extract(xs, k[2] - first),
-                                wp.tile_extract(xs, k[3] - first), adj_coef0[a], adj_coef1[a], params, tet_rotation)
+                                wp.tile_extract(xs, k[3] - first), adj_coef0[a], adj_coef1[a], stiffness, tet_rotation)
                         else:
                             k = indices[c]
                             x0 = wp.tile_extract(xs, k[0] - first)
                             x1 = wp.tile_extract(xs, k[1] - first)
                             x2 = wp.tile_extract(xs, k[2] - first)
                             x3 = wp.tile_extract(xs, k[3] - first)
-                            fa, Ha = tet_vertex_terms(env, c, adj_corners[a], x0, x1, x2, x3, inv_rest, params,
+                            fa, Ha = tet_vertex_terms(env, c, adj_corners[a], x0, x1, x2, x3, inv_rest, stiffness,
                                                       rotation_iterations, tet_rotation)
                         f = f + fa
                         Hd = Hd + wp.vec3(Ha[0, 0], Ha[1, 1], Ha[2, 2])

@@ -252,6 +252,18 @@ def set_material_columns(env_mask: wp.array(dtype=wp.int32), columns: wp.array(d
 
 
 @wp.kernel
+def tet_stiffness(params: wp.array2d(dtype=wp.vec3), out: wp.array2d(dtype=wp.vec2)):
+    """The tets' stiffnesses ``(1 / alpha_D, 1 / alpha_H)`` from their compliances (``alpha_H < 0``, no volume term:
+    -1): the per-vertex tet solve (kernels/vbd.py) multiplies by them in every incidence instead of dividing."""
+    i, c = wp.tid()
+    p = params[i, c]
+    k_H = float(-1.0)
+    if p[1] >= 0.0:
+        k_H = 1.0 / p[1]
+    out[i, c] = wp.vec2(1.0 / p[0], k_H)
+
+
+@wp.kernel
 def reciprocal(values: wp.array(dtype=float), out: wp.array(dtype=float)):
     i = wp.tid()
     out[i] = 1.0 / values[i]
