@@ -304,17 +304,22 @@ def test_invalid_configuration_raises(overrides, message):
 
 
 def test_thread_newton_tolerance():
-    """The thread's Newton tolerance reaches the World where the pcr solve runs the thread (its default there
-    ``THREAD_NEWTON_TOLERANCE``, 0 on the serial walk, which runs every step, and a value with it refused); with the
+    """The thread's Newton tolerance reaches the World where the register-resident solve runs the thread (the GPU's
+    default: ``THREAD_NEWTON_TOLERANCE`` there, 0 on the serial walk, which runs every step, and a value with it
+    refused; an explicit value with the pcr solve kept); with the
     default 3e-4 m the thread of 2 envs ends 10 no-op env steps within 1e-6 m of every step's (measured 1.4e-7 m on the
     CPU: the second steps skipped correct at most 2.4e-7 m along the expert's episodes, docs/physics.md)."""
-    assert make().world.rod_newton_tolerance == 0.0
+    default = make()
+    assert default.world.rod_newton_tolerance == (THREAD_NEWTON_TOLERANCE if default.wp_device.is_cuda else 0.0)
+    assert default.world.chain_register_split == default.wp_device.is_cuda  # two threads per chain on CUDA
     assert THREAD_NEWTON_TOLERANCE == 3e-4
     with pytest.raises(ValueError, match="thread_newton_tolerance=.*register-resident, hybrid and pcr chain solves"):
         make(chain_solver="thomas", thread_newton_tolerance=3e-4)
     out = []
+    assert make(chain_solver="pcr").world.rod_newton_tolerance == 0.0
+    assert make(chain_solver="pcr", thread_newton_tolerance=1e-4).world.rod_newton_tolerance == 1e-4
     for tolerance, expected in ((0.0, 0.0), (None, THREAD_NEWTON_TOLERANCE)):
-        env = make(num_envs=2, chain_solver="pcr", thread_newton_tolerance=tolerance)
+        env = make(num_envs=2, chain_solver="registers", thread_newton_tolerance=tolerance)
         assert env.world.rod_newton_tolerance == expected
         env.reset()
         for _ in range(10):

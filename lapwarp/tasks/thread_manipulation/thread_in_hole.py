@@ -102,7 +102,8 @@ from lapwarp.tasks.spec import Feature, ObservationLayout, ObservationSpec, Rewa
 from lapwarp.visuals import CameraSpec, VisualObject, VisualScene, look_at_transform
 from lapwarp.world import World
 
-#: the thread's Newton tolerance (m) where the pcr solve runs it (``ThreadInHoleConfig.thread_newton_tolerance``): the
+#: the thread's Newton tolerance (m) where its GPU chain solve runs it (``ThreadInHoleConfig.thread_newton_tolerance``:
+#: the register-resident solve, the pcr solve before the forty-fifth session): the
 #: second Newton step runs only after a first that corrected a link by this much or more (skipped in 97-99.9 % of the
 #: expert's sweeps, CPU, those corrections <= 2.4e-7 m); H200, 4,096 envs, same call: 199.9k -> 204.9k env-steps/s
 THREAD_NEWTON_TOLERANCE = 3.0e-4
@@ -181,12 +182,14 @@ class ThreadInHoleConfig(EnvConfig):
         thread_newton_tolerance: (m) the thread stops its 2 Newton steps per sweep once one corrected none of its
             links by this much (``World.rod_newton_tolerance``; the register-resident, hybrid and pcr solves only, a
             value with another chain solver raises ``ValueError``). ``None`` (default): ``THREAD_NEWTON_TOLERANCE`` =
-            3e-4 m where the pcr solve runs the thread (the GPU's ``chain_solver`` "auto"), else 0 (every step; the
-            CPU's serial walk). Along the expert's episodes (CPU, 8 envs, 60 env steps, an instrumented copy of the
-            solve) the first steps corrected 1e-4 to 3e-4 m and the second never more than 2.4e-7 m; 3e-4 m skips the
-            second in 99.9 % of sweeps (normal), 96.8 % (flexible), 99.8 % (inverted). H200, expert, 4,096 envs, same
-            call: 199.9k / 200.0k -> 204.9k / 204.9k env-steps/s; the expert 256 / 256 first episodes in each
-            configuration (forty-third session).
+            3e-4 m where the register-resident solve runs the thread (the GPU's ``chain_solver`` "auto"; the pcr solve
+            until the forty-fifth session), else 0 (every step; the CPU's serial walk). Along the expert's episodes
+            (CPU, 8 envs, 60 env steps, an instrumented copy of the solve) the first steps corrected 1e-4 to 3e-4 m and
+            the second never more than 2.4e-7 m; 3e-4 m skips the second in 99.9 % of sweeps (normal), 96.8 %
+            (flexible), 99.8 % (inverted). H200, expert, 4,096 envs, same
+            call: 199.9k / 200.0k -> 204.9k / 204.9k env-steps/s on the pcr solve; the expert 256 / 256 first
+            episodes in each configuration (forty-third session); on the split register solve 211.1k -> 212.9k
+            (forty-fifth session, ``ThreadInHoleEnv.gpu_chain_solver``).
         camera_position / camera_look_at: sofa_env's camera (vertical FoV 62 degrees), m.
         camera_reset_noise: uniform +- noise of the camera's position and look-at point per reset, m (the paper's
             image configuration with camera noise: 0.02; 0: none).
@@ -662,11 +665,14 @@ class ThreadInHoleEnv(BatchedEnv):
 
     config_class = ThreadInHoleConfig
     task_name = "ThreadInHole"
-    # its thread's chain (one 12-20 link chain per env, one thread each on the serial walk) solved by PCR in a block
-    # (kernels/chains_block.py): 160,190 -> 164,411 env-steps/s (H200, 4,096 envs, expert, same call, thirty-eighth
-    # session; registers 162,010, hybrid 141,141), its expert on it 256 / 256 first episodes in each configuration
-    # (continuous)
-    gpu_chain_solver = "pcr"
+    # its thread's chain (one 11-link chain per env at the default 12 nodes, one thread each on the serial walk) solved
+    # by PCR in a block (kernels/chains_block.py) from the thirty-eighth session: 160,190 -> 164,411 env-steps/s (H200,
+    # 4,096 envs, expert, same call; registers 162,010, hybrid 141,141); since the forty-fifth session by the
+    # register-resident solve with two threads per chain (kernels/chains_split.py, World.chain_register_split, set in
+    # _build on CUDA), at the 3e-4 m tolerance: H200, expert, 4,096 envs, same calls (results/session45, the lease):
+    # pcr at 3e-4 m 207,583 / 207,582, registers one thread per chain at 0 206,112 / 206,132, split at 0 211,138 /
+    # 211,105, **split at 3e-4 m 212,908 / 212,978**
+    gpu_chain_solver = "registers"
     rewards = REWARDS
     supported_observations = ("STATE", "RGB", "RGBD", "DEPTH")
     expert = "lapwarp.tasks.thread_manipulation.thread_in_hole:ThreadInHoleExpert"
@@ -703,7 +709,10 @@ class ThreadInHoleEnv(BatchedEnv):
         world.tet_method = cfg.hole_solver
         # checked here, set after the settle below (which runs on the World's own serial walk, every Newton step)
         tolerance = rope_newton_tolerance("thread_newton_tolerance", cfg.thread_newton_tolerance, self.chain_solver,
-                                          default_on=("pcr", THREAD_NEWTON_TOLERANCE))
+                                          default_on=("registers", THREAD_NEWTON_TOLERANCE))
+        # the register solve's two threads per chain (gpu_chain_solver says why; CUDA only: on the CPU a pair's
+        # threads need Warp's cooperative blocks, and the CPU's default chain solver is the serial walk anyway)
+        world.chain_register_split = bool(dev.is_cuda)
         world.tet_rotation_update = cfg.hole_rotation_update
         world.tet_rotation_refresh = cfg.hole_rotation_refresh
         if cfg.hole_solver == "vbd" and cfg.hole_rotation_update == "sweep":
