@@ -3,7 +3,8 @@
 # 1. ThreadInHole (expert, 4,096 envs, STATE): the old tree (.device/small/old = 8b4ec6a's lapwarp) against HEAD (its
 #    hole's per-vertex sweep with stored rotations forming each incidence's terms from F m, a triple and a cross
 #    product with rest-shape factors built once, and multiplying by the tets' stiffnesses instead of dividing by
-#    their compliances: sm_90 at its 64-register cap without the 80-byte spill frame) and a probe (.device/small/varB:
+#    their compliances: sm_90 at its 64-register cap without the 80-byte spill frame; and its thread on the split
+#    register solve at 3e-4 m, 212.9k against 207.6k in the lease) and a probe (.device/small/varB:
 #    HEAD with the deformation-gradient form of the terms, multiplying by the stiffnesses; a 32-byte spill frame as the
 #    old tree's: is a gain the arithmetic or the spill?), alternated, then RGB 64x64 of the old tree and HEAD;
 # 2. GPU tests of the per-vertex solve (the lagged terms against the deformation-gradient form, the fused sweep against
@@ -38,8 +39,8 @@ timed rgb_tih_old && bench_old rgb_tih_old ThreadInHole expert --obs RGB
 pack
 if [ "$(left)" -gt 60 ]; then
   PYTHONPATH=$new timeout $(( $(left) - 40 )) python3 -m pytest -q -p no:cacheprovider tests/test_vbd_lagged_terms.py \
-    tests/test_fused_tets.py tests/test_solver.py tests/test_thread_in_hole.py \
-    -k "lagged or fused or per_env or vertex or sag or push or tunnel or wall" --device "$dev" > "$out/pytest_cuda.txt" 2>&1
+    tests/test_fused_tets.py tests/test_solver.py tests/test_thread_in_hole.py tests/test_chains_registers.py \
+    -k "lagged or fused or per_env or vertex or sag or push or tunnel or wall or keeps_the_converged" --device "$dev" > "$out/pytest_cuda.txt" 2>&1
   echo "pytest rc=$? $(tail -1 "$out/pytest_cuda.txt") at $(( $(date +%s) - t0 )) s"
   pack
 fi
