@@ -76,35 +76,6 @@ def vertex_layout(tet_indices: np.ndarray, fixed: np.ndarray | None = None,
                         adj_corners=np.concatenate(adj_corners).astype(np.int32))
 
 
-def lagged_incidence_terms(tet_indices: np.ndarray, inv_rest: np.ndarray, adj_tets: np.ndarray,
-                           adj_corners: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The rest-shape factors of each incidence (vertex ``p`` = corner ``adj_corners[e]`` of tet ``adj_tets[e]``) for
-    the per-vertex solve with stored rotations (``kernels/vbd.py`` ``tet_vertex_terms_lagged``, which says how they
-    are used): ``particles (E, 4)`` the tet's particles in the order ``p, a, b, c`` (``a < b < c`` the other corners),
-    ``coef0 (E, 4)`` ``(m_a . m_p, m_b . m_p, m_c . m_p, s)`` and ``coef1 (E, 4)`` ``(m_p, |m_p|^2)``, with ``m_k`` the
-    rows of the tet's ``Dm^-1`` (``m_0 = -(m_1 + m_2 + m_3)``, as ``kernels/vbd.py`` ``corner_row``) and ``s = det
-    Dm^-1`` times the sign of the permutation ``(a, p, b, c)``, so that ``det Ds = sign (x_p - x_a) . ((x_b - x_a) x
-    (x_c - x_a))``. Formed in float64 from the float32 ``inv_rest`` the kernels read."""
-    tets = np.asarray(tet_indices, dtype=np.int64)[adj_tets]
-    dm_inv = np.asarray(inv_rest, dtype=np.float32).astype(np.float64)[adj_tets]  # (E, 3, 3)
-    rows = np.concatenate([-dm_inv.sum(axis=1, keepdims=True), dm_inv], axis=1)  # (E, 4, 3): m_0 .. m_3
-    corners = np.asarray(adj_corners, dtype=np.int64)
-    others = np.array([[k for k in range(4) if k != p] for p in range(4)])[corners]  # (E, 3): a < b < c
-    order = np.concatenate([corners[:, None], others], axis=1)  # p, a, b, c
-    e = np.arange(len(corners))
-    m_p = rows[e, corners]
-    gram = np.einsum("eki,ei->ek", rows, m_p)  # m_k . m_p
-    # the parity of the permutation (a, p, b, c) of (0, 1, 2, 3): its inversions counted
-    perm = np.stack([others[:, 0], corners, others[:, 1], others[:, 2]], axis=1)
-    inversions = sum((perm[:, i] > perm[:, j]).astype(np.int64) for i in range(4) for j in range(i + 1, 4))
-    sign = np.where(inversions % 2 == 0, 1.0, -1.0)
-    s = sign * np.linalg.det(dm_inv)
-    particles = tets[e[:, None], order].astype(np.int32)
-    coef0 = np.concatenate([gram[e[:, None], others], s[:, None]], axis=1).astype(np.float32)
-    coef1 = np.concatenate([m_p, gram[e, corners][:, None]], axis=1).astype(np.float32)
-    return particles, coef0, coef1
-
-
 def tet_components(tet_indices: np.ndarray) -> list[np.ndarray]:
     """The particle indices of each connected tet mesh in ``tet_indices`` ``(T, 4)`` (tets sharing a particle are
     connected)."""

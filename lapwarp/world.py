@@ -42,7 +42,7 @@ from lapwarp.kernels import (
 )
 from lapwarp.launching import make_struct
 from lapwarp.model import Control, Model, State
-from lapwarp.vbd import lagged_incidence_terms, tet_components, vertex_layout
+from lapwarp.vbd import tet_components, vertex_layout
 
 # Kernels with ~150 registers per thread (the chain solves): in blocks of 256 only one block fits an SM's register
 # file, in blocks of 64 six do (measured on the H100: the cloth's three chain families take 2.77 ms per substep at 64
@@ -333,9 +333,6 @@ class World:
         flags = np.zeros(m.particle_count, dtype=np.int32)
         flags[np.asarray(lay.vertices, dtype=np.int64)] = 1
         self._vbd_start_flags = wp.array(flags, dtype=wp.int32, device=dev)
-        # the incidences' rest-shape factors of the sweep with stored rotations (kernels/vbd.py
-        # tet_vertex_terms_lagged); the tets' rest shapes are the model's, shared by every env and never changed
-        particles, coef0, coef1 = lagged_incidence_terms(idx, m.tet_inv_rest.numpy(), lay.adj_tets, lay.adj_corners)
         # the tets' stiffnesses (the reciprocal compliances the solve multiplies by), kept with the compliances by
         # set_materials, their only writer after the build
         self._tet_stiffness = wp.empty(m.tet_params.shape, dtype=wp.vec2, device=dev)
@@ -344,8 +341,7 @@ class World:
             wp.array(lay.vertices, dtype=wp.int32, device=dev), lay.color_offsets,
             wp.array(np.asarray(lay.color_offsets, dtype=np.int32), dtype=wp.int32, device=dev),
             wp.array(lay.adj_offsets, dtype=wp.int32, device=dev), wp.array(lay.adj_tets, dtype=wp.int32, device=dev),
-            wp.array(lay.adj_corners, dtype=wp.int32, device=dev), wp.array(particles, dtype=wp.vec4i, device=dev),
-            wp.array(coef0, dtype=wp.vec4, device=dev), wp.array(coef1, dtype=wp.vec4, device=dev))
+            wp.array(lay.adj_corners, dtype=wp.int32, device=dev))
 
     def _refresh_tet_stiffness(self) -> None:
         """``world_kernels.tet_stiffness`` of every tet's compliances."""
@@ -981,14 +977,14 @@ class World:
         from lapwarp.kernels import vbd
 
         m, n, s, dev = self.model, self.num_envs, self.state, self.device
-        vertices, offsets, offsets_dev, adj_offsets, adj_tets, adj_corners, *lagged_terms = self._vbd_layout
+        vertices, offsets, offsets_dev, adj_offsets, adj_tets, adj_corners = self._vbd_layout
         if sweep.iteration == 0 and not self._vbd_start_in_prediction():
             launch(vbd.begin_substep, (n, vertices.shape[0]),
                    [vertices, m.particle_inv_mass, m.gravity, sweep.h, *self._prediction_masks(), self._q_pred],
                    [s.particle_q])
         if refresh:
             self._record_rotation_refresh(launch, tet_map, tet_mask, rotation)
-        common = [vertices, adj_offsets, adj_tets, adj_corners, *lagged_terms, m.tet_indices, m.tet_inv_rest,
+        common = [vertices, adj_offsets, adj_tets, adj_corners, m.tet_indices, m.tet_inv_rest,
                   self._tet_stiffness, w_eff, self._q_pred, inv_dt2, tet_map, tet_mask, self.tet_rotation_iterations]
         if self.fused_tets:
             first, count = self._tet_window

@@ -30,12 +30,13 @@ The energy and its constraints are the XPBD tets' (``xpbd.tet_strain``: ``C_D = 
 with compliances ``alpha_D = 1 / (2 mu V)``, ``alpha_H = 1 / (lambda V)``, ``alpha_H < 0`` = no volume term), so the
 material, per-env parameters, cutting masks and the rotation warm start are shared with the XPBD path; the kernels
 read the compliances' reciprocals (``world_kernels.tet_stiffness``, kept by the World), not dividing per incidence
-(two divisions per incidence held ThreadInHole's capped sweep at a 80-byte spill frame, sm_90).
+(ThreadInHole's lagged sweep at its 64-register cap, sm_90: spill frame 32 -> 16 B, 1,576 -> 1,560 static
+instructions).
 """
 
 import warp as wp
 
-from lapwarp.kernels.xpbd import tet_removed, tet_strain
+from lapwarp.kernels.xpbd import cofactor, deformation_gradient, tet_removed, tet_strain
 
 wp.set_module_options({"enable_backward": False})
 
@@ -138,9 +139,9 @@ def tet_vertex_terms(
 def tet_vertex_terms_lagged(
     env: int,
     c: int,
-    xp: wp.vec3, xa: wp.vec3, xb: wp.vec3, xc: wp.vec3,
-    coef0: wp.vec4,
-    coef1: wp.vec4,
+    corner: int,
+    x0: wp.vec3, x1: wp.vec3, x2: wp.vec3, x3: wp.vec3,
+    inv_rest: wp.array(dtype=wp.mat33),
     stiffness: wp.array2d(dtype=wp.vec2),
     tet_rotation: wp.array2d(dtype=wp.quat),
 ):
@@ -148,23 +149,18 @@ def tet_vertex_terms_lagged(
     ``World.tet_rotation_update`` "sweep"): one extraction per tet and sweep instead of four. With ``R`` held,
     ``-C_D dC_D / dx = -(F - R) m``: the norm ``C_D`` and its division cancel (the co-rotated linear force).
 
-    The vertex ``p``'s terms need ``F m``, ``det F`` and ``cof(F) m``, not ``F``: with the rows ``m_k`` of the tet's
-    corners (``sum m_k = 0``), ``F = sum x_k m_k^T``, so ``F m_p = sum_{k != p} (m_k . m_p) (x_k - x_p)``; ``det F =
-    s (x_p - x_a) . n`` and ``cof(F) m_p = d det F / d x_p = s n`` with ``n = (x_b - x_a) x (x_c - x_a)`` and ``s``
-    ``det Dm^-1`` signed by the corners' order. The rest-shape factors come per incidence from
-    ``lapwarp.vbd.lagged_incidence_terms`` (``coef0 = (m_a . m_p, m_b . m_p, m_c . m_p, s)``, ``coef1 = (m_p,
-    |m_p|^2)``, the positions in the order ``p, a, b, c``): about half the arithmetic of forming ``F``, its
-    determinant and cofactor (the same quantities, to round-off)."""
-    da = xa - xp
-    db = xb - xp
-    dc = xc - xp
-    Fm = da * coef0[0] + db * coef0[1] + dc * coef0[2]
-    m = wp.vec3(coef1[0], coef1[1], coef1[2])
+    ``F``, its determinant and cofactor are formed here from the tet's four positions and ``Dm^-1`` (shared by the
+    tet's four incidences, so they stay in cache): the vertex's terms written with per-incidence rest-shape factors
+    instead (``F m_p = sum_{k != p} (m_k . m_p) (x_k - x_p)``, ``det F`` and ``cof(F) m_p`` from a triple and a cross
+    product; 48 bytes per incidence against 8 and 52 per tet) halved the arithmetic but ran ThreadInHole's sweep 9.8 ->
+    12.7 ms per env step (H200, 4,096 envs, forty-fifth session): this kernel waits on its loads, not its
+    arithmetic."""
+    Dm_inv = inv_rest[c]
+    F = deformation_gradient(x0, x1, x2, x3, Dm_inv)
     k = stiffness[env % stiffness.shape[0], c]
-    f = -(Fm - wp.quat_rotate(tet_rotation[env, c], m)) * k[0]
-    n = wp.cross(db - da, dc - da)
-    s = coef0[3]
-    return add_volume_term(f, coef1[3], k, -s * wp.dot(da, n) - 1.0, n * s)
+    m = corner_row(Dm_inv, corner)
+    f = -((F - wp.quat_to_matrix(tet_rotation[env, c])) * m) * k[0]
+    return add_volume_term(f, wp.dot(m, m), k, wp.determinant(F) - 1.0, cofactor(F) * m)
 
 
 @wp.func
@@ -183,9 +179,6 @@ def solve_vertices(
     adj_offsets: wp.array(dtype=wp.int32),
     adj_tets: wp.array(dtype=wp.int32),
     adj_corners: wp.array(dtype=wp.int32),
-    adj_particles: wp.array(dtype=wp.vec4i),
-    adj_coef0: wp.array(dtype=wp.vec4),
-    adj_coef1: wp.array(dtype=wp.vec4),
     indices: wp.array(dtype=wp.vec4i),
     inv_rest: wp.array(dtype=wp.mat33),
     stiffness: wp.array2d(dtype=wp.vec2),
@@ -199,9 +192,7 @@ def solve_vertices(
     tet_rotation: wp.array2d(dtype=wp.quat),
     q: wp.array2d(dtype=wp.vec3),
 ):
-    """The vertices of one colour, one thread per (env, vertex). ``lagged``: the rotations as stored
-    (:func:`tet_vertex_terms_lagged`, which takes the incidences' positions in ``adj_particles``' order and their
-    rest-shape factors ``adj_coef0`` / ``adj_coef1``); otherwise extracted here (``indices``, ``inv_rest``)."""
+    """The vertices of one colour, one thread per (env, vertex)."""
     env, t = wp.tid()
     j = start + t
     i = vertices[j]
@@ -210,24 +201,26 @@ def solve_vertices(
         return
     f = wp.vec3(0.0)
     H = wp.mat33(0.0)
-    xp = q[env, i]
     for a in range(adj_offsets[j], adj_offsets[j + 1]):
         c = adj_tets[a]
         if tet_removed(env, c, tet_element, tet_active):
             continue
+        k = indices[c]
+        x0 = q[env, k[0]]
+        x1 = q[env, k[1]]
+        x2 = q[env, k[2]]
+        x3 = q[env, k[3]]
         fa = wp.vec3(0.0)
         Ha = wp.mat33(0.0)
         if lagged != 0:
-            k = adj_particles[a]
-            fa, Ha = tet_vertex_terms_lagged(env, c, xp, q[env, k[1]], q[env, k[2]], q[env, k[3]], adj_coef0[a],
-                                             adj_coef1[a], stiffness, tet_rotation)
+            fa, Ha = tet_vertex_terms_lagged(env, c, adj_corners[a], x0, x1, x2, x3, inv_rest, stiffness,
+                                             tet_rotation)
         else:
-            k = indices[c]
-            fa, Ha = tet_vertex_terms(env, c, adj_corners[a], q[env, k[0]], q[env, k[1]], q[env, k[2]], q[env, k[3]],
-                                      inv_rest, stiffness, rotation_iterations, tet_rotation)
+            fa, Ha = tet_vertex_terms(env, c, adj_corners[a], x0, x1, x2, x3, inv_rest, stiffness,
+                                      rotation_iterations, tet_rotation)
         f = f + fa
         H = H + Ha
-    q[env, i] = vertex_step(xp, q_pred[env, i], w, inv_dt2, f, H)
+    q[env, i] = vertex_step(q[env, i], q_pred[env, i], w, inv_dt2, f, H)
 
 
 _FUSED_KERNELS: dict = {}
@@ -255,9 +248,6 @@ def fused_vertex_kernel(tile_particles: int, lagged: bool = False):
         adj_offsets: wp.array(dtype=wp.int32),
         adj_tets: wp.array(dtype=wp.int32),
         adj_corners: wp.array(dtype=wp.int32),
-        adj_particles: wp.array(dtype=wp.vec4i),
-        adj_coef0: wp.array(dtype=wp.vec4),
-        adj_coef1: wp.array(dtype=wp.vec4),
         indices: wp.array(dtype=wp.vec4i),
         inv_rest: wp.array(dtype=wp.mat33),
         stiffness: wp.array2d(dtype=wp.vec2),
@@ -291,32 +281,29 @@ def fused_vertex_kernel(tile_particles: int, lagged: bool = False):
                     f = wp.vec3(0.0)
                     Hd = wp.vec3(0.0)
                     Hu = wp.vec3(0.0)
-                    # the vertex's own position (no lane writes it until the scatter below)
-                    xp = wp.tile_extract(xs, i - first)
                     for a in range(adj_offsets[j], adj_offsets[j + 1]):
                         c = adj_tets[a]
                         if tet_removed(env, c, tet_element, tet_active):
                             continue
+                        k = indices[c]
+                        x0 = wp.tile_extract(xs, k[0] - first)
+                        x1 = wp.tile_extract(xs, k[1] - first)
+                        x2 = wp.tile_extract(xs, k[2] - first)
+                        x3 = wp.tile_extract(xs, k[3] - first)
                         fa = wp.vec3(0.0)
                         Ha = wp.mat33(0.0)
                         if wp.static(LAGGED):
-                            k = adj_particles[a]
-                            fa, Ha = tet_vertex_terms_lagged(
-                                env, c, xp, wp.tile_extract(xs, k[1] - first), wp.tile_extract(xs, k[2] - first),
-                                wp.tile_extract(xs, k[3] - first), adj_coef0[a], adj_coef1[a], stiffness, tet_rotation)
+                            fa, Ha = tet_vertex_terms_lagged(env, c, adj_corners[a], x0, x1, x2, x3, inv_rest,
+                                                             stiffness, tet_rotation)
                         else:
-                            k = indices[c]
-                            x0 = wp.tile_extract(xs, k[0] - first)
-                            x1 = wp.tile_extract(xs, k[1] - first)
-                            x2 = wp.tile_extract(xs, k[2] - first)
-                            x3 = wp.tile_extract(xs, k[3] - first)
                             fa, Ha = tet_vertex_terms(env, c, adj_corners[a], x0, x1, x2, x3, inv_rest, stiffness,
                                                       rotation_iterations, tet_rotation)
                         f = f + fa
                         Hd = Hd + wp.vec3(Ha[0, 0], Ha[1, 1], Ha[2, 2])
                         Hu = Hu + wp.vec3(Ha[0, 1], Ha[0, 2], Ha[1, 2])
                     H = wp.mat33(Hd[0], Hu[0], Hu[1], Hu[0], Hd[1], Hu[2], Hu[1], Hu[2], Hd[2])
-                    x = vertex_step(xp, q_pred[env, i], w, inv_dt2, f, H)
+                    # the vertex read from the tile here, not held through the loop (no lane writes it meanwhile)
+                    x = vertex_step(wp.tile_extract(xs, i - first), q_pred[env, i], w, inv_dt2, f, H)
                 wp.tile_scatter_masked(xs, i - first, x, moves)
         wp.tile_store(q[env], xs, offset=first)
 
