@@ -24,9 +24,11 @@ rm -rf /tmp/queue_code && mkdir -p /tmp/queue_code
 # f67e92a in the twenty-sixth session), so the runs record COMMIT instead (experiments.git_commit's fallback)
 (cd "$code" && tar --exclude=./.git --exclude=./.device --exclude=./runs --exclude=__pycache__ -cf - .) \
   | tar xf - -C /tmp/queue_code
-# the old tree a BESIDE script compares against (.device is left out above: wheels): its commands run from this copy
-if [ -d "$code/.device/small/old" ]; then
-  mkdir -p /tmp/queue_code/.device/small && cp -r "$code/.device/small/old" /tmp/queue_code/.device/small/
+# the trees a BESIDE script compares against (.device/small/old, probes beside it; .device is left out above:
+# wheels): its commands run from this copy
+if [ -d "$code/.device/small" ]; then
+  mkdir -p /tmp/queue_code/.device/small
+  for tree in "$code"/.device/small/*/; do cp -r "$tree" /tmp/queue_code/.device/small/; done
 fi
 export PYTHONUNBUFFERED=1 PYTHONPATH=/tmp/site:/tmp/queue_code
 export LAPWARP_COMMIT=${3:-}

@@ -1,0 +1,61 @@
+#!/usr/bin/env bash
+# The next lease's GPU checks (written in the forty-fifth session), run as queue.sh's BESIDE on one H200 (an empty
+# queue: DEVICE cuda:0) or beside a learning queue on the last GPU of a larger machine, in order of need, each item
+# skipped once DEADLINE (s, default 1000) has passed, then the learning queue JOBS with the time left:
+# 0. ThreadInHole (expert) on HEAD (its thread on the split register solve at 3e-4 m, the vertex sweep multiplying by
+#    the tets' stiffnesses: 215.6k in the forty-fifth session's quick calls) alternated with two probes of its hole's
+#    vertex sweep, which waits on its loads (a per-incidence form of its terms with half the arithmetic and more bytes
+#    ran it 9.8 -> 12.7 ms per env step): p1 the env's stored rotations in a shared tile (8.6 KB per block: fewer
+#    blocks per SM, each rotation a shared load instead of an L2 one), p2 each incidence's rotation loaded one
+#    incidence ahead (a 56 B spill frame at the 64-register cap); each also uncapped; patches in
+#    results/session45/probes, trees in .device/small/p1, p2;
+# 1. ThreadInHole's RGB 64x64 step, profile and a 10^7-step random-action soak on HEAD (#18's soak on its new default);
+# 2. GPU tests of the per-vertex solve, the split and register chain solves, ThreadInHole and RopeCutting;
+# 3. the six #17 / #18 tasks' steps on HEAD.
+# DEVICE (cuda:0), NUM_ENVS (4096), JOBS (next_jobs_beside.txt), DEADLINE (1000) and QUEUE_DEADLINE (1100) override.
+set -u
+t0=$(date +%s)
+dev=${DEVICE:-cuda:0}
+n=${NUM_ENVS:-4096}
+deadline=${DEADLINE:-1000}
+d=benchmarks/results/session45
+out=/tmp/r/beside46
+mkdir -p "$out"
+new=/tmp/site:$PWD
+old=/tmp/site:$PWD/.device/small/old
+p1=/tmp/site:$PWD/.device/small/p1
+p2=/tmp/site:$PWD/.device/small/p2
+. train/device/beside_lib.sh  # bench, bench_old, bench_on, run_queue
+in_time() { [ $(( $(date +%s) - t0 )) -lt "$deadline" ] || { echo "deadline: skipped $*"; return 1; }; }
+for round in a b; do
+  in_time "tih_$round" || continue
+  bench "tih_$round" ThreadInHole expert
+  bench_on "$p1" "tih_p1_$round" ThreadInHole expert
+  bench_on "$p2" "tih_p2_$round" ThreadInHole expert
+done
+in_time tih_uncapped && bench tih_uncapped ThreadInHole expert --max-registers solve_vertices_fused=255
+in_time tih_p1_uncapped && bench_on "$p1" tih_p1_uncapped ThreadInHole expert --max-registers solve_vertices_fused=255
+in_time tih_p2_uncapped && bench_on "$p2" tih_p2_uncapped ThreadInHole expert --max-registers solve_vertices_fused=255
+in_time rgb_tih && bench rgb_ThreadInHole ThreadInHole expert --obs RGB
+if in_time profile_tih; then
+  PYTHONPATH=$new timeout 200 python3 benchmarks/profile_step.py --task ThreadInHole --device "$dev" \
+    --num-envs "$n" --steps 5 --warmup 20 --top 30 --out "$out/profile_ThreadInHole.json" \
+    > "$out/profile_ThreadInHole.txt" 2>&1
+  echo "profile_ThreadInHole rc=$? $(head -4 "$out/profile_ThreadInHole.txt" | tr '\n' ' ' | cut -c1-400)"
+fi
+if in_time soak_tih; then
+  PYTHONPATH=$new timeout 300 python3 benchmarks/soak.py --device "$dev" --num-envs "$n" --env-steps 1e7 \
+    --tasks ThreadInHole --action-types CONTINUOUS --out "$out/soak_ThreadInHole.jsonl" > "$out/soak_ThreadInHole.txt" 2>&1
+  echo "soak_ThreadInHole rc=$? $(tail -1 "$out/soak_ThreadInHole.txt" | cut -c1-300)"
+fi
+if in_time pytest; then
+  PYTHONPATH=$new timeout 300 python3 -m pytest -q -p no:cacheprovider tests/test_vbd_lagged_terms.py \
+    tests/test_fused_tets.py tests/test_chains_split.py tests/test_chains_registers.py tests/test_thread_in_hole.py \
+    tests/test_rope_cutting.py --device "$dev" > "$out/pytest_cuda.txt" 2>&1
+  echo "pytest rc=$? $(tail -1 "$out/pytest_cuda.txt")"
+fi
+for task in PrecisionCutting TissueDissection RopeCutting ThreadInHole RopeThreading LigatingLoop; do
+  in_time "step_$task" && bench "step_$task" "$task" expert
+done
+echo "all checks done at $(( $(date +%s) - t0 )) s"
+run_queue "${JOBS:-$d/next_jobs_beside.txt}" "${QUEUE_DEADLINE:-1100}"
