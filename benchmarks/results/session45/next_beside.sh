@@ -7,8 +7,9 @@
 #    vertex sweep, which waits on its loads (a per-incidence form of its terms with half the arithmetic and more bytes
 #    ran it 9.8 -> 12.7 ms per env step): p1 the env's stored rotations in a shared tile (8.6 KB per block: fewer
 #    blocks per SM, each rotation a shared load instead of an L2 one), p2 each incidence's rotation loaded one
-#    incidence ahead (a 56 B spill frame at the 64-register cap); each also uncapped; patches in
-#    results/session45/probes, trees in .device/small/p1, p2;
+#    incidence ahead (a 56 B spill frame at the 64-register cap), p3 two incidences per loop iteration, their loads
+#    issued together (123 registers uncapped, a 208 B frame at 64); each also uncapped (p3 at 96 too); patches in
+#    results/session45/probes, trees in .device/small/p1, p2, p3;
 # 1. ThreadInHole's RGB 64x64 step, profile and a 10^7-step random-action soak on HEAD (#18's soak on its new default);
 # 2. GPU tests of the per-vertex solve, the split and register chain solves, ThreadInHole and RopeCutting;
 # 3. the six #17 / #18 tasks' steps on HEAD.
@@ -25,6 +26,7 @@ new=/tmp/site:$PWD
 old=/tmp/site:$PWD/.device/small/old
 p1=/tmp/site:$PWD/.device/small/p1
 p2=/tmp/site:$PWD/.device/small/p2
+p3=/tmp/site:$PWD/.device/small/p3
 . train/device/beside_lib.sh  # bench, bench_old, bench_on, run_queue
 in_time() { [ $(( $(date +%s) - t0 )) -lt "$deadline" ] || { echo "deadline: skipped $*"; return 1; }; }
 for round in a b; do
@@ -32,10 +34,13 @@ for round in a b; do
   bench "tih_$round" ThreadInHole expert
   bench_on "$p1" "tih_p1_$round" ThreadInHole expert
   bench_on "$p2" "tih_p2_$round" ThreadInHole expert
+  bench_on "$p3" "tih_p3_$round" ThreadInHole expert
 done
 in_time tih_uncapped && bench tih_uncapped ThreadInHole expert --max-registers solve_vertices_fused=255
 in_time tih_p1_uncapped && bench_on "$p1" tih_p1_uncapped ThreadInHole expert --max-registers solve_vertices_fused=255
 in_time tih_p2_uncapped && bench_on "$p2" tih_p2_uncapped ThreadInHole expert --max-registers solve_vertices_fused=255
+in_time tih_p3_uncapped && bench_on "$p3" tih_p3_uncapped ThreadInHole expert --max-registers solve_vertices_fused=255
+in_time tih_p3_96 && bench_on "$p3" tih_p3_96 ThreadInHole expert --max-registers solve_vertices_fused=96
 in_time rgb_tih && bench rgb_ThreadInHole ThreadInHole expert --obs RGB
 if in_time profile_tih; then
   PYTHONPATH=$new timeout 200 python3 benchmarks/profile_step.py --task ThreadInHole --device "$dev" \
