@@ -3,6 +3,8 @@
 # dev (the device), n (num_envs), out (its result folder), new (its PYTHONPATH) and t0 (its start, seconds):
 #   bench NAME TASK POLICY [bench_env.py options...]   one bench_env.py point (STATE, 3 s) into $out/NAME.json / .txt
 #   bench_old NAME TASK POLICY [options...]             the same on the old tree (PYTHONPATH=$old, set by the script)
+#   profile TASK                                         benchmarks/profile_step.py (5 steps after 20) into $out/profile_TASK.*
+#   soak TASK ENV_STEPS                                  benchmarks/soak.py (continuous random actions) into $out/soak_TASK.*
 #   run_queue JOBS_FILE DEADLINE                         the learning queue on $dev until DEADLINE seconds after t0
 bench_on() {  # PYTHONPATH NAME TASK POLICY [options...]
   local path=$1 name=$2 task=$3 policy=$4
@@ -13,6 +15,20 @@ bench_on() {  # PYTHONPATH NAME TASK POLICY [options...]
 }
 
 bench() { bench_on "$new" "$@"; }
+
+profile() {  # TASK
+  local task=$1
+  PYTHONPATH=$new timeout 200 python3 benchmarks/profile_step.py --task "$task" --device "$dev" --num-envs "$n" \
+    --steps 5 --warmup 20 --top 30 --out "$out/profile_$task.json" > "$out/profile_$task.txt" 2>&1
+  echo "profile_$task rc=$? $(head -4 "$out/profile_$task.txt" | tr '\n' ' ' | cut -c1-400)"
+}
+
+soak() {  # TASK ENV_STEPS
+  local task=$1 steps=$2
+  PYTHONPATH=$new timeout 300 python3 benchmarks/soak.py --device "$dev" --num-envs "$n" --env-steps "$steps" \
+    --tasks "$task" --action-types CONTINUOUS --out "$out/soak_$task.jsonl" > "$out/soak_$task.txt" 2>&1
+  echo "soak_$task rc=$? $(tail -1 "$out/soak_$task.txt" | cut -c1-300)"
+}
 
 bench_old() { bench_on "$old" "$@"; }
 

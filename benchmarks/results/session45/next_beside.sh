@@ -27,7 +27,7 @@ old=/tmp/site:$PWD/.device/small/old
 p1=/tmp/site:$PWD/.device/small/p1
 p2=/tmp/site:$PWD/.device/small/p2
 p3=/tmp/site:$PWD/.device/small/p3
-. train/device/beside_lib.sh  # bench, bench_old, bench_on, run_queue
+. train/device/beside_lib.sh  # bench, bench_old, bench_on, profile, soak, run_queue
 in_time() { [ $(( $(date +%s) - t0 )) -lt "$deadline" ] || { echo "deadline: skipped $*"; return 1; }; }
 for round in a b; do
   in_time "tih_$round" || continue
@@ -42,17 +42,8 @@ in_time tih_p2_uncapped && bench_on "$p2" tih_p2_uncapped ThreadInHole expert --
 in_time tih_p3_uncapped && bench_on "$p3" tih_p3_uncapped ThreadInHole expert --max-registers solve_vertices_fused=255
 in_time tih_p3_96 && bench_on "$p3" tih_p3_96 ThreadInHole expert --max-registers solve_vertices_fused=96
 in_time rgb_tih && bench rgb_ThreadInHole ThreadInHole expert --obs RGB
-if in_time profile_tih; then
-  PYTHONPATH=$new timeout 200 python3 benchmarks/profile_step.py --task ThreadInHole --device "$dev" \
-    --num-envs "$n" --steps 5 --warmup 20 --top 30 --out "$out/profile_ThreadInHole.json" \
-    > "$out/profile_ThreadInHole.txt" 2>&1
-  echo "profile_ThreadInHole rc=$? $(head -4 "$out/profile_ThreadInHole.txt" | tr '\n' ' ' | cut -c1-400)"
-fi
-if in_time soak_tih; then
-  PYTHONPATH=$new timeout 300 python3 benchmarks/soak.py --device "$dev" --num-envs "$n" --env-steps 1e7 \
-    --tasks ThreadInHole --action-types CONTINUOUS --out "$out/soak_ThreadInHole.jsonl" > "$out/soak_ThreadInHole.txt" 2>&1
-  echo "soak_ThreadInHole rc=$? $(tail -1 "$out/soak_ThreadInHole.txt" | cut -c1-300)"
-fi
+in_time profile_tih && profile ThreadInHole
+in_time soak_tih && soak ThreadInHole 1e7
 if in_time pytest; then
   PYTHONPATH=$new timeout 300 python3 -m pytest -q -p no:cacheprovider tests/test_vbd_lagged_terms.py \
     tests/test_fused_tets.py tests/test_chains_split.py tests/test_chains_registers.py tests/test_thread_in_hole.py \
