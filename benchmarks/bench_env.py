@@ -97,8 +97,7 @@ def bench_one(task: str, num_envs: int, device: str, seconds: float, invalid_act
               rod_solver: str | None = None, lane_rows: int | None = None,
               surface_leaf_size: int | None = None, cull_groups: bool = True,
               pose_per_step: bool | None = None, rod_block_threads: int | None = None,
-              predict_in_rod_sweep: bool | None = None, attach_in_rod_solve: bool | None = None,
-              register_split: bool | None = None) -> dict:
+              predict_in_rod_sweep: bool | None = None, register_split: bool | None = None) -> dict:
     def make_env():
         # the leaf size and the cull groups are read when the task finalizes its contact system, i.e. while the env is
         # built (an older lapwarp, timed beside this one, may have neither: it is left alone there)
@@ -134,10 +133,6 @@ def bench_one(task: str, num_envs: int, device: str, seconds: float, invalid_act
             if not hasattr(env.world, "predict_in_rod_sweep"):  # an older lapwarp, timed beside this one
                 raise ValueError("--predict-in-rod-sweep: this lapwarp predicts every substep in its own launch")
             env.world.predict_in_rod_sweep = predict_in_rod_sweep
-        if attach_in_rod_solve is not None:
-            if not hasattr(env.world, "attach_in_rod_solve"):  # an older lapwarp, timed beside this one
-                raise ValueError("--attach-in-rod-solve: this lapwarp runs every attachment pass in its own launch")
-            env.world.attach_in_rod_solve = attach_in_rod_solve
         if register_split is not None:
             if not hasattr(env.world, "chain_register_split"):  # an older lapwarp, timed beside this one
                 raise ValueError("--register-split: this lapwarp solves a chain with one thread")
@@ -209,8 +204,6 @@ def bench_one(task: str, num_envs: int, device: str, seconds: float, invalid_act
         "rod_block_threads": env.world.rod_block_threads if env.world.model.segment_count else None,
         "predict_in_rod_sweep": (env.world._predicts_in_rod_sweep()
                                  if hasattr(env.world, "_predicts_in_rod_sweep") else None),
-        "attach_in_rod_solve": (env.world._attaches_in_rod_solve()
-                                if hasattr(env.world, "_attaches_in_rod_solve") else None),
         "chain_register_split": (env.world.chain_register_split if env.world.chain_solver == "registers"
                                  and hasattr(env.world, "chain_register_split") else None),
         "chain_pcr_rows": env.world.chain_pcr_rows if env.world.chain_solver in ("pcr", "hybrid") else None,
@@ -269,9 +262,6 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--predict-in-rod-sweep", choices=["on", "off"], default=None,
                         help="a rods-only world's substep prediction in its fused rod launch or its own "
                              "(world.predict_in_rod_sweep; default: the world's)")
-    parser.add_argument("--attach-in-rod-solve", choices=["on", "off"], default=None,
-                        help="the closing attachment pass at the end of the hybrid rod solve (one pack per env) or in "
-                             "its own launch (world.attach_in_rod_solve; default: the world's)")
     parser.add_argument("--register-split", choices=["on", "off"], default=None,
                         help="the register chain solve with two threads per chain where a family's chains are all of "
                              "one length (world.chain_register_split; default: the world's)")
@@ -309,8 +299,6 @@ def main(argv: list[str] | None = None) -> int:
                           rod_block_threads=args.rod_block_threads,
                           predict_in_rod_sweep=(None if args.predict_in_rod_sweep is None
                                                 else args.predict_in_rod_sweep == "on"),
-                          attach_in_rod_solve=(None if args.attach_in_rod_solve is None
-                                               else args.attach_in_rod_solve == "on"),
                           register_split=None if args.register_split is None else args.register_split == "on")
             results.append(r)
             print(f"{r['task']:<10} {n:>9} {mode:>8} {r['env_steps_per_s']:>14,.0f} {r['step_ms']:>9.3f}", flush=True)

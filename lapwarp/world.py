@@ -207,11 +207,6 @@ class World:
         # in a world whose only constraints are rods: the substep's prediction inside its first sweep's fused rod
         # launch (xpbd.predict_and_solve_rods_fused; _predicts_in_rod_sweep says where), one launch fewer per substep
         self.predict_in_rod_sweep = True
-        # with the hybrid chain solve and the rods in one pack per env: the sweep's closing attachment pass at the end
-        # of the rods' solve (chains_hybrid's attachments variant; _attaches_in_rod_solve says where). Off: slower
-        # where timed (RopeThreading, H200, expert, 4,096 envs, same call, forty-fourth session: 198.4k / 198.5k
-        # env-steps/s against 202.2k / 202.0k with the pass's own launch; bit-identical on the CPU)
-        self.attach_in_rod_solve = False
         # with chain_solver "registers": a family of open chains all of one length (2..chains_split.MAX_LINKS links)
         # solved by two threads per chain, each half in registers (kernels/chains_split.py); families it does not
         # take keep the one-thread register solve. Off by default; RopeCutting turns it on on CUDA devices (568.7k
@@ -516,7 +511,7 @@ class World:
                self.tet_rotation_refresh, self.chain_block_links, self.chain_solver, self.chain_pcr_threads,
                self.chain_pcr_rows, self.chain_lane_rows, self.tet_solver, self.tet_block_threads,
                self.model.attachments_distinct, self.rod_solver, self.rod_block_threads, self.integrate_together,
-               self.predict_in_rod_sweep, self.attach_in_rod_solve, self.chain_register_split, self.tet_method_in_use,
+               self.predict_in_rod_sweep, self.chain_register_split, self.tet_method_in_use,
                self._register_caps_key(),
                *(solver.record_key() for solver in self.solvers if hasattr(solver, "record_key")))
         if self._cmd_key != key:
@@ -564,7 +559,7 @@ class World:
             if isinstance(self.rod_block_threads, bool) or not isinstance(self.rod_block_threads, int) \
                     or not 1 <= self.rod_block_threads <= 1024:
                 raise ValueError(f"world.rod_block_threads must be an int in [1, 1024], got {self.rod_block_threads!r}")
-            for name in ("integrate_together", "predict_in_rod_sweep", "attach_in_rod_solve", "chain_register_split"):
+            for name in ("integrate_together", "predict_in_rod_sweep", "chain_register_split"):
                 if not isinstance(getattr(self, name), (bool, np.bool_)):
                     raise ValueError(f"world.{name} must be a bool, got {getattr(self, name)!r}")
             if self.chain_register_split and self.chain_solver == "registers" and self.device.is_cpu \
@@ -743,16 +738,6 @@ class World:
                 and self.rod_solver in ("auto", "fused") and m.geo_particles is None and m.edge_count == 0
                 and m.tet_count == 0 and m.hinge_count == 0)
 
-    def _attaches_in_rod_solve(self) -> bool:
-        """Whether the hybrid rod solve runs the sweep's closing attachment pass after its own (``attach_in_rod_solve``
-        set, attachment slots, the hybrid chain solve, and the rods in one pack per env, so that one block per env
-        ends the sweep: RopeThreading's rope). One launch fewer per sweep."""
-        m = self.model
-        if not (self.attach_in_rod_solve and m.rod_count and m.attachment_capacity and self.chain_solver == "hybrid"):
-            return False
-        packs = self._packs.get(id(m.rod_chains))
-        return packs is not None and len(packs.families) == 1 and packs.families[0][1] == 1
-
     def _record_sweep(self, launch, xpbd, inv_dt2: float, use_lam: int, sweep: Sweep, prediction=None) -> None:
         """Record one sweep's projections; ``prediction`` (an ``xpbd.Prediction``, a substep's first sweep where
         ``_predicts_in_rod_sweep``): the substep's prediction goes into the fused rod launch."""
@@ -769,8 +754,7 @@ class World:
         tet_map = m.tet_element if s.tet_active is not None else self._no_map_i
         seg_mask = s.segment_active if s.segment_active is not None else self._no_mask
 
-        def solve_chains(cs, rest, compliance, lam_arr, scratch, mask, newton_steps, kernel, tolerance=0.0,
-                         attach=None):
+        def solve_chains(cs, rest, compliance, lam_arr, scratch, mask, newton_steps, kernel, tolerance=0.0):
             if self.chain_solver in ("pcr", "hybrid"):
                 # a thread block per (env, pack of chains), one launch per family with every Newton step in it
                 packs = self._packs[id(cs)]
@@ -788,15 +772,11 @@ class World:
                     # compiled without the loop and cut branches where the family has no loop / the scene no masks
                     kernel = chains_hybrid.hybrid_chain_kernel(packs.max_rows, int(self.chain_lane_rows),
                                                                loops=packs.any_closed, masked=mask.shape[1] > 0,
-                                                               newton_tolerance=tolerance,
-                                                               attachments=attach is not None)
-                # the hybrid solve's last argument before the positions: the env's attachment pass it runs after the
-                # solve (attach_in_rod_solve), unread otherwise
-                closing = [] if self.chain_solver == "pcr" else [attach or self._no_attachment_pass]
+                                                               newton_tolerance=tolerance)
                 for pack_base, count in packs.families:
                     launch(kernel, (n, count, lanes),
                            [pack_base, packs.pack_start, packs.pack_rows, packs.pack_closed, packs.rows, rest,
-                            compliance, w_eff, inv_dt2, use_lam, newton_steps, lam_arr, mask, *closing],
+                            compliance, w_eff, inv_dt2, use_lam, newton_steps, lam_arr, mask],
                            [s.particle_q], block_dim=lanes)
                 return
             if self.chain_block_links > 1:
@@ -923,21 +903,12 @@ class World:
                 launch(xpbd.solve_bend_twist, (n, off[c + 1] - off[c]),
                        [off[c], m.bend_segments, m.bend_rest, m.bend_compliance, m.segment_inv_inertia, inv_dt2,
                         use_lam, lam.get("bend", self._dummy_v3), seg_mask], [s.segment_q])
-        attach = None
-        if self._attaches_in_rod_solve():
-            # the closing attachment pass by the rods' solve, after it (one block per env holds every rod)
-            slots = make_struct(xpbd.Attachments, particle=s.attach_particle, body=s.attach_body,
-                                offset=s.attach_offset, compliance=s.attach_compliance, segment=s.attach_segment,
-                                rotation=s.attach_rotation)
-            attach = make_struct(xpbd.AttachmentPass, slots=slots, hold_up=m.attach_hold_up, body_q_prev=bqp,
-                                 body_q=bq, blend=blend, inv_mass=m.particle_inv_mass, inv_dt2=inv_dt2,
-                                 sq=attachment_out[1])
         if m.rod_count:
             # after shear and bend-twist so every sweep ends with the rods at their length
             solve_chains(m.rod_chains, m.rod_stretch_rest, m.rod_stretch_compliance, lam.get("rod", self._dummy_f),
                          self._rod_scratch, seg_mask, self.rod_newton_steps, chains.solve_chains,
-                         float(self.rod_newton_tolerance), attach)
-        if m.attachment_capacity and attach is None:
+                         float(self.rod_newton_tolerance))
+        if m.attachment_capacity:
             solve_attachments(0)
 
     def _prediction_masks(self) -> tuple:
@@ -1019,15 +990,6 @@ class World:
         if not hasattr(self, "_dummy_tf_arr"):
             self._dummy_tf_arr = wp.zeros((1, 1), dtype=wp.transform, device=self.device)
         return self._dummy_tf_arr
-
-    @property
-    def _no_attachment_pass(self):
-        """An empty ``xpbd.AttachmentPass`` for the hybrid solve's kernels that do not run the pass."""
-        if not hasattr(self, "_no_attachment_pass_struct"):
-            from lapwarp.kernels import xpbd
-
-            self._no_attachment_pass_struct = xpbd.AttachmentPass()
-        return self._no_attachment_pass_struct
 
     def _dummy_quat(self) -> wp.array:
         if not hasattr(self, "_dummy_quat_arr"):

@@ -242,7 +242,7 @@ def test_rod_solver_settings_are_checked(device):
     with pytest.raises(ValueError, match="rod_block_threads"):
         world.step(0.02)
     world.rod_block_threads = 32
-    for name in ("integrate_together", "predict_in_rod_sweep", "attach_in_rod_solve", "chain_register_split"):
+    for name in ("integrate_together", "predict_in_rod_sweep", "chain_register_split"):
         setattr(world, name, "no")  # a truthy string would silently mean True
         with pytest.raises(ValueError, match=f"world.{name} must be a bool, got 'no'"):
             world.step(0.02)

@@ -161,18 +161,6 @@ def test_bench_env_predicts_in_the_rod_sweep_where_asked(device, tmp_path):
     assert runs == [True, False]
 
 
-def test_bench_env_runs_the_attachment_pass_in_the_rod_solve_where_asked(device, tmp_path):
-    """``--attach-in-rod-solve on`` gives RopeThreading's hybrid rope solve its closing attachment pass (off by
-    default: slower where timed); the result records where the pass ran."""
-    runs = []
-    for flag in ([], ["--attach-in-rod-solve", "on"]):
-        out = tmp_path / f"bench{len(flag)}.json"
-        assert bench_env.main(["--device", device, "--task", "RopeThreading", "--num-envs", "1", "--seconds", "0.05",
-                               "--set", "chain_solver=hybrid", *flag, "--out", str(out)]) == 0
-        runs.append(json.loads(out.read_text())["results"][0]["attach_in_rod_solve"])
-    assert runs == [False, True]
-
-
 def test_bench_env_splits_the_register_chain_solve_where_asked(device, tmp_path):
     """``--register-split on`` solves RopeCutting's ropes (the register solve, equal chains) with two threads per
     chain; the result records the setting."""

@@ -43,11 +43,10 @@ import warp as wp
 
 from lapwarp.kernels.chains import check_newton_tolerance, link_row_terms, node_row, segment_dir
 from lapwarp.kernels.chains_block import pack_setup_func, pcr_round_func, vec6
-from lapwarp.kernels.xpbd import AttachmentPass, solve_env_attachments
 
 wp.set_module_options({"enable_backward": False})
 
-# the kernels by (most rows of a pack, rows per lane, loops, masked, Newton tolerance, attachments)
+# the kernels by (most rows of a pack, rows per lane, loops, masked, Newton tolerance)
 _KERNELS: dict[tuple, wp.Kernel] = {}
 
 
@@ -166,7 +165,7 @@ def partition_solver(P: int, L: int) -> wp.Function:
 
 
 def hybrid_chain_kernel(max_rows: int, rows_per_lane: int, loops: bool = True, masked: bool = True,
-                        newton_tolerance: float = 0.0, attachments: bool = False) -> wp.Kernel:
+                        newton_tolerance: float = 0.0) -> wp.Kernel:
     """The partitioned block solve for packs of at most ``max_rows`` rows, ``rows_per_lane`` rows per lane (cached):
     launch ``(num_envs, packs, lanes)`` with ``block_dim=lanes``, ``lanes >= lanes_for(max_rows, rows_per_lane)``
     (extra lanes idle), one family at a time. ``loops`` / ``masked`` (compile-time): whether the family may hold a
@@ -174,17 +173,14 @@ def hybrid_chain_kernel(max_rows: int, rows_per_lane: int, loops: bool = True, m
     (RopeThreading's open, uncut rope: 255 registers and a 112-byte spill frame -> 217 and none at 4 rows, sm_90).
     ``newton_tolerance`` (m, compile-time; 0 = off): a pack stops its Newton steps once one has corrected none of its
     links by that much (``chains_registers.register_chain_kernel``'s rule; the block's largest correction, a tile
-    reduction, decides for all its lanes). ``attachments`` (compile-time): after the solve, lane 0 of the env's block
-    runs the env's closing attachment pass (``xpbd.solve_env_attachments`` on the ``attach`` argument, otherwise
-    unread): for a world whose rods are one pack per env, solved last in the sweep (``World.attach_in_rod_solve``),
-    the pass's own launch per sweep goes."""
+    reduction, decides for all its lanes)."""
     P = int(rows_per_lane)
     if not 1 <= P <= 16:
         raise ValueError(f"rows per lane must be in [1, 16] (unrolled per lane), got {rows_per_lane!r}")
     tol = check_newton_tolerance(newton_tolerance)
     L = lanes_for(max_rows, P)
-    LOOPS, MASKED, ATTACH = bool(loops), bool(masked), bool(attachments)
-    key = (L * P, P, LOOPS, MASKED, tol, ATTACH)
+    LOOPS, MASKED = bool(loops), bool(masked)
+    key = (L * P, P, LOOPS, MASKED, tol)
     cached = _KERNELS.get(key)
     if cached is not None:
         return cached
@@ -209,7 +205,6 @@ def hybrid_chain_kernel(max_rows: int, rows_per_lane: int, loops: bool = True, m
         newton_steps: int,
         lam: wp.array2d(dtype=float),
         active: wp.array2d(dtype=wp.int32),
-        attach: AttachmentPass,
         q: wp.array2d(dtype=wp.vec3),
     ):
         env, i_pack, lane = wp.tid()
@@ -381,11 +376,6 @@ def hybrid_chain_kernel(max_rows: int, rows_per_lane: int, loops: bool = True, m
             if wp.static(tol > 0.0):
                 if final_step != 0:
                     break  # every lane alike (the block's one largest correction)
-        if wp.static(ATTACH):
-            # every lane's node writes before the env's attachment pass (a barrier; nothing written)
-            wp.tile_scatter_masked(ends, 0, wp.vec3(0.0), False)
-            if lane == 0:
-                solve_env_attachments(env, attach, q)
 
     kernel = wp.kernel(solve_chains_hybrid, module="unique", enable_backward=False)
     _KERNELS[key] = kernel

@@ -852,30 +852,6 @@ class Attachments:
     rotation: wp.array2d(dtype=wp.quat)
 
 
-@wp.struct
-class AttachmentPass:
-    """A sweep's closing attachment pass (``solve_attachments`` with ``stiff_only`` 0) as one argument, for a kernel
-    that runs an env's pass after its own work (``chains_hybrid``'s rod solve, ``World.attach_in_rod_solve``)."""
-
-    slots: Attachments
-    hold_up: wp.array(dtype=wp.vec3)
-    body_q_prev: wp.array2d(dtype=wp.transform)
-    body_q: wp.array2d(dtype=wp.transform)
-    blend: float
-    inv_mass: wp.array2d(dtype=float)  # the true inverse masses
-    inv_dt2: float
-    sq: wp.array2d(dtype=wp.quat)
-
-
-@wp.func
-def solve_env_attachments(env: int, a: AttachmentPass, q: wp.array2d(dtype=wp.vec3)):
-    """``solve_attachments``' thread for ``env``, closing pass: its slots in order."""
-    t = a.slots
-    for s in range(t.particle.shape[1]):
-        solve_attachment_slot(env, s, t.particle, t.body, t.offset, t.compliance, t.segment, t.rotation, a.hold_up,
-                              a.body_q_prev, a.body_q, a.blend, a.inv_mass, a.inv_dt2, 0, q, a.sq)
-
-
 # ----------------------------------------------------------------------------------------------------
 # Cosserat rods: positions + one quaternion per segment (Kugelstadt & Schoemer 2016)
 # ----------------------------------------------------------------------------------------------------
