@@ -143,7 +143,7 @@ def test_hybrid_long_rope_matches_serial(device, monkeypatch):
     _, out, rods = _step_both(make, device, simulate=(0.5, 0.1))
     assert out[1][0, 200, 2] < -0.05  # the tip fell and swings
     assert _worst(out[0], out[1], rods) <= TOL * 0.2
-    assert variants and all(v == {"loops": False, "masked": False, "newton_tolerance": 0.0, "attachments": False}
+    assert variants and all(v == {"loops": False, "masked": False, "newton_tolerance": 0.0}
                             for v in variants), variants
 
 
