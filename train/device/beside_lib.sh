@@ -3,7 +3,8 @@
 # dev (the device), n (num_envs), out (its result folder), new (its PYTHONPATH) and t0 (its start, seconds):
 #   bench NAME TASK POLICY [bench_env.py options...]   one bench_env.py point (STATE, 3 s) into $out/NAME.json / .txt
 #   bench_old NAME TASK POLICY [options...]             the same on the old tree (PYTHONPATH=$old, set by the script)
-#   profile TASK                                         benchmarks/profile_step.py (5 steps after 20) into $out/profile_TASK.*
+#   profile TASK [LABEL [options...]]                    benchmarks/profile_step.py (5 steps after 20) into
+#                                                        $out/profile_LABEL.* (LABEL: TASK by default)
 #   soak TASK ENV_STEPS                                  benchmarks/soak.py (continuous random actions) into $out/soak_TASK.*
 #   run_queue JOBS_FILE DEADLINE                         the learning queue on $dev until DEADLINE seconds after t0
 bench_on() {  # PYTHONPATH NAME TASK POLICY [options...]
@@ -16,11 +17,12 @@ bench_on() {  # PYTHONPATH NAME TASK POLICY [options...]
 
 bench() { bench_on "$new" "$@"; }
 
-profile() {  # TASK
-  local task=$1
+profile() {  # TASK [LABEL [profile_step.py options...]]
+  local task=$1 label=${2:-$1}
+  shift $(( $# < 2 ? $# : 2 ))
   PYTHONPATH=$new timeout 200 python3 benchmarks/profile_step.py --task "$task" --device "$dev" --num-envs "$n" \
-    --steps 5 --warmup 20 --top 30 --out "$out/profile_$task.json" > "$out/profile_$task.txt" 2>&1
-  echo "profile_$task rc=$? $(head -4 "$out/profile_$task.txt" | tr '\n' ' ' | cut -c1-400)"
+    --steps 5 --warmup 20 --top 30 "$@" --out "$out/profile_$label.json" > "$out/profile_$label.txt" 2>&1
+  echo "profile_$label rc=$? $(head -4 "$out/profile_$label.txt" | tr '\n' ' ' | cut -c1-400)"
 }
 
 soak() {  # TASK ENV_STEPS

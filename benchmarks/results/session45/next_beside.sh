@@ -11,6 +11,7 @@
 #    issued together (123 registers uncapped, a 208 B frame at 64); each also uncapped (p3 at 96 too); patches in
 #    results/session45/probes, trees in .device/small/p1, p2, p3;
 # 1. ThreadInHole's RGB 64x64 step, profile and a 10^7-step random-action soak on HEAD (#18's soak on its new default);
+#    profiles of ThreadInHole's and RopeThreading's RGB steps (where the images' cost goes);
 # 2. GPU tests of the per-vertex solve, the split and register chain solves, ThreadInHole and RopeCutting;
 # 3. the six #17 / #18 tasks' steps on HEAD.
 # DEVICE (cuda:0), NUM_ENVS (4096), JOBS (next_jobs_beside.txt), DEADLINE (1000) and QUEUE_DEADLINE (1100) override.
@@ -43,6 +44,9 @@ in_time tih_p3_uncapped && bench_on "$p3" tih_p3_uncapped ThreadInHole expert --
 in_time tih_p3_96 && bench_on "$p3" tih_p3_96 ThreadInHole expert --max-registers solve_vertices_fused=96
 in_time rgb_tih && bench rgb_ThreadInHole ThreadInHole expert --obs RGB
 in_time profile_tih && profile ThreadInHole
+# where RGB 64x64 adds its ~0.5 us per env step (#18's RGB 200k: ThreadInHole 195.6k, RopeThreading 180.9k)
+in_time profile_tih_rgb && profile ThreadInHole ThreadInHole_RGB --set observation_type='"RGB"' image_shape='[64, 64]'
+in_time profile_rt_rgb && profile RopeThreading RopeThreading_RGB --set observation_type='"RGB"' image_shape='[64, 64]'
 in_time soak_tih && soak ThreadInHole 1e7
 if in_time pytest; then
   PYTHONPATH=$new timeout 300 python3 -m pytest -q -p no:cacheprovider tests/test_vbd_lagged_terms.py \
