@@ -68,16 +68,24 @@ def parse_cubin(path: str | Path) -> dict[str, dict[str, int]]:
 
 
 def block_waves(registers: int, num_blocks: int, lanes: int = 32, sms: int = 132, registers_per_sm: int = 65536,
-                max_blocks_per_sm: int = 32) -> tuple[int, float]:
+                max_blocks_per_sm: int = 32, sub_partitions: int = 4) -> tuple[int, float]:
     """``(blocks per SM, waves)`` of a grid of ``num_blocks`` blocks of ``lanes`` threads at ``registers`` per thread,
-    as far as registers limit it (shared memory may limit it further): registers are allocated per thread in units of
-    8, a block in whole warps, and an SM holds at most ``max_blocks_per_sm`` blocks (32 on sm_80 .. sm_90; 132 SMs: an
-    H100 SXM or H200). A latency-bound kernel with one block per env at 4,096 envs takes 1.11 waves at 65-72
-    registers (28 blocks per SM) and one at <= 64 (32): ThreadInHole's per-vertex sweep capped from 80 to 64 (1.24 ->
-    one wave) ran +6.3 % (thirty-fifth session)."""
-    per_thread = 8 * -(-int(registers) // 8)
+    as far as registers limit it (shared memory may limit it further), as CUDA's occupancy calculator counts
+    (``cuda_occupancy.h``, ``cudaOccMaxBlocksPerSMRegsLimit``): a warp's registers are allocated in units of 256 within
+    one of the SM's ``sub_partitions`` register files (4 x 16,384 on sm_80 .. sm_90), a block holds whole warps, and
+    an SM holds at most ``max_blocks_per_sm`` blocks (32 on sm_80 .. sm_90; 132 SMs: an H100 SXM or H200). A
+    latency-bound kernel with one block per env at 4,096 envs takes 1.11 waves at 65-72 registers (28 blocks per SM)
+    and one at <= 64 (32): ThreadInHole's per-vertex sweep capped from 80 to 64 (1.29 -> one wave) ran +6.3 %
+    (thirty-fifth session). The sub-partitions make steps a whole-SM division misses: 168 registers hold 3 warps per
+    sub-partition (12 per SM), 169-200 only 2 (8): RopeCutting's split chain solve's 1,280 warps ran in one wave at
+    168 (568.7k env-steps/s) and in 1.2 at 176, 184, 200 and uncapped (479k-489k; H200, forty-fourth and forty-fifth
+    sessions)."""
+    per_warp = 256 * -(-int(registers) * 32 // 256)
     warps = -(-int(lanes) // 32)
-    per_sm = min(max_blocks_per_sm, registers_per_sm // (per_thread * 32 * warps))
+    parts = int(sub_partitions)
+    if per_warp * -(-warps // parts) * parts > registers_per_sm:
+        raise ValueError(f"a block of {lanes} lanes at {registers} registers does not fit an SM")
+    per_sm = min(max_blocks_per_sm, (registers_per_sm // parts // per_warp) * parts // warps)
     if per_sm < 1:
         raise ValueError(f"a block of {lanes} lanes at {registers} registers does not fit an SM")
     return per_sm, num_blocks / (per_sm * sms)

@@ -51,14 +51,22 @@ def test_parse_refuses_a_non_elf(tmp_path):
 
 
 def test_block_waves_by_registers():
-    """One-warp blocks, 4,096 of them (a block per env) on 132 SMs: registers allocated in units of 8 per thread, at
-    most 32 blocks per SM. <= 64 registers: one wave; 65-72: 28 blocks per SM, 1.11 waves (solve_rods_fused's 71 once);
-    80: 25, 1.24 (ThreadInHole's uncapped vertex sweep); 128: 16, 1.94. Wider blocks hold whole warps."""
+    """One-warp blocks, 4,096 of them (a block per env) on 132 SMs: a warp's registers allocated in units of 256 in one
+    of the SM's four 16,384-register sub-partitions, at most 32 blocks per SM (cuda_occupancy.h's count). <= 64
+    registers: one wave; 65-72: 28 blocks per SM, 1.11 waves (solve_rods_fused's 71 once); 80: 24, 1.29 (ThreadInHole's
+    uncapped vertex sweep); 128: 16, 1.94. RopeCutting's split chain solve (1,280 one-warp blocks): 12 per SM at 168
+    registers (one wave), 8 at 169-200 and 240 (1.21 waves), which a division of the whole SM's 65,536 registers
+    (11 at 176, 10 at 200: one wave) would miss; it ran 568.7k env-steps/s at 168 against 479k-489k at 176-235 (H200).
+    Wider blocks hold whole warps."""
     assert block_waves(64, 4096) == (32, pytest.approx(4096 / (32 * 132)))
     assert block_waves(71, 4096)[0] == 28 and block_waves(72, 4096)[0] == 28
     assert block_waves(71, 4096)[1] == pytest.approx(1.108, abs=1e-3)
-    assert block_waves(80, 4096)[0] == 25 and block_waves(80, 4096)[1] == pytest.approx(1.241, abs=1e-3)
+    assert block_waves(80, 4096)[0] == 24 and block_waves(80, 4096)[1] == pytest.approx(1.293, abs=1e-3)
     assert block_waves(128, 4096)[0] == 16
+    assert block_waves(168, 1280) == (12, pytest.approx(1280 / (12 * 132)))
+    for registers in (169, 176, 184, 200, 235):
+        assert block_waves(registers, 1280)[0] == 8, registers
+    assert block_waves(200, 1280)[1] == pytest.approx(1.212, abs=1e-3)
     assert block_waves(64, 4096, lanes=40)[0] == 16  # two warps a block
     assert block_waves(32, 100, lanes=64, sms=1)[0] == 32
     with pytest.raises(ValueError, match="does not fit"):

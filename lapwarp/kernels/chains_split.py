@@ -27,8 +27,10 @@ leaves its loop once all its chains have stopped. On the CPU the pairs' threads 
 
 Measured (RopeCutting, expert, 4,096 envs, H200, same calls, forty-fourth session; ``benchmarks/RESULTS.md``): the
 one-thread register solve (its exact-length variant) 450.4k env-steps/s, this kernel uncapped 489.0k (235 registers:
-1,280 warps in 1.2 waves of 8 per SM), at 200 registers 486.6k, at **168 568.7k / 568.4k / 569.1k** (one wave of 12
-per SM; RopeCutting's CUDA default), at 144 558.0k, at 128 548.2k.
+1,280 warps in 1.2 waves of 8 per SM), at 200 registers 486.6k (still 8 per SM: a warp's registers come from one of
+the SM's four 16,384-register sub-partitions, 2 warps each at 169-200 registers; 176 / 184: 479k / 481k, forty-fifth
+session), at **168 568.7k / 568.4k / 569.1k** (3 warps per sub-partition: one wave of 12 per SM; RopeCutting's CUDA
+default), at 144 558.0k, at 128 548.2k.
 """
 
 # no ``from __future__ import annotations``: the kernel's annotations name the factory's vector types, locals of the

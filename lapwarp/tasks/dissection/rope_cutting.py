@@ -555,11 +555,13 @@ class RopeCuttingEnv(BatchedEnv):
         world.default_register_caps["predict_and_solve_rods_fused"] = 64
         # the register chain solve with two threads per rope, each half in registers, the eliminations meeting in the
         # middle (kernels/chains_split.py), capped at 168 registers (235: 1,280 warps in 1.2 waves of 8 per SM; 168:
-        # 12 per SM, one wave). H200, expert, 4,096 envs, same calls (forty-fourth session, results/session44): the
-        # one-thread solve 450.4k / 450.4k / 450.4k env-steps/s (its exact-length variant; 331.1k / 330.8k before
-        # it), split 489.0k / 488.7k uncapped, 486.6k / 486.6k at 200, 558.0k at 144, 548.2k at 128, **568.7k /
-        # 568.4k / 569.1k at 168**; expert 256 / 256 on it. CUDA only: on the CPU a pair's threads need Warp's
-        # cooperative blocks, and the CPU's default chain solver is the serial walk anyway
+        # 12 per SM, one wave; 169-200 still 8, a warp's registers coming from one of the SM's four 16,384-register
+        # sub-partitions: 479k-481k at 176 / 184, forty-fifth session). H200, expert, 4,096 envs, same calls
+        # (forty-fourth session, results/session44): the one-thread solve 450.4k / 450.4k / 450.4k env-steps/s (its
+        # exact-length variant; 331.1k / 330.8k before it), split 489.0k / 488.7k uncapped, 486.6k / 486.6k at 200,
+        # 558.0k at 144, 548.2k at 128, **568.7k / 568.4k / 569.1k at 168**; expert 256 / 256 on it. CUDA only: on
+        # the CPU a pair's threads need Warp's cooperative blocks, and the CPU's default chain solver is the serial
+        # walk anyway
         world.chain_register_split = bool(dev.is_cuda)
         world.default_register_caps["solve_chains_split"] = 168
         self.rig.finalize(world)

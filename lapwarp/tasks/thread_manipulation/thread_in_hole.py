@@ -718,7 +718,7 @@ class ThreadInHoleEnv(BatchedEnv):
         if cfg.hole_solver == "vbd" and cfg.hole_rotation_update == "sweep":
             # the lagged per-vertex sweep at 64 registers (80 without the cap, a 64 B spill frame with it; since the
             # forty-fifth session's stiffnesses 72 and 16 B, sm_90): 32 one-warp blocks per SM then hold 4,096 envs in
-            # one wave instead of 1.24 (H200, expert, 4,096 envs, same call: 134.6k -> 143.1k env-steps/s; the CPU
+            # one wave instead of 1.29 (H200, expert, 4,096 envs, same call: 134.6k -> 143.1k env-steps/s; the CPU
             # ignores the cap)
             world.default_register_caps["solve_vertices_fused"] = 64
         # the rods' fused sweep (71 registers) and the contact's pose kernel (72), each one warp per env, at 64: one
