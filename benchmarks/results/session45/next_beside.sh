@@ -10,6 +10,7 @@
 #    incidence ahead (a 56 B spill frame at the 64-register cap), p3 two incidences per loop iteration, their loads
 #    issued together (123 registers uncapped, a 208 B frame at 64); each also uncapped (p3 at 96 too); patches in
 #    results/session45/probes, trees in .device/small/p1, p2, p3;
+#    then the surface contact kernel capped at 64 registers on ThreadInHole and LigatingLoop;
 # 1. ThreadInHole's RGB 64x64 step, profile and a 10^7-step random-action soak on HEAD (#18's soak on its new default);
 #    profiles of ThreadInHole's and RopeThreading's RGB steps (where the images' cost goes);
 # 2. GPU tests of the per-vertex solve, the split and register chain solves, ThreadInHole and RopeCutting;
@@ -42,6 +43,14 @@ in_time tih_p1_uncapped && bench_on "$p1" tih_p1_uncapped ThreadInHole expert --
 in_time tih_p2_uncapped && bench_on "$p2" tih_p2_uncapped ThreadInHole expert --max-registers solve_vertices_fused=255
 in_time tih_p3_uncapped && bench_on "$p3" tih_p3_uncapped ThreadInHole expert --max-registers solve_vertices_fused=255
 in_time tih_p3_96 && bench_on "$p3" tih_p3_96 ThreadInHole expert --max-registers solve_vertices_fused=96
+# the surface contact kernel (77 registers, default blocks of 256: 3 blocks per SM) at 64 registers (4 blocks; a 40 B
+# spill frame, sm_90; 72 would still hold 3): ThreadInHole's 2.3 ms of ~21, LigatingLoop's largest contact kernel
+for round in a b; do
+  in_time "surface64_$round" || continue
+  bench "tih_surface64_$round" ThreadInHole expert --max-registers collide_surface=64
+  bench "ll_$round" LigatingLoop expert
+  bench "ll_surface64_$round" LigatingLoop expert --max-registers collide_surface=64
+done
 in_time rgb_tih && bench rgb_ThreadInHole ThreadInHole expert --obs RGB
 in_time profile_tih && profile ThreadInHole
 # where RGB 64x64 adds its ~0.5 us per env step (#18's RGB 200k: ThreadInHole 195.6k, RopeThreading 180.9k)
