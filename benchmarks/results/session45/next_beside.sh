@@ -53,6 +53,7 @@ for round in a b; do
 done
 in_time rgb_tih && bench rgb_ThreadInHole ThreadInHole expert --obs RGB
 in_time profile_tih && profile ThreadInHole
+in_time profile_ll && profile LigatingLoop  # its last profile is the twenty-ninth session's (100.4k now, #18's 100k)
 # where RGB 64x64 adds its ~0.5 us per env step (#18's RGB 200k: ThreadInHole 195.6k, RopeThreading 180.9k)
 in_time profile_tih_rgb && profile ThreadInHole ThreadInHole_RGB --set observation_type='"RGB"' image_shape='[64, 64]'
 in_time profile_rt_rgb && profile RopeThreading RopeThreading_RGB --set observation_type='"RGB"' image_shape='[64, 64]'
