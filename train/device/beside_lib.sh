@@ -1,12 +1,31 @@
 #!/usr/bin/env bash
 # Helpers for a lease's BESIDE script (train/device/queue.sh runs it from /tmp/queue_code), sourced after it sets
-# dev (the device), n (num_envs), out (its result folder), new (its PYTHONPATH) and t0 (its start, seconds):
+# dev (the device), n (num_envs), out (its result folder), new (its PYTHONPATH) and t0 (its start, seconds), or
+# sourced first and followed by `beside_init OUT`, which sets them (and deadline, old) from the environment:
+#   beside_init OUT                                      t0 now; dev, n, deadline from DEVICE (cuda:0), NUM_ENVS (4096),
+#                                                        DEADLINE (1000); out=OUT (created); new, old the trees' paths
+#   in_time NAME                                         whether DEADLINE s since t0 have not passed (else says so)
 #   bench NAME TASK POLICY [bench_env.py options...]   one bench_env.py point (STATE, 3 s) into $out/NAME.json / .txt
 #   bench_old NAME TASK POLICY [options...]             the same on the old tree (PYTHONPATH=$old, set by the script)
 #   profile TASK [LABEL [options...]]                    benchmarks/profile_step.py (5 steps after 20) into
 #                                                        $out/profile_LABEL.* (LABEL: TASK by default)
 #   soak TASK ENV_STEPS                                  benchmarks/soak.py (continuous random actions) into $out/soak_TASK.*
 #   run_queue JOBS_FILE DEADLINE                         the learning queue on $dev until DEADLINE seconds after t0
+beside_init() {  # OUT
+  t0=$(date +%s)
+  dev=${DEVICE:-cuda:0}
+  n=${NUM_ENVS:-4096}
+  deadline=${DEADLINE:-1000}
+  out=$1
+  mkdir -p "$out"
+  new=/tmp/site:$PWD
+  old=/tmp/site:$PWD/.device/small/old
+}
+
+in_time() {  # NAME
+  [ $(( $(date +%s) - t0 )) -lt "$deadline" ] || { echo "deadline: skipped $*"; return 1; }
+}
+
 bench_on() {  # PYTHONPATH NAME TASK POLICY [options...]
   local path=$1 name=$2 task=$3 policy=$4
   shift 4

@@ -17,20 +17,12 @@
 # 3. the six #17 / #18 tasks' steps on HEAD.
 # DEVICE (cuda:0), NUM_ENVS (4096), JOBS (next_jobs_beside.txt), DEADLINE (1000) and QUEUE_DEADLINE (1100) override.
 set -u
-t0=$(date +%s)
-dev=${DEVICE:-cuda:0}
-n=${NUM_ENVS:-4096}
-deadline=${DEADLINE:-1000}
+. train/device/beside_lib.sh  # beside_init, in_time, bench, bench_on, profile, soak, run_queue
+beside_init /tmp/r/beside46
 d=benchmarks/results/session45
-out=/tmp/r/beside46
-mkdir -p "$out"
-new=/tmp/site:$PWD
-old=/tmp/site:$PWD/.device/small/old
 p1=/tmp/site:$PWD/.device/small/p1
 p2=/tmp/site:$PWD/.device/small/p2
 p3=/tmp/site:$PWD/.device/small/p3
-. train/device/beside_lib.sh  # bench, bench_old, bench_on, profile, soak, run_queue
-in_time() { [ $(( $(date +%s) - t0 )) -lt "$deadline" ] || { echo "deadline: skipped $*"; return 1; }; }
 for round in a b; do
   in_time "tih_$round" || continue
   bench "tih_$round" ThreadInHole expert
