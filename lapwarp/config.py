@@ -248,9 +248,9 @@ class EnvConfig:
             ``kernels/chains_registers.py``; bit-identical to "thomas" on the CPU), ``"open_walk"`` (the thread per
             chain of ``"thomas"`` in three walks per Newton step for families without a loop,
             ``chains.solve_open_chains``; the same systems, round-off aside) or ``"auto"`` (default): the task's
-            measured best on CUDA devices (``BatchedEnv.gpu_chain_solver``: "pcr" for LigatingLoop, PickAndPlace and
-            ThreadInHole, "hybrid" for RopeThreading, "registers" for RopeCutting, "open_walk" for PrecisionCutting)
-            and "thomas" on the CPU.
+            measured best on CUDA devices (``BatchedEnv.gpu_chain_solver``: "pcr" for LigatingLoop and PickAndPlace,
+            "hybrid" for RopeThreading, "registers" for RopeCutting and ThreadInHole, both with two threads per chain,
+            ``World.chain_register_split``, "open_walk" for PrecisionCutting) and "thomas" on the CPU.
     """
 
     observation_type: str = "STATE"
