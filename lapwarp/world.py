@@ -210,7 +210,8 @@ class World:
         # with chain_solver "registers": a family of open chains all of one length (2..chains_split.MAX_LINKS links)
         # solved by two threads per chain, each half in registers (kernels/chains_split.py); families it does not
         # take keep the one-thread register solve. Off by default; RopeCutting turns it on on CUDA devices (568.7k
-        # against 450.4k env-steps/s, H200, forty-fourth session)
+        # against 450.4k env-steps/s, H200, forty-fourth session), ThreadInHole too (its thread: 211.1k against 206.1k
+        # one thread per chain, forty-fifth session)
         self.chain_register_split = False
         # tets' rotation: warm-started extraction iterations per projection (0 = SVD polar decomposition)
         self.tet_rotation_iterations = 2

@@ -186,10 +186,10 @@ class ThreadInHoleConfig(EnvConfig):
             until the forty-fifth session), else 0 (every step; the CPU's serial walk). Along the expert's episodes
             (CPU, 8 envs, 60 env steps, an instrumented copy of the solve) the first steps corrected 1e-4 to 3e-4 m and
             the second never more than 2.4e-7 m; 3e-4 m skips the second in 99.9 % of sweeps (normal), 96.8 %
-            (flexible), 99.8 % (inverted). H200, expert, 4,096 envs, same
-            call: 199.9k / 200.0k -> 204.9k / 204.9k env-steps/s on the pcr solve; the expert 256 / 256 first
-            episodes in each configuration (forty-third session); on the split register solve 211.1k -> 212.9k
-            (forty-fifth session, ``ThreadInHoleEnv.gpu_chain_solver``).
+            (flexible), 99.8 % (inverted). H200, expert, 4,096 envs, same call: 199.9k / 200.0k -> 204.9k / 204.9k
+            env-steps/s on the pcr solve; the expert 256 / 256 first episodes in each configuration (forty-third
+            session); on the split register solve 211.1k -> 212.9k (forty-fifth session,
+            ``ThreadInHoleEnv.gpu_chain_solver``).
         camera_position / camera_look_at: sofa_env's camera (vertical FoV 62 degrees), m.
         camera_reset_noise: uniform +- noise of the camera's position and look-at point per reset, m (the paper's
             image configuration with camera noise: 0.02; 0: none).
