@@ -68,12 +68,13 @@ def parse_cubin(path: str | Path) -> dict[str, dict[str, int]]:
 
 
 def block_waves(registers: int, num_blocks: int, lanes: int = 32, sms: int = 132, registers_per_sm: int = 65536,
-                max_blocks_per_sm: int = 32, sub_partitions: int = 4) -> tuple[int, float]:
+                max_blocks_per_sm: int = 32, sub_partitions: int = 4, max_warps_per_sm: int = 64) -> tuple[int, float]:
     """``(blocks per SM, waves)`` of a grid of ``num_blocks`` blocks of ``lanes`` threads at ``registers`` per thread,
     as far as registers limit it (shared memory may limit it further), as CUDA's occupancy calculator counts
     (``cuda_occupancy.h``, ``cudaOccMaxBlocksPerSMRegsLimit``): a warp's registers are allocated in units of 256 within
     one of the SM's ``sub_partitions`` register files (4 x 16,384 on sm_80 .. sm_90), a block holds whole warps, and
-    an SM holds at most ``max_blocks_per_sm`` blocks (32 on sm_80 .. sm_90; 132 SMs: an H100 SXM or H200). A
+    an SM holds at most ``max_blocks_per_sm`` blocks and ``max_warps_per_sm`` warps (32 and 64 on sm_80 .. sm_90; 132
+    SMs: an H100 SXM or H200). A
     latency-bound kernel with one block per env at 4,096 envs takes 1.11 waves at 65-72 registers (28 blocks per SM)
     and one at <= 64 (32): ThreadInHole's per-vertex sweep capped from 80 to 64 (1.29 -> one wave) ran +6.3 %
     (thirty-fifth session). The sub-partitions make steps a whole-SM division misses: 168 registers hold 3 warps per
@@ -85,7 +86,7 @@ def block_waves(registers: int, num_blocks: int, lanes: int = 32, sms: int = 132
     parts = int(sub_partitions)
     if per_warp * -(-warps // parts) * parts > registers_per_sm:
         raise ValueError(f"a block of {lanes} lanes at {registers} registers does not fit an SM")
-    per_sm = min(max_blocks_per_sm, (registers_per_sm // parts // per_warp) * parts // warps)
+    per_sm = min(max_blocks_per_sm, max_warps_per_sm // warps, (registers_per_sm // parts // per_warp) * parts // warps)
     if per_sm < 1:
         raise ValueError(f"a block of {lanes} lanes at {registers} registers does not fit an SM")
     return per_sm, num_blocks / (per_sm * sms)

@@ -67,6 +67,10 @@ def test_block_waves_by_registers():
     for registers in (169, 176, 184, 200, 235):
         assert block_waves(registers, 1280)[0] == 8, registers
     assert block_waves(200, 1280)[1] == pytest.approx(1.212, abs=1e-3)
+    # blocks of 256 threads: 1 per SM above 128 registers, 2 at 81-128, 3 at 65-80, 4 at 49-64, ... 8 at <= 32 (64
+    # warps, the SM's most)
+    assert [block_waves(r, 1000, lanes=256)[0] for r in (129, 128, 81, 80, 65, 64, 49, 48, 32, 16)] == \
+        [1, 2, 2, 3, 3, 4, 4, 5, 8, 8]
     assert block_waves(64, 4096, lanes=40)[0] == 16  # two warps a block
     assert block_waves(32, 100, lanes=64, sms=1)[0] == 32
     with pytest.raises(ValueError, match="does not fit"):
