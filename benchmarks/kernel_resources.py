@@ -11,6 +11,10 @@ spilled or doubled a kernel's registers.
     python benchmarks/kernel_resources.py --hybrid 128:4 128:2 --max-registers 128
     python benchmarks/kernel_resources.py --registers 19 19:exact 39
     python benchmarks/kernel_resources.py --modules lapwarp.kernels.xpbd --blocks 4096   # waves of a block per env
+    python benchmarks/kernel_resources.py --modules lapwarp.kernels.contact --blocks 8192 --lanes 256
+
+Each kernel's static SASS instruction count (its code section / 16 bytes) comes with its registers: a change's code
+size, not its run time (ThreadInHole's vertex sweep with half its arithmetic ran slower: it waits on its loads).
 """
 
 from __future__ import annotations
@@ -128,6 +132,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--blocks", type=int, default=None, metavar="N",
                    help="also print blocks per SM and waves for a grid of N one-warp blocks (e.g. 4096: a block per "
                         "env) on --sms SMs, as far as registers limit it")
+    p.add_argument("--lanes", type=int, default=32,
+                   help="threads per block for --blocks (32: a block per env of one warp; 256: Warp's default block)")
     p.add_argument("--sms", type=int, default=132)
     p.add_argument("--out", default=None, help="JSON output path")
     args = p.parse_args(argv)
@@ -164,10 +170,11 @@ def main(argv: list[str] | None = None) -> int:
     for r in rows:
         waves = ""
         if args.blocks and "registers" in r:
-            r["blocks_per_sm"], r["waves"] = block_waves(r["registers"], args.blocks, sms=args.sms)
+            r["blocks_per_sm"], r["waves"] = block_waves(r["registers"], args.blocks, lanes=args.lanes, sms=args.sms)
             waves = f" {r['blocks_per_sm']:>2} blocks/SM {r['waves']:.2f} waves"
         print(f"{r['module'][:28]:28s} {r['kernel'][:60]:60s} regs={r.get('registers', '?'):>3} "
-              f"frame={r.get('frame_bytes', 0):>4} B shared={r.get('shared_bytes', 0):>5} B{waves}")
+              f"frame={r.get('frame_bytes', 0):>4} B shared={r.get('shared_bytes', 0):>5} B "
+              f"instructions={r.get('instructions', '?'):>5}{waves}")
     if args.out:
         Path(args.out).write_text(json.dumps({"arch": args.arch, "warp": wp.__version__, "kernels": rows}, indent=1))
     return 0

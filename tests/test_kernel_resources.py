@@ -41,6 +41,29 @@ def test_registers_and_frames_from_the_cubin():
     assert p["registers"] > 0 and q["registers"] > 0
     assert p["frame_bytes"] == 0
     assert q["frame_bytes"] >= 64  # the 16 floats
+    assert 0 < p["instructions"] < q["instructions"]  # the 16 loads and stores of the local vector
+
+
+def test_cli_counts_blocks_of_any_width(tmp_path, monkeypatch):
+    """``--blocks N --lanes L``: each kernel's blocks per SM and waves for a grid of N blocks of L threads, as
+    ``block_waves`` counts them."""
+    import json
+
+    import kernel_resources
+
+    (tmp_path / "tiny_kernels_for_resources.py").write_text(
+        "import warp as wp\n\n\n@wp.kernel\ndef tiny(a: wp.array(dtype=float)):\n    a[wp.tid()] += 1.0\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    out = tmp_path / "res.json"
+    try:
+        kernel_resources.main(["--modules", "tiny_kernels_for_resources", "--blocks", "4096", "--lanes", "256",
+                               "--out", str(out)])
+    except Exception as exc:  # no NVRTC in this Warp build
+        pytest.skip(f"no CUDA compilation here: {exc}")
+    (row,) = json.loads(out.read_text())["kernels"]
+    assert row["instructions"] > 0
+    assert (row["blocks_per_sm"], row["waves"]) == block_waves(row["registers"], 4096, lanes=256)
+    assert row["blocks_per_sm"] == 8  # a few registers: the SM's 64 warps, 8 blocks of 8
 
 
 def test_parse_refuses_a_non_elf(tmp_path):
