@@ -8,10 +8,11 @@
 #    ran it 9.8 -> 12.7 ms per env step): p1 the env's stored rotations in a shared tile (8.6 KB per block: fewer
 #    blocks per SM, each rotation a shared load instead of an L2 one), p2 each incidence's rotation loaded one
 #    incidence ahead (a 56 B spill frame at the 64-register cap), p3 two incidences per loop iteration, their loads
-#    issued together (123 registers uncapped, a 208 B frame at 64); each also uncapped (p3 at 96 too); patches in
-#    results/session45/probes, trees in .device/small/p1, p2, p3;
+#    issued together (123 registers uncapped, a 208 B frame at 64); HEAD and p3 also uncapped (p3 at 96 too); patches
+#    in results/session45/probes, trees in .device/small/p1 .. p4;
 #    then the surface contact kernel capped at 64 registers on ThreadInHole and LigatingLoop;
-# 1. ThreadInHole's RGB 64x64 step, profile and a 10^7-step random-action soak on HEAD (#18's soak on its new default);
+# 1. ThreadInHole's and RopeThreading's RGB 64x64 steps on HEAD and on p4 (the rasteriser's and shader's kernels at 48
+#    registers), alternated; ThreadInHole's profile and a 10^7-step random-action soak on HEAD (#18's soak on its new default);
 #    profiles of ThreadInHole's and RopeThreading's RGB steps (where the images' cost goes);
 # 2. GPU tests of the per-vertex solve, the split and register chain solves, ThreadInHole and RopeCutting;
 # 3. the six #17 / #18 tasks' steps on HEAD.
@@ -23,6 +24,7 @@ d=benchmarks/results/session45
 p1=/tmp/site:$PWD/.device/small/p1
 p2=/tmp/site:$PWD/.device/small/p2
 p3=/tmp/site:$PWD/.device/small/p3
+p4=/tmp/site:$PWD/.device/small/p4
 for round in a b; do
   in_time "tih_$round" || continue
   bench "tih_$round" ThreadInHole expert
@@ -31,8 +33,6 @@ for round in a b; do
   bench_on "$p3" "tih_p3_$round" ThreadInHole expert
 done
 in_time tih_uncapped && bench tih_uncapped ThreadInHole expert --max-registers solve_vertices_fused=255
-in_time tih_p1_uncapped && bench_on "$p1" tih_p1_uncapped ThreadInHole expert --max-registers solve_vertices_fused=255
-in_time tih_p2_uncapped && bench_on "$p2" tih_p2_uncapped ThreadInHole expert --max-registers solve_vertices_fused=255
 in_time tih_p3_uncapped && bench_on "$p3" tih_p3_uncapped ThreadInHole expert --max-registers solve_vertices_fused=255
 in_time tih_p3_96 && bench_on "$p3" tih_p3_96 ThreadInHole expert --max-registers solve_vertices_fused=96
 # the surface contact kernel (77 registers, default blocks of 256: 3 blocks per SM) at 64 registers (4 blocks; a 40 B
@@ -43,7 +43,14 @@ for round in a b; do
   bench "ll_$round" LigatingLoop expert
   bench "ll_surface64_$round" LigatingLoop expert --max-registers collide_surface=64
 done
-in_time rgb_tih && bench rgb_ThreadInHole ThreadInHole expert --obs RGB
+# p4: the rasteriser's and shader's kernels at 48 registers (53-55 uncapped: 4 blocks of 256 threads per SM, 5 at 48)
+for round in a b; do
+  in_time "rgb_$round" || continue
+  bench "rgb_tih_$round" ThreadInHole expert --obs RGB
+  bench_on "$p4" "rgb_tih_p4_$round" ThreadInHole expert --obs RGB
+  bench "rgb_rt_$round" RopeThreading expert --obs RGB
+  bench_on "$p4" "rgb_rt_p4_$round" RopeThreading expert --obs RGB
+done
 in_time profile_tih && profile ThreadInHole
 in_time profile_ll && profile LigatingLoop  # its last profile is the twenty-ninth session's (100.4k now, #18's 100k)
 # where RGB 64x64 adds its ~0.5 us per env step (#18's RGB 200k: ThreadInHole 195.6k, RopeThreading 180.9k)
