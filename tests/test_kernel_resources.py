@@ -98,3 +98,18 @@ def test_block_waves_by_registers():
     assert block_waves(32, 100, lanes=64, sms=1)[0] == 32
     with pytest.raises(ValueError, match="does not fit"):
         block_waves(255, 1, lanes=1024)
+
+
+def test_rasteriser_kernels_hold_their_register_cap():
+    """The rasteriser's and the shader's kernels are declared with ``RASTER_MAX_REGISTERS`` (48: 5 blocks of 256
+    threads per SM instead of 4, sm_90); compiled, each uses at most that many registers."""
+    from lapwarp.kernels import raster
+
+    try:
+        res = module_resources(raster.shade_visibility.module, 90, 256)
+    except Exception as exc:  # no NVRTC in this Warp build
+        pytest.skip(f"no CUDA compilation here: {exc}")
+    capped = ("rasterize_rigid", "rasterize_deformable", "rasterize_deformable_u8", "shade_visibility")
+    found = {name: v for name, v in res.items() for k in capped if name.rsplit("_", 1)[0] == k}
+    assert sorted(n.rsplit("_", 1)[0] for n in found) == sorted(capped)
+    assert all(0 < v["registers"] <= raster.RASTER_MAX_REGISTERS for v in found.values()), found

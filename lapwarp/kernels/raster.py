@@ -31,6 +31,11 @@ wp.set_module_options({"enable_backward": False})
 # All bits set: larger than any key holding a finite positive depth, i.e. "no fragment".
 EMPTY_KEY = wp.constant(wp.uint64(0xFFFFFFFFFFFFFFFF))
 
+# The rasteriser's and the shader's kernels (53-55 registers uncapped, sm_90: 4 blocks of 256 threads per SM) at 48:
+# 5 blocks per SM, spill frames of 16-32 bytes. H200, 4,096 envs, RGB 64x64, expert, same call (forty-sixth session,
+# benchmarks/RESULTS.md): ThreadInHole 195.4k -> 197.2k env-steps/s, RopeThreading 181.1k -> 182.6k. The CPU ignores it.
+RASTER_MAX_REGISTERS = 48
+
 # obj_flags bits
 FLAG_DOUBLE_SIDED = wp.constant(1)
 FLAG_SMOOTH = wp.constant(2)
@@ -351,7 +356,7 @@ def cull_clusters(
     cluster_draw_out[env, k] = int(draw)
 
 
-@wp.kernel
+@wp.kernel(cuda_max_registers=RASTER_MAX_REGISTERS)
 def rasterize_rigid(
     slot_tri: wp.array(dtype=wp.int32),
     slot_split: wp.array(dtype=wp.int32),
@@ -395,7 +400,7 @@ def rasterize_rigid(
     )
 
 
-@wp.kernel
+@wp.kernel(cuda_max_registers=RASTER_MAX_REGISTERS)
 def rasterize_deformable(
     tri_vidx: wp.array(dtype=wp.vec3i),
     tri_begin: int,
@@ -436,7 +441,7 @@ def rasterize_deformable(
     )
 
 
-@wp.kernel
+@wp.kernel(cuda_max_registers=RASTER_MAX_REGISTERS)
 def rasterize_deformable_u8(
     tri_vidx: wp.array(dtype=wp.vec3i),
     tri_begin: int,
@@ -495,7 +500,7 @@ def store_color(env: int, y: int, x: int, col: wp.vec3, write_rgb: int, frame_rg
             frame_out[env, k, y, x] = float(byte) / 255.0
 
 
-@wp.kernel
+@wp.kernel(cuda_max_registers=RASTER_MAX_REGISTERS)
 def shade_visibility(
     tri_obj: wp.array(dtype=wp.int32),
     tri_vidx: wp.array(dtype=wp.vec3i),

@@ -720,6 +720,10 @@ class LigatingLoopEnv(BatchedEnv):
         # 4,096 envs, same call as the uncapped step (forty-first session, results/session41):
         # 99.8k -> 101.2k env-steps/s
         world.default_register_caps["collide_particles"] = 64
+        # the cavity's surface contact (77 registers: 3 blocks of 256 per SM) at 64: 4 blocks, a 40 B spill frame. Same
+        # call, twice (forty-sixth session): 100,482 / 100,485 -> 101,188 / 101,192 (ThreadInHole's 214.8k against
+        # 215.4k there: it keeps 77)
+        world.default_register_caps["collide_surface"] = 64
         rig.finalize(world)
         closure = LoopClosure(world, loop, rig.shapes[0].shaft_body, wp.transform_get_rotation(self._start_tip),
                               cfg.pitch)
