@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # The forty-sixth session's quick call (one H200, after the lease), in order of need, each item skipped once DEADLINE
-# (s, default 470) has passed; lines to stdout as they finish, files under $OUT/q46 packed into $OUT/q46.tgz:
+# (s, default 430) has passed; lines to stdout as they finish, files under $OUT/q46 packed into $OUT/q46.tgz:
 # 1. RGB 64x64 steps (expert, 4,096 envs) of ThreadInHole and RopeThreading on HEAD (the rasteriser's and shader's
 #    kernels at 48 registers since the lease) against p5: the shading pass with an observation frame writing neither
 #    the bytes nor the depth outputs (the env reads only the frame there: 7 of ~39 bytes per pixel);
@@ -12,7 +12,7 @@
 # Probes' patches: results/session46/probes.
 set -u
 . train/device/beside_lib.sh
-DEADLINE=${DEADLINE:-470} beside_init "$OUT/q46"
+DEADLINE=${DEADLINE:-430} beside_init "$OUT/q46"
 export PYTHONUNBUFFERED=1
 p5=/tmp/site:$PWD/.device/small/p5
 p6=/tmp/site:$PWD/.device/small/p6
@@ -42,7 +42,7 @@ in_time pc_b && {
   pack
 }
 if in_time pytest; then
-  PYTHONPATH=$new timeout 120 python3 -m pytest -q -p no:cacheprovider tests/test_render.py tests/test_kernel_resources.py \
+  PYTHONPATH=$new timeout 100 python3 -m pytest -q -p no:cacheprovider tests/test_render.py tests/test_kernel_resources.py \
     --device "$dev" > "$out/pytest_cuda.txt" 2>&1
   echo "pytest rc=$? $(tail -1 "$out/pytest_cuda.txt")"
   pack
