@@ -52,10 +52,11 @@ def contact_systems(env) -> list:
 
 
 def apply_contact_settings(env, triangle_sweep: str | None = None, triangle_block_threads: int | None = None,
-                           pose_per_step: bool | None = None) -> None:
-    """Set the contact systems' triangle sweep, the fused sweep's threads per env block and whether their shapes are
-    posed once per step (None: keep theirs), before the first step records the launches (and the env captures
-    them)."""
+                           pose_per_step: bool | None = None, surface_bounds: str | None = None,
+                           surface_bounds_lanes: int | None = None) -> None:
+    """Set the contact systems' triangle sweep, the fused sweep's threads per env block, whether their shapes are
+    posed once per step and how their deforming surfaces' boxes are formed (None: keep theirs), before the first step
+    records the launches (and the env captures them)."""
     for contact in contact_systems(env):
         if triangle_sweep is not None:
             contact.triangle_sweep = triangle_sweep
@@ -65,6 +66,12 @@ def apply_contact_settings(env, triangle_sweep: str | None = None, triangle_bloc
             if not hasattr(contact, "pose_per_step"):  # an older lapwarp, timed beside this one
                 raise ValueError("--pose-per-step: this lapwarp's contact systems pose their shapes every sweep")
             contact.pose_per_step = pose_per_step
+        for name, value in (("surface_bounds", surface_bounds), ("surface_bounds_lanes", surface_bounds_lanes)):
+            if value is not None:
+                if not hasattr(contact, name):  # an older lapwarp, timed beside this one
+                    raise ValueError(f"--{name.replace('_', '-')}: this lapwarp forms its surfaces' boxes in two "
+                                     "launches")
+                setattr(contact, name, value)
 
 
 def parse_register_caps(items: list[str]) -> dict[str, int]:
@@ -97,7 +104,8 @@ def bench_one(task: str, num_envs: int, device: str, seconds: float, invalid_act
               rod_solver: str | None = None, lane_rows: int | None = None,
               surface_leaf_size: int | None = None, cull_groups: bool = True,
               pose_per_step: bool | None = None, rod_block_threads: int | None = None,
-              predict_in_rod_sweep: bool | None = None, register_split: bool | None = None) -> dict:
+              predict_in_rod_sweep: bool | None = None, register_split: bool | None = None,
+              surface_bounds: str | None = None, surface_bounds_lanes: int | None = None) -> dict:
     def make_env():
         # the leaf size and the cull groups are read when the task finalizes its contact system, i.e. while the env is
         # built (an older lapwarp, timed beside this one, may have neither: it is left alone there)
@@ -137,7 +145,8 @@ def bench_one(task: str, num_envs: int, device: str, seconds: float, invalid_act
             if not hasattr(env.world, "chain_register_split"):  # an older lapwarp, timed beside this one
                 raise ValueError("--register-split: this lapwarp solves a chain with one thread")
             env.world.chain_register_split = register_split
-        apply_contact_settings(env, triangle_sweep, triangle_block_threads, pose_per_step)
+        apply_contact_settings(env, triangle_sweep, triangle_block_threads, pose_per_step, surface_bounds,
+                               surface_bounds_lanes)
         return env
 
     env = make_env()
@@ -192,6 +201,8 @@ def bench_one(task: str, num_envs: int, device: str, seconds: float, invalid_act
         "resolution": list(env.cfg.image_shape) if env.uses_images else None,
         "triangle_sweep": next((c.resolved_triangle_sweep() for c in contact_systems(env)), None),
         "triangle_block_threads": next((c.triangle_block_threads for c in contact_systems(env)), None),
+        "surface_bounds": next((getattr(c, "surface_bounds", "separate") for c in contact_systems(env)), None),
+        "surface_bounds_lanes": next((getattr(c, "surface_bounds_lanes", None) for c in contact_systems(env)), None),
         # (an older lapwarp, timed beside this one, has no clustered surfaces)
         "surface_leaf_size": next((getattr(c, "surface_leaf_size", None) for c in contact_systems(env)), None),
         "cull_groups": next((getattr(c, "cull_groups", None) for c in contact_systems(env)), None),
@@ -242,6 +253,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--pose-per-step", choices=["on", "off"], default=None,
                         help="the contact systems' shapes posed for every substep in one launch per step, or a launch "
                              "per sweep (ContactSystem.pose_per_step; default: theirs)")
+    parser.add_argument("--surface-bounds", choices=list(ContactSystem.SURFACE_BOUNDS), default=None,
+                        help="the deforming surfaces' leaf and super-leaf boxes in two launches per sweep or in one, a "
+                             "block per env (ContactSystem.surface_bounds; default: theirs)")
+    parser.add_argument("--surface-bounds-lanes", type=positive_int, default=None,
+                        help="threads of the fused surface bounds' block per env (default: the contact system's)")
     parser.add_argument("--surface-leaf-size", type=positive_int, default=None,
                         help="triangles per leaf of deforming contact surfaces' clustering (default: "
                              "lapwarp.contact.SURFACE_LEAF_SIZE)")
@@ -299,7 +315,8 @@ def main(argv: list[str] | None = None) -> int:
                           rod_block_threads=args.rod_block_threads,
                           predict_in_rod_sweep=(None if args.predict_in_rod_sweep is None
                                                 else args.predict_in_rod_sweep == "on"),
-                          register_split=None if args.register_split is None else args.register_split == "on")
+                          register_split=None if args.register_split is None else args.register_split == "on",
+                          surface_bounds=args.surface_bounds, surface_bounds_lanes=args.surface_bounds_lanes)
             results.append(r)
             print(f"{r['task']:<10} {n:>9} {mode:>8} {r['env_steps_per_s']:>14,.0f} {r['step_ms']:>9.3f}", flush=True)
     regime = "the expert's recorded actions replayed" if args.policy == "replay" else f"{args.policy} actions"

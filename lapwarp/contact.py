@@ -652,6 +652,11 @@ class ContactSystem:
         self.overflow = wp.zeros(n, dtype=wp.int32, device=dev)
         #: rod segments' contact colours in one launch per sweep (``ck.collide_segment_colors``) or a launch each
         self.fuse_segment_colors = True
+        #: deforming surfaces' leaf and super-leaf boxes each sweep: "separate" (``ck.surface_leaf_bounds`` then
+        #: ``ck.surface_super_bounds``, a thread per box) or "fused" (``ck.surface_bounds_kernel``: one launch, a block
+        #: of ``surface_bounds_lanes`` threads per env; the same boxes). Read when the World records a step
+        self.surface_bounds = "separate"
+        self.surface_bounds_lanes = 64
         self._no_sink = wp.zeros(0, dtype=wp.int32, device=dev)
         self._overflow_sink = None
         self.reports = make_struct(ck.ContactReports, report_count=self.report_count, report_force=self.report_force,
@@ -753,6 +758,8 @@ class ContactSystem:
                                             force_scale=1.0 / (h * h * sweep.substeps))
         return self._solves[key]
 
+    #: how ``surface_bounds`` may form the deforming surfaces' boxes
+    SURFACE_BOUNDS = ("separate", "fused")
     #: the triangle sweeps ``triangle_sweep`` may name
     TRIANGLE_SWEEPS = ("auto", "colored", "fused", "outcodes", "shape_codes")
 
@@ -787,8 +794,14 @@ class ContactSystem:
         if not 1 <= int(self.triangle_block_threads) <= 1024:
             raise ValueError(f"triangle_block_threads must be in [1, 1024] (threads of one env's block), "
                              f"got {self.triangle_block_threads!r}")
+        if self.surface_bounds not in self.SURFACE_BOUNDS:
+            raise ValueError(f"surface_bounds must be one of {self.SURFACE_BOUNDS}, got {self.surface_bounds!r}")
+        lanes = self.surface_bounds_lanes
+        if isinstance(lanes, bool) or not isinstance(lanes, int) or not 1 <= lanes <= 1024:
+            raise ValueError(f"surface_bounds_lanes must be an int in [1, 1024] (threads of one env's block), "
+                             f"got {lanes!r}")
         return (self.resolved_triangle_sweep(), int(self.triangle_block_threads), id(self.overflow_sink),
-                bool(self.fuse_segment_colors), bool(self.pose_per_step))
+                bool(self.fuse_segment_colors), bool(self.pose_per_step), self.surface_bounds, lanes)
 
     def record_sweep(self, world, launch, sweep) -> None:
         """Record the contact projections of one sweep (called by the World while it records a step)."""
@@ -867,10 +880,17 @@ class ContactSystem:
             if len(sf["candidates"]) == 0:
                 continue  # nothing queries this surface
             # every env's boxes as its vertices are now (after this sweep's constraints), then the queries
-            launch(ck.surface_leaf_bounds, (n, sf["clusters"].num_leaves), [sf["leaf_vert_start"], sf["leaf_verts"], q],
-                   [sf["leaf_lo"], sf["leaf_hi"]])
-            launch(ck.surface_super_bounds, (n, sf["clusters"].num_supers),
-                   [sf["leaf_lo"], sf["leaf_hi"], sf["clusters"].leaves_per_super], [sf["super_lo"], sf["super_hi"]])
+            clusters = sf["clusters"]
+            if self.surface_bounds == "fused":
+                lanes = launching.block_lanes(self.device, self.surface_bounds_lanes)
+                launch(ck.surface_bounds_kernel(clusters.num_leaves), (n, lanes),
+                       [sf["leaf_vert_start"], sf["leaf_verts"], clusters.leaves_per_super, q],
+                       [sf["leaf_lo"], sf["leaf_hi"], sf["super_lo"], sf["super_hi"]], block_dim=lanes)
+            else:
+                launch(ck.surface_leaf_bounds, (n, clusters.num_leaves), [sf["leaf_vert_start"], sf["leaf_verts"], q],
+                       [sf["leaf_lo"], sf["leaf_hi"]])
+                launch(ck.surface_super_bounds, (n, clusters.num_supers),
+                       [sf["leaf_lo"], sf["leaf_hi"], clusters.leaves_per_super], [sf["super_lo"], sf["super_hi"]])
             launch(ck.collide_surface, (n, len(sf["candidates"])),
                    [self._particles, sf["candidates"], sf["surface"], shapes, solve, masks, report, self.report_margin],
                    [q, self.surf_delta, self.surf_count, reports])

@@ -468,6 +468,78 @@ def test_clustered_surface_query_matches_a_search_of_every_triangle(device, leaf
     assert x[:, beads.particle_start:, 2].min() > 0.02  # every bead was pushed up by the surface (it started at 12 mm)
 
 
+@pytest.mark.parametrize("lanes", [1, 3, 8])
+def test_fused_surface_bounds_kernel_gives_each_leafs_and_super_leafs_box(device, monkeypatch, lanes):
+    """``ck.surface_bounds_kernel`` (a block per env) on random positions: each leaf's box is its vertices' minimum and
+    maximum, each super leaf's the union of its leaves' (numpy), in each env, with fewer lanes than leaves (several
+    passes), a lane per leaf-ish and one lane. On the CPU the lanes are Warp's cooperative fibers with real barriers
+    (``wp.config.enable_cpu_blocks``)."""
+    monkeypatch.setattr(wp.config, "enable_cpu_blocks", True)
+    from lapwarp.kernels import contact as ck
+
+    n = 32
+    ij = np.arange((n + 1) ** 2).reshape(n + 1, n + 1)
+    quads = np.stack([ij[:-1, :-1], ij[1:, :-1], ij[1:, 1:], ij[:-1, 1:]], axis=-1).reshape(-1, 4)
+    tris = np.concatenate([quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]])
+    xs, ys = np.meshgrid(np.arange(n + 1.0), np.arange(n + 1.0), indexing="ij")
+    c = SurfaceClusters(tris, np.stack([xs.ravel(), ys.ravel(), np.zeros(xs.size)], axis=1), leaf_size=5)
+    assert c.num_leaves % c.leaves_per_super != 0  # a short last super leaf
+    envs, L, S = 3, c.num_leaves, c.num_supers
+    q = np.random.default_rng(0).normal(size=(envs, (n + 1) ** 2, 3)).astype(np.float32)
+    out = [wp.zeros((envs, k), dtype=wp.vec3, device=device) for k in (L, L, S, S)]
+    wp.launch(ck.surface_bounds_kernel(L), (envs, lanes),
+              [wp.array(c.leaf_vert_start.astype(np.int32), device=device),
+               wp.array(c.leaf_verts.astype(np.int32), device=device), c.leaves_per_super,
+               wp.array(q, dtype=wp.vec3, device=device)], out, block_dim=lanes, device=device)
+    leaf_lo, leaf_hi, super_lo, super_hi = (a.numpy() for a in out)
+    for leaf in range(L):
+        v = q[:, c.leaf_verts[c.leaf_vert_start[leaf]:c.leaf_vert_start[leaf + 1]]]
+        np.testing.assert_array_equal(leaf_lo[:, leaf], v.min(axis=1))
+        np.testing.assert_array_equal(leaf_hi[:, leaf], v.max(axis=1))
+    for s in range(S):
+        leaves = slice(s * c.leaves_per_super, min((s + 1) * c.leaves_per_super, L))
+        np.testing.assert_array_equal(super_lo[:, s], leaf_lo[:, leaves].min(axis=1))
+        np.testing.assert_array_equal(super_hi[:, s], leaf_hi[:, leaves].max(axis=1))
+
+
+def test_fused_surface_bounds_step_as_the_two_launches(device):
+    """``ContactSystem.surface_bounds`` "fused" against "separate": the block thrown into the beads (as above, leaves of
+    one triangle) takes exactly the same trajectories and leaves exactly the same boxes; a bad setting or lane count is
+    a clear error when the step is recorded."""
+    v, t = box_tets((0.02, 0.02, 0.01), (2, 2, 1), origin=(-0.01, -0.01, 0.0))
+    beads0 = np.array([[x, y, 0.012] for x in (-0.0063, 0.0017, 0.0058) for y in (-0.0049, 0.0031, 0.0072)])
+    out = []
+    for bounds in ("separate", "fused"):
+        b = SceneBuilder(gravity=(0.0, 0.0, 0.0))
+        blk = b.add_tet_mesh(v, t, density=1000.0, youngs_modulus=1e5, poisson_ratio=0.3)
+        beads = b.add_particles(beads0, mass=1.0e-4)
+        w = b.finalize(num_envs=2, device=device, substeps=10)
+        qd = w.state.particle_qd.numpy()
+        qd[:, blk.particles, 2] = 0.1
+        qd[1, blk.particles, 0] = 0.03
+        w.state.particle_qd.assign(qd)
+        cs = ContactSystem(w)
+        cs.add_particle_group(beads, radius=5.0e-4, name="beads")
+        cs.add_surface(blk, thickness=0.0, name="block")
+        cs.surface_leaf_size = 1
+        cs.surface_bounds = bounds
+        cs.finalize()
+        for _ in range(3):
+            w.step(0.05)
+        sf = cs._surfaces[0]
+        out.append([w.positions()] + [sf[k].numpy() for k in ("leaf_lo", "leaf_hi", "super_lo", "super_hi")])
+    for ref, x in zip(*out, strict=True):
+        np.testing.assert_array_equal(x, ref)
+    assert out[0][0][:, beads.particle_start:, 2].min() > 0.02  # the surface pushed every bead
+    for setting, value, match in (("surface_bounds", "tiled", "surface_bounds must be"),
+                                  ("surface_bounds_lanes", 0, "surface_bounds_lanes"),
+                                  ("surface_bounds_lanes", 2.0, "surface_bounds_lanes")):
+        cs.surface_bounds, cs.surface_bounds_lanes = "fused", 64
+        setattr(cs, setting, value)
+        with pytest.raises(ValueError, match=match):
+            w.step(0.05)
+
+
 def test_surface_clusters_are_compact_and_cover_every_triangle():
     """A 32 x 32 grid of unit squares (2,048 triangles): the clustered order is a permutation, each leaf of 8
     triangles lies within a 2 x 2 block of squares (the median splits halve the grid: extent 2 per axis), each

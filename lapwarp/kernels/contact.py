@@ -1262,6 +1262,58 @@ def surface_super_bounds(leaf_lo: wp.array2d(dtype=wp.vec3), leaf_hi: wp.array2d
     super_hi[env, s] = hi
 
 
+_SURFACE_BOUNDS_KERNELS: dict[int, wp.Kernel] = {}
+
+
+def surface_bounds_kernel(num_leaves: int) -> wp.Kernel:
+    """``surface_leaf_bounds`` and ``surface_super_bounds`` in one launch (``ContactSystem.surface_bounds`` "fused";
+    cached per leaf count: a tile's shape is a compile-time constant): a thread block per env, whose lanes take the
+    leaves (each leaf's box from its vertices, written out and kept in shared memory), then the super leaves (each the
+    union of its leaves' boxes, read from shared memory). The same boxes (a minimum or maximum is exact in any order),
+    one launch per sweep instead of two and no pass over the leaf boxes in global memory; launch ``(num_envs,
+    lanes)`` with ``block_dim=lanes`` (on the CPU one lane takes every leaf, then every super leaf)."""
+    L = int(num_leaves)
+    kernel = _SURFACE_BOUNDS_KERNELS.get(L)
+    if kernel is not None:
+        return kernel
+
+    def surface_bounds(leaf_vert_start: wp.array(dtype=wp.int32), leaf_verts: wp.array(dtype=wp.int32),
+                       leaves_per_super: int, q: wp.array2d(dtype=wp.vec3), leaf_lo: wp.array2d(dtype=wp.vec3),
+                       leaf_hi: wp.array2d(dtype=wp.vec3), super_lo: wp.array2d(dtype=wp.vec3),
+                       super_hi: wp.array2d(dtype=wp.vec3)):
+        env, lane = wp.tid()
+        lanes = wp.block_dim()
+        los = wp.tile_zeros(shape=L, dtype=wp.vec3, storage="shared")
+        his = wp.tile_zeros(shape=L, dtype=wp.vec3, storage="shared")
+        for base in range(0, L, lanes):
+            # every lane runs the cooperative scatters below, the ones past the last leaf with nothing
+            leaf = wp.min(base + lane, L - 1)
+            live = base + lane < L
+            lo = wp.vec3(1.0e30)
+            hi = wp.vec3(-1.0e30)
+            if live:
+                for k in range(leaf_vert_start[leaf], leaf_vert_start[leaf + 1]):
+                    x = q[env, leaf_verts[k]]
+                    lo = wp.min(lo, x)
+                    hi = wp.max(hi, x)
+                leaf_lo[env, leaf] = lo
+                leaf_hi[env, leaf] = hi
+            wp.tile_scatter_masked(los, leaf, lo, live)
+            wp.tile_scatter_masked(his, leaf, hi, live)
+        for s in range(lane, super_lo.shape[1], lanes):
+            lo = wp.vec3(1.0e30)
+            hi = wp.vec3(-1.0e30)
+            for leaf in range(s * leaves_per_super, wp.min((s + 1) * leaves_per_super, L)):
+                lo = wp.min(lo, wp.tile_extract(los, leaf))
+                hi = wp.max(hi, wp.tile_extract(his, leaf))
+            super_lo[env, s] = lo
+            super_hi[env, s] = hi
+
+    kernel = wp.kernel(surface_bounds, module="unique", enable_backward=False)
+    _SURFACE_BOUNDS_KERNELS[L] = kernel
+    return kernel
+
+
 @wp.kernel
 def apply_surface_deltas(verts: wp.array(dtype=wp.int32), surf_delta: wp.array3d(dtype=wp.int64),
                          surf_count: wp.array2d(dtype=wp.int32), q: wp.array2d(dtype=wp.vec3)):
