@@ -14,7 +14,8 @@ shared by all envs, closed and wound outwards).
 
 Reports (see ``docs/contact.md``): ``report_count[env, pair]`` = contacts found in the last substep of the
 last ``world.step`` and ``report_force[env, pair]`` = summed normal force averaged over that step (N), for
-each (shape, particle group) pair and each self-contact set. They are cleared by the first sweep of every
+each (shape, particle group) pair and each self-contact set (the forces only with ``report_forces``, the
+default). They are cleared by the first sweep of every
 ``world.step`` (a launch inside the recorded step), so after a step they describe exactly that step.
 """
 
@@ -657,6 +658,10 @@ class ContactSystem:
         #: of ``surface_bounds_lanes`` threads per env; the same boxes). Read when the World records a step
         self.surface_bounds = "separate"
         self.surface_bounds_lanes = 64
+        #: sum each pair's normal force over the step into ``report_force`` (``forces()``): an atomic add per contact
+        #: and sweep. Off, the contact kernels skip it and ``forces()`` raises (contact counts are still reported).
+        #: Read when the World records a step
+        self.report_forces = True
         self._no_sink = wp.zeros(0, dtype=wp.int32, device=dev)
         self._overflow_sink = None
         self.reports = make_struct(ck.ContactReports, report_count=self.report_count, report_force=self.report_force,
@@ -749,13 +754,15 @@ class ContactSystem:
         return step
 
     def _particle_solve(self, world, sweep) -> ck.ParticleSolve:
-        # impulse m * dx / h summed over the sweeps, divided by the step duration -> mean force over the step
-        key = (sweep.h, sweep.substeps)
+        # impulse m * dx / h summed over the sweeps, divided by the step duration -> mean force over the step; 0 where
+        # forces are not reported (the kernels then skip their atomic adds)
+        key = (sweep.h, sweep.substeps, bool(self.report_forces))
         if key not in self._solves:
             h = sweep.h
+            scale = 1.0 / (h * h * sweep.substeps) if self.report_forces else 0.0
             self._solves[key] = make_struct(ck.ParticleSolve, inv_mass=world.model.particle_inv_mass,
                                             q_pred=world.predicted_positions, qd=world.state.particle_qd, h=h,
-                                            force_scale=1.0 / (h * h * sweep.substeps))
+                                            force_scale=scale)
         return self._solves[key]
 
     #: how ``surface_bounds`` may form the deforming surfaces' boxes
@@ -800,8 +807,11 @@ class ContactSystem:
         if isinstance(lanes, bool) or not isinstance(lanes, int) or not 1 <= lanes <= 1024:
             raise ValueError(f"surface_bounds_lanes must be an int in [1, 1024] (threads of one env's block), "
                              f"got {lanes!r}")
+        if not isinstance(self.report_forces, bool):
+            raise ValueError(f"report_forces must be a bool, got {self.report_forces!r}")
         return (self.resolved_triangle_sweep(), int(self.triangle_block_threads), id(self.overflow_sink),
-                bool(self.fuse_segment_colors), bool(self.pose_per_step), self.surface_bounds, lanes)
+                bool(self.fuse_segment_colors), bool(self.pose_per_step), self.surface_bounds, lanes,
+                self.report_forces)
 
     def record_sweep(self, world, launch, sweep) -> None:
         """Record the contact projections of one sweep (called by the World while it records a step)."""
@@ -944,5 +954,9 @@ class ContactSystem:
         return self.report_count.numpy()[:, : self.num_pairs].copy()
 
     def forces(self) -> np.ndarray:
-        """``report_force`` as a NumPy copy ``(num_envs, num_pairs)``, N."""
+        """``report_force`` as a NumPy copy ``(num_envs, num_pairs)``, N (a ``RuntimeError`` where ``report_forces``
+        is off: the kernels did not sum them)."""
+        if not self.report_forces:
+            raise RuntimeError("this contact system does not report forces (report_forces is off); set it before "
+                               "the first step to read forces()")
         return self.report_force.numpy()[:, : self.num_pairs].copy()

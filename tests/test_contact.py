@@ -97,7 +97,8 @@ def _seg_seg_dist(p, q, c0, c1):
 
 
 def _push_capsule(device, speed, segments=True, kind="rod", substeps=10, triangles=True, triangle_sweep="fused",
-                  positions=None, triangle_block_threads=None, fuse_segments=True, pose_per_step=False):
+                  positions=None, triangle_block_threads=None, fuse_segments=True, pose_per_step=False,
+                  report_forces=True):
     """A capsule (r = 1 mm, axis along y) on body 0 moves along +z at ``speed`` through a free, weightless rod
     (r = 0.5 mm, 5 mm node spacing) or cloth (1 mm spacing) lying across its path.
 
@@ -126,6 +127,7 @@ def _push_capsule(device, speed, segments=True, kind="rod", substeps=10, triangl
     cs.triangle_sweep = triangle_sweep
     cs.fuse_segment_colors = fuse_segments
     cs.pose_per_step = pose_per_step
+    cs.report_forces = report_forces
     if triangle_block_threads is not None:
         cs.triangle_block_threads = triangle_block_threads
     dt = 0.1
@@ -538,6 +540,69 @@ def test_fused_surface_bounds_step_as_the_two_launches(device):
         setattr(cs, setting, value)
         with pytest.raises(ValueError, match=match):
             w.step(0.05)
+
+
+def _rods_on_peg(device, report_forces):
+    """``test_rod_self_contact_and_torus_on_peg``'s scene (particles against a plane and a cylinder, rod segments,
+    rod-rod pairs), 0.3 s."""
+    b = SceneBuilder()
+    torus = b.add_rod(rod_circle(0.014, 24, center=(0, 0, 0.03)), radius=0.003, youngs_modulus=1e5, closed=True,
+                      damping=1.0)
+    bar = b.add_rod(rod_polyline([[-0.03, 0.005, 0.045], [0.03, 0.005, 0.045]], 13), radius=0.003,
+                    youngs_modulus=1e5, damping=1.0)
+    w = b.finalize(num_envs=1, device=device, substeps=20)
+    cs = ContactSystem(w)
+    cs.add_particle_group(torus, radius=0.003, segments=True, name="torus")
+    cs.add_particle_group(bar, radius=0.003, segments=True, name="bar")
+    cs.add_plane(name="floor")
+    cs.add_cylinder(0.005, 0.04, transform=(0, 0, 0.04), name="peg")
+    cs.add_particle_contact([(torus, 0.003), (bar, 0.003)], skip_links=2, name="rods")
+    cs.finalize()
+    cs.report_forces = report_forces
+    w.simulate(0.3, 0.1)
+    return w, cs
+
+
+def _block_into_beads(device, report_forces):
+    """A tet block thrown into 9 beads (its deforming surface against their particles), 0.05 s."""
+    v, t = box_tets((0.02, 0.02, 0.01), (2, 2, 1), origin=(-0.01, -0.01, 0.0))
+    beads0 = np.array([[x, y, 0.012] for x in (-0.0063, 0.0017, 0.0058) for y in (-0.0049, 0.0031, 0.0072)])
+    b = SceneBuilder(gravity=(0.0, 0.0, 0.0))
+    blk = b.add_tet_mesh(v, t, density=1000.0, youngs_modulus=1e5, poisson_ratio=0.3)
+    beads = b.add_particles(beads0, mass=1.0e-4)
+    w = b.finalize(num_envs=1, device=device, substeps=10)
+    qd = w.state.particle_qd.numpy()
+    qd[:, blk.particles, 2] = 0.1
+    w.state.particle_qd.assign(qd)
+    cs = ContactSystem(w)
+    cs.add_particle_group(beads, radius=5.0e-4, name="beads")
+    cs.add_surface(blk, thickness=0.0, name="block")
+    cs.finalize()
+    cs.report_forces = report_forces
+    w.step(0.05)
+    return w, cs
+
+
+def test_contact_forces_off_keep_the_trajectories_and_counts(device):
+    """``ContactSystem.report_forces`` off (the kernels skip their atomic adds into ``report_force``): rods on a peg
+    and the floor (particle, segment and pair contact), a block thrown into beads (surface contact) and a capsule
+    pushed through a cloth (triangle contact) move bit for bit as with forces reported, with the same contact counts;
+    the forces summed with it on are positive, and ``forces()`` with it off is an error, not zeros. A non-bool setting
+    is refused when the step is recorded."""
+    for scene in (_rods_on_peg, _block_into_beads):
+        (w_on, cs_on), (w_off, cs_off) = scene(device, True), scene(device, False)
+        np.testing.assert_array_equal(w_off.positions(), w_on.positions())
+        np.testing.assert_array_equal(cs_off.counts(), cs_on.counts())
+        assert cs_on.forces().max() > 0.0
+        with pytest.raises(RuntimeError, match="report_forces"):
+            cs_off.forces()
+    cloth = []
+    for on in (True, False):
+        _push_capsule(device, 0.1, kind="cloth", positions=cloth, report_forces=on)
+    np.testing.assert_array_equal(cloth[1], cloth[0])
+    cs_off.report_forces = 1
+    with pytest.raises(ValueError, match="report_forces must be a bool"):
+        w_off.step(0.05)
 
 
 def test_surface_clusters_are_compact_and_cover_every_triangle():

@@ -147,7 +147,8 @@ class IgnoreMask:
 class ParticleSolve:
     """What a contact projection needs of the particles besides their positions: inverse masses (leading dim 1 or
     num_envs), the substep's predicted positions and the velocities the World keeps until its velocity update,
-    the substep ``h`` and the factor turning a mass-weighted correction into a mean force over the step."""
+    the substep ``h`` and the factor turning a mass-weighted correction into a mean force over the step (0: forces not
+    reported, ``ContactSystem.report_forces`` off: the kernels skip their atomic adds into ``report_force``)."""
 
     inv_mass: wp.array2d(dtype=float)
     q_pred: wp.array2d(dtype=wp.vec3)
@@ -503,7 +504,8 @@ def particle_collision_kernel(meshes: bool) -> wp.Kernel:
                 tf0 = shape_pose(shapes, s, env, motion, motion.blend_prev)
                 xs0 = wp.transform_point(tf0, wp.transform_point(wp.transform_inverse(tf), x))
                 x = x + friction_correction((x - x0) - (x - xs0), n, pen, shapes.mu[s])
-                wp.atomic_add(reports.report_force, env, pair, pen / w * solve.force_scale)
+                if solve.force_scale != 0.0:  # 0: forces not reported (ContactSystem.report_forces off)
+                    wp.atomic_add(reports.report_force, env, pair, pen / w * solve.force_scale)
                 moved = 1
         # only a moved particle is written: a particle in two groups (GraspLiftAndTouch's gallbladder surface meets the
         # instruments in one and the liver in another) has two threads here, and an unconditional write of the other
@@ -593,7 +595,8 @@ def collide_segment(
             dp = n * pen + friction_correction(rel, n, pen, shapes.mu[s])
             xa = xa + dp * node_share(1.0 - u, wa, wsum)
             xb = xb + dp * node_share(u, wb, wsum)
-            wp.atomic_add(reports.report_force, env, pair, pen / wsum * solve.force_scale)
+            if solve.force_scale != 0.0:
+                wp.atomic_add(reports.report_force, env, pair, pen / wsum * solve.force_scale)
     q[env, a] = xa
     q[env, b] = xb
 
@@ -857,7 +860,8 @@ def collide_triangle_at(
         x0 = x0 + dp * node_share(bw[0], w0, wsum)
         x1 = x1 + dp * node_share(bw[1], w1, wsum)
         x2 = x2 + dp * node_share(bw[2], w2, wsum)
-        wp.atomic_add(reports.report_force, env, pair, pen / wsum * solve.force_scale)
+        if solve.force_scale != 0.0:
+            wp.atomic_add(reports.report_force, env, pair, pen / wsum * solve.force_scale)
         touched = 1
     return x0, x1, x2, touched
 
@@ -1228,7 +1232,8 @@ def collide_surface(
             for axis in range(3):  # fixed point: integer sums do not depend on the order of the atomics
                 wp.atomic_add(surf_delta, env, t[j], axis, wp.int64(wp.round(share[axis] * SURFACE_DELTA_SCALE)))
             wp.atomic_add(surf_count, env, t[j], 1)
-    wp.atomic_add(reports.report_force, env, pair, pen / (w + wt) * solve.force_scale)
+    if solve.force_scale != 0.0:
+        wp.atomic_add(reports.report_force, env, pair, pen / (w + wt) * solve.force_scale)
 
 
 @wp.kernel
@@ -1374,7 +1379,8 @@ def report_pair_contact(env: int, k: int, c: wp.vec4, members: ParticleContactSe
     pair = members.pair[k]
     if pair >= 0:
         # each pair is seen from both sides: half the force per side
-        wp.atomic_add(reports.report_force, env, pair, 0.5 * c[3] * solve.force_scale)
+        if solve.force_scale != 0.0:
+            wp.atomic_add(reports.report_force, env, pair, 0.5 * c[3] * solve.force_scale)
         if report != 0:
             wp.atomic_add(reports.report_count, env, pair, 1)
 
