@@ -197,6 +197,15 @@ class ContactSystem:
         # (ck.pose_shapes_substeps, ck.pose_shapes_and_tools_substeps) instead of a launch per sweep: the bodies move
         # only between steps; read when the World records a step (record_key)
         self.pose_per_step = POSE_PER_STEP
+        # deforming surfaces' leaf and super-leaf boxes each sweep: "separate" (``ck.surface_leaf_bounds`` then
+        # ``ck.surface_super_bounds``, a thread per box) or "fused" (``ck.surface_bounds_kernel``: one launch, a block
+        # of ``surface_bounds_lanes`` threads per env; the same boxes). Read when the World records a step
+        self.surface_bounds = "separate"
+        self.surface_bounds_lanes = 64
+        # sum each pair's normal force over the step into ``report_force`` (``forces()``): an atomic add per contact
+        # and sweep. Off, the contact kernels skip it and ``forces()`` raises (contact counts are still reported).
+        # Read when the World records a step
+        self.report_forces = True
         self.shapes: list[Shape] = []
         self.groups: list[ParticleGroup] = []
         self.self_sets: list[dict] = []
@@ -653,15 +662,6 @@ class ContactSystem:
         self.overflow = wp.zeros(n, dtype=wp.int32, device=dev)
         #: rod segments' contact colours in one launch per sweep (``ck.collide_segment_colors``) or a launch each
         self.fuse_segment_colors = True
-        #: deforming surfaces' leaf and super-leaf boxes each sweep: "separate" (``ck.surface_leaf_bounds`` then
-        #: ``ck.surface_super_bounds``, a thread per box) or "fused" (``ck.surface_bounds_kernel``: one launch, a block
-        #: of ``surface_bounds_lanes`` threads per env; the same boxes). Read when the World records a step
-        self.surface_bounds = "separate"
-        self.surface_bounds_lanes = 64
-        #: sum each pair's normal force over the step into ``report_force`` (``forces()``): an atomic add per contact
-        #: and sweep. Off, the contact kernels skip it and ``forces()`` raises (contact counts are still reported).
-        #: Read when the World records a step
-        self.report_forces = True
         self._no_sink = wp.zeros(0, dtype=wp.int32, device=dev)
         self._overflow_sink = None
         self.reports = make_struct(ck.ContactReports, report_count=self.report_count, report_force=self.report_force,

@@ -368,21 +368,7 @@ def test_rod_self_contact_and_torus_on_peg(device, method):
     """A closed rod (torus, r = 3 mm) dropped over a peg cylinder stays around it (no particle inside the peg)
     and a rod dropped onto itself keeps its nodes >= 2 r - 0.1 mm apart (self-contact), with the brute-force
     pair loop and with the per-env cell list."""
-    b = SceneBuilder()
-    torus = b.add_rod(rod_circle(0.014, 24, center=(0, 0, 0.03)), radius=0.003, youngs_modulus=1e5, closed=True,
-                      damping=1.0)
-    # a second straight rod falling across the torus
-    bar = b.add_rod(rod_polyline([[-0.03, 0.005, 0.045], [0.03, 0.005, 0.045]], 13), radius=0.003,
-                    youngs_modulus=1e5, damping=1.0)
-    w = b.finalize(num_envs=1, device=device, substeps=20)
-    cs = ContactSystem(w)
-    cs.add_particle_group(torus, radius=0.003, segments=True, name="torus")
-    cs.add_particle_group(bar, radius=0.003, segments=True, name="bar")
-    cs.add_plane(name="floor")
-    cs.add_cylinder(0.005, 0.04, transform=(0, 0, 0.04), name="peg")
-    cs.add_particle_contact([(torus, 0.003), (bar, 0.003)], skip_links=2, name="rods", method=method)
-    cs.finalize()
-    w.simulate(1.0, 0.1)
+    w, cs, torus, bar = _rods_on_peg(device, seconds=1.0, method=method)
     x = w.positions()[0]
     xt = x[torus.particles]
     assert np.hypot(xt[:, 0], xt[:, 1]).min() > 0.005 + 0.003 - 1e-4
@@ -433,37 +419,46 @@ def test_bead_rests_on_deforming_tissue_surface_per_env(device):
     assert list(cs.counts()[:, 0]) == [1, 1]
 
 
-@pytest.mark.parametrize("leaf_size", [1, 8])
-def test_clustered_surface_query_matches_a_search_of_every_triangle(device, leaf_size):
-    """A free tet block (2 x 2 x 1 cm) thrown at 0.1 m/s into 9 beads (r = 0.5 mm, at rest, no gravity) 2 mm above
-    its top face, 10 substeps per 0.05 s step: the surface moves 0.5 mm per substep, 5 mm per step. The clustered
-    query (leaves of ``leaf_size`` triangles in super leaves, every env's boxes recomputed each sweep) gives exactly
-    the trajectories of one leaf holding every triangle (each query then tests them all): it meets every triangle
-    near the bead, however far the surface moved."""
+def _thrown_block(device, num_envs=2, steps=3, **settings):
+    """A free tet block (2 x 2 x 1 cm) thrown at 0.1 m/s into 9 beads (r = 0.5 mm, at rest, no gravity) 2 mm above its
+    top face (env 1's block also slides sideways at 0.03 m/s), ``steps`` steps of 0.05 s at 10 substeps: the surface
+    moves 0.5 mm per substep, 5 mm per step. The contact system's ``settings`` are set before it is finalized;
+    returns ``(world, contact, block, beads)``."""
     v, t = box_tets((0.02, 0.02, 0.01), (2, 2, 1), origin=(-0.01, -0.01, 0.0))
     # off every edge and diagonal of the top face's 1 cm cells: no bead lies at the same distance from two triangles,
     # so the closest triangle does not depend on the order they are tested in (a bead over an edge would tie, and on
     # the GPU a tie's last-bit difference grows: it sits on a ridge)
     beads0 = np.array([[x, y, 0.012] for x in (-0.0063, 0.0017, 0.0058) for y in (-0.0049, 0.0031, 0.0072)])
+    b = SceneBuilder(gravity=(0.0, 0.0, 0.0))
+    blk = b.add_tet_mesh(v, t, density=1000.0, youngs_modulus=1e5, poisson_ratio=0.3)
+    beads = b.add_particles(beads0, mass=1.0e-4)
+    w = b.finalize(num_envs=num_envs, device=device, substeps=10)
+    qd = w.state.particle_qd.numpy()
+    qd[:, blk.particles, 2] = 0.1
+    if num_envs > 1:
+        qd[1, blk.particles, 0] = 0.03
+    w.state.particle_qd.assign(qd)
+    cs = ContactSystem(w)
+    cs.add_particle_group(beads, radius=5.0e-4, name="beads")
+    cs.add_surface(blk, thickness=0.0, name="block")
+    for name, value in settings.items():
+        setattr(cs, name, value)
+    cs.finalize()
+    for _ in range(steps):
+        w.step(0.05)
+    return w, cs, blk, beads
+
+
+@pytest.mark.parametrize("leaf_size", [1, 8])
+def test_clustered_surface_query_matches_a_search_of_every_triangle(device, leaf_size):
+    """The thrown block (``_thrown_block``): the clustered query (leaves of ``leaf_size`` triangles in super leaves,
+    every env's boxes recomputed each sweep) gives exactly the trajectories of one leaf holding every triangle (each
+    query then tests them all): it meets every triangle near the bead, however far the surface moved."""
     out = []
     for size in (10_000, leaf_size):
-        b = SceneBuilder(gravity=(0.0, 0.0, 0.0))
-        blk = b.add_tet_mesh(v, t, density=1000.0, youngs_modulus=1e5, poisson_ratio=0.3)
-        beads = b.add_particles(beads0, mass=1.0e-4)
-        w = b.finalize(num_envs=2, device=device, substeps=10)
-        qd = w.state.particle_qd.numpy()
-        qd[:, blk.particles, 2] = 0.1
-        qd[1, blk.particles, 0] = 0.03  # env 1 also slides sideways
-        w.state.particle_qd.assign(qd)
-        cs = ContactSystem(w)
-        cs.add_particle_group(beads, radius=5.0e-4, name="beads")
-        cs.add_surface(blk, thickness=0.0, name="block")
-        cs.surface_leaf_size = size
-        cs.finalize()
+        w, cs, blk, beads = _thrown_block(device, surface_leaf_size=size)
         clusters = cs._surfaces[0]["clusters"]
         assert clusters.num_leaves == (1 if size == 10_000 else -(-len(blk.surface_tris) // leaf_size))
-        for _ in range(3):
-            w.step(0.05)
         out.append(w.positions())
     ref, x = out
     np.testing.assert_allclose(x, ref, rtol=0.0, atol=1.0e-9)
@@ -505,29 +500,13 @@ def test_fused_surface_bounds_kernel_gives_each_leafs_and_super_leafs_box(device
 
 
 def test_fused_surface_bounds_step_as_the_two_launches(device):
-    """``ContactSystem.surface_bounds`` "fused" against "separate": the block thrown into the beads (as above, leaves of
-    one triangle) takes exactly the same trajectories and leaves exactly the same boxes; a bad setting or lane count is
-    a clear error when the step is recorded."""
-    v, t = box_tets((0.02, 0.02, 0.01), (2, 2, 1), origin=(-0.01, -0.01, 0.0))
-    beads0 = np.array([[x, y, 0.012] for x in (-0.0063, 0.0017, 0.0058) for y in (-0.0049, 0.0031, 0.0072)])
+    """``ContactSystem.surface_bounds`` "fused" against "separate": the thrown block (leaves of one triangle) takes
+    exactly the same trajectories and leaves exactly the same boxes; a bad setting or lane count is a clear error when
+    the step is recorded."""
     out = []
     for bounds in ("separate", "fused"):
-        b = SceneBuilder(gravity=(0.0, 0.0, 0.0))
-        blk = b.add_tet_mesh(v, t, density=1000.0, youngs_modulus=1e5, poisson_ratio=0.3)
-        beads = b.add_particles(beads0, mass=1.0e-4)
-        w = b.finalize(num_envs=2, device=device, substeps=10)
-        qd = w.state.particle_qd.numpy()
-        qd[:, blk.particles, 2] = 0.1
-        qd[1, blk.particles, 0] = 0.03
-        w.state.particle_qd.assign(qd)
-        cs = ContactSystem(w)
-        cs.add_particle_group(beads, radius=5.0e-4, name="beads")
-        cs.add_surface(blk, thickness=0.0, name="block")
-        cs.surface_leaf_size = 1
-        cs.surface_bounds = bounds
-        cs.finalize()
-        for _ in range(3):
-            w.step(0.05)
+        w, cs, blk, beads = _thrown_block(device, surface_leaf_size=1, surface_bounds=bounds)
+        assert cs.surface_bounds == bounds
         sf = cs._surfaces[0]
         out.append([w.positions()] + [sf[k].numpy() for k in ("leaf_lo", "leaf_hi", "super_lo", "super_hi")])
     for ref, x in zip(*out, strict=True):
@@ -542,9 +521,10 @@ def test_fused_surface_bounds_step_as_the_two_launches(device):
             w.step(0.05)
 
 
-def _rods_on_peg(device, report_forces):
-    """``test_rod_self_contact_and_torus_on_peg``'s scene (particles against a plane and a cylinder, rod segments,
-    rod-rod pairs), 0.3 s."""
+def _rods_on_peg(device, report_forces=True, seconds=0.3, method="auto"):
+    """A closed rod (a torus) and a straight one dropped over a peg cylinder on the floor (particles against a plane
+    and a cylinder, rod segments, rod-rod pairs by ``method``), ``seconds`` simulated in steps of 0.1 s; returns
+    ``(world, contact, torus, bar)``."""
     b = SceneBuilder()
     torus = b.add_rod(rod_circle(0.014, 24, center=(0, 0, 0.03)), radius=0.003, youngs_modulus=1e5, closed=True,
                       damping=1.0)
@@ -556,31 +536,11 @@ def _rods_on_peg(device, report_forces):
     cs.add_particle_group(bar, radius=0.003, segments=True, name="bar")
     cs.add_plane(name="floor")
     cs.add_cylinder(0.005, 0.04, transform=(0, 0, 0.04), name="peg")
-    cs.add_particle_contact([(torus, 0.003), (bar, 0.003)], skip_links=2, name="rods")
-    cs.finalize()
+    cs.add_particle_contact([(torus, 0.003), (bar, 0.003)], skip_links=2, name="rods", method=method)
     cs.report_forces = report_forces
-    w.simulate(0.3, 0.1)
-    return w, cs
-
-
-def _block_into_beads(device, report_forces):
-    """A tet block thrown into 9 beads (its deforming surface against their particles), 0.05 s."""
-    v, t = box_tets((0.02, 0.02, 0.01), (2, 2, 1), origin=(-0.01, -0.01, 0.0))
-    beads0 = np.array([[x, y, 0.012] for x in (-0.0063, 0.0017, 0.0058) for y in (-0.0049, 0.0031, 0.0072)])
-    b = SceneBuilder(gravity=(0.0, 0.0, 0.0))
-    blk = b.add_tet_mesh(v, t, density=1000.0, youngs_modulus=1e5, poisson_ratio=0.3)
-    beads = b.add_particles(beads0, mass=1.0e-4)
-    w = b.finalize(num_envs=1, device=device, substeps=10)
-    qd = w.state.particle_qd.numpy()
-    qd[:, blk.particles, 2] = 0.1
-    w.state.particle_qd.assign(qd)
-    cs = ContactSystem(w)
-    cs.add_particle_group(beads, radius=5.0e-4, name="beads")
-    cs.add_surface(blk, thickness=0.0, name="block")
     cs.finalize()
-    cs.report_forces = report_forces
-    w.step(0.05)
-    return w, cs
+    w.simulate(seconds, 0.1)
+    return w, cs, torus, bar
 
 
 def test_contact_forces_off_keep_the_trajectories_and_counts(device):
@@ -589,8 +549,10 @@ def test_contact_forces_off_keep_the_trajectories_and_counts(device):
     pushed through a cloth (triangle contact) move bit for bit as with forces reported, with the same contact counts;
     the forces summed with it on are positive, and ``forces()`` with it off is an error, not zeros. A non-bool setting
     is refused when the step is recorded."""
-    for scene in (_rods_on_peg, _block_into_beads):
-        (w_on, cs_on), (w_off, cs_off) = scene(device, True), scene(device, False)
+    scenes = (lambda on: _rods_on_peg(device, report_forces=on),
+              lambda on: _thrown_block(device, num_envs=1, steps=1, report_forces=on))
+    for scene in scenes:
+        (w_on, cs_on, *_), (w_off, cs_off, *_) = scene(True), scene(False)
         np.testing.assert_array_equal(w_off.positions(), w_on.positions())
         np.testing.assert_array_equal(cs_off.counts(), cs_on.counts())
         assert cs_on.forces().max() > 0.0

@@ -1236,18 +1236,26 @@ def collide_surface(
         wp.atomic_add(reports.report_force, env, pair, pen / (w + wt) * solve.force_scale)
 
 
-@wp.kernel
-def surface_leaf_bounds(leaf_vert_start: wp.array(dtype=wp.int32), leaf_verts: wp.array(dtype=wp.int32),
-                        q: wp.array2d(dtype=wp.vec3), leaf_lo: wp.array2d(dtype=wp.vec3),
-                        leaf_hi: wp.array2d(dtype=wp.vec3)):
-    """Each env's leaf boxes from its vertices as they are now (a thread per env and leaf)."""
-    env, leaf = wp.tid()
+@wp.func
+def leaf_box(leaf_vert_start: wp.array(dtype=wp.int32), leaf_verts: wp.array(dtype=wp.int32),
+             q: wp.array2d(dtype=wp.vec3), env: int, leaf: int):
+    """The box (lo, hi) of env ``env``'s vertices of ``leaf`` as they are now."""
     lo = wp.vec3(1.0e30)
     hi = wp.vec3(-1.0e30)
     for k in range(leaf_vert_start[leaf], leaf_vert_start[leaf + 1]):
         x = q[env, leaf_verts[k]]
         lo = wp.min(lo, x)
         hi = wp.max(hi, x)
+    return lo, hi
+
+
+@wp.kernel
+def surface_leaf_bounds(leaf_vert_start: wp.array(dtype=wp.int32), leaf_verts: wp.array(dtype=wp.int32),
+                        q: wp.array2d(dtype=wp.vec3), leaf_lo: wp.array2d(dtype=wp.vec3),
+                        leaf_hi: wp.array2d(dtype=wp.vec3)):
+    """Each env's leaf boxes from its vertices as they are now (a thread per env and leaf)."""
+    env, leaf = wp.tid()
+    lo, hi = leaf_box(leaf_vert_start, leaf_verts, q, env, leaf)
     leaf_lo[env, leaf] = lo
     leaf_hi[env, leaf] = hi
 
@@ -1297,10 +1305,7 @@ def surface_bounds_kernel(num_leaves: int) -> wp.Kernel:
             lo = wp.vec3(1.0e30)
             hi = wp.vec3(-1.0e30)
             if live:
-                for k in range(leaf_vert_start[leaf], leaf_vert_start[leaf + 1]):
-                    x = q[env, leaf_verts[k]]
-                    lo = wp.min(lo, x)
-                    hi = wp.max(hi, x)
+                lo, hi = leaf_box(leaf_vert_start, leaf_verts, q, env, leaf)
                 leaf_lo[env, leaf] = lo
                 leaf_hi[env, leaf] = hi
             wp.tile_scatter_masked(los, leaf, lo, live)
