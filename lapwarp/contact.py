@@ -197,6 +197,9 @@ class ContactSystem:
         # (ck.pose_shapes_substeps, ck.pose_shapes_and_tools_substeps) instead of a launch per sweep: the bodies move
         # only between steps; read when the World records a step (record_key)
         self.pose_per_step = POSE_PER_STEP
+        # rod segments' contact colours in one launch per sweep (ck.collide_segment_colors) or a launch each; read when
+        # the World records a step
+        self.fuse_segment_colors = True
         # deforming surfaces' leaf and super-leaf boxes each sweep: "separate" (``ck.surface_leaf_bounds`` then
         # ``ck.surface_super_bounds``, a thread per box) or "fused" (``ck.surface_bounds_kernel``: one launch, a block
         # of ``surface_bounds_lanes`` threads per env; the same boxes). Read when the World records a step
@@ -660,8 +663,6 @@ class ContactSystem:
         self.contact_normal = wp.zeros((n, cap), dtype=wp.vec3, device=dev)
         self.contact_depth = wp.zeros((n, cap), dtype=float, device=dev)
         self.overflow = wp.zeros(n, dtype=wp.int32, device=dev)
-        #: rod segments' contact colours in one launch per sweep (``ck.collide_segment_colors``) or a launch each
-        self.fuse_segment_colors = True
         self._no_sink = wp.zeros(0, dtype=wp.int32, device=dev)
         self._overflow_sink = None
         self.reports = make_struct(ck.ContactReports, report_count=self.report_count, report_force=self.report_force,
