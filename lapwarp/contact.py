@@ -209,6 +209,10 @@ class ContactSystem:
         # and sweep. Off, the contact kernels skip it and ``forces()`` raises (contact counts are still reported).
         # Read when the World records a step
         self.report_forces = True
+        # a deforming surface's corrections (averaged per vertex) applied by the next substep's prediction launch where
+        # the World can (its particles and rods predicted in one launch that comes next: World launch.defer_deltas)
+        # instead of a launch of their own; the same positions. Read when the World records a step
+        self.defer_surface_deltas = False
         self.shapes: list[Shape] = []
         self.groups: list[ParticleGroup] = []
         self.self_sets: list[dict] = []
@@ -808,11 +812,12 @@ class ContactSystem:
         if isinstance(lanes, bool) or not isinstance(lanes, int) or not 1 <= lanes <= 1024:
             raise ValueError(f"surface_bounds_lanes must be an int in [1, 1024] (threads of one env's block), "
                              f"got {lanes!r}")
-        if not isinstance(self.report_forces, bool):
-            raise ValueError(f"report_forces must be a bool, got {self.report_forces!r}")
+        for name in ("report_forces", "defer_surface_deltas"):
+            if not isinstance(getattr(self, name), bool):
+                raise ValueError(f"{name} must be a bool, got {getattr(self, name)!r}")
         return (self.resolved_triangle_sweep(), int(self.triangle_block_threads), id(self.overflow_sink),
                 bool(self.fuse_segment_colors), bool(self.pose_per_step), self.surface_bounds, lanes,
-                self.report_forces)
+                self.report_forces, self.defer_surface_deltas)
 
     def record_sweep(self, world, launch, sweep) -> None:
         """Record the contact projections of one sweep (called by the World while it records a step)."""
@@ -905,8 +910,13 @@ class ContactSystem:
             launch(ck.collide_surface, (n, len(sf["candidates"])),
                    [self._particles, sf["candidates"], sf["surface"], shapes, solve, masks, report, self.report_margin],
                    [q, self.surf_delta, self.surf_count, reports])
-            launch(ck.apply_surface_deltas, (n, sf["verts"].shape[0]), [sf["verts"], self.surf_delta,
-                                                                        self.surf_count], [q])
+            apply = (ck.apply_surface_deltas, (n, sf["verts"].shape[0]), [sf["verts"], self.surf_delta,
+                                                                          self.surf_count], [q])
+            defer = getattr(launch, "defer_deltas", None)
+            if self.defer_surface_deltas and defer is not None:
+                defer(self.surf_delta, self.surf_count, float(ck.SURFACE_DELTA_SCALE), apply)
+            else:
+                launch(*apply)
         for a in self._self_arrays:
             members, grid, m = a["members"], a["grid"], a["count"]
             if grid is not None:

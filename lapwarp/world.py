@@ -298,6 +298,9 @@ class World:
         self._dummy_v3 = wp.zeros((1, 1), dtype=wp.vec3, device=dev)
         # "no cutting masks" for the constraint kernels: empty element maps / a (1, 0) mask
         self._no_map_i = wp.zeros(0, dtype=wp.int32, device=dev)
+        # the prediction's deferred particle deltas where there are none (xpbd.Prediction)
+        self._no_delta = wp.zeros((1, 0, 3), dtype=wp.int64, device=dev)
+        self._no_delta_count = wp.zeros((1, 0), dtype=wp.int32, device=dev)
         self._no_mask = wp.zeros((1, 0), dtype=wp.int32, device=dev)
         self._dummy_mask = wp.zeros((1, 1), dtype=wp.int32, device=dev)
         #: ``(num_envs, particles)`` external forces (N), allocated by :meth:`enable_external_forces`
@@ -631,7 +634,30 @@ class World:
         caps = self.register_caps
         capped = set()
 
+        # a solver's particle corrections deferred to the next substep's prediction (launch.defer_deltas): at most
+        # one at a time, launched as it was given before any other launch (so nothing reads the particles without
+        # them) unless the next substep's prediction launch applies them itself
+        pending: list = []
+
+        def flush():
+            if pending:
+                launch_now(*pending.pop()[3])
+
         def launch(kernel, dim=None, inputs=(), outputs=(), block_dim=None):
+            flush()
+            launch_now(kernel, dim, inputs, outputs, block_dim)
+
+        def defer_deltas(delta, count, scale: float, apply: tuple):
+            """Record ``apply`` (``(kernel, dim, inputs, outputs)``: adds the mean of the fixed-point sums ``delta``
+            (``(num_envs, particles, 3)`` int64, scaled by ``scale``) over ``count`` to each particle and clears both)
+            later: the next substep's prediction launch does it where it is ``xpbd.integrate_particles_and_segments``
+            and comes next (one launch fewer per substep); any other launch first launches ``apply``."""
+            flush()
+            pending.append((delta, count, float(scale), tuple(apply)))
+
+        launch.defer_deltas = defer_deltas
+
+        def launch_now(kernel, dim=None, inputs=(), outputs=(), block_dim=None):
             # A plain callable (e.g. an array scan) is recorded as is: it must only launch device work.
             if dim is None and not isinstance(kernel, wp.Kernel):
                 cmds.append(kernel)
@@ -680,12 +706,17 @@ class World:
             if m.segment_count and self.integrate_together:
                 # particles and segments in one launch (the same arithmetic on independent elements), or where nothing
                 # else moves them before the rods, in the first sweep's rod launch
+                # the deltas a solver deferred from the substep before, applied by this launch where it comes next
+                delta, count, scale = self._no_delta, self._no_delta_count, 0.0
+                if pending and not in_rod_sweep:
+                    delta, count, scale, _ = pending.pop()
                 prediction = make_struct(xpbd.Prediction, finish=int(sub > 0 and fuse), inv_dt_prev=1.0 / h,
                                          inv_mass=m.particle_inv_mass, damping=m.particle_damping, gravity=m.gravity,
                                          dt=h, active=active, use_active=use_active, force=force, use_force=use_force,
                                          vbd_start=start_flags, qd=s.particle_qd, q_pred=self._q_pred,
                                          inv_inertia=m.segment_inv_inertia, segment_damping=m.segment_damping,
-                                         sqd=s.segment_qd, sq_prev=self._sq_prev)
+                                         sqd=s.segment_qd, sq_prev=self._sq_prev, use_delta=int(scale != 0.0),
+                                         delta_scale=scale, delta=delta, delta_count=count)
                 if not in_rod_sweep:
                     launch(xpbd.integrate_particles_and_segments, (n, max(m.particle_count, m.segment_count)),
                            [prediction], [s.particle_q, s.segment_q])
@@ -723,6 +754,7 @@ class World:
         # the stability check also keeps the body poses as the next step's start (body_q_prev) and, fused, runs the
         # last substep's velocity update first: one launch
         finish = 1.0 / h if fuse else 0.0
+        flush()  # the last substep's deferred deltas, before the velocity update below
         cmds.append(lambda: self._check_and_restore(end_of_step=True, finish_inv_dt=finish))
         unknown = sorted(set(self.max_registers) - capped)
         if unknown:

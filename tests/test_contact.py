@@ -419,11 +419,11 @@ def test_bead_rests_on_deforming_tissue_surface_per_env(device):
     assert list(cs.counts()[:, 0]) == [1, 1]
 
 
-def _thrown_block(device, num_envs=2, steps=3, **settings):
+def _thrown_block(device, num_envs=2, steps=3, rod=False, **settings):
     """A free tet block (2 x 2 x 1 cm) thrown at 0.1 m/s into 9 beads (r = 0.5 mm, at rest, no gravity) 2 mm above its
     top face (env 1's block also slides sideways at 0.03 m/s), ``steps`` steps of 0.05 s at 10 substeps: the surface
-    moves 0.5 mm per substep, 5 mm per step. The contact system's ``settings`` are set before it is finalized;
-    returns ``(world, contact, block, beads)``."""
+    moves 0.5 mm per substep, 5 mm per step; with ``rod`` into a 9-node rod (r = 0.5 mm) across its top instead. The
+    contact system's ``settings`` are set before it is finalized; returns ``(world, contact, block, beads)``."""
     v, t = box_tets((0.02, 0.02, 0.01), (2, 2, 1), origin=(-0.01, -0.01, 0.0))
     # off every edge and diagonal of the top face's 1 cm cells: no bead lies at the same distance from two triangles,
     # so the closest triangle does not depend on the order they are tested in (a bead over an edge would tie, and on
@@ -431,7 +431,11 @@ def _thrown_block(device, num_envs=2, steps=3, **settings):
     beads0 = np.array([[x, y, 0.012] for x in (-0.0063, 0.0017, 0.0058) for y in (-0.0049, 0.0031, 0.0072)])
     b = SceneBuilder(gravity=(0.0, 0.0, 0.0))
     blk = b.add_tet_mesh(v, t, density=1000.0, youngs_modulus=1e5, poisson_ratio=0.3)
-    beads = b.add_particles(beads0, mass=1.0e-4)
+    if rod:
+        beads = b.add_rod(rod_polyline([[-0.0083, 0.0013, 0.012], [0.0077, 0.0013, 0.012]], 9), radius=5.0e-4,
+                          youngs_modulus=1e6)
+    else:
+        beads = b.add_particles(beads0, mass=1.0e-4)
     w = b.finalize(num_envs=num_envs, device=device, substeps=10)
     qd = w.state.particle_qd.numpy()
     qd[:, blk.particles, 2] = 0.1
@@ -519,6 +523,27 @@ def test_fused_surface_bounds_step_as_the_two_launches(device):
         setattr(cs, setting, value)
         with pytest.raises(ValueError, match=match):
             w.step(0.05)
+
+
+def test_deferred_surface_deltas_keep_the_positions(device):
+    """``ContactSystem.defer_surface_deltas``: a surface's averaged corrections applied by the next substep's
+    prediction launch instead of their own. The block thrown into a rod (particles and rod segments predicted in one
+    launch): the same positions bit for bit, with the surface pushing the rod (it ends above its start), and one
+    launch fewer per substep but the last of each step; thrown into beads (no rods: the prediction is another kernel,
+    so the deferred launch runs before it as it was) the same positions and launches. A non-bool setting is refused
+    when the step is recorded."""
+    rods = [_thrown_block(device, rod=True, defer_surface_deltas=defer) for defer in (False, True)]
+    (w_off, _, _, rod), (w_on, *_) = rods
+    np.testing.assert_array_equal(w_on.positions(), w_off.positions())
+    assert w_on.positions()[:, rod.particles, 2].min() > 0.013  # pushed up from 12 mm by the surface
+    assert len(w_off._cmds) - len(w_on._cmds) == w_on.substeps_for(0.05) - 1 == 9
+    blocks = [_thrown_block(device, defer_surface_deltas=defer) for defer in (False, True)]
+    np.testing.assert_array_equal(blocks[1][0].positions(), blocks[0][0].positions())
+    assert len(blocks[1][0]._cmds) == len(blocks[0][0]._cmds)
+    w, cs = blocks[1][:2]
+    cs.defer_surface_deltas = "yes"
+    with pytest.raises(ValueError, match="defer_surface_deltas must be a bool"):
+        w.step(0.05)
 
 
 def _rods_on_peg(device, report_forces=True, seconds=0.3, method="auto"):

@@ -954,6 +954,13 @@ class Prediction:
     segment_damping: wp.array2d(dtype=float)
     sqd: wp.array2d(dtype=wp.vec3)
     sq_prev: wp.array2d(dtype=wp.quat)
+    # a solver's particle corrections deferred from the substep before (``World``'s ``launch.defer_deltas``; use_delta
+    # 0: none): fixed-point sums ``delta[env, k]`` over ``delta_count[env, k]`` contributions, applied as their mean
+    # before anything reads the particle, then cleared (``contact.apply_surface_deltas``' arithmetic)
+    use_delta: int
+    delta_scale: float
+    delta: wp.array3d(dtype=wp.int64)
+    delta_count: wp.array2d(dtype=wp.int32)
 
 
 @wp.func
@@ -962,6 +969,14 @@ def predict_particle_and_segment(env: int, k: int, p: Prediction, q: wp.array2d(
     """Particle ``k`` and segment ``k`` of ``env`` (where they exist) predicted: ``integrate_particles_and_segments``'
     thread."""
     if k < q.shape[1]:
+        if p.use_delta != 0:
+            c = p.delta_count[env, k]
+            if c > 0:
+                d = wp.vec3(float(p.delta[env, k, 0]), float(p.delta[env, k, 1]), float(p.delta[env, k, 2]))
+                q[env, k] = q[env, k] + d / (p.delta_scale * float(c))
+                for a in range(3):
+                    p.delta[env, k, a] = wp.int64(0)
+                p.delta_count[env, k] = 0
         v_old = p.qd[env, k]
         if p.finish != 0:
             v_old = v_old + (q[env, k] - p.q_pred[env, k]) * p.inv_dt_prev
