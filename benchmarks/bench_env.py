@@ -53,10 +53,12 @@ def contact_systems(env) -> list:
 
 def apply_contact_settings(env, triangle_sweep: str | None = None, triangle_block_threads: int | None = None,
                            pose_per_step: bool | None = None, surface_bounds: str | None = None,
-                           surface_bounds_lanes: int | None = None, report_forces: bool | None = None) -> None:
+                           surface_bounds_lanes: int | None = None, report_forces: bool | None = None,
+                           defer_surface_deltas: bool | None = None) -> None:
     """Set the contact systems' triangle sweep, the fused sweep's threads per env block, whether their shapes are
-    posed once per step, how their deforming surfaces' boxes are formed and whether they sum contact forces (None: keep
-    theirs), before the first step records the launches (and the env captures them)."""
+    posed once per step, how their deforming surfaces' boxes are formed, whether they sum contact forces and whether a
+    surface's corrections wait for the next prediction launch (None: keep theirs), before the first step records the
+    launches (and the env captures them)."""
     for contact in contact_systems(env):
         if triangle_sweep is not None:
             contact.triangle_sweep = triangle_sweep
@@ -67,7 +69,7 @@ def apply_contact_settings(env, triangle_sweep: str | None = None, triangle_bloc
                 raise ValueError("--pose-per-step: this lapwarp's contact systems pose their shapes every sweep")
             contact.pose_per_step = pose_per_step
         for name, value in (("surface_bounds", surface_bounds), ("surface_bounds_lanes", surface_bounds_lanes),
-                            ("report_forces", report_forces)):
+                            ("report_forces", report_forces), ("defer_surface_deltas", defer_surface_deltas)):
             if value is not None:
                 if not hasattr(contact, name):  # an older lapwarp, timed beside this one
                     raise ValueError(f"{name}: this lapwarp's contact systems have no such setting")
@@ -106,7 +108,7 @@ def bench_one(task: str, num_envs: int, device: str, seconds: float, invalid_act
               pose_per_step: bool | None = None, rod_block_threads: int | None = None,
               predict_in_rod_sweep: bool | None = None, register_split: bool | None = None,
               surface_bounds: str | None = None, surface_bounds_lanes: int | None = None,
-              report_forces: bool | None = None) -> dict:
+              report_forces: bool | None = None, defer_surface_deltas: bool | None = None) -> dict:
     def make_env():
         # the leaf size and the cull groups are read when the task finalizes its contact system, i.e. while the env is
         # built (an older lapwarp, timed beside this one, may have neither: it is left alone there)
@@ -147,7 +149,7 @@ def bench_one(task: str, num_envs: int, device: str, seconds: float, invalid_act
                 raise ValueError("--register-split: this lapwarp solves a chain with one thread")
             env.world.chain_register_split = register_split
         apply_contact_settings(env, triangle_sweep, triangle_block_threads, pose_per_step, surface_bounds,
-                               surface_bounds_lanes, report_forces)
+                               surface_bounds_lanes, report_forces, defer_surface_deltas)
         return env
 
     env = make_env()
@@ -205,6 +207,7 @@ def bench_one(task: str, num_envs: int, device: str, seconds: float, invalid_act
         "surface_bounds": next((getattr(c, "surface_bounds", "separate") for c in contact_systems(env)), None),
         "surface_bounds_lanes": next((getattr(c, "surface_bounds_lanes", None) for c in contact_systems(env)), None),
         "report_forces": next((getattr(c, "report_forces", True) for c in contact_systems(env)), None),
+        "defer_surface_deltas": next((getattr(c, "defer_surface_deltas", False) for c in contact_systems(env)), None),
         # (an older lapwarp, timed beside this one, has no clustered surfaces)
         "surface_leaf_size": next((getattr(c, "surface_leaf_size", None) for c in contact_systems(env)), None),
         "cull_groups": next((getattr(c, "cull_groups", None) for c in contact_systems(env)), None),
@@ -263,6 +266,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--contact-forces", choices=["on", "off"], default=None,
                         help="the contact systems sum each pair's force over the step (ContactSystem.report_forces; "
                              "default: theirs)")
+    parser.add_argument("--defer-surface-deltas", choices=["on", "off"], default=None,
+                        help="a deforming surface's corrections applied by the next substep's prediction launch where "
+                             "the World can (ContactSystem.defer_surface_deltas; default: theirs)")
     parser.add_argument("--surface-leaf-size", type=positive_int, default=None,
                         help="triangles per leaf of deforming contact surfaces' clustering (default: "
                              "lapwarp.contact.SURFACE_LEAF_SIZE)")
@@ -322,7 +328,9 @@ def main(argv: list[str] | None = None) -> int:
                                                 else args.predict_in_rod_sweep == "on"),
                           register_split=None if args.register_split is None else args.register_split == "on",
                           surface_bounds=args.surface_bounds, surface_bounds_lanes=args.surface_bounds_lanes,
-                          report_forces=None if args.contact_forces is None else args.contact_forces == "on")
+                          report_forces=None if args.contact_forces is None else args.contact_forces == "on",
+                          defer_surface_deltas=(None if args.defer_surface_deltas is None
+                                                else args.defer_surface_deltas == "on"))
             results.append(r)
             print(f"{r['task']:<10} {n:>9} {mode:>8} {r['env_steps_per_s']:>14,.0f} {r['step_ms']:>9.3f}", flush=True)
     regime = "the expert's recorded actions replayed" if args.policy == "replay" else f"{args.policy} actions"

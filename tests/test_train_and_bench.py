@@ -125,9 +125,10 @@ def test_bench_reset_times_cut_and_uncut_resets_after_as_many_steps(device, tmp_
 
 def test_bench_env_applies_and_records_the_contact_settings(device, tmp_path):
     """``--triangle-sweep``, ``--triangle-block-threads``, ``--surface-leaf-size``, ``--no-cull-groups``,
-    ``--pose-per-step``, ``--surface-bounds``, ``--surface-bounds-lanes``, ``--contact-forces``, ``--rod-block-threads``
-    and ``--no-graph`` reach the env's contact system and world before the first step and are written with the result;
-    the leaf size and the cull groups are the benchmark's only (the next env built has the defaults)."""
+    ``--pose-per-step``, ``--surface-bounds``, ``--surface-bounds-lanes``, ``--contact-forces``,
+    ``--defer-surface-deltas``, ``--rod-block-threads`` and ``--no-graph`` reach the env's contact system and world
+    before the first step and are written with the result; the leaf size and the cull groups are the benchmark's only
+    (the next env built has the defaults)."""
     import lapwarp
     import lapwarp.contact
 
@@ -136,11 +137,12 @@ def test_bench_env_applies_and_records_the_contact_settings(device, tmp_path):
                            "--triangle-sweep", "colored", "--no-graph", "--surface-leaf-size", "4",
                            "--triangle-block-threads", "16", "--no-cull-groups", "--pose-per-step", "off",
                            "--rod-block-threads", "64", "--surface-bounds", "fused", "--surface-bounds-lanes", "32",
-                           "--contact-forces", "off", "--out", str(out)]) == 0
+                           "--contact-forces", "off", "--defer-surface-deltas", "on", "--out", str(out)]) == 0
     (r,) = json.loads(out.read_text())["results"]
     assert r["triangle_sweep"] == "colored" and r["cuda_graph"] is False
     assert r["pose_per_step"] is False and r["rod_block_threads"] == 64
     assert r["surface_bounds"] == "fused" and r["surface_bounds_lanes"] == 32 and r["report_forces"] is False
+    assert r["defer_surface_deltas"] is True
     assert r["triangle_block_threads"] == 16 and r["surface_leaf_size"] == 4 and r["cull_groups"] is False
     assert lapwarp.contact.SURFACE_LEAF_SIZE == 8 and lapwarp.contact.CULL_GROUPS is True
     env = lapwarp.make("ThreadInHole", num_envs=1, device=device)
