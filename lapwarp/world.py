@@ -440,8 +440,10 @@ class World:
         substep, after the built-in constraint groups, with the sweep's :class:`Sweep`; it must only
         ``launch(kernel, dim, inputs, outputs)`` (which records the launch for replay, so it ends up in the env's
         CUDA graph) or ``launch(fn)`` with a plain callable that only launches device work (e.g.
-        an array scan). An optional ``solver.record_substep_end(world, launch, sweep)`` runs after the velocity
-        update of each substep (e.g. for velocity-level friction or restitution), and an optional
+        an array scan); ``launch.defer_deltas(delta, count, scale, apply)`` hands the World a launch of averaged
+        particle corrections that the next substep's prediction launch may apply itself (else it is launched as given
+        before any other launch). An optional ``solver.record_substep_end(world, launch, sweep)`` runs after the
+        velocity update of each substep (e.g. for velocity-level friction or restitution), and an optional
         ``solver.reset(env_mask)`` runs at the end of ``World.reset`` (launches only: clear the masked envs'
         reports or grasps). Systems never reallocate after being added.
         """
