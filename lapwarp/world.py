@@ -717,11 +717,12 @@ class World:
                                          dt=h, active=active, use_active=use_active, force=force, use_force=use_force,
                                          vbd_start=start_flags, qd=s.particle_qd, q_pred=self._q_pred,
                                          inv_inertia=m.segment_inv_inertia, segment_damping=m.segment_damping,
-                                         sqd=s.segment_qd, sq_prev=self._sq_prev, use_delta=int(scale != 0.0),
-                                         delta_scale=scale, delta=delta, delta_count=count)
+                                         sqd=s.segment_qd, sq_prev=self._sq_prev, delta_scale=scale, delta=delta,
+                                         delta_count=count)
                 if not in_rod_sweep:
-                    launch(xpbd.integrate_particles_and_segments, (n, max(m.particle_count, m.segment_count)),
-                           [prediction], [s.particle_q, s.segment_q])
+                    kernel = xpbd.apply_deltas_and_integrate if scale != 0.0 else xpbd.integrate_particles_and_segments
+                    launch(kernel, (n, max(m.particle_count, m.segment_count)), [prediction],
+                           [s.particle_q, s.segment_q])
                     prediction = None
             elif sub > 0 and fuse:
                 launch(xpbd.finish_and_integrate_particles, (n, m.particle_count), [1.0 / h, *particle_args],

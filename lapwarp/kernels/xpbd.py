@@ -954,10 +954,9 @@ class Prediction:
     segment_damping: wp.array2d(dtype=float)
     sqd: wp.array2d(dtype=wp.vec3)
     sq_prev: wp.array2d(dtype=wp.quat)
-    # a solver's particle corrections deferred from the substep before (``World``'s ``launch.defer_deltas``; use_delta
-    # 0: none): fixed-point sums ``delta[env, k]`` over ``delta_count[env, k]`` contributions, applied as their mean
-    # before anything reads the particle, then cleared (``contact.apply_surface_deltas``' arithmetic)
-    use_delta: int
+    # a solver's particle corrections deferred from the substep before (``World``'s ``launch.defer_deltas``), applied
+    # by ``apply_deltas_and_integrate``: fixed-point sums ``delta[env, k]`` (scaled by ``delta_scale``) over
+    # ``delta_count[env, k]`` contributions
     delta_scale: float
     delta: wp.array3d(dtype=wp.int64)
     delta_count: wp.array2d(dtype=wp.int32)
@@ -969,14 +968,6 @@ def predict_particle_and_segment(env: int, k: int, p: Prediction, q: wp.array2d(
     """Particle ``k`` and segment ``k`` of ``env`` (where they exist) predicted: ``integrate_particles_and_segments``'
     thread."""
     if k < q.shape[1]:
-        if p.use_delta != 0:
-            c = p.delta_count[env, k]
-            if c > 0:
-                d = wp.vec3(float(p.delta[env, k, 0]), float(p.delta[env, k, 1]), float(p.delta[env, k, 2]))
-                q[env, k] = q[env, k] + d / (p.delta_scale * float(c))
-                for a in range(3):
-                    p.delta[env, k, a] = wp.int64(0)
-                p.delta_count[env, k] = 0
         v_old = p.qd[env, k]
         if p.finish != 0:
             v_old = v_old + (q[env, k] - p.q_pred[env, k]) * p.inv_dt_prev
@@ -996,6 +987,24 @@ def integrate_particles_and_segments(pred: Prediction, q: wp.array2d(dtype=wp.ve
     ``finish_and_integrate_particles`` / ``_segments``: the same arithmetic on independent elements, one launch fewer
     per substep in a scene with rods (RopeThreading: 99 per env step)."""
     env, k = wp.tid()
+    predict_particle_and_segment(env, k, pred, q, sq)
+
+
+@wp.kernel
+def apply_deltas_and_integrate(pred: Prediction, q: wp.array2d(dtype=wp.vec3), sq: wp.array2d(dtype=wp.quat)):
+    """``integrate_particles_and_segments`` after adding to each particle the mean of the corrections a solver
+    deferred from the substep before (``pred.delta`` over ``pred.delta_count``, then cleared:
+    ``contact.apply_surface_deltas``' arithmetic), one launch instead of two (its own kernel: the plain prediction
+    keeps its 32 registers, sm_90)."""
+    env, k = wp.tid()
+    if k < q.shape[1]:
+        c = pred.delta_count[env, k]
+        if c > 0:
+            d = wp.vec3(float(pred.delta[env, k, 0]), float(pred.delta[env, k, 1]), float(pred.delta[env, k, 2]))
+            q[env, k] = q[env, k] + d / (pred.delta_scale * float(c))
+            for a in range(3):
+                pred.delta[env, k, a] = wp.int64(0)
+            pred.delta_count[env, k] = 0
     predict_particle_and_segment(env, k, pred, q, sq)
 
 
