@@ -652,8 +652,9 @@ class World:
         def defer_deltas(delta, count, scale: float, apply: tuple):
             """Record ``apply`` (``(kernel, dim, inputs, outputs)``: adds the mean of the fixed-point sums ``delta``
             (``(num_envs, particles, 3)`` int64, scaled by ``scale``) over ``count`` to each particle and clears both)
-            later: the next substep's prediction launch does it where it is ``xpbd.integrate_particles_and_segments``
-            and comes next (one launch fewer per substep); any other launch first launches ``apply``."""
+            later: the next substep's prediction does it where it would be ``xpbd.integrate_particles_and_segments``
+            and comes next (``xpbd.apply_deltas_and_integrate``, one launch fewer per substep); any other launch first
+            launches ``apply``."""
             flush()
             pending.append((delta, count, float(scale), tuple(apply)))
 
