@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # The next lease's GPU checks (written in the forty-sixth session), run as queue.sh's BESIDE on one H200 (an empty
-# queue: DEVICE cuda:0), each item skipped once DEADLINE (s, default 450) has passed, one round (the H200's same-call
+# queue: DEVICE cuda:0), each item skipped once DEADLINE (s, default 500) has passed, one round (the H200's same-call
 # spread is ~0.05 %). Three contact options, each off by default until timed here:
 # - surface_bounds "fused": a deforming surface's leaf and super-leaf boxes in one launch, a block per env, instead of
 #   two (ThreadInHole 0.95 ms per env step in them, 50 leaves; LigatingLoop 2.24 ms, 188 leaves);
@@ -15,25 +15,25 @@
 # DEVICE (cuda:0), NUM_ENVS (4096), JOBS, DEADLINE and QUEUE_DEADLINE override.
 set -u
 . train/device/beside_lib.sh  # beside_init, in_time, bench, run_queue
-DEADLINE=${DEADLINE:-450} beside_init /tmp/r/beside47
+DEADLINE=${DEADLINE:-500} beside_init /tmp/r/beside47
 d=benchmarks/results/session46
 tih_all=(--surface-bounds fused --surface-bounds-lanes 64 --contact-forces off --defer-surface-deltas on)
-ll_all=(--surface-bounds fused --surface-bounds-lanes 128 --contact-forces off --defer-surface-deltas on)
-if in_time tih; then
-  bench tih ThreadInHole expert
-  bench tih_f64 ThreadInHole expert --surface-bounds fused --surface-bounds-lanes 64
-  bench tih_noforce ThreadInHole expert --contact-forces off
-  bench tih_defer ThreadInHole expert --defer-surface-deltas on
-  bench tih_all ThreadInHole expert "${tih_all[@]}"
-fi
-if in_time ll; then
-  bench ll LigatingLoop expert
-  bench ll_f128 LigatingLoop expert --surface-bounds fused --surface-bounds-lanes 128
-  bench ll_f64 LigatingLoop expert --surface-bounds fused --surface-bounds-lanes 64
-  bench ll_noforce LigatingLoop expert --contact-forces off
-  bench ll_defer LigatingLoop expert --defer-surface-deltas on
-  bench ll_all LigatingLoop expert "${ll_all[@]}"
-fi
+# PREFIX TASK LANES...: the default, the fused bounds at each lane count, forces off, deferred deltas, all three (the
+# first lane count)
+for spec in "tih ThreadInHole 64" "ll LigatingLoop 128 64"; do
+  set -- $spec
+  prefix=$1 task=$2
+  shift 2
+  in_time "$prefix" || continue
+  bench "$prefix" "$task" expert
+  for lanes in "$@"; do
+    bench "${prefix}_f$lanes" "$task" expert --surface-bounds fused --surface-bounds-lanes "$lanes"
+  done
+  bench "${prefix}_noforce" "$task" expert --contact-forces off
+  bench "${prefix}_defer" "$task" expert --defer-surface-deltas on
+  bench "${prefix}_all" "$task" expert --surface-bounds fused --surface-bounds-lanes "$1" --contact-forces off \
+    --defer-surface-deltas on
+done
 if in_time rt; then
   bench rt RopeThreading expert
   bench rt_noforce RopeThreading expert --contact-forces off
