@@ -21,7 +21,10 @@ from __future__ import annotations
 import argparse
 import json
 import platform
+import shlex
+import sys
 import time
+from pathlib import Path
 
 import torch
 import warp as wp
@@ -295,7 +298,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--no-graph", action="store_true",
                         help="launch the step's kernels one by one instead of replaying a CUDA graph")
     parser.add_argument("--out", default=None, help="JSON output path")
+    parser.add_argument("--variant", action="append", default=[], metavar="NAME=ARGS",
+                        help="time the command's settings plus ARGS (more options of this script) as NAME, each "
+                             "variant in turn in this process (one start-up and one compile of the shared kernels for "
+                             "all); with --out each goes to NAME.json beside it and --out holds them all")
     args = parser.parse_args(argv)
+    if args.variant:
+        return run_variants(parser, list(sys.argv[1:] if argv is None else argv), args)
 
     wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)  # no per-module load lines
     wp.config.enable_cpu_blocks = True  # the 'hybrid' chain solve's lanes as Warp's fibers on a CPU
@@ -340,6 +349,46 @@ def main(argv: list[str] | None = None) -> int:
     if args.out:
         with open(args.out, "w") as f:
             json.dump(report, f, indent=2)
+    return 0
+
+
+def run_variants(parser: argparse.ArgumentParser, argv: list[str], args: argparse.Namespace) -> int:
+    """``--variant NAME=ARGS`` items: the command line without them (and without ``--out``) plus each variant's
+    ``ARGS``, timed one after another by :func:`main` in this process; every variant's arguments are parsed before the
+    first is timed, so a bad one fails at once. Prints ``variant NAME: <env-steps/s> <ms per step>`` per variant."""
+    base, skip = [], False
+    for item in argv:
+        if skip:
+            skip = False
+        elif item in ("--variant", "--out"):
+            skip = True
+        elif not item.startswith(("--variant=", "--out=")):
+            base.append(item)
+    out = Path(args.out) if args.out else None
+    runs = []
+    for item in args.variant:
+        name, sep, extra = item.partition("=")
+        if not sep or not name or not all(c.isalnum() or c in "._-" for c in name):
+            parser.error(f"--variant takes NAME=ARGS with a NAME of letters, digits, '.', '_' and '-', got {item!r}")
+        sub = [*base, *shlex.split(extra)]
+        if "--variant" in sub or any(a.startswith("--variant=") for a in sub):
+            parser.error(f"--variant {name}: a variant cannot name variants")
+        if out is not None:
+            sub += ["--out", str(out.with_name(f"{name}.json"))]
+        parser.parse_args(sub)  # exits with the parser's message on a bad variant, before anything is timed
+        runs.append((name, sub))
+    if len({name for name, _ in runs}) != len(runs):
+        parser.error("--variant names must differ")
+    summary = {}
+    for name, sub in runs:
+        print(f"== variant {name}: {shlex.join(sub)}", flush=True)
+        main(sub)
+        if out is not None:
+            summary[name] = json.loads(out.with_name(f"{name}.json").read_text())
+            r = summary[name]["results"][-1]
+            print(f"variant {name}: {r['env_steps_per_s']:,.0f} env-steps/s {r['step_ms']:.3f} ms", flush=True)
+    if out is not None:
+        out.write_text(json.dumps({"benchmark": "env_step_variants", "variants": summary}, indent=2))
     return 0
 
 

@@ -152,6 +152,26 @@ def test_bench_env_applies_and_records_the_contact_settings(device, tmp_path):
     assert r["env_steps_per_s"] > 0
 
 
+def test_bench_env_times_variants_in_one_process(device, tmp_path):
+    """``--variant NAME=ARGS``: each variant's settings on top of the command's, one after another, each written to
+    NAME.json beside ``--out`` and all of them into it; a malformed or duplicate variant is refused before anything is
+    timed."""
+    out = tmp_path / "all.json"
+    base = ["--device", device, "--task", "ThreadInHole", "--num-envs", "1", "--seconds", "0.05"]
+    assert bench_env.main([*base, "--variant", "plain=", "--variant", "nof=--contact-forces off --surface-bounds fused",
+                           "--out", str(out)]) == 0
+    plain = json.loads((tmp_path / "plain.json").read_text())["results"][0]
+    nof = json.loads((tmp_path / "nof.json").read_text())["results"][0]
+    assert plain["report_forces"] is True and plain["surface_bounds"] == "separate"
+    assert nof["report_forces"] is False and nof["surface_bounds"] == "fused"
+    assert sorted(json.loads(out.read_text())["variants"]) == ["nof", "plain"]
+    for bad in (["--variant", "a b=--no-graph"], ["--variant", "x=--no-such-flag"],
+                ["--variant", "x=", "--variant", "x=--no-graph"]):
+        with pytest.raises(SystemExit):
+            bench_env.main([*base, *bad, "--out", str(tmp_path / "bad.json")])
+        assert not (tmp_path / "x.json").exists()
+
+
 def test_bench_env_predicts_in_the_rod_sweep_where_asked(device, tmp_path):
     """``--predict-in-rod-sweep on|off`` moves a rods-only world's (RopeCutting's) substep prediction into its fused rod
     launch (RopeCutting's default since the forty-fourth session) or gives it its own; the result records where the

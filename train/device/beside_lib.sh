@@ -7,6 +7,8 @@
 #   in_time NAME                                         whether DEADLINE s since t0 have not passed (else says so)
 #   bench NAME TASK POLICY [bench_env.py options...]   one bench_env.py point (STATE, 3 s) into $out/NAME.json / .txt
 #   bench_old NAME TASK POLICY [options...]             the same on the old tree (PYTHONPATH=$old, set by the script)
+#   bench_variants LABEL TASK POLICY NAME=ARGS...        bench_env.py --variant: each variant's ARGS (options) timed in one
+#                                                        process (one start-up and compile) into $out/NAME.json
 #   profile TASK [LABEL [options...]]                    benchmarks/profile_step.py (5 steps after 20) into
 #                                                        $out/profile_LABEL.* (LABEL: TASK by default)
 #   soak TASK ENV_STEPS                                  benchmarks/soak.py (continuous random actions) into $out/soak_TASK.*
@@ -35,6 +37,16 @@ bench_on() {  # PYTHONPATH NAME TASK POLICY [options...]
 }
 
 bench() { bench_on "$new" "$@"; }
+
+bench_variants() {  # LABEL TASK POLICY NAME=ARGS...
+  local label=$1 task=$2 policy=$3 variants=()
+  shift 3
+  for v in "$@"; do variants+=(--variant "$v"); done
+  PYTHONPATH=$new python3 benchmarks/bench_env.py --task "$task" --device "$dev" --num-envs "$n" --seconds 3 \
+    --obs STATE --policy "$policy" "${variants[@]}" --out "$out/$label.json" > "$out/$label.txt" 2>&1
+  echo "$label rc=$?"
+  grep "^variant " "$out/$label.txt"
+}
 
 profile() {  # TASK [LABEL [profile_step.py options...]]
   local task=$1 label=${2:-$1}

@@ -17,33 +17,17 @@ set -u
 . train/device/beside_lib.sh  # beside_init, in_time, bench, run_queue
 DEADLINE=${DEADLINE:-500} beside_init /tmp/r/beside47
 d=benchmarks/results/session46
-tih_all=(--surface-bounds fused --surface-bounds-lanes 64 --contact-forces off --defer-surface-deltas on)
-# PREFIX TASK LANES...: the default, the fused bounds at each lane count, forces off, deferred deltas, all three (the
-# first lane count)
-for spec in "tih ThreadInHole 64" "ll LigatingLoop 128 64"; do
-  set -- $spec
-  prefix=$1 task=$2
-  shift 2
-  in_time "$prefix" || continue
-  bench "$prefix" "$task" expert
-  for lanes in "$@"; do
-    bench "${prefix}_f$lanes" "$task" expert --surface-bounds fused --surface-bounds-lanes "$lanes"
-  done
-  bench "${prefix}_noforce" "$task" expert --contact-forces off
-  bench "${prefix}_defer" "$task" expert --defer-surface-deltas on
-  bench "${prefix}_all" "$task" expert --surface-bounds fused --surface-bounds-lanes "$1" --contact-forces off \
-    --defer-surface-deltas on
-done
-if in_time rt; then
-  bench rt RopeThreading expert
-  bench rt_noforce RopeThreading expert --contact-forces off
-fi
-if in_time rgb; then
-  bench rgb_tih ThreadInHole expert --obs RGB
-  bench rgb_tih_all ThreadInHole expert --obs RGB "${tih_all[@]}"
-  bench rgb_rt RopeThreading expert --obs RGB
-  bench rgb_rt_noforce RopeThreading expert --obs RGB --contact-forces off
-fi
+all="--contact-forces off --defer-surface-deltas on --surface-bounds fused --surface-bounds-lanes"
+# each task's variants in one process (bench_variants: one start-up and compile for all): the default, the fused
+# bounds at each lane count, forces off, deferred deltas, all three
+in_time tih && bench_variants tih ThreadInHole expert "tih=" "tih_f64=--surface-bounds fused --surface-bounds-lanes 64" \
+  "tih_noforce=--contact-forces off" "tih_defer=--defer-surface-deltas on" "tih_all=$all 64"
+in_time ll && bench_variants ll LigatingLoop expert "ll=" "ll_f128=--surface-bounds fused --surface-bounds-lanes 128" \
+  "ll_f64=--surface-bounds fused --surface-bounds-lanes 64" "ll_noforce=--contact-forces off" \
+  "ll_defer=--defer-surface-deltas on" "ll_all=$all 128"
+in_time rt && bench_variants rt RopeThreading expert "rt=" "rt_noforce=--contact-forces off" \
+  "rgb_rt=--obs RGB" "rgb_rt_noforce=--obs RGB --contact-forces off"
+in_time rgb && bench_variants rgb_tih ThreadInHole expert "rgb_tih=--obs RGB" "rgb_tih_all=--obs RGB $all 64"
 if in_time pytest; then
   PYTHONPATH=$new timeout 150 python3 -m pytest -q -p no:cacheprovider tests/test_contact.py \
     -k "surface or forces or deferred" --device "$dev" > "$out/pytest_cuda.txt" 2>&1
