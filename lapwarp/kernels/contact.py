@@ -205,6 +205,29 @@ class CellGrid:
 # ----------------------------------------------------------------------------------------------------
 
 
+
+@wp.func
+def add_pair_force(reports: ContactReports, env: int, pair: int, impulse: float, solve: ParticleSolve):
+    """Add a contact's mass-weighted correction (``impulse``: penetration over the inverse masses) to its pair's force
+    over the step, unless forces are not reported (``solve.force_scale`` 0: ``ContactSystem.report_forces`` off, no
+    atomic add)."""
+    if solve.force_scale != 0.0:
+        wp.atomic_add(reports.report_force, env, pair, impulse * solve.force_scale)
+
+
+@wp.func
+def apply_mean_delta(env: int, i: int, delta: wp.array3d(dtype=wp.int64), count: wp.array2d(dtype=wp.int32),
+                     scale: float, q: wp.array2d(dtype=wp.vec3)):
+    """Move particle ``i`` by the mean of its corrections (Jacobi with averaging: the fixed-point sum ``delta[env, i]``
+    in units of ``1 / scale`` over ``count[env, i]`` contributions) and clear them; nothing where it has none."""
+    c = count[env, i]
+    if c > 0:
+        d = wp.vec3(float(delta[env, i, 0]), float(delta[env, i, 1]), float(delta[env, i, 2]))
+        q[env, i] = q[env, i] + d / (scale * float(c))
+        for a in range(3):
+            delta[env, i, a] = wp.int64(0)
+        count[env, i] = 0
+
 @wp.func
 def sdf_primitive(kind: int, params: wp.vec3, p: wp.vec3):
     """Signed distance and outward normal of a primitive shape (no mesh) at local point ``p`` (vec4: nx, ny, nz,
@@ -504,8 +527,7 @@ def particle_collision_kernel(meshes: bool) -> wp.Kernel:
                 tf0 = shape_pose(shapes, s, env, motion, motion.blend_prev)
                 xs0 = wp.transform_point(tf0, wp.transform_point(wp.transform_inverse(tf), x))
                 x = x + friction_correction((x - x0) - (x - xs0), n, pen, shapes.mu[s])
-                if solve.force_scale != 0.0:  # 0: forces not reported (ContactSystem.report_forces off)
-                    wp.atomic_add(reports.report_force, env, pair, pen / w * solve.force_scale)
+                add_pair_force(reports, env, pair, pen / w, solve)
                 moved = 1
         # only a moved particle is written: a particle in two groups (GraspLiftAndTouch's gallbladder surface meets the
         # instruments in one and the liver in another) has two threads here, and an unconditional write of the other
@@ -595,8 +617,7 @@ def collide_segment(
             dp = n * pen + friction_correction(rel, n, pen, shapes.mu[s])
             xa = xa + dp * node_share(1.0 - u, wa, wsum)
             xb = xb + dp * node_share(u, wb, wsum)
-            if solve.force_scale != 0.0:
-                wp.atomic_add(reports.report_force, env, pair, pen / wsum * solve.force_scale)
+            add_pair_force(reports, env, pair, pen / wsum, solve)
     q[env, a] = xa
     q[env, b] = xb
 
@@ -860,8 +881,7 @@ def collide_triangle_at(
         x0 = x0 + dp * node_share(bw[0], w0, wsum)
         x1 = x1 + dp * node_share(bw[1], w1, wsum)
         x2 = x2 + dp * node_share(bw[2], w2, wsum)
-        if solve.force_scale != 0.0:
-            wp.atomic_add(reports.report_force, env, pair, pen / wsum * solve.force_scale)
+        add_pair_force(reports, env, pair, pen / wsum, solve)
         touched = 1
     return x0, x1, x2, touched
 
@@ -1232,8 +1252,7 @@ def collide_surface(
             for axis in range(3):  # fixed point: integer sums do not depend on the order of the atomics
                 wp.atomic_add(surf_delta, env, t[j], axis, wp.int64(wp.round(share[axis] * SURFACE_DELTA_SCALE)))
             wp.atomic_add(surf_count, env, t[j], 1)
-    if solve.force_scale != 0.0:
-        wp.atomic_add(reports.report_force, env, pair, pen / (w + wt) * solve.force_scale)
+    add_pair_force(reports, env, pair, pen / (w + wt), solve)
 
 
 @wp.func
@@ -1329,14 +1348,7 @@ def apply_surface_deltas(verts: wp.array(dtype=wp.int32), surf_delta: wp.array3d
                          surf_count: wp.array2d(dtype=wp.int32), q: wp.array2d(dtype=wp.vec3)):
     # Jacobi with averaging: a vertex pushed by several particles moves by their mean correction
     env, k = wp.tid()
-    i = verts[k]
-    c = surf_count[env, i]
-    if c > 0:
-        d = wp.vec3(float(surf_delta[env, i, 0]), float(surf_delta[env, i, 1]), float(surf_delta[env, i, 2]))
-        q[env, i] = q[env, i] + d / (SURFACE_DELTA_SCALE * float(c))
-        for a in range(3):
-            surf_delta[env, i, a] = wp.int64(0)
-        surf_count[env, i] = 0
+    apply_mean_delta(env, verts[k], surf_delta, surf_count, SURFACE_DELTA_SCALE, q)
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -1384,8 +1396,7 @@ def report_pair_contact(env: int, k: int, c: wp.vec4, members: ParticleContactSe
     pair = members.pair[k]
     if pair >= 0:
         # each pair is seen from both sides: half the force per side
-        if solve.force_scale != 0.0:
-            wp.atomic_add(reports.report_force, env, pair, 0.5 * c[3] * solve.force_scale)
+        add_pair_force(reports, env, pair, 0.5 * c[3], solve)
         if report != 0:
             wp.atomic_add(reports.report_count, env, pair, 1)
 

@@ -20,6 +20,7 @@ on a uniform value, no memory traffic.
 
 import warp as wp
 
+from lapwarp.kernels.contact import apply_mean_delta
 from lapwarp.kernels.geodesic import ANCHOR_MASS_RATIO
 from lapwarp.kernels.geometry import interpolate_transform, twist_about
 
@@ -994,17 +995,11 @@ def integrate_particles_and_segments(pred: Prediction, q: wp.array2d(dtype=wp.ve
 def apply_deltas_and_integrate(pred: Prediction, q: wp.array2d(dtype=wp.vec3), sq: wp.array2d(dtype=wp.quat)):
     """``integrate_particles_and_segments`` after adding to each particle the mean of the corrections a solver
     deferred from the substep before (``pred.delta`` over ``pred.delta_count``, then cleared:
-    ``contact.apply_surface_deltas``' arithmetic), one launch instead of two (its own kernel: the plain prediction
-    keeps its 32 registers, sm_90)."""
+    ``contact.apply_mean_delta``, as ``contact.apply_surface_deltas`` does), one launch instead of two (its own
+    kernel: the plain prediction keeps its 32 registers, sm_90)."""
     env, k = wp.tid()
     if k < q.shape[1]:
-        c = pred.delta_count[env, k]
-        if c > 0:
-            d = wp.vec3(float(pred.delta[env, k, 0]), float(pred.delta[env, k, 1]), float(pred.delta[env, k, 2]))
-            q[env, k] = q[env, k] + d / (pred.delta_scale * float(c))
-            for a in range(3):
-                pred.delta[env, k, a] = wp.int64(0)
-            pred.delta_count[env, k] = 0
+        apply_mean_delta(env, k, pred.delta, pred.delta_count, pred.delta_scale, q)
     predict_particle_and_segment(env, k, pred, q, sq)
 
 
