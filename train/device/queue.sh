@@ -28,7 +28,8 @@ rm -rf /tmp/queue_code && mkdir -p /tmp/queue_code
 # wheels): its commands run from this copy
 if [ -d "$code/.device/small" ]; then
   mkdir -p /tmp/queue_code/.device/small
-  for tree in "$code"/.device/small/*/; do cp -r "$tree" /tmp/queue_code/.device/small/; done
+  # a .device/small holding only files (wheels) has no tree: the unmatched glob stays literal, so skip it
+  for tree in "$code"/.device/small/*/; do [ -d "$tree" ] || continue; cp -r "$tree" /tmp/queue_code/.device/small/; done
 fi
 export PYTHONUNBUFFERED=1 PYTHONPATH=/tmp/site:/tmp/queue_code
 export LAPWARP_COMMIT=${3:-}
