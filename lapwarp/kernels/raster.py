@@ -538,10 +538,13 @@ def shade_visibility(
     """One thread per (env, row, col): resolve the visibility buffer into the image outputs and clear it. With
     ``frame_rgb`` / ``frame_depth`` it also writes an observation frame ``(num_envs, C, H, W)`` in [0, 1]: the RGB
     bytes / 255, then depth / far (at most 1), as ``env_kernels.write_image_frame`` does in a launch of its own (the env
-    keeps that launch where a task draws overlays into the bytes after the shading)."""
+    keeps that launch where a task draws overlays into the bytes after the shading).
+
+    A covered pixel's key is cleared last, after every load: cleared first (before the triangle's and the view's
+    loads) the pass took twice as long on an H200 (ThreadInHole RGB, 4,096 envs: 1.15 ms against 0.55 ms without the
+    clear, forty-seventh session's probe); an empty pixel's key is already clear and is not written."""
     env, y, x = wp.tid()
     key = vbuf[env, y, x]
-    vbuf[env, y, x] = EMPTY_KEY
     if key == EMPTY_KEY:
         store_color(env, y, x, background_color, write_rgb, frame_rgb, rgb_out, frame_out)
         if write_depth != 0:
@@ -560,6 +563,7 @@ def shade_visibility(
     if write_seg != 0:
         seg_out[env, 0, y, x] = obj_seg[obj]
     if write_rgb == 0 and frame_rgb == 0:
+        vbuf[env, y, x] = EMPTY_KEY
         return
     idx = tri_vidx[tri]
     flags = obj_flags[obj]
@@ -617,6 +621,7 @@ def shade_visibility(
         albedo = wp.cw_mul(albedo, vc)
     lambert = wp.max(-wp.dot(n, d) / wp.sqrt(wp.dot(n, n) * wp.dot(d, d) + 1.0e-30), 0.0)
     store_color(env, y, x, albedo * (ambient + diffuse * lambert), write_rgb, frame_rgb, rgb_out, frame_out)
+    vbuf[env, y, x] = EMPTY_KEY
 
 
 @wp.kernel
