@@ -202,7 +202,9 @@ class ContactSystem:
         self.fuse_segment_colors = True
         # deforming surfaces' leaf and super-leaf boxes each sweep: "separate" (``ck.surface_leaf_bounds`` then
         # ``ck.surface_super_bounds``, a thread per box) or "fused" (``ck.surface_bounds_kernel``: one launch, a block
-        # of ``surface_bounds_lanes`` threads per env; the same boxes). Read when the World records a step
+        # of ``surface_bounds_lanes`` threads per env; the same boxes). H200, expert, 4,096 envs, same call:
+        # ThreadInHole 216.5k either way, LigatingLoop 101.8k -> 102.1k at 64 lanes, 101.6k at 128 (forty-seventh
+        # session; LigatingLoop takes it). Read when the World records a step
         self.surface_bounds = "separate"
         self.surface_bounds_lanes = 64
         # sum each pair's normal force over the step into ``report_force`` (``forces()``): an atomic add per contact
@@ -211,8 +213,10 @@ class ContactSystem:
         self.report_forces = True
         # a deforming surface's corrections (averaged per vertex) applied by the next substep's prediction launch where
         # the World can (its particles and rods predicted in one launch that comes next: World launch.defer_deltas)
-        # instead of a launch of their own; the same positions. Read when the World records a step
-        self.defer_surface_deltas = False
+        # instead of a launch of their own; the same positions. H200, expert, 4,096 envs, same call: ThreadInHole
+        # 216.5k -> 217.1k, LigatingLoop 101.8k -> 102.9k env-steps/s (forty-seventh session). Read when the World
+        # records a step
+        self.defer_surface_deltas = True
         self.shapes: list[Shape] = []
         self.groups: list[ParticleGroup] = []
         self.self_sets: list[dict] = []
@@ -528,6 +532,7 @@ class ContactSystem:
         # cutting masks of segments / triangles / particles: empty maps (one uniform branch) unless cuttable
         st = self.world.state
         self._no_col = wp.zeros(0, dtype=wp.int32, device=dev)
+        self._no_wakes = wp.zeros(0, dtype=wp.int32, device=dev)  # ParticleSolve.wakes where no tets are held
         self._no_mask = wp.zeros((1, 0), dtype=wp.int32, device=dev)
         self._dummy_mask = wp.zeros((1, 1), dtype=wp.int32, device=dev)
         self.seg_col = self._no_col
@@ -761,14 +766,38 @@ class ContactSystem:
     def _particle_solve(self, world, sweep) -> ck.ParticleSolve:
         # impulse m * dx / h summed over the sweeps, divided by the step duration -> mean force over the step; 0 where
         # forces are not reported (the kernels then skip their atomic adds)
-        key = (sweep.h, sweep.substeps, bool(self.report_forces))
+        hold = world.tet_hold_moving is not None
+        key = (sweep.h, sweep.substeps, bool(self.report_forces), hold)
         if key not in self._solves:
             h = sweep.h
             scale = 1.0 / (h * h * sweep.substeps) if self.report_forces else 0.0
+            wakes, moving = self._no_wakes, self._no_wakes
+            if hold:
+                wakes, moving = self._hold_wakes(world), world.tet_hold_moving
             self._solves[key] = make_struct(ck.ParticleSolve, inv_mass=world.model.particle_inv_mass,
                                             q_pred=world.predicted_positions, qd=world.state.particle_qd, h=h,
-                                            force_scale=scale)
+                                            force_scale=scale, wakes=wakes, moving=moving)
         return self._solves[key]
+
+    def _hold_wakes(self, world) -> wp.array:
+        """Per pair, 1 where its contacts move tet vertices (``World.tet_hold_speed``: a contact on a held body wakes
+        it, ``ck.add_pair_force``): a particle group holding one, a deforming surface of a tet mesh, a self-contact
+        set holding one."""
+        if not hasattr(self, "_wakes"):
+            tet = np.zeros(max(world.model.particle_count, 1), dtype=bool)
+            if world.model.tet_count:
+                tet[np.unique(world.model.tet_indices.numpy())] = True
+            wakes = np.zeros(max(self.num_pairs, 1), dtype=np.int32)
+            for s, sh in enumerate(self.shapes):
+                on_tets = sh.surface is not None and tet[np.asarray(sh.surface["tris"]).ravel()].any()
+                for g, group in enumerate(self.groups):
+                    p = int(self.pair_index.numpy()[s, g])
+                    if p >= 0 and (on_tets or tet[np.asarray(group.particles)].any()):
+                        wakes[p] = 1
+            for k, ss in enumerate(self.self_sets):
+                wakes[self._self_pair[k]] = int(tet[np.asarray(ss["particles"])].any())
+            self._wakes = wp.array(wakes, dtype=wp.int32, device=self.device)
+        return self._wakes
 
     #: how ``surface_bounds`` may form the deforming surfaces' boxes
     SURFACE_BOUNDS = ("separate", "fused")
