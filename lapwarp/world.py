@@ -237,6 +237,13 @@ class World:
         # block within 0.3 % of the converged sag, where XPBD needs ~300), else "xpbd" (the per-vertex solve moves a
         # free body as a whole only slowly). Tasks name theirs (measured speeds and expert rates depend on it)
         self.tet_method = "auto"
+        # resting tets held (xpbd.TetHold; the per-vertex solve "vbd", fused, its start in the prediction): an env whose
+        # tet vertices all moved slower than tet_hold_speed (m/s) at the start of tet_hold_substeps substeps in a row
+        # skips its tet sweep and rotation refresh, its tet vertices starting each substep at rest where they are,
+        # until one moves faster (a contact's push); 0 = off. It must stay above the rounding floor of a held vertex's
+        # velocity, ~ulp(|x|) / h (3.7e-9 m / 2.5e-3 s = 1.5e-6 m/s for a body 5 cm from the origin at h = 2.5 ms)
+        self.tet_hold_speed = 0.0
+        self.tet_hold_substeps = 10
         # register caps of the recorded step's kernels by their function's name (``{"collide_triangle_colors": 64}``;
         # launching.register_capped), for measuring what a cap does to a latency-bound kernel (bench_env.py
         # --max-registers): a name no kernel of the step has is an error when the step is recorded
@@ -303,6 +310,10 @@ class World:
         self._no_delta_count = wp.zeros((1, 0), dtype=wp.int32, device=dev)
         self._no_mask = wp.zeros((1, 0), dtype=wp.int32, device=dev)
         self._dummy_mask = wp.zeros((1, 1), dtype=wp.int32, device=dev)
+        # per env: substeps its tet vertices have been quiet (saturating at tet_hold_substeps) and whether one moved
+        # faster than tet_hold_speed at this substep's start (xpbd.TetHold)
+        self._hold_quiet = wp.zeros(n, dtype=wp.int32, device=dev)
+        self._hold_moving = wp.zeros(n, dtype=wp.int32, device=dev)
         #: ``(num_envs, particles)`` external forces (N), allocated by :meth:`enable_external_forces`
         self.particle_force = None
         self._lam = {}
@@ -518,7 +529,7 @@ class World:
                self.chain_pcr_rows, self.chain_lane_rows, self.tet_solver, self.tet_block_threads,
                self.model.attachments_distinct, self.rod_solver, self.rod_block_threads, self.integrate_together,
                self.predict_in_rod_sweep, self.chain_register_split, self.tet_method_in_use,
-               self._register_caps_key(),
+               self.tet_hold_speed, self.tet_hold_substeps, self._register_caps_key(),
                *(solver.record_key() for solver in self.solvers if hasattr(solver, "record_key")))
         if self._cmd_key != key:
             if int(self.iterations) > 1 and not self._lam:
@@ -557,6 +568,7 @@ class World:
                                      f"scene's longest chain has {longest} links, more than {PCR_MAX_LINKS}; use "
                                      f"'thomas'")
             self._check_rod_newton_tolerance()
+            self._check_tet_hold()
             if not 0 <= int(self.chain_pcr_threads) <= 1024:
                 raise ValueError(f"world.chain_pcr_threads must be in [0, 1024] (0: automatic), got "
                                  f"{self.chain_pcr_threads!r}")
@@ -610,6 +622,49 @@ class World:
                 raise ValueError(f"world.rod_newton_tolerance: the rod chains {first}..{first + count - 1} run the "
                                  f"serial walk (a loop, or longer than {chains_registers.MAX_LINKS} links), which "
                                  f"runs every Newton step; set the tolerance to 0")
+
+    def _check_tet_hold(self) -> None:
+        """``tet_hold_speed`` is a finite speed >= 0 and ``tet_hold_substeps`` an int >= 1; a hold (speed > 0) needs the
+        per-vertex tet solve, fused, with its start in the prediction (the launches that read the hold)."""
+        speed, after = self.tet_hold_speed, self.tet_hold_substeps
+        if isinstance(speed, bool) or not isinstance(speed, (int, float, np.integer, np.floating)) \
+                or not np.isfinite(speed) or speed < 0:
+            raise ValueError(f"world.tet_hold_speed must be a finite speed >= 0 (m/s; 0 = off), got {speed!r}")
+        if isinstance(after, bool) or not isinstance(after, (int, np.integer)) or not 1 <= after <= 2**30:
+            raise ValueError(f"world.tet_hold_substeps must be an int >= 1, got {after!r}")
+        if speed == 0:
+            return
+        if not self.model.tet_count or self.tet_method_in_use != "vbd" or not self.fused_tets \
+                or not self._vbd_start_in_prediction():
+            raise ValueError("world.tet_hold_speed holds resting tets of the per-vertex solve only where its sweep is "
+                             "fused and its start is in the prediction (tet_method 'vbd', tet_solver 'auto' or "
+                             f"'fused', no tethers or plain edges before the tets); this world has tet_count="
+                             f"{self.model.tet_count}, tet_method {self.tet_method_in_use!r}, fused "
+                             f"{self.fused_tets}: set tet_hold_speed to 0")
+
+    def _tet_hold(self):
+        """The recorded launches' ``xpbd.TetHold`` (``after`` 0 where the hold is off)."""
+        from lapwarp.kernels import xpbd
+
+        on = float(self.tet_hold_speed) > 0.0
+        return make_struct(xpbd.TetHold, quiet=self._hold_quiet, moving=self._hold_moving,
+                           after=int(self.tet_hold_substeps) if on else 0,
+                           speed2=float(self.tet_hold_speed) ** 2 if on else 0.0)
+
+    @property
+    def tet_hold_moving(self) -> wp.array | None:
+        """The per-env flags a contact on held tets sets (``xpbd.TetHold.moving``; ``contact.ParticleSolve``), or
+        None where the hold is off."""
+        return self._hold_moving if float(self.tet_hold_speed) > 0.0 else None
+
+    def wake_tets(self, env_mask: wp.array | None = None) -> None:
+        """Let the masked envs' (every env's without a mask) held tets (``tet_hold_speed``) be solved again from the
+        next substep on, until they are quiet for ``tet_hold_substeps`` substeps: for a task that writes their
+        positions or materials between steps. ``reset``, ``save_start_state``, ``set_materials`` and a stability
+        restore do it themselves (one launch; graph-capturable)."""
+        mask = env_mask if env_mask is not None else self._all_envs()
+        launching.launch(world_kernels.clear_masked_int, dim=self.num_envs, inputs=[mask],
+                         outputs=[self._hold_quiet], device=self.device)
 
     @property
     def register_caps(self) -> dict[str, int]:
@@ -702,9 +757,10 @@ class World:
         start_flags = self._vbd_start_flags if self._vbd_start_in_prediction() else self._no_map_i
         in_rod_sweep = self._predicts_in_rod_sweep()
         active, use_active, force, use_force = self._prediction_masks()
+        hold = self._tet_hold()
         for sub in range(substeps):
             particle_args = [m.particle_inv_mass, m.particle_damping, m.gravity, h, active, use_active, force,
-                             use_force, start_flags, s.particle_q, s.particle_qd]
+                             use_force, start_flags, hold, s.particle_q, s.particle_qd]
             prediction = None
             if m.segment_count and self.integrate_together:
                 # particles and segments in one launch (the same arithmetic on independent elements), or where nothing
@@ -716,7 +772,7 @@ class World:
                 prediction = make_struct(xpbd.Prediction, finish=int(sub > 0 and fuse), inv_dt_prev=1.0 / h,
                                          inv_mass=m.particle_inv_mass, damping=m.particle_damping, gravity=m.gravity,
                                          dt=h, active=active, use_active=use_active, force=force, use_force=use_force,
-                                         vbd_start=start_flags, qd=s.particle_qd, q_pred=self._q_pred,
+                                         vbd_start=start_flags, hold=hold, qd=s.particle_qd, q_pred=self._q_pred,
                                          inv_inertia=m.segment_inv_inertia, segment_damping=m.segment_damping,
                                          sqd=s.segment_qd, sq_prev=self._sq_prev, delta_scale=scale, delta=delta,
                                          delta_count=count)
@@ -974,8 +1030,8 @@ class World:
 
         m, s = self.model, self.state
         launch(xpbd.refresh_tet_rotations, (self.num_envs, m.tet_count),
-               [m.tet_indices, m.tet_inv_rest, tet_map, tet_mask, self.tet_rotation_iterations, s.particle_q],
-               [rotation])
+               [m.tet_indices, m.tet_inv_rest, tet_map, tet_mask, self.tet_rotation_iterations, self._tet_hold(),
+                s.particle_q], [rotation])
 
     def _record_vbd_sweep(self, launch, w_eff, inv_dt2: float, sweep: Sweep, tet_map, tet_mask, rotation,
                           lagged: bool, refresh: bool) -> None:
@@ -997,8 +1053,11 @@ class World:
         if self.fused_tets:
             first, count = self._tet_window
             threads = launching.block_lanes(dev, self.tet_block_threads)
-            launch(vbd.fused_vertex_kernel(count, lagged), (n, threads), [offsets_dev, first, *common],
-                   [rotation, s.particle_q], block_dim=threads)
+            # the substep's last sweep counts the env's quiet substeps (xpbd.TetHold)
+            hold_update = int(sweep.iteration == sweep.iterations - 1)
+            launch(vbd.fused_vertex_kernel(count, lagged), (n, threads),
+                   [offsets_dev, first, *common, self._tet_hold(), hold_update], [rotation, s.particle_q],
+                   block_dim=threads)
         else:
             for c in range(len(offsets) - 1):
                 launch(vbd.solve_vertices, (n, offsets[c + 1] - offsets[c]), [offsets[c], *common, int(lagged)],
@@ -1058,7 +1117,8 @@ class World:
                                  self._q_pred if finish_inv_dt > 0.0 else self._dummy_v3,
                                  self._sq_prev if finish_inv_dt > 0.0 and self._sq_prev is not None
                                  else self._no_rotation],
-                         outputs=[self._unstable_now, self.unstable], device=self.device, block_dim=lanes)
+                         outputs=[self._unstable_now, self.unstable, self._hold_quiet], device=self.device,
+                         block_dim=lanes)
 
     # ------------------------------------------------------------------------------------------------
     def _state_rows(self, state: State) -> world_kernels.StateRows:
@@ -1116,6 +1176,7 @@ class World:
         self._restore(env_mask)
         launching.launch(world_kernels.clear_masked_int, dim=self.num_envs, inputs=[env_mask], outputs=[self.unstable],
                          device=self.device)
+        self.wake_tets(env_mask)
         for solver in self.solvers:
             if hasattr(solver, "reset"):
                 solver.reset(env_mask)
@@ -1127,6 +1188,8 @@ class World:
         mask = env_mask if env_mask is not None else self._all_envs()
         self._copy_rows(mask, self.state, self._start_state, restore=False)
         self._copy_tet_rotations(mask, restore=False)
+        # a task's reset wrote this start (a randomised pose, a material): its tets are solved until they rest there
+        self.wake_tets(mask)
 
     def set_body_poses(self, poses: wp.array, bodies: wp.array, teleport_mask: wp.array | None = None) -> None:
         """Pose kinematic bodies: ``state.body_q[env, bodies[k]] = poses[env, k]`` for every env.
@@ -1183,6 +1246,7 @@ class World:
             elif name.endswith("damping") and damping is not None:
                 launching.launch(world_kernels.set_material_columns, dim=(n, columns.shape[0]),
                                  inputs=[env_mask, columns, damping], outputs=[out], device=dev)
+        self.wake_tets(env_mask)  # a held body rests where its old material held it
 
     def _scratch_reciprocal(self, key: str, values: wp.array) -> wp.array:
         if not hasattr(self, "_reciprocals"):

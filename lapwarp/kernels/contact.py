@@ -148,13 +148,17 @@ class ParticleSolve:
     """What a contact projection needs of the particles besides their positions: inverse masses (leading dim 1 or
     num_envs), the substep's predicted positions and the velocities the World keeps until its velocity update,
     the substep ``h`` and the factor turning a mass-weighted correction into a mean force over the step (0: forces not
-    reported, ``ContactSystem.report_forces`` off: the kernels skip their atomic adds into ``report_force``)."""
+    reported, ``ContactSystem.report_forces`` off: the kernels skip their atomic adds into ``report_force``). Where the
+    World holds resting tets (``World.tet_hold_speed``): ``wakes[pair]`` 1 where the pair's contacts move tet vertices
+    and the World's per-env ``moving`` flags (``xpbd.TetHold``), which such a contact sets (empty ``wakes``: none)."""
 
     inv_mass: wp.array2d(dtype=float)
     q_pred: wp.array2d(dtype=wp.vec3)
     qd: wp.array2d(dtype=wp.vec3)
     h: float
     force_scale: float
+    wakes: wp.array(dtype=wp.int32)
+    moving: wp.array(dtype=wp.int32)
 
 
 @wp.struct
@@ -210,7 +214,11 @@ class CellGrid:
 def add_pair_force(reports: ContactReports, env: int, pair: int, impulse: float, solve: ParticleSolve):
     """Add a contact's mass-weighted correction (``impulse``: penetration over the inverse masses) to its pair's force
     over the step, unless forces are not reported (``solve.force_scale`` 0: ``ContactSystem.report_forces`` off, no
-    atomic add)."""
+    atomic add). A correction of a pair that moves held tets' vertices flags the env as moving (``ParticleSolve``): a
+    body held under a load must be solved again when the load goes, which no velocity would show."""
+    if solve.wakes.shape[0] > 0:
+        if solve.wakes[pair] != 0:
+            solve.moving[env] = 1
     if solve.force_scale != 0.0:
         wp.atomic_add(reports.report_force, env, pair, impulse * solve.force_scale)
 

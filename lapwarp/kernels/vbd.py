@@ -36,7 +36,7 @@ instructions).
 
 import warp as wp
 
-from lapwarp.kernels.xpbd import cofactor, deformation_gradient, tet_removed, tet_strain
+from lapwarp.kernels.xpbd import TetHold, cofactor, deformation_gradient, tet_removed, tet_strain, tets_held
 
 wp.set_module_options({"enable_backward": False})
 
@@ -233,7 +233,9 @@ def fused_vertex_kernel(tile_particles: int, lagged: bool = False):
     vertex of the colour and writes it back into the tile (a block barrier per write); the arithmetic is
     ``solve_vertices``'s, in the same order (bit-identical on the CPU, where a block has one lane). ``lagged``
     (compile-time: the variant holds only its own branch's registers, sm_90 128 with both): the rotations refreshed at
-    the sweep's start (:func:`tet_vertex_terms_lagged`)."""
+    the sweep's start (:func:`tet_vertex_terms_lagged`). A held env (``xpbd.TetHold``: its vertices at rest, started
+    where they are by the prediction) returns at once; with ``hold_update`` (a substep's last sweep) lane 0 counts the
+    env's quiet substeps at the end, after every lane has read them (the colours' barriers come between)."""
     key = (int(tile_particles), bool(lagged))
     kernel = _FUSED_KERNELS.get(key)
     if kernel is not None:
@@ -257,10 +259,14 @@ def fused_vertex_kernel(tile_particles: int, lagged: bool = False):
         tet_element: wp.array(dtype=wp.int32),
         tet_active: wp.array2d(dtype=wp.int32),
         rotation_iterations: int,
+        hold: TetHold,
+        hold_update: int,
         tet_rotation: wp.array2d(dtype=wp.quat),
         q: wp.array2d(dtype=wp.vec3),
     ):
         env, lane = wp.tid()
+        if tets_held(hold, env):
+            return  # every lane: the same values, written by nobody during this launch
         lanes = wp.block_dim()
         xs = wp.tile_load(q[env], shape=P, offset=first, storage="shared")
         pe = env % inv_mass.shape[0]
@@ -306,6 +312,12 @@ def fused_vertex_kernel(tile_particles: int, lagged: bool = False):
                     x = vertex_step(wp.tile_extract(xs, i - first), q_pred[env, i], w, inv_dt2, f, H)
                 wp.tile_scatter_masked(xs, i - first, x, moves)
         wp.tile_store(q[env], xs, offset=first)
+        if hold_update != 0 and hold.after > 0 and lane == 0:
+            quiet = int(0)
+            if hold.moving[env] == 0:
+                quiet = wp.min(hold.quiet[env] + 1, hold.after)
+            hold.quiet[env] = quiet
+            hold.moving[env] = 0
 
     kernel = wp.kernel(solve_vertices_fused, module="unique", enable_backward=False)
     _FUSED_KERNELS[key] = kernel

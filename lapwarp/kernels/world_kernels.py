@@ -163,6 +163,7 @@ def check_and_restore(
     segment_q_prev: wp.array2d(dtype=wp.quat),
     flags_now: wp.array(dtype=wp.int32),
     unstable: wp.array(dtype=wp.int32),
+    hold_quiet: wp.array(dtype=wp.int32),
 ):
     """``World.check_stability`` in one launch, a thread block per env: an env is unstable when a particle's position
     or velocity is not finite, its speed exceeds ``max_speed`` or it is beyond 10^6 m (``flags_now``, and the sticky
@@ -173,7 +174,8 @@ def check_and_restore(
     (``body_q_prev``), which was a copy of its own per world step. With ``finish_inv_dt > 0`` it first runs the
     step's last velocity update (``xpbd.update_particle_velocities`` from ``q_pred``, ``update_segment_velocities``
     from ``segment_q_prev`` where that has columns), which was a launch or two of its own per world step: each lane
-    updates the particles it then checks, so no barrier comes between."""
+    updates the particles it then checks, so no barrier comes between. A restored env's held tets (``xpbd.TetHold``)
+    are solved again (``hold_quiet`` cleared)."""
     env, lane = wp.tid()
     lanes = wp.block_dim()
     q = live.particle_q
@@ -206,6 +208,8 @@ def check_and_restore(
     copy_row_elements(env, lane, lanes, width, start, live, body_q_prev, write_body_q_prev)
     for i in range(lane, rotation.shape[1], lanes):
         rotation[env, i] = start_rotation[env % start_rotation.shape[0], i]
+    if lane == 0:
+        hold_quiet[env] = 0
     if lane == 0 and live.cut_dirty.shape[1] > 0:
         # after this lane's own copy of the flag: the restored masks differ from what the cutting system last
         # counted, so its next update recomputes this env's surfaces, pieces and counters

@@ -32,6 +32,30 @@ wp.set_module_options({"enable_backward": False})
 # ----------------------------------------------------------------------------------------------------
 
 
+@wp.struct
+class TetHold:
+    """The per-vertex tet solve's resting envs (``World.tet_hold_speed``): an env whose tet vertices all moved slower
+    than ``sqrt(speed2)`` (m/s) at the start of ``after`` substeps in a row is *held*: its tet vertices start the next
+    substep exactly where they are, with no velocity, and its sweep (``vbd.fused_vertex_kernel``) and rotation
+    refresh are skipped, so a resting body costs nothing until something moves it. The prediction sets
+    ``moving[env]`` where a tet vertex is faster (a contact's push, the deltas applied there); the sweep then runs and
+    its last one of the substep counts ``quiet[env]`` (reset to 0 by that, saturating at ``after``) and clears
+    ``moving``. ``after`` 0: off (the arrays may then be empty)."""
+
+    quiet: wp.array(dtype=wp.int32)
+    moving: wp.array(dtype=wp.int32)
+    after: int
+    speed2: float
+
+
+@wp.func
+def tets_held(hold: TetHold, env: int) -> bool:
+    """Whether ``env``'s tet vertices are held this substep: quiet for ``hold.after`` substeps and none moving now."""
+    if hold.after == 0:
+        return False
+    return hold.quiet[env] >= hold.after and hold.moving[env] == 0
+
+
 @wp.func
 def integrate_particle(
     env: int,
@@ -46,6 +70,7 @@ def integrate_particle(
     force: wp.array2d(dtype=wp.vec3),
     use_force: int,
     vbd_start: wp.array(dtype=wp.int32),
+    hold: TetHold,
     q: wp.array2d(dtype=wp.vec3),
     qd: wp.array2d(dtype=wp.vec3),
     q_pred_out: wp.array2d(dtype=wp.vec3),
@@ -53,7 +78,9 @@ def integrate_particle(
     """Particle ``(env, i)``'s prediction from velocity ``v_old`` (see ``integrate_particles``). ``vbd_start``
     (per particle; empty: none) flags the per-vertex tet solve's vertices: they start their solve from the inertial
     guess without the external acceleration, ``x_pred - h^2 (g + w f)``, written here instead of by
-    ``vbd.begin_substep`` (the same arithmetic; ``World._record_step`` says when)."""
+    ``vbd.begin_substep`` (the same arithmetic; ``World._record_step`` says when). With ``hold`` on
+    (:class:`TetHold`) such a vertex faster than its speed flags its env as moving, and in a held env a slower one
+    starts at rest: no velocity, exactly where it is (what the sweep, skipped there, leaves it)."""
     x = q[env, i]
     w = inv_mass[env % inv_mass.shape[0], i]
     # a particle whose elements were all cut away (``active`` 0) belongs to nothing: it stays where it was (sofa_env
@@ -71,13 +98,25 @@ def integrate_particle(
     acc = gravity
     if use_force != 0:
         acc = acc + force[env, i] * w  # external force (World.particle_force), N
+    tet_vertex = False
+    if vbd_start.shape[0] > 0:
+        tet_vertex = vbd_start[i] != 0
+    if tet_vertex and hold.after > 0:
+        if wp.length_sq(v_old) > hold.speed2:
+            hold.moving[env] = 1  # a plain store: every writer writes 1
+        elif hold.quiet[env] >= hold.after:
+            # the prediction from rest (v_old = 0); the start is x itself, not x + h^2 a - h^2 a rounded, so a held
+            # vertex stays exactly where it is
+            v_rest = acc * dt
+            qd[env, i] = v_rest
+            q_pred_out[env, i] = x + v_rest * dt
+            return
     v = v_old / (1.0 + d * dt) + acc * dt
     qd[env, i] = v
     xp = x + v * dt
     start = xp
-    if vbd_start.shape[0] > 0:
-        if vbd_start[i] != 0:
-            start = xp - acc * (dt * dt)
+    if tet_vertex:
+        start = xp - acc * (dt * dt)
     q[env, i] = start
     q_pred_out[env, i] = xp
 
@@ -93,6 +132,7 @@ def integrate_particles(
     force: wp.array2d(dtype=wp.vec3),
     use_force: int,
     vbd_start: wp.array(dtype=wp.int32),
+    hold: TetHold,
     q: wp.array2d(dtype=wp.vec3),
     qd: wp.array2d(dtype=wp.vec3),
     q_pred_out: wp.array2d(dtype=wp.vec3),
@@ -100,7 +140,7 @@ def integrate_particles(
     """A substep's prediction: damping, gravity and external forces on the velocity, then the position."""
     env, i = wp.tid()
     integrate_particle(env, i, qd[env, i], inv_mass, damping, gravity, dt, active, use_active, force, use_force,
-                       vbd_start, q, qd, q_pred_out)
+                       vbd_start, hold, q, qd, q_pred_out)
 
 
 @wp.kernel
@@ -115,6 +155,7 @@ def finish_and_integrate_particles(
     force: wp.array2d(dtype=wp.vec3),
     use_force: int,
     vbd_start: wp.array(dtype=wp.int32),
+    hold: TetHold,
     q: wp.array2d(dtype=wp.vec3),
     qd: wp.array2d(dtype=wp.vec3),
     q_pred_out: wp.array2d(dtype=wp.vec3),
@@ -125,7 +166,7 @@ def finish_and_integrate_particles(
     env, i = wp.tid()
     v_old = qd[env, i] + (q[env, i] - q_pred_out[env, i]) * inv_dt_prev
     integrate_particle(env, i, v_old, inv_mass, damping, gravity, dt, active, use_active, force, use_force,
-                       vbd_start, q, qd, q_pred_out)
+                       vbd_start, hold, q, qd, q_pred_out)
 
 
 @wp.kernel
@@ -575,6 +616,7 @@ def refresh_tet_rotations(
     tet_element: wp.array(dtype=wp.int32),
     tet_active: wp.array2d(dtype=wp.int32),
     rotation_iterations: int,
+    hold: TetHold,
     q: wp.array2d(dtype=wp.vec3),
     tet_rotation: wp.array2d(dtype=wp.quat),
 ):
@@ -583,9 +625,9 @@ def refresh_tet_rotations(
     ``vbd.tet_vertex_terms_lagged``). Why: extracted inside the coloured sweep, the rotation is arithmetic on the
     sweep's serial path (XPBD: a block per env runs the colours one after another) or repeated by each of a tet's four
     vertices (the per-vertex solve); here every tet of every env runs at once. For a stiff or slowly moving body the
-    rotation barely changes within a sweep."""
+    rotation barely changes within a sweep. A held env's (:class:`TetHold`) stay: its vertices have not moved."""
     env, c = wp.tid()
-    if tet_removed(env, c, tet_element, tet_active):
+    if tet_removed(env, c, tet_element, tet_active) or tets_held(hold, env):
         return
     k = indices[c]
     F = deformation_gradient(q[env, k[0]], q[env, k[1]], q[env, k[2]], q[env, k[3]], inv_rest[c])
@@ -949,6 +991,7 @@ class Prediction:
     force: wp.array2d(dtype=wp.vec3)
     use_force: int
     vbd_start: wp.array(dtype=wp.int32)
+    hold: TetHold
     qd: wp.array2d(dtype=wp.vec3)
     q_pred: wp.array2d(dtype=wp.vec3)
     inv_inertia: wp.array2d(dtype=float)
@@ -973,7 +1016,7 @@ def predict_particle_and_segment(env: int, k: int, p: Prediction, q: wp.array2d(
         if p.finish != 0:
             v_old = v_old + (q[env, k] - p.q_pred[env, k]) * p.inv_dt_prev
         integrate_particle(env, k, v_old, p.inv_mass, p.damping, p.gravity, p.dt, p.active, p.use_active, p.force,
-                           p.use_force, p.vbd_start, q, p.qd, p.q_pred)
+                           p.use_force, p.vbd_start, p.hold, q, p.qd, p.q_pred)
     if k < sq.shape[1]:
         om_old = p.sqd[env, k]
         if p.finish != 0:

@@ -107,6 +107,10 @@ from lapwarp.world import World
 #: second Newton step runs only after a first that corrected a link by this much or more (skipped in 97-99.9 % of the
 #: expert's sweeps, CPU, those corrections <= 2.4e-7 m); H200, 4,096 envs, same call: 199.9k -> 204.9k env-steps/s
 THREAD_NEWTON_TOLERANCE = 3.0e-4
+#: the hole held at rest (``ThreadInHoleConfig.hole_hold_speed``, ``World.tet_hold_speed``): slower than 0.1 mm/s
+#: (its vertices' rounding floor is ~1.5e-6 m/s at h = 2.5 ms) for 10 substeps (2.5 physics steps) in a row
+HOLE_HOLD_SPEED = 1.0e-4
+HOLE_HOLD_SUBSTEPS = 10
 
 wp.set_module_options({"enable_backward": False})
 
@@ -174,6 +178,13 @@ class ThreadInHoleConfig(EnvConfig):
             env-steps/s (the refresh was 10.2 % of the step's kernel time); on the CPU the hole's sag 14.23 um against
             14.26 um at 1, the largest displacement of its top pushed by the thread 0.604 mm against 0.610 mm, and
             the expert 8 / 8 in each configuration.
+        hole_hold_speed: (m/s) the per-vertex solve's hole is held at rest (``World.tet_hold_speed``) in an env where
+            all its vertices moved slower than this for ``HOLE_HOLD_SUBSTEPS`` substeps in a row and no contact touched
+            it: its sweep and rotation refresh are skipped until the thread or the gripper touches it (or something
+            else moves it). The hole stands clamped and at rest unless pushed: the scripted expert never touched it
+            over 3 envs x 60 env steps (CPU; held at the end of 98 % of env steps, its vertices within 0.034 um of the
+            unheld solve's), nor did random actions over 8 envs x 150 steps. ``None`` (default): ``HOLE_HOLD_SPEED``
+            with ``hole_solver`` "vbd", 0 (off) with "xpbd" (which has no hold: a positive value raises ``ValueError``).
         gravity: m/s^2 along -z (sofa_env's -981 mm/s^2).
         poisson_ratio: thread and hole (sofa_env's 0.3).
         settle_steps: physics steps the thread settles at build (sofa_env's 50, after every reset).
@@ -215,6 +226,7 @@ class ThreadInHoleConfig(EnvConfig):
     hole_solver: Literal["vbd", "xpbd"] = "vbd"
     hole_rotation_update: Literal["vertex", "sweep"] = "sweep"
     hole_rotation_refresh: Count(10_000) = 4
+    hole_hold_speed: NonNegative | None = None
     gravity: NonNegative = 0.981
     poisson_ratio: Annotated[float, Range(ge=0.0, lt=0.5)] = 0.3
     settle_steps: Annotated[int, Range(ge=1, le=10_000)] = 50
@@ -231,6 +243,16 @@ class ThreadInHoleConfig(EnvConfig):
         if self.num_thread_tracking_points > self.thread_nodes:
             raise ValueError(f"num_thread_tracking_points={self.num_thread_tracking_points} exceeds the "
                              f"{self.thread_nodes} thread nodes of configuration {self.configuration!r}")
+        if self.hole_solver == "xpbd" and self.hole_hold_speed:
+            raise ValueError(f"hole_hold_speed={self.hole_hold_speed}: the hole is held at rest only with hole_solver "
+                             f"'vbd' (the XPBD tets have no hold); set it to 0 or None")
+
+    @property
+    def resolved_hole_hold_speed(self) -> float:
+        """``hole_hold_speed`` with None resolved (m/s; 0 = off)."""
+        if self.hole_hold_speed is not None:
+            return float(self.hole_hold_speed)
+        return HOLE_HOLD_SPEED if self.hole_solver == "vbd" else 0.0
 
     @property
     def thread_nodes(self) -> int:
@@ -715,6 +737,8 @@ class ThreadInHoleEnv(BatchedEnv):
         world.chain_register_split = bool(dev.is_cuda)
         world.tet_rotation_update = cfg.hole_rotation_update
         world.tet_rotation_refresh = cfg.hole_rotation_refresh
+        world.tet_hold_speed = cfg.resolved_hole_hold_speed
+        world.tet_hold_substeps = HOLE_HOLD_SUBSTEPS
         if cfg.hole_solver == "vbd" and cfg.hole_rotation_update == "sweep":
             # the lagged per-vertex sweep at 64 registers (80 without the cap, a 64 B spill frame with it; since the
             # forty-fifth session's stiffnesses 72 and 16 B, sm_90): 32 one-warp blocks per SM then hold 4,096 envs in
