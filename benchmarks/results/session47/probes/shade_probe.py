@@ -11,9 +11,17 @@ import warp as wp
 import lapwarp
 from lapwarp import launching
 from lapwarp.kernels import raster as R
-from lapwarp.kernels.raster import (EMPTY_KEY, FLAG_SMOOTH, FLAG_VERTEX_COLORS, KIND_RIGID, inverse_rigid_point,
-                                    inverse_rigid_vector, key_depth, key_triangle, store_color)
-
+from lapwarp.kernels.raster import (
+    EMPTY_KEY,
+    FLAG_SMOOTH,
+    FLAG_VERTEX_COLORS,
+    KIND_RIGID,
+    inverse_rigid_point,
+    inverse_rigid_vector,
+    key_depth,
+    key_triangle,
+    store_color,
+)
 
 
 def shade_bg_only(
@@ -580,7 +588,7 @@ def main():
     results["pre_ms"] = per
     print("pre launches (ms):", json.dumps(per))
     shade_ms = {}
-    for rnd in range(2):
+    for _round in range(2):
         for name, kernel in VARIANTS.items():
             shade_ms.setdefault(name, []).append(timed(kernel))
         for bd in (64, 128, 512):
