@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The forty-seventh session's quick call (one H200, after the lease), each item skipped once DEADLINE (s, default 400)
+# The forty-seventh session's quick call (one H200, after the lease), each item skipped once DEADLINE (s, default 330)
 # has passed; lines to stdout as they finish, files under $OUT/q47 packed into $OUT/q47.tgz:
 # 1. ThreadInHole (expert) with its hole held at rest (World.tet_hold_speed, the new default) against
 #    hole_hold_speed=0, STATE and RGB 64x64 (with the shading pass's clear last), and random actions;
@@ -10,7 +10,7 @@
 # 5. ThreadInHole's 10^7-step random-action soak with the hold.
 set -u
 . train/device/beside_lib.sh
-DEADLINE=${DEADLINE:-400} beside_init "$OUT/q47"
+DEADLINE=${DEADLINE:-330} beside_init "$OUT/q47"
 export PYTHONUNBUFFERED=1
 pack() { tar czf "$OUT/q47.tgz" -C "$OUT" q47; }
 in_time tih && bench_variants tih ThreadInHole expert "tih=" "tih_nohold=--set hole_hold_speed=0" \
