@@ -29,6 +29,7 @@ import ppo  # noqa: E402
 import profile_learner  # noqa: E402
 import profile_step  # noqa: E402
 import soak  # noqa: E402
+import tet_hold  # noqa: E402
 import visibility  # noqa: E402
 
 
@@ -247,6 +248,19 @@ def test_bench_env_replay_writes_json_and_checks_its_length(device, tmp_path, ca
     with pytest.raises(SystemExit):
         bench_env.main(["--device", device, "--task", "Reach", "--policy", "replay", "--replay-steps", "5"])
     assert "--replay-steps must exceed the 5 warm-up steps, got 5" in capsys.readouterr().err
+
+
+def test_tet_hold_counts_held_envs_and_refuses_a_world_without_a_hold(device, tmp_path, capsys):
+    # ThreadInHole's hole is held by default: after a step every env ends held or, just reset, solved; the shares are
+    # fractions and the JSON row names the hold; with the hold off there is nothing to count
+    out = tmp_path / "hold.json"
+    tet_hold.main(["--task", "ThreadInHole", "--device", device, "--num-envs", "2", "--steps", "3", "--out", str(out)])
+    row = json.loads(out.read_text())
+    assert (row["hold_speed"], row["hold_substeps"], len(row["held_per_step"])) == (1.0e-4, 10, 3)
+    assert 0.0 <= row["held_at_step_end"] <= 1.0 and row["held_per_step"][-1] == 1.0  # at rest, untouched
+    assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])["steps"] == 3
+    with pytest.raises(ValueError, match="holds no tets"):
+        tet_hold.hold_fractions("ThreadInHole", device, 1, 1, "expert", overrides={"hole_hold_speed": 0.0})
 
 
 def test_profile_step_records_warmup_timing_and_wall(device, tmp_path):
