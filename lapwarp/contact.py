@@ -602,6 +602,11 @@ class ContactSystem:
         # deforming surfaces: the triangles in a clustered order from the rest shape (shared topology) and every
         # env's leaf / super-leaf boxes, recomputed from the live positions before each query (SurfaceClusters)
         P = self.world.model.particle_count
+        # the tet vertices, for the World's hold of resting tets (World.tet_hold_speed): the pairs that wake it, the
+        # surfaces whose boxes stay while held
+        tet_particle = np.zeros(max(P, 1), dtype=bool)
+        if self.world.model.tet_count:
+            tet_particle[np.unique(self.world.model.tet_indices.numpy())] = True
         self._surfaces = []
         rest = self.world.state.particle_q.numpy()[0] if any(sh.surface for sh in self.shapes) else None
         for sidx, sh in enumerate(self.shapes):
@@ -629,13 +634,25 @@ class ContactSystem:
             self._surfaces.append(dict(verts=arr(verts.astype(np.int32), wp.int32), clusters=clusters, **boxes,
                                        leaf_vert_start=arr(clusters.leaf_vert_start, wp.int32),
                                        leaf_verts=arr(clusters.leaf_verts, wp.int32),
-                                       candidates=arr(np.asarray(cand, dtype=np.int32), wp.int32)))
+                                       candidates=arr(np.asarray(cand, dtype=np.int32), wp.int32),
+                                       on_tets=bool(tet_particle[verts].all())))
             sf = self._surfaces[-1]
             sf["surface"] = make_struct(
                 ck.ContactSurface, shape=sidx, tris=arr(t.astype(np.int32), wp.vec3i), owner_start=int(owner[0]),
                 owner_end=int(owner[1]), closed=int(sh.surface["closed"]), face_col=face_col, face_active=face_mask,
                 leaf_size=clusters.leaf_size, leaves_per_super=clusters.leaves_per_super,
                 leaf_vert_start=sf["leaf_vert_start"], leaf_verts=sf["leaf_verts"], **boxes)
+        # per pair, 1 where its contacts move tet vertices: a particle group holding one, a surface of tets, a
+        # self-contact set holding one (a contact on held tets wakes them: ck.add_pair_force)
+        wakes = np.zeros(max(self.num_pairs, 1), dtype=np.int32)
+        for s_, sh in enumerate(self.shapes):
+            on_tets = sh.surface is not None and tet_particle[np.asarray(sh.surface["tris"]).ravel()].any()
+            for g, group in enumerate(self.groups):
+                if pair[s_, g] >= 0 and (on_tets or tet_particle[np.asarray(group.particles)].any()):
+                    wakes[pair[s_, g]] = 1
+        for k, ss in enumerate(self.self_sets):
+            wakes[self._self_pair[k]] = int(tet_particle[np.asarray(ss["particles"])].any())
+        self._wakes = arr(wakes, wp.int32)
         if self._surfaces:
             self.surf_delta = wp.zeros((n, P, 3), dtype=wp.int64, device=dev)  # fixed point, see the kernel
             self.surf_count = wp.zeros((n, P), dtype=wp.int32, device=dev)
@@ -773,31 +790,16 @@ class ContactSystem:
             scale = 1.0 / (h * h * sweep.substeps) if self.report_forces else 0.0
             wakes, moving = self._no_wakes, self._no_wakes
             if hold:
-                wakes, moving = self._hold_wakes(world), world.tet_hold_moving
+                wakes, moving = self._wakes, world.tet_hold_moving
             self._solves[key] = make_struct(ck.ParticleSolve, inv_mass=world.model.particle_inv_mass,
                                             q_pred=world.predicted_positions, qd=world.state.particle_qd, h=h,
                                             force_scale=scale, wakes=wakes, moving=moving)
         return self._solves[key]
 
-    def _hold_wakes(self, world) -> wp.array:
-        """Per pair, 1 where its contacts move tet vertices (``World.tet_hold_speed``: a contact on a held body wakes
-        it, ``ck.add_pair_force``): a particle group holding one, a deforming surface of a tet mesh, a self-contact
-        set holding one."""
-        if not hasattr(self, "_wakes"):
-            tet = np.zeros(max(world.model.particle_count, 1), dtype=bool)
-            if world.model.tet_count:
-                tet[np.unique(world.model.tet_indices.numpy())] = True
-            wakes = np.zeros(max(self.num_pairs, 1), dtype=np.int32)
-            for s, sh in enumerate(self.shapes):
-                on_tets = sh.surface is not None and tet[np.asarray(sh.surface["tris"]).ravel()].any()
-                for g, group in enumerate(self.groups):
-                    p = int(self.pair_index.numpy()[s, g])
-                    if p >= 0 and (on_tets or tet[np.asarray(group.particles)].any()):
-                        wakes[p] = 1
-            for k, ss in enumerate(self.self_sets):
-                wakes[self._self_pair[k]] = int(tet[np.asarray(ss["particles"])].any())
-            self._wakes = wp.array(wakes, dtype=wp.int32, device=self.device)
-        return self._wakes
+    def _surface_hold(self, world, sf: dict):
+        """The ``TetHold`` a surface's box kernels read: the World's where it holds tets and every vertex of this
+        surface is a tet vertex (held with its env), else one that holds nothing."""
+        return world._tet_hold(off=not sf["on_tets"])
 
     #: how ``surface_bounds`` may form the deforming surfaces' boxes
     SURFACE_BOUNDS = ("separate", "fused")
@@ -926,16 +928,19 @@ class ContactSystem:
                 continue  # nothing queries this surface
             # every env's boxes as its vertices are now (after this sweep's constraints), then the queries
             clusters = sf["clusters"]
+            # a held env's boxes stay where the surface is of held tets (World.tet_hold_speed): unmoved since computed
+            hold = self._surface_hold(world, sf)
             if self.surface_bounds == "fused":
                 lanes = launching.block_lanes(self.device, self.surface_bounds_lanes)
                 launch(ck.surface_bounds_kernel(clusters.num_leaves), (n, lanes),
-                       [sf["leaf_vert_start"], sf["leaf_verts"], clusters.leaves_per_super, q],
+                       [sf["leaf_vert_start"], sf["leaf_verts"], clusters.leaves_per_super, q, hold],
                        [sf["leaf_lo"], sf["leaf_hi"], sf["super_lo"], sf["super_hi"]], block_dim=lanes)
             else:
-                launch(ck.surface_leaf_bounds, (n, clusters.num_leaves), [sf["leaf_vert_start"], sf["leaf_verts"], q],
-                       [sf["leaf_lo"], sf["leaf_hi"]])
+                launch(ck.surface_leaf_bounds, (n, clusters.num_leaves),
+                       [sf["leaf_vert_start"], sf["leaf_verts"], q, hold], [sf["leaf_lo"], sf["leaf_hi"]])
                 launch(ck.surface_super_bounds, (n, clusters.num_supers),
-                       [sf["leaf_lo"], sf["leaf_hi"], clusters.leaves_per_super], [sf["super_lo"], sf["super_hi"]])
+                       [sf["leaf_lo"], sf["leaf_hi"], clusters.leaves_per_super, hold],
+                       [sf["super_lo"], sf["super_hi"]])
             launch(ck.collide_surface, (n, len(sf["candidates"])),
                    [self._particles, sf["candidates"], sf["surface"], shapes, solve, masks, report, self.report_margin],
                    [q, self.surf_delta, self.surf_count, reports])

@@ -642,11 +642,11 @@ class World:
                              f"{self.model.tet_count}, tet_method {self.tet_method_in_use!r}, fused "
                              f"{self.fused_tets}: set tet_hold_speed to 0")
 
-    def _tet_hold(self):
-        """The recorded launches' ``xpbd.TetHold`` (``after`` 0 where the hold is off)."""
+    def _tet_hold(self, off: bool = False):
+        """The recorded launches' ``xpbd.TetHold`` (``after`` 0 where the hold is off, or with ``off``)."""
         from lapwarp.kernels import xpbd
 
-        on = float(self.tet_hold_speed) > 0.0
+        on = float(self.tet_hold_speed) > 0.0 and not off
         return make_struct(xpbd.TetHold, quiet=self._hold_quiet, moving=self._hold_moving,
                            after=int(self.tet_hold_substeps) if on else 0,
                            speed2=float(self.tet_hold_speed) ** 2 if on else 0.0)

@@ -506,11 +506,37 @@ def test_hole_held_at_rest_wakes_under_the_thread():
         runs[speed] = (env.world.tet_hold_speed, np.array(push), np.array(quiet), state(env)["hole"][0])
     (speed, push, quiet, hole), (off, push_ref, _, hole_ref) = runs[None], runs[0.0]
     assert (speed, off) == (HOLE_HOLD_SPEED, 0.0)
-    assert quiet[0] == HOLE_HOLD_SUBSTEPS, quiet[:5]  # held above the wall
+    assert quiet[0] == HOLE_HOLD_SUBSTEPS + 1, quiet[:5]  # held (its sweep skipped) above the wall
     assert (quiet[10:] == 0).all(), quiet  # woken, and kept awake by the resting thread
     assert push.max() > 3e-4 and push.max() == pytest.approx(push_ref.max(), rel=0.03), (push.max(), push_ref.max())
     assert np.abs(push - push_ref).max() < 5e-6
     assert np.abs(hole - hole_ref).max() < 1e-6
+
+
+@pytest.mark.parametrize("bounds", ["separate", "fused"])
+def test_held_hole_keeps_its_contact_boxes(bounds):
+    """A held env's hole surface boxes are not recomputed (``contact.surface_leaf_bounds`` returns for it): after 3
+    expert steps (held from the 10th substep on) every env's leaf and super-leaf boxes equal those of its vertices as
+    they are (min / max, exact), with the boxes computed by either launch form."""
+    env = make(num_envs=2)
+    env.contact.surface_bounds = bounds
+    expert = ThreadInHoleExpert(env)
+    for _ in range(3):
+        env.step(expert())
+    assert (env.world._hold_quiet.numpy() == HOLE_HOLD_SUBSTEPS + 1).all()  # held, its sweeps skipped
+    sf = env.contact._surfaces[0]
+    clusters, q = sf["clusters"], env.world.state.particle_q.numpy()
+    for e in range(2):
+        lo, hi = [], []
+        for leaf in range(clusters.num_leaves):
+            v = q[e, clusters.leaf_verts[clusters.leaf_vert_start[leaf]:clusters.leaf_vert_start[leaf + 1]]]
+            lo.append(v.min(axis=0))
+            hi.append(v.max(axis=0))
+        np.testing.assert_array_equal(sf["leaf_lo"].numpy()[e], np.array(lo))
+        np.testing.assert_array_equal(sf["leaf_hi"].numpy()[e], np.array(hi))
+        per = clusters.leaves_per_super
+        np.testing.assert_array_equal(sf["super_lo"].numpy()[e],
+                                      [np.min(lo[k:k + per], axis=0) for k in range(0, len(lo), per)])
 
 
 def test_thread_does_not_tunnel_into_the_wall_at_full_speed():

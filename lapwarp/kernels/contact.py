@@ -22,7 +22,6 @@ and ``force`` (summed normal force averaged over the step, N) are accumulated wi
 
 import warp as wp
 
-# closest_segment_segment is re-exported here for callers that import it from this module
 from lapwarp.kernels.geometry import (
     BodyMotion,
     body_pose,
@@ -31,6 +30,9 @@ from lapwarp.kernels.geometry import (
     closest_segment_triangle,
     safe_normalize,
 )
+
+# closest_segment_segment is re-exported here for callers that import it from this module
+from lapwarp.kernels.hold import TetHold, tets_held_now
 
 wp.set_module_options({"enable_backward": False})
 
@@ -1278,10 +1280,14 @@ def leaf_box(leaf_vert_start: wp.array(dtype=wp.int32), leaf_verts: wp.array(dty
 
 @wp.kernel
 def surface_leaf_bounds(leaf_vert_start: wp.array(dtype=wp.int32), leaf_verts: wp.array(dtype=wp.int32),
-                        q: wp.array2d(dtype=wp.vec3), leaf_lo: wp.array2d(dtype=wp.vec3),
+                        q: wp.array2d(dtype=wp.vec3), hold: TetHold, leaf_lo: wp.array2d(dtype=wp.vec3),
                         leaf_hi: wp.array2d(dtype=wp.vec3)):
-    """Each env's leaf boxes from its vertices as they are now (a thread per env and leaf)."""
+    """Each env's leaf boxes from its vertices as they are now (a thread per env and leaf). A held env's (``hold``:
+    the surface of held tets, ``after`` 0 otherwise; ``hold.tets_held_now``) stay as they are: its vertices have not
+    moved since they were computed."""
     env, leaf = wp.tid()
+    if tets_held_now(hold, env):
+        return
     lo, hi = leaf_box(leaf_vert_start, leaf_verts, q, env, leaf)
     leaf_lo[env, leaf] = lo
     leaf_hi[env, leaf] = hi
@@ -1289,10 +1295,13 @@ def surface_leaf_bounds(leaf_vert_start: wp.array(dtype=wp.int32), leaf_verts: w
 
 @wp.kernel
 def surface_super_bounds(leaf_lo: wp.array2d(dtype=wp.vec3), leaf_hi: wp.array2d(dtype=wp.vec3),
-                         leaves_per_super: int, super_lo: wp.array2d(dtype=wp.vec3),
+                         leaves_per_super: int, hold: TetHold, super_lo: wp.array2d(dtype=wp.vec3),
                          super_hi: wp.array2d(dtype=wp.vec3)):
-    """Each env's super-leaf boxes: the union of their leaves' boxes (a thread per env and super leaf)."""
+    """Each env's super-leaf boxes: the union of their leaves' boxes (a thread per env and super leaf); a held env's
+    stay (``surface_leaf_bounds``)."""
     env, s = wp.tid()
+    if tets_held_now(hold, env):
+        return
     lo = wp.vec3(1.0e30)
     hi = wp.vec3(-1.0e30)
     for leaf in range(s * leaves_per_super, wp.min((s + 1) * leaves_per_super, leaf_lo.shape[1])):
@@ -1311,17 +1320,20 @@ def surface_bounds_kernel(num_leaves: int) -> wp.Kernel:
     leaves (each leaf's box from its vertices, written out and kept in shared memory), then the super leaves (each the
     union of its leaves' boxes, read from shared memory). The same boxes (a minimum or maximum is exact in any order),
     one launch per sweep instead of two and no pass over the leaf boxes in global memory; launch ``(num_envs,
-    lanes)`` with ``block_dim=lanes`` (on the CPU one lane takes every leaf, then every super leaf)."""
+    lanes)`` with ``block_dim=lanes`` (on the CPU one lane takes every leaf, then every super leaf). A held env's boxes
+    stay (``surface_leaf_bounds``)."""
     L = int(num_leaves)
     kernel = _SURFACE_BOUNDS_KERNELS.get(L)
     if kernel is not None:
         return kernel
 
     def surface_bounds(leaf_vert_start: wp.array(dtype=wp.int32), leaf_verts: wp.array(dtype=wp.int32),
-                       leaves_per_super: int, q: wp.array2d(dtype=wp.vec3), leaf_lo: wp.array2d(dtype=wp.vec3),
-                       leaf_hi: wp.array2d(dtype=wp.vec3), super_lo: wp.array2d(dtype=wp.vec3),
-                       super_hi: wp.array2d(dtype=wp.vec3)):
+                       leaves_per_super: int, q: wp.array2d(dtype=wp.vec3), hold: TetHold,
+                       leaf_lo: wp.array2d(dtype=wp.vec3), leaf_hi: wp.array2d(dtype=wp.vec3),
+                       super_lo: wp.array2d(dtype=wp.vec3), super_hi: wp.array2d(dtype=wp.vec3)):
         env, lane = wp.tid()
+        if tets_held_now(hold, env):
+            return  # every lane: the same values
         lanes = wp.block_dim()
         los = wp.tile_zeros(shape=L, dtype=wp.vec3, storage="shared")
         his = wp.tile_zeros(shape=L, dtype=wp.vec3, storage="shared")

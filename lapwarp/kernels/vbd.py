@@ -36,7 +36,8 @@ instructions).
 
 import warp as wp
 
-from lapwarp.kernels.xpbd import TetHold, cofactor, deformation_gradient, tet_removed, tet_strain, tets_held
+from lapwarp.kernels.hold import TetHold, tets_held
+from lapwarp.kernels.xpbd import cofactor, deformation_gradient, tet_removed, tet_strain
 
 wp.set_module_options({"enable_backward": False})
 
@@ -234,8 +235,9 @@ def fused_vertex_kernel(tile_particles: int, lagged: bool = False):
     ``solve_vertices``'s, in the same order (bit-identical on the CPU, where a block has one lane). ``lagged``
     (compile-time: the variant holds only its own branch's registers, sm_90 128 with both): the rotations refreshed at
     the sweep's start (:func:`tet_vertex_terms_lagged`). A held env (``xpbd.TetHold``: its vertices at rest, started
-    where they are by the prediction) returns at once; with ``hold_update`` (a substep's last sweep) lane 0 counts the
-    env's quiet substeps at the end, after every lane has read them (the colours' barriers come between)."""
+    where they are by the prediction) returns at once, marked as skipped with ``hold_update`` (a substep's last
+    sweep); otherwise lane 0 counts the env's quiet substeps at the end, after every lane has read them (the colours'
+    barriers come between)."""
     key = (int(tile_particles), bool(lagged))
     kernel = _FUSED_KERNELS.get(key)
     if kernel is not None:
@@ -266,7 +268,10 @@ def fused_vertex_kernel(tile_particles: int, lagged: bool = False):
     ):
         env, lane = wp.tid()
         if tets_held(hold, env):
-            return  # every lane: the same values, written by nobody during this launch
+            # every lane returns: lane 0's mark (after + 1, xpbd.TetHold) is read as held by a lane reading it late
+            if hold_update != 0 and lane == 0:
+                hold.quiet[env] = hold.after + 1
+            return
         lanes = wp.block_dim()
         xs = wp.tile_load(q[env], shape=P, offset=first, storage="shared")
         pe = env % inv_mass.shape[0]

@@ -23,6 +23,7 @@ import warp as wp
 from lapwarp.kernels.contact import apply_mean_delta
 from lapwarp.kernels.geodesic import ANCHOR_MASS_RATIO
 from lapwarp.kernels.geometry import interpolate_transform, twist_about
+from lapwarp.kernels.hold import TetHold, tets_held
 
 wp.set_module_options({"enable_backward": False})
 
@@ -30,30 +31,6 @@ wp.set_module_options({"enable_backward": False})
 # ----------------------------------------------------------------------------------------------------
 # particles
 # ----------------------------------------------------------------------------------------------------
-
-
-@wp.struct
-class TetHold:
-    """The per-vertex tet solve's resting envs (``World.tet_hold_speed``): an env whose tet vertices all moved slower
-    than ``sqrt(speed2)`` (m/s) at the start of ``after`` substeps in a row is *held*: its tet vertices start the next
-    substep exactly where they are, with no velocity, and its sweep (``vbd.fused_vertex_kernel``) and rotation
-    refresh are skipped, so a resting body costs nothing until something moves it. The prediction sets
-    ``moving[env]`` where a tet vertex is faster (a contact's push, the deltas applied there); the sweep then runs and
-    its last one of the substep counts ``quiet[env]`` (reset to 0 by that, saturating at ``after``) and clears
-    ``moving``. ``after`` 0: off (the arrays may then be empty)."""
-
-    quiet: wp.array(dtype=wp.int32)
-    moving: wp.array(dtype=wp.int32)
-    after: int
-    speed2: float
-
-
-@wp.func
-def tets_held(hold: TetHold, env: int) -> bool:
-    """Whether ``env``'s tet vertices are held this substep: quiet for ``hold.after`` substeps and none moving now."""
-    if hold.after == 0:
-        return False
-    return hold.quiet[env] >= hold.after and hold.moving[env] == 0
 
 
 @wp.func
