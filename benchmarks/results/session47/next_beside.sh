@@ -7,7 +7,8 @@
 # 2. how many envs end a step held on the GPU (benchmarks/tet_hold.py, expert and random actions, 4,096 envs): the
 #    held vertex sweep still cost 1.49 ms of its unheld 9.59 in the forty-seventh session's profile, as if ~15 % of the
 #    envs were solved, where the CPU's expert ends 2 % of env steps awake (those just reset);
-# 3. GPU tests of the hold (a pressed block against the unheld solve; the hole's boxes kept while held);
+# 3. GPU tests of the hold (a pressed block against the unheld solve; the hole's boxes kept while held), after
+# 4. a probe of the particle contact launch (below);
 # then the learning queue JOBS (next_jobs_beside.txt) until QUEUE_DEADLINE (s, default 1450): PrecisionCutting's random
 # sine with the paper's 4 stacked state frames (~1,072 s on an H200).
 # DEVICE (cuda:0), NUM_ENVS (4096), JOBS, DEADLINE and QUEUE_DEADLINE override.
@@ -22,6 +23,15 @@ for policy in expert random; do
     PYTHONPATH=$new timeout 120 python3 benchmarks/tet_hold.py --task ThreadInHole --device "$dev" --num-envs "$n" \
       --steps 100 --policy $policy --out "$out/hold_$policy.json" > "$out/hold_$policy.txt" 2>&1
     echo "hold_$policy rc=$? $(tail -1 "$out/hold_$policy.txt" | cut -c1-300)"
+  }
+done
+# 4. where the particle contact launch's time goes (RopeThreading 5.2 ms per env step, ThreadInHole 1.5, LigatingLoop
+#    3.7): one recorded launch replayed with variants (loads only, culls only, no friction, no reports), CUDA events
+for task in RopeThreading ThreadInHole LigatingLoop; do
+  in_time "contact_$task" && {
+    PYTHONPATH=$new timeout 100 python3 $d/probes/contact_probe.py $task "$n" "$out/contact_$task.json" "$dev" \
+      > "$out/contact_$task.txt" 2>&1
+    echo "contact_$task rc=$? $(grep -E '^(as_is|cp_)' "$out/contact_$task.txt" | tr '\n' ' ')"
   }
 done
 if in_time pytest; then
