@@ -237,11 +237,12 @@ class World:
         # block within 0.3 % of the converged sag, where XPBD needs ~300), else "xpbd" (the per-vertex solve moves a
         # free body as a whole only slowly). Tasks name theirs (measured speeds and expert rates depend on it)
         self.tet_method = "auto"
-        # resting tets held (xpbd.TetHold; the per-vertex solve "vbd", fused, its start in the prediction): an env whose
-        # tet vertices all moved slower than tet_hold_speed (m/s) at the start of tet_hold_substeps substeps in a row
-        # skips its tet sweep and rotation refresh, its tet vertices starting each substep at rest where they are,
-        # until one moves faster (a contact's push); 0 = off. It must stay above the rounding floor of a held vertex's
-        # velocity, ~ulp(|x|) / h (3.7e-9 m / 2.5e-3 s = 1.5e-6 m/s for a body 5 cm from the origin at h = 2.5 ms)
+        # resting tets held (kernels/hold.py TetHold; the per-vertex solve "vbd", fused, its start in the prediction):
+        # an env whose tet vertices all moved slower than tet_hold_speed (m/s) at the start of tet_hold_substeps
+        # substeps in a row, untouched, skips its tet sweep, rotation refresh and surface boxes, its tet vertices
+        # starting each substep at rest where they are, until one moves faster or a contact touches them; 0 = off. It
+        # must stay above the rounding floor of a held vertex's velocity, ~ulp(|x|) / h (3.7e-9 m / 2.5e-3 s =
+        # 1.5e-6 m/s for a body 5 cm from the origin at h = 2.5 ms)
         self.tet_hold_speed = 0.0
         self.tet_hold_substeps = 10
         # register caps of the recorded step's kernels by their function's name (``{"collide_triangle_colors": 64}``;
@@ -310,8 +311,8 @@ class World:
         self._no_delta_count = wp.zeros((1, 0), dtype=wp.int32, device=dev)
         self._no_mask = wp.zeros((1, 0), dtype=wp.int32, device=dev)
         self._dummy_mask = wp.zeros((1, 1), dtype=wp.int32, device=dev)
-        # per env: substeps its tet vertices have been quiet (saturating at tet_hold_substeps) and whether one moved
-        # faster than tet_hold_speed at this substep's start (xpbd.TetHold)
+        # per env: substeps its tet vertices have been quiet (saturating at tet_hold_substeps, one past it once its
+        # sweep skipped it) and whether one moved faster than tet_hold_speed or a contact touched them (hold.TetHold)
         self._hold_quiet = wp.zeros(n, dtype=wp.int32, device=dev)
         self._hold_moving = wp.zeros(n, dtype=wp.int32, device=dev)
         #: ``(num_envs, particles)`` external forces (N), allocated by :meth:`enable_external_forces`
@@ -643,17 +644,17 @@ class World:
                              f"{self.fused_tets}: set tet_hold_speed to 0")
 
     def _tet_hold(self, off: bool = False):
-        """The recorded launches' ``xpbd.TetHold`` (``after`` 0 where the hold is off, or with ``off``)."""
-        from lapwarp.kernels import xpbd
+        """The recorded launches' ``hold.TetHold`` (``after`` 0 where the hold is off, or with ``off``)."""
+        from lapwarp.kernels.hold import TetHold
 
         on = float(self.tet_hold_speed) > 0.0 and not off
-        return make_struct(xpbd.TetHold, quiet=self._hold_quiet, moving=self._hold_moving,
+        return make_struct(TetHold, quiet=self._hold_quiet, moving=self._hold_moving,
                            after=int(self.tet_hold_substeps) if on else 0,
                            speed2=float(self.tet_hold_speed) ** 2 if on else 0.0)
 
     @property
     def tet_hold_moving(self) -> wp.array | None:
-        """The per-env flags a contact on held tets sets (``xpbd.TetHold.moving``; ``contact.ParticleSolve``), or
+        """The per-env flags a contact on held tets sets (``hold.TetHold.moving``; ``contact.ParticleSolve``), or
         None where the hold is off."""
         return self._hold_moving if float(self.tet_hold_speed) > 0.0 else None
 
@@ -1053,7 +1054,7 @@ class World:
         if self.fused_tets:
             first, count = self._tet_window
             threads = launching.block_lanes(dev, self.tet_block_threads)
-            # the substep's last sweep counts the env's quiet substeps (xpbd.TetHold)
+            # the substep's last sweep counts the env's quiet substeps or marks it skipped (hold.TetHold)
             hold_update = int(sweep.iteration == sweep.iterations - 1)
             launch(vbd.fused_vertex_kernel(count, lagged), (n, threads),
                    [offsets_dev, first, *common, self._tet_hold(), hold_update], [rotation, s.particle_q],

@@ -1,4 +1,4 @@
-"""Resting tets held (``World.tet_hold_speed``, ``xpbd.TetHold``): an env whose per-vertex-solved tets have been at
+"""Resting tets held (``World.tet_hold_speed``, ``hold.TetHold``): an env whose per-vertex-solved tets have been at
 rest for ``tet_hold_substeps`` substeps skips their sweep until something moves them.
 
 Scene: a soft tet block (E = 30 kPa, clamped base) sagging under gravity, and per env a kinematic sphere 8 mm above

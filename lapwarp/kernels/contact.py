@@ -152,7 +152,7 @@ class ParticleSolve:
     the substep ``h`` and the factor turning a mass-weighted correction into a mean force over the step (0: forces not
     reported, ``ContactSystem.report_forces`` off: the kernels skip their atomic adds into ``report_force``). Where the
     World holds resting tets (``World.tet_hold_speed``): ``wakes[pair]`` 1 where the pair's contacts move tet vertices
-    and the World's per-env ``moving`` flags (``xpbd.TetHold``), which such a contact sets (empty ``wakes``: none)."""
+    and the World's per-env ``moving`` flags (``hold.TetHold``), which such a contact sets (empty ``wakes``: none)."""
 
     inv_mass: wp.array2d(dtype=float)
     q_pred: wp.array2d(dtype=wp.vec3)

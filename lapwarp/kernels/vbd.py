@@ -234,7 +234,7 @@ def fused_vertex_kernel(tile_particles: int, lagged: bool = False):
     vertex of the colour and writes it back into the tile (a block barrier per write); the arithmetic is
     ``solve_vertices``'s, in the same order (bit-identical on the CPU, where a block has one lane). ``lagged``
     (compile-time: the variant holds only its own branch's registers, sm_90 128 with both): the rotations refreshed at
-    the sweep's start (:func:`tet_vertex_terms_lagged`). A held env (``xpbd.TetHold``: its vertices at rest, started
+    the sweep's start (:func:`tet_vertex_terms_lagged`). A held env (``hold.TetHold``: its vertices at rest, started
     where they are by the prediction) returns at once, marked as skipped with ``hold_update`` (a substep's last
     sweep); otherwise lane 0 counts the env's quiet substeps at the end, after every lane has read them (the colours'
     barriers come between)."""
@@ -268,7 +268,7 @@ def fused_vertex_kernel(tile_particles: int, lagged: bool = False):
     ):
         env, lane = wp.tid()
         if tets_held(hold, env):
-            # every lane returns: lane 0's mark (after + 1, xpbd.TetHold) is read as held by a lane reading it late
+            # every lane returns: lane 0's mark (after + 1, hold.TetHold) is read as held by a lane reading it late
             if hold_update != 0 and lane == 0:
                 hold.quiet[env] = hold.after + 1
             return

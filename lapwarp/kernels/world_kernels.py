@@ -174,7 +174,7 @@ def check_and_restore(
     (``body_q_prev``), which was a copy of its own per world step. With ``finish_inv_dt > 0`` it first runs the
     step's last velocity update (``xpbd.update_particle_velocities`` from ``q_pred``, ``update_segment_velocities``
     from ``segment_q_prev`` where that has columns), which was a launch or two of its own per world step: each lane
-    updates the particles it then checks, so no barrier comes between. A restored env's held tets (``xpbd.TetHold``)
+    updates the particles it then checks, so no barrier comes between. A restored env's held tets (``hold.TetHold``)
     are solved again (``hold_quiet`` cleared)."""
     env, lane = wp.tid()
     lanes = wp.block_dim()
