@@ -13,6 +13,7 @@ import warp as wp
 from lapwarp.assets import box_tets, cloth_grid, rod_circle, rod_polyline
 from lapwarp.builder import SceneBuilder
 from lapwarp.contact import ContactSystem
+from lapwarp.kernels.hold import TetHold
 from lapwarp.surface_clusters import SurfaceClusters
 
 
@@ -474,7 +475,9 @@ def test_fused_surface_bounds_kernel_gives_each_leafs_and_super_leafs_box(device
     """``ck.surface_bounds_kernel`` (a block per env) on random positions: each leaf's box is its vertices' minimum and
     maximum, each super leaf's the union of its leaves' (numpy), in each env, with fewer lanes than leaves (several
     passes), a lane per leaf-ish and one lane. On the CPU the lanes are Warp's cooperative fibers with real barriers
-    (``wp.config.enable_cpu_blocks``)."""
+    (``wp.config.enable_cpu_blocks``). With a hold of resting tets (``hold.TetHold``) an env whose sweep skipped it
+    (quiet one past the limit, nothing moving) keeps its boxes (left at zero here), and the separate launches do the
+    same; an env at the limit (its sweep has just solved it) or flagged moving is computed."""
     monkeypatch.setattr(wp.config, "enable_cpu_blocks", True)
     from lapwarp.kernels import contact as ck
 
@@ -485,22 +488,37 @@ def test_fused_surface_bounds_kernel_gives_each_leafs_and_super_leafs_box(device
     xs, ys = np.meshgrid(np.arange(n + 1.0), np.arange(n + 1.0), indexing="ij")
     c = SurfaceClusters(tris, np.stack([xs.ravel(), ys.ravel(), np.zeros(xs.size)], axis=1), leaf_size=5)
     assert c.num_leaves % c.leaves_per_super != 0  # a short last super leaf
-    envs, L, S = 3, c.num_leaves, c.num_supers
+    envs, L, S = 5, c.num_leaves, c.num_supers
     q = np.random.default_rng(0).normal(size=(envs, (n + 1) ** 2, 3)).astype(np.float32)
+    starts = wp.array(c.leaf_vert_start.astype(np.int32), device=device)
+    verts = wp.array(c.leaf_verts.astype(np.int32), device=device)
+    qa = wp.array(q, dtype=wp.vec3, device=device)
+    # env 0: no hold; 1: held (skipped); 2: at the limit, just solved; 3: held but touched since; 4: held
+    hold = TetHold()
+    hold.quiet = wp.array([0, 3, 2, 3, 3], dtype=wp.int32, device=device)
+    hold.moving = wp.array([0, 0, 0, 1, 0], dtype=wp.int32, device=device)
+    hold.after, hold.speed2 = 2, 1.0
+    computed = [0, 2, 3]
     out = [wp.zeros((envs, k), dtype=wp.vec3, device=device) for k in (L, L, S, S)]
-    wp.launch(ck.surface_bounds_kernel(L), (envs, lanes),
-              [wp.array(c.leaf_vert_start.astype(np.int32), device=device),
-               wp.array(c.leaf_verts.astype(np.int32), device=device), c.leaves_per_super,
-               wp.array(q, dtype=wp.vec3, device=device)], out, block_dim=lanes, device=device)
+    wp.launch(ck.surface_bounds_kernel(L), (envs, lanes), [starts, verts, c.leaves_per_super, qa, hold], out,
+              block_dim=lanes, device=device)
+    separate = [wp.zeros((envs, k), dtype=wp.vec3, device=device) for k in (L, L, S, S)]
+    wp.launch(ck.surface_leaf_bounds, (envs, L), [starts, verts, qa, hold], separate[:2], device=device)
+    wp.launch(ck.surface_super_bounds, (envs, S), [separate[0], separate[1], c.leaves_per_super, hold], separate[2:],
+              device=device)
+    for a, b in zip(out, separate, strict=True):
+        np.testing.assert_array_equal(a.numpy(), b.numpy())
     leaf_lo, leaf_hi, super_lo, super_hi = (a.numpy() for a in out)
+    for held in (1, 4):
+        assert not any(a[held].any() for a in (leaf_lo, leaf_hi, super_lo, super_hi))
     for leaf in range(L):
-        v = q[:, c.leaf_verts[c.leaf_vert_start[leaf]:c.leaf_vert_start[leaf + 1]]]
-        np.testing.assert_array_equal(leaf_lo[:, leaf], v.min(axis=1))
-        np.testing.assert_array_equal(leaf_hi[:, leaf], v.max(axis=1))
+        v = q[computed][:, c.leaf_verts[c.leaf_vert_start[leaf]:c.leaf_vert_start[leaf + 1]]]
+        np.testing.assert_array_equal(leaf_lo[computed, leaf], v.min(axis=1))
+        np.testing.assert_array_equal(leaf_hi[computed, leaf], v.max(axis=1))
     for s in range(S):
         leaves = slice(s * c.leaves_per_super, min((s + 1) * c.leaves_per_super, L))
-        np.testing.assert_array_equal(super_lo[:, s], leaf_lo[:, leaves].min(axis=1))
-        np.testing.assert_array_equal(super_hi[:, s], leaf_hi[:, leaves].max(axis=1))
+        np.testing.assert_array_equal(super_lo[computed, s], leaf_lo[computed][:, leaves].min(axis=1))
+        np.testing.assert_array_equal(super_hi[computed, s], leaf_hi[computed][:, leaves].max(axis=1))
 
 
 def test_fused_surface_bounds_step_as_the_two_launches(device):
