@@ -297,10 +297,12 @@ def test_tracking_points(name, count, tracking):
     (dict(num_thread_tracking_points=13), "exceeds the 12 thread nodes"),
     (dict(configuration="inverted", num_thread_tracking_points=13), "exceeds the 12 thread nodes"),
     (dict(configuration="flexible", num_thread_tracking_points=21), "num_thread_tracking_points"),
+    (dict(hole_solver="xpbd", hole_hold_speed=1e-4), "only with hole_solver 'vbd'"),
+    (dict(hole_hold_speed=-1e-4), "hole_hold_speed"),
 ])
 def test_invalid_configuration_raises(overrides, message):
-    """An unknown configuration name, or more tracking points than the thread has nodes, raises ValueError naming the
-    problem (before anything is built)."""
+    """An unknown configuration name, more tracking points than the thread has nodes, or a hole hold with the XPBD
+    hole (which has none) or below zero raises ValueError naming the problem (before anything is built)."""
     with pytest.raises(ValueError, match=message):
         make(**overrides)
 
