@@ -977,7 +977,7 @@ class Renderer:
             nodes = self._as_array(p, wp.vec3, (n, t.num_nodes), "tube_nodes")
             launching.launch(
                 raster.generate_tube,
-                dim=nodes.shape,
+                dim=(n, t.num_nodes * t.sides),
                 inputs=[nodes, t.radius, t.sides, int(t.caps), d.vert_begin],
                 outputs=[self._def_points, self._def_normals],
                 device=dev,

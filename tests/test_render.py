@@ -427,6 +427,48 @@ def test_tube_width_and_orientation(device):
     assert (seg[:, 0] == 3).sum() == column.sum()  # straight tube: same width across the image
 
 
+@pytest.mark.parametrize("caps", [0, 1])
+def test_tube_vertices_ring_each_node(device, caps):
+    """``raster.generate_tube`` (a thread per ring vertex) on a random polyline in 2 envs, with a repeated node (a
+    zero tangent) and a run along -z: ring vertex ``s`` of node ``i`` lies at the tube radius from the node (1e-6 m)
+    with its unit normal pointing at it, orthogonal to the node's central-difference tangent, the ring's vertices
+    ``2 pi / sides`` apart in angle; with caps the two extra vertices sit on the end nodes, normals along -t / +t.
+    Vertices before ``vert_begin`` are not written."""
+    from lapwarp.kernels import raster
+
+    rng = np.random.default_rng(3)
+    n, N, sides, radius, begin = 2, 23, 7, 0.004, 5
+    nodes = rng.normal(scale=0.05, size=(n, N, 3))
+    nodes[0, 8:10] = nodes[0, 7]
+    nodes[1, 12:, :] = nodes[1, 12] - np.outer(np.arange(N - 12), [0.0, 0.0, 0.01])
+    total = begin + N * sides + 2
+    pts = wp.zeros((n, total), dtype=wp.vec3, device=device)
+    nrm = wp.zeros((n, total), dtype=wp.vec3, device=device)
+    wp.launch(raster.generate_tube, dim=(n, N * sides),
+              inputs=[wp.array(nodes.astype(np.float32), dtype=wp.vec3, device=device), radius, sides, caps, begin],
+              outputs=[pts, nrm], device=device)
+    P, R = pts.numpy().astype(np.float64), nrm.numpy().astype(np.float64)
+    assert not P[:, :begin].any() and not R[:, :begin].any()
+    ring_p = P[:, begin:begin + N * sides].reshape(n, N, sides, 3)
+    ring_n = R[:, begin:begin + N * sides].reshape(n, N, sides, 3)
+    np.testing.assert_allclose(np.linalg.norm(ring_p - nodes[:, :, None], axis=-1), radius, atol=1e-6)
+    np.testing.assert_allclose(np.linalg.norm(ring_n, axis=-1), 1.0, atol=1e-5)
+    np.testing.assert_allclose(ring_p, nodes[:, :, None] + radius * ring_n, atol=1e-6)
+    tangent = nodes[:, np.minimum(np.arange(N) + 1, N - 1)] - nodes[:, np.maximum(np.arange(N) - 1, 0)]
+    moving = np.linalg.norm(tangent, axis=-1) > 0
+    t = tangent / np.where(moving, np.linalg.norm(tangent, axis=-1), 1.0)[..., None]
+    assert np.abs(np.einsum("ekd,eksd->eks", t, ring_n)[moving]).max() < 1e-5
+    cos = np.einsum("eksd,eksd->eks", ring_n, np.roll(ring_n, -1, axis=2))
+    np.testing.assert_allclose(cos, math.cos(2 * math.pi / sides), atol=1e-5)
+    cap_p, cap_n = P[:, -2:], R[:, -2:]
+    if caps:
+        np.testing.assert_allclose(cap_p, nodes[:, [0, N - 1]], atol=1e-7)
+        np.testing.assert_allclose(cap_n[:, 0], -t[:, 0], atol=1e-6)
+        np.testing.assert_allclose(cap_n[:, 1], t[:, N - 1], atol=1e-6)
+    else:
+        assert not cap_p.any() and not cap_n.any()
+
+
 def test_object_visibility_and_per_env_colors(device):
     r = Renderer(2, 8, 8, fov=40.0, device=device, outputs=("rgb", "segmentation"))
     plane = r.add_instance(r.add_mesh(*quad(3.0), color=(1, 1, 1), seg_id=1), color=(0.5, 0.5, 0.5))

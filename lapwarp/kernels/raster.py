@@ -693,10 +693,15 @@ def generate_tube(
     points_out: wp.array2d(dtype=wp.vec3),
     normals_out: wp.array2d(dtype=wp.vec3),
 ):
-    """Ring of ``sides`` vertices (and analytic radial normals) around node i of a polyline; with caps,
-    two extra centre vertices close the ends. The ring frame is Frisvad's orthonormal basis of the local
-    tangent: no sequential frame propagation, continuous except for tangents close to -Z."""
-    env, i = wp.tid()
+    """Vertex ``s`` of the ring of ``sides`` vertices (and analytic radial normals) around node ``i`` of a polyline,
+    a thread per ring vertex (launch ``(num_envs, nodes * sides)``): neighbouring threads write neighbouring vertices
+    (a thread per node writing its whole ring wrote ``sides`` vertices apart across a warp: RopeThreading RGB, 4,096
+    envs, 0.27 ms per frame, H200). With caps, two extra centre vertices close the ends (written by the first and last
+    ring's vertex 0). The ring frame is Frisvad's orthonormal basis of the local tangent: no sequential frame
+    propagation, continuous except for tangents close to -Z."""
+    env, v = wp.tid()
+    i = v / sides
+    s = v - i * sides
     n = nodes.shape[1]
     prev = wp.max(i - 1, 0)
     nxt = wp.min(i + 1, n - 1)
@@ -714,12 +719,11 @@ def generate_tube(
         b1 = wp.vec3(1.0 - t[0] * t[0] * h, k, -t[0])
         b2 = wp.vec3(k, 1.0 - t[1] * t[1] * h, -t[1])
     p = nodes[env, i]
-    for s in range(sides):
-        ang = 2.0 * wp.pi * float(s) / float(sides)
-        radial = wp.cos(ang) * b1 + wp.sin(ang) * b2
-        points_out[env, vert_begin + i * sides + s] = p + radius * radial
-        normals_out[env, vert_begin + i * sides + s] = radial
-    if caps != 0:
+    ang = 2.0 * wp.pi * float(s) / float(sides)
+    radial = wp.cos(ang) * b1 + wp.sin(ang) * b2
+    points_out[env, vert_begin + v] = p + radius * radial
+    normals_out[env, vert_begin + v] = radial
+    if caps != 0 and s == 0:
         if i == 0:
             points_out[env, vert_begin + n * sides] = p
             normals_out[env, vert_begin + n * sides] = -t
