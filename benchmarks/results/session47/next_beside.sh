@@ -18,6 +18,10 @@ DEADLINE=${DEADLINE:-300} beside_init /tmp/r/beside48
 d=benchmarks/results/session47
 in_time tih && bench_variants tih ThreadInHole expert "tih=" "tih_nohold=--set hole_hold_speed=0" "rgb_tih=--obs RGB"
 in_time profile && profile ThreadInHole
+# RopeThreading RGB with its tube written a thread per ring vertex (generate_tube: 0.27 ms per frame before; the
+# forty-seventh session's quick call: 188.3k) and its profile
+in_time rt && bench_variants rt RopeThreading expert "rgb_rt=--obs RGB"
+in_time profile_rt && profile RopeThreading RopeThreading_RGB --set observation_type=RGB
 for policy in expert random; do
   in_time "hold_$policy" && {
     PYTHONPATH=$new timeout 120 python3 benchmarks/tet_hold.py --task ThreadInHole --device "$dev" --num-envs "$n" \
