@@ -532,7 +532,6 @@ class ContactSystem:
         # cutting masks of segments / triangles / particles: empty maps (one uniform branch) unless cuttable
         st = self.world.state
         self._no_col = wp.zeros(0, dtype=wp.int32, device=dev)
-        self._no_wakes = wp.zeros(0, dtype=wp.int32, device=dev)  # ParticleSolve.wakes where no tets are held
         self._no_mask = wp.zeros((1, 0), dtype=wp.int32, device=dev)
         self._dummy_mask = wp.zeros((1, 1), dtype=wp.int32, device=dev)
         self.seg_col = self._no_col
@@ -788,18 +787,13 @@ class ContactSystem:
         if key not in self._solves:
             h = sweep.h
             scale = 1.0 / (h * h * sweep.substeps) if self.report_forces else 0.0
-            wakes, moving = self._no_wakes, self._no_wakes
+            wakes, moving = self._no_col, self._no_col  # empty: no tets are held
             if hold:
                 wakes, moving = self._wakes, world.tet_hold_moving
             self._solves[key] = make_struct(ck.ParticleSolve, inv_mass=world.model.particle_inv_mass,
                                             q_pred=world.predicted_positions, qd=world.state.particle_qd, h=h,
                                             force_scale=scale, wakes=wakes, moving=moving)
         return self._solves[key]
-
-    def _surface_hold(self, world, sf: dict):
-        """The ``TetHold`` a surface's box kernels read: the World's where it holds tets and every vertex of this
-        surface is a tet vertex (held with its env), else one that holds nothing."""
-        return world._tet_hold(off=not sf["on_tets"])
 
     #: how ``surface_bounds`` may form the deforming surfaces' boxes
     SURFACE_BOUNDS = ("separate", "fused")
@@ -928,8 +922,9 @@ class ContactSystem:
                 continue  # nothing queries this surface
             # every env's boxes as its vertices are now (after this sweep's constraints), then the queries
             clusters = sf["clusters"]
-            # a held env's boxes stay where the surface is of held tets (World.tet_hold_speed): unmoved since computed
-            hold = self._surface_hold(world, sf)
+            # a held env's boxes stay where every vertex of the surface is a tet vertex (World.tet_hold_speed): unmoved
+            # since computed; any other surface's boxes are always computed
+            hold = world._tet_hold(off=not sf["on_tets"])
             if self.surface_bounds == "fused":
                 lanes = launching.block_lanes(self.device, self.surface_bounds_lanes)
                 launch(ck.surface_bounds_kernel(clusters.num_leaves), (n, lanes),

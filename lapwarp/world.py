@@ -315,6 +315,7 @@ class World:
         # sweep skipped it) and whether one moved faster than tet_hold_speed or a contact touched them (hold.TetHold)
         self._hold_quiet = wp.zeros(n, dtype=wp.int32, device=dev)
         self._hold_moving = wp.zeros(n, dtype=wp.int32, device=dev)
+        self._tet_holds: dict = {}  # the TetHold struct per hold setting (_tet_hold)
         #: ``(num_envs, particles)`` external forces (N), allocated by :meth:`enable_external_forces`
         self.particle_force = None
         self._lam = {}
@@ -644,13 +645,16 @@ class World:
                              f"{self.fused_tets}: set tet_hold_speed to 0")
 
     def _tet_hold(self, off: bool = False):
-        """The recorded launches' ``hold.TetHold`` (``after`` 0 where the hold is off, or with ``off``)."""
+        """The recorded launches' ``hold.TetHold`` (``after`` 0 where the hold is off, or with ``off``), one struct
+        per setting (built on the host, read by the launches recorded with it)."""
         from lapwarp.kernels.hold import TetHold
 
-        on = float(self.tet_hold_speed) > 0.0 and not off
-        return make_struct(TetHold, quiet=self._hold_quiet, moving=self._hold_moving,
-                           after=int(self.tet_hold_substeps) if on else 0,
-                           speed2=float(self.tet_hold_speed) ** 2 if on else 0.0)
+        on = self.tet_hold_moving is not None and not off
+        key = (float(self.tet_hold_speed), int(self.tet_hold_substeps)) if on else None
+        if key not in self._tet_holds:
+            self._tet_holds[key] = make_struct(TetHold, quiet=self._hold_quiet, moving=self._hold_moving,
+                                               after=key[1] if on else 0, speed2=key[0] ** 2 if on else 0.0)
+        return self._tet_holds[key]
 
     @property
     def tet_hold_moving(self) -> wp.array | None:

@@ -1016,7 +1016,8 @@ def apply_deltas_and_integrate(pred: Prediction, q: wp.array2d(dtype=wp.vec3), s
     """``integrate_particles_and_segments`` after adding to each particle the mean of the corrections a solver
     deferred from the substep before (``pred.delta`` over ``pred.delta_count``, then cleared:
     ``contact.apply_mean_delta``, as ``contact.apply_surface_deltas`` does), one launch instead of two (its own
-    kernel: the plain prediction keeps its 32 registers, sm_90)."""
+    kernel, so that the plain prediction carries no delta loads; sm_90: 38 registers each since the hold's branch, 32
+    and 34 before it)."""
     env, k = wp.tid()
     if k < q.shape[1]:
         apply_mean_delta(env, k, pred.delta, pred.delta_count, pred.delta_scale, q)
