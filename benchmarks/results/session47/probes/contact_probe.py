@@ -345,6 +345,9 @@ def main():
     task, n, out = sys.argv[1], int(sys.argv[2]), sys.argv[3]
     device = sys.argv[4] if len(sys.argv) > 4 else "cuda:0"
     reps = 30 if device.startswith("cuda") else 2
+    # the events are recorded on the current device's stream: on cuda:1 (the forty-eighth session's lease) without
+    # this they timed cuda:0's idle stream (2.9 us for every variant)
+    wp.set_device(device)
     env = lapwarp.make(task, num_envs=n, device=device, use_cuda_graph=False)
     env.reset()
     zero = torch.zeros((n, env.num_actions), device=env.device)
