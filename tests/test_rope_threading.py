@@ -524,9 +524,9 @@ def test_bending_stiffness_matches_closed_form(substeps, droop_env, device):
     """The settled free part (nodes 0 to the held node, for nodes 10 and 15) fitted as a cantilever with a free root
     slope, z(s) - z(0) = a s - k w(s): the compliance factor k is 1 for the closed form's E I = 50 MPa x pi a^4 / 4.
     Within 10 % for both spans (measured at the default 10 substeps with the segments' inertia x 100: 0.942 and
-    0.972; at 80 substeps: 1.040 and 1.040, fit residual <= 4 micrometres); the root slope within 2 deg of horizontal
-    (measured -0.68 / -1.80 deg; at 80: -0.25 / -1.39). Without the inertia scaling the default used to be 40
-    substeps, still 1.23 / 1.21 x too soft."""
+    0.972; at 80 substeps: 0.908 and 0.962, forty-eighth session; 1.040 and 1.040 when this test was written); the
+    root slope within 2 deg of horizontal (measured -0.68 / -1.80 deg; at 80: -0.63 / -1.25). Without the inertia
+    scaling the default used to be 40 substeps, still 1.23 / 1.21 x too soft."""
     env = droop_env if substeps is None else make(device, grasp_index=15, grasp_index_noise=(-5, 1),
                                                   physics_substeps=substeps, eye_reset_noise=(0.0, 0.0, 0.0, 0.0))
     for index in (10, 15):
