@@ -570,15 +570,16 @@ def test_rope_does_not_tunnel_through_the_eye(physics, aims, device):
     """2 envs, no noise, 30 steps at full speed: pan, tilt and depth are bang-bang (+-1: 1.2 deg, 1.2 deg, 1.2 mm a
     step) towards the tip pose that would put rope node 5 on a ring sphere's centre, spin random +-1 (2.5 deg a step;
     seeded), the jaw held. On the task's default physics (10 substeps, the segments' inertia x 100) env 0 aims at the
-    ring's lower-left sphere (-2, 0, 15.5) mm and env 1 at its side sphere (-3.3, 0, 19) mm (eye frame): there the
-    top and right spheres lie out of the bang-bang tip's reach from the settled rope (its node 5 stays >= 3.7 mm from
-    them); at 20 substeps without the inertia scaling (the physics before) env 0 aims at the side sphere and env 1 at
-    the top one (1.6, 0, 23.5) mm. Control: the start rope carried rigidly with the tip would put a node within 2 mm
-    of a sphere centre (over 1 mm of overlap; measured 0.99 / 1.86 mm on the defaults, 0.84 / 1.51 mm at 20
-    substeps). After every step no rope node is closer than 2 + 1 - 0.3 mm to any eye sphere centre (sphere radius
-    plus the rope's 1 mm, less 0.3 mm of slack; measured: 3.00 mm, in contact), and over the run no point of the
-    rope's polyline comes closer than 2.7 mm either (measured 2.84 / 2.97 mm on the defaults, 2.98 / 2.94 mm at 20
-    substeps); the rope did reach the eye (closest node within 3.1 mm) and the right grasper still holds it."""
+    ring's lower-left sphere (-2, 0, 15.5) mm and env 1 at its side sphere (-3.3, 0, 19) mm (eye frame): aimed at the
+    top and right spheres the settled default rope does not reach the eye at all (its nearest node stays >= 3.7 mm
+    from every sphere); at 20 substeps without the inertia scaling (the physics before it) env 0 aims at the side
+    sphere and env 1 at the top one (1.6, 0, 23.5) mm. Control: the start rope carried rigidly with the tip would put
+    a node within 2 mm of a sphere centre (over 1 mm of overlap; measured 0.99 / 1.86 mm on the defaults, 0.84 /
+    1.51 mm at 20 substeps). After every step no rope node is closer than 2 + 1 - 0.3 mm to any eye sphere centre
+    (sphere radius plus the rope's 1 mm, less 0.3 mm of slack; measured: 3.00 mm, in contact), and over the run no
+    point of the rope's polyline comes closer than 2.7 mm either (measured 2.84 / 2.97 mm on the defaults, 2.98 /
+    2.94 mm at 20 substeps); the rope did reach the eye (closest node within 3.1 mm) and the right grasper still
+    holds it."""
     env = make(device, num_envs=2, **physics, **NO_NOISE)
     s = state(env)
     rope0, tip0 = s["rope"], s["tips"][:, 0]

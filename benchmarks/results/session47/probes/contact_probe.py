@@ -380,9 +380,10 @@ def main():
 
     def timed(k):
         """ms per launch of ``k`` (CUDA): ``reps`` launches, each after restoring the positions, captured in a CUDA
-        graph, less a graph of the restores alone. Events around each launch from Python (the forty-eighth session's
-        first run) also timed the host's launch packing: loads only then read 38 us per launch for RopeThreading's
-        409,600 threads and LigatingLoop's 3.3M alike."""
+        graph, less a graph of the restores alone. With events around each launch from Python (the forty-eighth
+        session's first run) loads only read 38 us per launch for RopeThreading's 409,600 threads and LigatingLoop's
+        3.3M alike: a floor that does not scale with the work, most likely the host packing the launch while the GPU
+        waited."""
         if not device.startswith("cuda"):
             launch(k, inputs=inputs, outputs=outputs, **kw)
             return 0.0
