@@ -110,7 +110,8 @@ def bench_one(task: str, num_envs: int, device: str, seconds: float, invalid_act
               surface_leaf_size: int | None = None, cull_groups: bool = True,
               pose_per_step: bool | None = None, rod_block_threads: int | None = None,
               predict_in_rod_sweep: bool | None = None, register_split: bool | None = None,
-              surface_bounds: str | None = None, surface_bounds_lanes: int | None = None,
+              contact_in_rod_launch: bool | None = None, surface_bounds: str | None = None,
+              surface_bounds_lanes: int | None = None,
               report_forces: bool | None = None, defer_surface_deltas: bool | None = None) -> dict:
     def make_env():
         # the leaf size and the cull groups are read when the task finalizes its contact system, i.e. while the env is
@@ -151,6 +152,10 @@ def bench_one(task: str, num_envs: int, device: str, seconds: float, invalid_act
             if not hasattr(env.world, "chain_register_split"):  # an older lapwarp, timed beside this one
                 raise ValueError("--register-split: this lapwarp solves a chain with one thread")
             env.world.chain_register_split = register_split
+        if contact_in_rod_launch is not None:
+            if not hasattr(env.world, "contact_in_rod_launch"):  # an older lapwarp, timed beside this one
+                raise ValueError("--contact-in-rod-launch: this lapwarp launches every substep's contact on its own")
+            env.world.contact_in_rod_launch = contact_in_rod_launch
         apply_contact_settings(env, triangle_sweep, triangle_block_threads, pose_per_step, surface_bounds,
                                surface_bounds_lanes, report_forces, defer_surface_deltas)
         return env
@@ -223,6 +228,8 @@ def bench_one(task: str, num_envs: int, device: str, seconds: float, invalid_act
         "rod_block_threads": env.world.rod_block_threads if env.world.model.segment_count else None,
         "predict_in_rod_sweep": (env.world._predicts_in_rod_sweep()
                                  if hasattr(env.world, "_predicts_in_rod_sweep") else None),
+        "contact_in_rod_launch": (env.world._contact_in_rod_launch()
+                                  if hasattr(env.world, "_contact_in_rod_launch") else None),
         "chain_register_split": (env.world.chain_register_split if env.world.chain_solver == "registers"
                                  and hasattr(env.world, "chain_register_split") else None),
         "chain_pcr_rows": env.world.chain_pcr_rows if env.world.chain_solver in ("pcr", "hybrid") else None,
@@ -292,6 +299,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--predict-in-rod-sweep", choices=["on", "off"], default=None,
                         help="a rods-only world's substep prediction in its fused rod launch or its own "
                              "(world.predict_in_rod_sweep; default: the world's)")
+    parser.add_argument("--contact-in-rod-launch", choices=["on", "off"], default=None,
+                        help="a rods-only world's substep particle contact at the start of the next substep's rod "
+                             "launch or in its own (world.contact_in_rod_launch; default: the world's)")
     parser.add_argument("--register-split", choices=["on", "off"], default=None,
                         help="the register chain solve with two threads per chain where a family's chains are all of "
                              "one length (world.chain_register_split; default: the world's)")
@@ -336,6 +346,8 @@ def main(argv: list[str] | None = None) -> int:
                           predict_in_rod_sweep=(None if args.predict_in_rod_sweep is None
                                                 else args.predict_in_rod_sweep == "on"),
                           register_split=None if args.register_split is None else args.register_split == "on",
+                          contact_in_rod_launch=(None if args.contact_in_rod_launch is None
+                                                 else args.contact_in_rod_launch == "on"),
                           surface_bounds=args.surface_bounds, surface_bounds_lanes=args.surface_bounds_lanes,
                           report_forces=None if args.contact_forces is None else args.contact_forces == "on",
                           defer_surface_deltas=(None if args.defer_surface_deltas is None

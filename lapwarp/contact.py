@@ -884,9 +884,14 @@ class ContactSystem:
         if len(self.cp_particle):
             # the variant without the mesh SDF query where no shape is a mesh (fewer registers)
             meshes = any(sh.kind == "mesh" for sh in self.shapes)
-            launch(ck.particle_collision_kernel(meshes), (n, len(self.cp_particle)),
-                   [self._particles, shapes, motion, poses, solve, ignore, masks, report,
-                    self.report_margin], [q, reports])
+            args = (ck.particle_collision_kernel(meshes), (n, len(self.cp_particle)),
+                    [self._particles, shapes, motion, poses, solve, ignore, masks, report, self.report_margin],
+                    [q, reports])
+            if not meshes and hasattr(launch, "defer_contact"):
+                # into the next substep's rod launch where nothing else comes first (World.contact_in_rod_launch)
+                launch.defer_contact(*args)
+            else:
+                launch(*args)
         off = self.seg_color_offsets
         if len(off) > 2 and self.fuse_segment_colors:
             # every colour in one launch, a block per env with barriers between colours

@@ -207,6 +207,10 @@ class World:
         # in a world whose only constraints are rods: the substep's prediction inside its first sweep's fused rod
         # launch (xpbd.predict_and_solve_rods_fused; _predicts_in_rod_sweep says where), one launch fewer per substep
         self.predict_in_rod_sweep = True
+        # where the prediction runs in the rod launch and a substep's particle contact (primitive shapes only) is its
+        # last launch: that contact runs at the start of the next substep's rod launch instead
+        # (xpbd.contact_predict_and_solve_rods_fused), one launch fewer per substep (RopeThreading, RopeCutting)
+        self.contact_in_rod_launch = True
         # with chain_solver "registers": a family of open chains all of one length (2..chains_split.MAX_LINKS links)
         # solved by two threads per chain, each half in registers (kernels/chains_split.py); families it does not
         # take keep the one-thread register solve. Off by default; RopeCutting turns it on on CUDA devices (568.7k
@@ -530,7 +534,8 @@ class World:
                self.tet_rotation_refresh, self.chain_block_links, self.chain_solver, self.chain_pcr_threads,
                self.chain_pcr_rows, self.chain_lane_rows, self.tet_solver, self.tet_block_threads,
                self.model.attachments_distinct, self.rod_solver, self.rod_block_threads, self.integrate_together,
-               self.predict_in_rod_sweep, self.chain_register_split, self.tet_method_in_use,
+               self.predict_in_rod_sweep, self.contact_in_rod_launch, self.chain_register_split,
+               self.tet_method_in_use,
                self.tet_hold_speed, self.tet_hold_substeps, self._register_caps_key(),
                *(solver.record_key() for solver in self.solvers if hasattr(solver, "record_key")))
         if self._cmd_key != key:
@@ -579,7 +584,7 @@ class World:
             if isinstance(self.rod_block_threads, bool) or not isinstance(self.rod_block_threads, int) \
                     or not 1 <= self.rod_block_threads <= 1024:
                 raise ValueError(f"world.rod_block_threads must be an int in [1, 1024], got {self.rod_block_threads!r}")
-            for name in ("integrate_together", "predict_in_rod_sweep", "chain_register_split"):
+            for name in ("integrate_together", "predict_in_rod_sweep", "contact_in_rod_launch", "chain_register_split"):
                 if not isinstance(getattr(self, name), (bool, np.bool_)):
                     raise ValueError(f"world.{name} must be a bool, got {getattr(self, name)!r}")
             if self.chain_register_split and self.chain_solver == "registers" and self.device.is_cpu \
@@ -700,10 +705,15 @@ class World:
         # one at a time, launched as it was given before any other launch (so nothing reads the particles without
         # them) unless the next substep's prediction launch applies them itself
         pending: list = []
+        # a substep's particle contact deferred into the next substep's fused rod launch (launch.defer_contact): at
+        # most one, launched as given before any other launch
+        pending_contact: list = []
 
         def flush():
             if pending:
                 launch_now(*pending.pop()[3])
+            if pending_contact:
+                launch_now(*pending_contact.pop())
 
         def launch(kernel, dim=None, inputs=(), outputs=(), block_dim=None):
             flush()
@@ -719,6 +729,20 @@ class World:
             pending.append((delta, count, float(scale), tuple(apply)))
 
         launch.defer_deltas = defer_deltas
+
+        def defer_contact(kernel, dim, inputs, outputs):
+            """Record the particle contact launch ``(kernel, dim, inputs, outputs)`` later: the next substep's fused rod
+            launch runs it first where it comes next (``take_contact``); any other launch first launches it."""
+            flush()
+            pending_contact.append((kernel, dim, tuple(inputs), tuple(outputs)))
+
+        def take_contact():
+            """The deferred particle contact's ``(inputs, outputs)`` for the launch about to be recorded, or None."""
+            return pending_contact.pop()[2:] if pending_contact else None
+
+        if self._contact_in_rod_launch():
+            launch.defer_contact = defer_contact
+            launch.take_contact = take_contact
 
         def launch_now(kernel, dim=None, inputs=(), outputs=(), block_dim=None):
             # A plain callable (e.g. an array scan) is recorded as is: it must only launch device work.
@@ -835,6 +859,13 @@ class World:
         return (bool(self.predict_in_rod_sweep) and m.segment_count > 0 and bool(self.integrate_together)
                 and self.rod_solver in ("auto", "fused") and m.geo_particles is None and m.edge_count == 0
                 and m.tet_count == 0 and m.hinge_count == 0)
+
+    def _contact_in_rod_launch(self) -> bool:
+        """Whether a substep's particle contact may be deferred into the next substep's fused rod launch
+        (``xpbd.contact_predict_and_solve_rods_fused``): ``contact_in_rod_launch`` set and the prediction in the rod
+        launch (``_predicts_in_rod_sweep``); the contact system defers it only where it is a sweep's last launch and
+        no shape is a mesh."""
+        return bool(self.contact_in_rod_launch) and self._predicts_in_rod_sweep()
 
     def _record_sweep(self, launch, xpbd, inv_dt2: float, use_lam: int, sweep: Sweep, prediction=None) -> None:
         """Record one sweep's projections; ``prediction`` (an ``xpbd.Prediction``, a substep's first sweep where
@@ -984,11 +1015,18 @@ class World:
                                inv_inertia=m.segment_inv_inertia, inv_mass=w_eff, inv_dt2=inv_dt2, use_lambda=use_lam,
                                segment_lam=lam.get("segment", self._dummy_v3), bend_lam=lam.get("bend", self._dummy_v3),
                                segment_active=seg_mask)
+            # the substep before's particle contact, where it was deferred to this launch (contact_in_rod_launch)
+            contact = launch.take_contact() if prediction is not None and hasattr(launch, "take_contact") else None
             if prediction is None:
                 launch(xpbd.solve_rods_fused, (n, lanes), [rods], [s.particle_q, s.segment_q], block_dim=lanes)
-            else:
+            elif contact is None:
                 launch(xpbd.predict_and_solve_rods_fused, (n, lanes), [prediction, rods], [s.particle_q, s.segment_q],
                        block_dim=lanes)
+            else:
+                (particles, shapes, motion, poses, solve, ignore, masks, report, margin), (_, reports) = contact
+                launch(xpbd.contact_predict_and_solve_rods_fused, (n, lanes),
+                       [particles, shapes, motion, poses, solve, ignore, masks, report, margin, prediction, rods],
+                       [s.particle_q, s.segment_q, reports], block_dim=lanes)
         elif m.segment_count:
             off = m.segment_color_offsets
             for c in range(len(off) - 1):

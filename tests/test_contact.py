@@ -933,3 +933,56 @@ def test_pose_per_step_without_shapes(device):
         out.append(w.positions())
     assert out[0][0, :, 2].max() < 0.05  # it fell
     np.testing.assert_array_equal(out[0], out[1])
+
+
+def _fused_contact_launches(world) -> int:
+    """How many of the recorded step's launches run a substep's particle contact inside the next rod launch."""
+    kernels = [getattr(getattr(cmd, "__self__", None), "kernel", None) for cmd in world._cmds]
+    return sum(1 for k in kernels if k is not None and k.key.startswith("contact_predict_and_solve_rods_fused"))
+
+
+def test_contact_in_the_rod_launch_matches_its_own_launch(device):
+    """``World.contact_in_rod_launch``: a substep's particle contact, its last launch, runs at the start of the next
+    substep's fused rod launch (``xpbd.contact_predict_and_solve_rods_fused``) instead of in its own. A rod held at one
+    end swings down onto a sphere and the floor (friction 0.5, forces reported): positions, velocities, contact counts
+    and forces match the separate launch (bit for bit on the CPU, to float32 round-off on a GPU); the step recorded
+    the fused launch for every substep but the first (the last substep's contact keeps its own launch, before the
+    velocity update); the rod did touch both shapes. A scene with a mesh shape keeps the separate launch."""
+    substeps = 6
+    out = []
+    for fused in (True, False):
+        b = SceneBuilder()
+        rod = b.add_rod(rod_polyline([[0.0, 0.0, 0.03], [0.1, 0.0, 0.03]], 11), radius=1e-3, youngs_modulus=1e6,
+                        damping=0.3, fixed=[0])
+        world = b.finalize(2, device, substeps=substeps)
+        cs = ContactSystem(world)
+        cs.add_particle_group(rod, radius=1e-3)
+        cs.add_plane(thickness=0.0, mu_static=0.5)
+        cs.add_sphere(0.01, transform=(0.06, 0.0, 0.0), thickness=0.0, mu_static=0.5)
+        cs.finalize()
+        world.contact_in_rod_launch = fused
+        assert world._contact_in_rod_launch() == fused
+        world.simulate(0.3, 0.02)
+        assert _fused_contact_launches(world) == (substeps - 1 if fused else 0)
+        st = world.state
+        out.append(([a.numpy() for a in (st.particle_q, st.particle_qd, st.segment_q, st.segment_qd)],
+                    cs.counts(), cs.forces()))
+    (arrays, counts, forces), (arrays_own, counts_own, forces_own) = out
+    assert counts.min() > 0 and forces.min() > 0.0  # every env touches the floor and the sphere
+    np.testing.assert_array_equal(counts, counts_own)
+    for a, b_ in zip((*arrays, forces), (*arrays_own, forces_own), strict=True):
+        if device == "cpu":
+            np.testing.assert_array_equal(a, b_)
+        else:
+            np.testing.assert_allclose(a, b_, rtol=1e-5, atol=1e-5 * max(np.abs(b_).max(), 1e-9))
+    b = SceneBuilder()
+    rod = b.add_rod(rod_polyline([[0.0, 0.0, 0.03], [0.1, 0.0, 0.03]], 11), radius=1e-3, youngs_modulus=1e6,
+                    fixed=[0])
+    world = b.finalize(1, device, substeps=substeps)
+    cs = ContactSystem(world)
+    cs.add_particle_group(rod, radius=1e-3)
+    box = trimesh.creation.box((0.02, 0.02, 0.02))
+    cs.add_mesh(box.vertices, box.faces, transform=(0.06, 0.0, 0.0))
+    cs.finalize()
+    world.step(0.02)
+    assert world._contact_in_rod_launch() and _fused_contact_launches(world) == 0

@@ -460,19 +460,23 @@ def pose_shapes_substeps(shapes: ShapeTable, motion: BodyMotion, blends: wp.arra
     tf_inv[env, column] = wp.transform_inverse(t)
 
 
+_PARTICLE_FUNCS: dict = {}
 _PARTICLE_KERNELS: dict = {}
 
 
-def particle_collision_kernel(meshes: bool) -> wp.Kernel:
-    """``collide_particles`` (cached per variant): the contact particles against the env's shapes. ``meshes``
-    False leaves out the mesh shapes' SDF query (scenes without one): its BVH stack and registers went with it
-    (sm_90: 108 -> 66 registers, a 128 -> 32 byte frame, ``benchmarks/kernel_resources.py``), so more warps fit an SM
-    in the rod tasks' per-substep contact launch; the same arithmetic for every other shape."""
-    kernel = _PARTICLE_KERNELS.get(bool(meshes))
-    if kernel is not None:
-        return kernel
+def particle_collision_func(meshes: bool) -> wp.Function:
+    """``collide_particle(env, k, ...)`` (cached per variant): contact particle ``k`` of ``env`` against the env's
+    shapes, the body of ``collide_particles`` and of the rod launch that runs a substep's contact before the next
+    substep's prediction (``xpbd.contact_predict_and_solve_rods_fused``). ``meshes`` False leaves out the mesh shapes'
+    SDF query (see ``particle_collision_kernel``)."""
+    func = _PARTICLE_FUNCS.get(bool(meshes))
+    if func is not None:
+        return func
 
-    def collide_particles(
+    @wp.func
+    def collide_particle(
+        env: int,
+        k: int,
         particles: ContactParticles,
         shapes: ShapeTable,
         motion: BodyMotion,
@@ -485,7 +489,6 @@ def particle_collision_kernel(meshes: bool) -> wp.Kernel:
         q: wp.array2d(dtype=wp.vec3),
         reports: ContactReports,
     ):
-        env, k = wp.tid()
         i = particles.particle[k]
         w = solve.inv_mass[env % solve.inv_mass.shape[0], i]
         if w == 0.0:
@@ -544,6 +547,38 @@ def particle_collision_kernel(meshes: bool) -> wp.Kernel:
         # thread's stale copy would race
         if moved != 0:
             q[env, i] = x
+
+    _PARTICLE_FUNCS[bool(meshes)] = collide_particle
+    return collide_particle
+
+
+def particle_collision_kernel(meshes: bool) -> wp.Kernel:
+    """``collide_particles`` (cached per variant): the contact particles against the env's shapes
+    (``particle_collision_func``), a thread each. ``meshes`` False leaves out the mesh shapes' SDF query (scenes without
+    one): its BVH stack and registers went with it (sm_90: 108 -> 66 registers, a 128 -> 32 byte frame,
+    ``benchmarks/kernel_resources.py``), so more warps fit an SM in the rod tasks' per-substep contact launch; the same
+    arithmetic for every other shape."""
+    kernel = _PARTICLE_KERNELS.get(bool(meshes))
+    if kernel is not None:
+        return kernel
+    collide_particle = particle_collision_func(meshes)
+
+    def collide_particles(
+        particles: ContactParticles,
+        shapes: ShapeTable,
+        motion: BodyMotion,
+        poses: ShapePoses,
+        solve: ParticleSolve,
+        ignore: IgnoreMask,
+        masks: CutMasks,
+        report: int,
+        report_margin: float,
+        q: wp.array2d(dtype=wp.vec3),
+        reports: ContactReports,
+    ):
+        env, k = wp.tid()
+        collide_particle(env, k, particles, shapes, motion, poses, solve, ignore, masks, report, report_margin, q,
+                         reports)
 
     kernel = wp.kernel(collide_particles, module="unique", enable_backward=False)
     _PARTICLE_KERNELS[bool(meshes)] = kernel

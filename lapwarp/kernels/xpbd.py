@@ -20,7 +20,18 @@ on a uniform value, no memory traffic.
 
 import warp as wp
 
-from lapwarp.kernels.contact import apply_mean_delta
+from lapwarp.kernels.contact import (
+    BodyMotion,
+    ContactParticles,
+    ContactReports,
+    CutMasks,
+    IgnoreMask,
+    ParticleSolve,
+    ShapePoses,
+    ShapeTable,
+    apply_mean_delta,
+    particle_collision_func,
+)
 from lapwarp.kernels.geodesic import ANCHOR_MASS_RATIO
 from lapwarp.kernels.geometry import interpolate_transform, twist_about
 from lapwarp.kernels.hold import TetHold, tets_held
@@ -1263,4 +1274,35 @@ def predict_and_solve_rods_fused(pred: Prediction, rods: RodSweep, q: wp.array2d
     for k in range(lane, wp.max(q.shape[1], sq.shape[1]), lanes):
         predict_particle_and_segment(env, k, pred, q, sq)
     wp.tile_scatter_masked(barrier, 0, 0, False)  # every element predicted before any colour reads it
+    solve_rod_colors(env, lane, lanes, barrier, rods, q, sq)
+
+
+# the particle contact without the mesh query: the rod tasks' shapes are primitives (a world with a mesh shape keeps
+# the contact in its own launch)
+collide_particle_primitive = particle_collision_func(False)
+
+
+@wp.kernel(enable_backward=False)
+def contact_predict_and_solve_rods_fused(particles: ContactParticles, shapes: ShapeTable, motion: BodyMotion,
+                                         poses: ShapePoses, solve: ParticleSolve, ignore: IgnoreMask,
+                                         masks: CutMasks, report: int, report_margin: float, pred: Prediction,
+                                         rods: RodSweep, q: wp.array2d(dtype=wp.vec3), sq: wp.array2d(dtype=wp.quat),
+                                         reports: ContactReports):
+    """The last substep's particle contact (``contact.collide_particles``, deferred by ``World.contact_in_rod_launch``
+    where it was the substep's last launch), a block barrier, then ``predict_and_solve_rods_fused``: one launch fewer
+    per substep. The contact reads the substep's start (``solve``: its prediction and velocities) before the next
+    prediction overwrites them; each lane takes the contact particles ``lane, lane + lanes, ...``: the same arithmetic
+    in the same order as the separate launch on the CPU (one lane), so bit-identical there. Why: RopeThreading's
+    contact launch over 409,600 threads took 53 us per substep on an H200 (5.3 of the 21.7 ms of kernel time per
+    RGB env step) for a few loads per particle; here the env's block does it beside its rods (untimed)."""
+    env, lane = wp.tid()
+    lanes = wp.block_dim()
+    barrier = wp.tile_zeros(shape=1, dtype=int, storage="shared")
+    for k in range(lane, particles.particle.shape[0], lanes):
+        collide_particle_primitive(env, k, particles, shapes, motion, poses, solve, ignore, masks, report,
+                                   report_margin, q, reports)
+    wp.tile_scatter_masked(barrier, 0, 0, False)  # every contact written before any prediction reads it
+    for k in range(lane, wp.max(q.shape[1], sq.shape[1]), lanes):
+        predict_particle_and_segment(env, k, pred, q, sq)
+    wp.tile_scatter_masked(barrier, 0, 0, False)
     solve_rod_colors(env, lane, lanes, barrier, rods, q, sq)
