@@ -209,7 +209,7 @@ class World:
         self.predict_in_rod_sweep = True
         # where the prediction runs in the rod launch and a substep's particle contact (primitive shapes only) is its
         # last launch: that contact runs at the start of the next substep's rod launch instead
-        # (xpbd.contact_predict_and_solve_rods_fused), one launch fewer per substep (RopeThreading, RopeCutting)
+        # (xpbd.contact_rods_fused_kernel), one launch fewer per substep (RopeThreading)
         self.contact_in_rod_launch = True
         # with chain_solver "registers": a family of open chains all of one length (2..chains_split.MAX_LINKS links)
         # solved by two threads per chain, each half in registers (kernels/chains_split.py); families it does not
@@ -862,7 +862,7 @@ class World:
 
     def _contact_in_rod_launch(self) -> bool:
         """Whether a substep's particle contact may be deferred into the next substep's fused rod launch
-        (``xpbd.contact_predict_and_solve_rods_fused``): ``contact_in_rod_launch`` set and the prediction in the rod
+        (``xpbd.contact_rods_fused_kernel``): ``contact_in_rod_launch`` set and the prediction in the rod
         launch (``_predicts_in_rod_sweep``); the contact system defers it only where it is a sweep's last launch and
         no shape is a mesh."""
         return bool(self.contact_in_rod_launch) and self._predicts_in_rod_sweep()
@@ -1024,7 +1024,7 @@ class World:
                        block_dim=lanes)
             else:
                 (particles, shapes, motion, poses, solve, ignore, masks, report, margin), (_, reports) = contact
-                launch(xpbd.contact_predict_and_solve_rods_fused, (n, lanes),
+                launch(xpbd.contact_rods_fused_kernel(), (n, lanes),
                        [particles, shapes, motion, poses, solve, ignore, masks, report, margin, prediction, rods],
                        [s.particle_q, s.segment_q, reports], block_dim=lanes)
         elif m.segment_count:

@@ -938,12 +938,12 @@ def test_pose_per_step_without_shapes(device):
 def _fused_contact_launches(world) -> int:
     """How many of the recorded step's launches run a substep's particle contact inside the next rod launch."""
     kernels = [getattr(getattr(cmd, "__self__", None), "kernel", None) for cmd in world._cmds]
-    return sum(1 for k in kernels if k is not None and k.key.startswith("contact_predict_and_solve_rods_fused"))
+    return sum(1 for k in kernels if k is not None and "contact_predict_and_solve_rods_fused" in k.key)
 
 
 def test_contact_in_the_rod_launch_matches_its_own_launch(device):
     """``World.contact_in_rod_launch``: a substep's particle contact, its last launch, runs at the start of the next
-    substep's fused rod launch (``xpbd.contact_predict_and_solve_rods_fused``) instead of in its own. A rod held at one
+    substep's fused rod launch (``xpbd.contact_rods_fused_kernel``) instead of in its own. A rod held at one
     end swings down onto a sphere and the floor (friction 0.5, forces reported): positions, velocities, contact counts
     and forces match the separate launch (bit for bit on the CPU, to float32 round-off on a GPU); the step recorded
     the fused launch for every substep but the first (the last substep's contact keeps its own launch, before the

@@ -467,7 +467,7 @@ _PARTICLE_KERNELS: dict = {}
 def particle_collision_func(meshes: bool) -> wp.Function:
     """``collide_particle(env, k, ...)`` (cached per variant): contact particle ``k`` of ``env`` against the env's
     shapes, the body of ``collide_particles`` and of the rod launch that runs a substep's contact before the next
-    substep's prediction (``xpbd.contact_predict_and_solve_rods_fused``). ``meshes`` False leaves out the mesh shapes'
+    substep's prediction (``xpbd.contact_rods_fused_kernel``). ``meshes`` False leaves out the mesh shapes'
     SDF query (see ``particle_collision_kernel``)."""
     func = _PARTICLE_FUNCS.get(bool(meshes))
     if func is not None:

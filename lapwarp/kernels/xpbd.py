@@ -1277,32 +1277,42 @@ def predict_and_solve_rods_fused(pred: Prediction, rods: RodSweep, q: wp.array2d
     solve_rod_colors(env, lane, lanes, barrier, rods, q, sq)
 
 
-# the particle contact without the mesh query: the rod tasks' shapes are primitives (a world with a mesh shape keeps
-# the contact in its own launch)
-collide_particle_primitive = particle_collision_func(False)
+_CONTACT_ROD_KERNELS: list = []
 
 
-@wp.kernel(enable_backward=False)
-def contact_predict_and_solve_rods_fused(particles: ContactParticles, shapes: ShapeTable, motion: BodyMotion,
-                                         poses: ShapePoses, solve: ParticleSolve, ignore: IgnoreMask,
-                                         masks: CutMasks, report: int, report_margin: float, pred: Prediction,
-                                         rods: RodSweep, q: wp.array2d(dtype=wp.vec3), sq: wp.array2d(dtype=wp.quat),
-                                         reports: ContactReports):
-    """The last substep's particle contact (``contact.collide_particles``, deferred by ``World.contact_in_rod_launch``
-    where it was the substep's last launch), a block barrier, then ``predict_and_solve_rods_fused``: one launch fewer
-    per substep. The contact reads the substep's start (``solve``: its prediction and velocities) before the next
-    prediction overwrites them; each lane takes the contact particles ``lane, lane + lanes, ...``: the same arithmetic
-    in the same order as the separate launch on the CPU (one lane), so bit-identical there. Why: RopeThreading's
-    contact launch over 409,600 threads took 53 us per substep on an H200 (5.3 of the 21.7 ms of kernel time per
-    RGB env step) for a few loads per particle; here the env's block does it beside its rods (untimed)."""
-    env, lane = wp.tid()
-    lanes = wp.block_dim()
-    barrier = wp.tile_zeros(shape=1, dtype=int, storage="shared")
-    for k in range(lane, particles.particle.shape[0], lanes):
-        collide_particle_primitive(env, k, particles, shapes, motion, poses, solve, ignore, masks, report,
-                                   report_margin, q, reports)
-    wp.tile_scatter_masked(barrier, 0, 0, False)  # every contact written before any prediction reads it
-    for k in range(lane, wp.max(q.shape[1], sq.shape[1]), lanes):
-        predict_particle_and_segment(env, k, pred, q, sq)
-    wp.tile_scatter_masked(barrier, 0, 0, False)
-    solve_rod_colors(env, lane, lanes, barrier, rods, q, sq)
+def contact_rods_fused_kernel() -> wp.Kernel:
+    """``contact_predict_and_solve_rods_fused`` (built once, in a module of its own: only RopeThreading-like worlds
+    compile it). The particle contact is the variant without the mesh query: a world with a mesh shape keeps the
+    contact in its own launch."""
+    if _CONTACT_ROD_KERNELS:
+        return _CONTACT_ROD_KERNELS[0]
+    collide_particle = particle_collision_func(False)
+
+    def contact_predict_and_solve_rods_fused(particles: ContactParticles, shapes: ShapeTable, motion: BodyMotion,
+                                             poses: ShapePoses, solve: ParticleSolve, ignore: IgnoreMask,
+                                             masks: CutMasks, report: int, report_margin: float, pred: Prediction,
+                                             rods: RodSweep, q: wp.array2d(dtype=wp.vec3),
+                                             sq: wp.array2d(dtype=wp.quat), reports: ContactReports):
+        """The substep before's particle contact (``contact.collide_particles``, deferred by
+        ``World.contact_in_rod_launch`` where it was that substep's last launch), a block barrier, then
+        ``predict_and_solve_rods_fused``: one launch fewer per substep. The contact reads the substep's start
+        (``solve``: its prediction and velocities) before the next prediction overwrites them; each lane takes the
+        contact particles ``lane, lane + lanes, ...``: the same arithmetic in the same order as the separate launch on
+        the CPU (one lane), so bit-identical there. Why: RopeThreading's contact launch over 409,600 threads took
+        53 us per substep on an H200 (5.3 of the 21.7 ms of kernel time per RGB env step) for a few loads per
+        particle; here the env's block does it beside its rods (untimed)."""
+        env, lane = wp.tid()
+        lanes = wp.block_dim()
+        barrier = wp.tile_zeros(shape=1, dtype=int, storage="shared")
+        for k in range(lane, particles.particle.shape[0], lanes):
+            collide_particle(env, k, particles, shapes, motion, poses, solve, ignore, masks, report, report_margin, q,
+                             reports)
+        wp.tile_scatter_masked(barrier, 0, 0, False)  # every contact written before any prediction reads it
+        for k in range(lane, wp.max(q.shape[1], sq.shape[1]), lanes):
+            predict_particle_and_segment(env, k, pred, q, sq)
+        wp.tile_scatter_masked(barrier, 0, 0, False)
+        solve_rod_colors(env, lane, lanes, barrier, rods, q, sq)
+
+    _CONTACT_ROD_KERNELS.append(wp.kernel(contact_predict_and_solve_rods_fused, module="unique",
+                                          enable_backward=False))
+    return _CONTACT_ROD_KERNELS[0]
