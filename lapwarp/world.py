@@ -863,8 +863,8 @@ class World:
     def _contact_in_rod_launch(self) -> bool:
         """Whether a substep's particle contact may be deferred into the next substep's fused rod launch
         (``xpbd.contact_rods_fused_kernel``): ``contact_in_rod_launch`` set and the prediction in the rod
-        launch (``_predicts_in_rod_sweep``); the contact system defers it only where it is a sweep's last launch and
-        no shape is a mesh."""
+        launch (``_predicts_in_rod_sweep``). The contact system defers it where no shape is a mesh; any other launch
+        recorded before the next substep's rod launch launches it first (in its own launch, the order kept)."""
         return bool(self.contact_in_rod_launch) and self._predicts_in_rod_sweep()
 
     def _record_sweep(self, launch, xpbd, inv_dt2: float, use_lam: int, sweep: Sweep, prediction=None) -> None:

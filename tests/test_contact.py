@@ -947,7 +947,8 @@ def test_contact_in_the_rod_launch_matches_its_own_launch(device):
     end swings down onto a sphere and the floor (friction 0.5, forces reported): positions, velocities, contact counts
     and forces match the separate launch (bit for bit on the CPU, to float32 round-off on a GPU); the step recorded
     the fused launch for every substep but the first (the last substep's contact keeps its own launch, before the
-    velocity update); the rod did touch both shapes. A scene with a mesh shape keeps the separate launch."""
+    velocity update); the rod did touch both shapes. A scene with a mesh shape keeps the separate launch; a non-bool
+    setting is refused when the step is recorded."""
     substeps = 6
     out = []
     for fused in (True, False):
@@ -986,3 +987,6 @@ def test_contact_in_the_rod_launch_matches_its_own_launch(device):
     cs.finalize()
     world.step(0.02)
     assert world._contact_in_rod_launch() and _fused_contact_launches(world) == 0
+    world.contact_in_rod_launch = 1
+    with pytest.raises(ValueError, match="contact_in_rod_launch must be a bool"):
+        world.step(0.02)
