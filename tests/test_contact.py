@@ -987,6 +987,6 @@ def test_contact_in_the_rod_launch_matches_its_own_launch(device):
     cs.finalize()
     world.step(0.02)
     assert world._contact_in_rod_launch() and _fused_contact_launches(world) == 0
-    world.contact_in_rod_launch = 1
+    world.contact_in_rod_launch = "on"  # (1 would equal the recorded True and not re-record)
     with pytest.raises(ValueError, match="contact_in_rod_launch must be a bool"):
         world.step(0.02)
