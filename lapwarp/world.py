@@ -207,9 +207,9 @@ class World:
         # in a world whose only constraints are rods: the substep's prediction inside its first sweep's fused rod
         # launch (xpbd.predict_and_solve_rods_fused; _predicts_in_rod_sweep says where), one launch fewer per substep
         self.predict_in_rod_sweep = True
-        # where the prediction runs in the rod launch and a substep's particle contact (primitive shapes only) is its
-        # last launch: that contact runs at the start of the next substep's rod launch instead
-        # (xpbd.contact_rods_fused_kernel), one launch fewer per substep (RopeThreading)
+        # where the prediction runs in the rod launch and a substep ends with its closing attachment pass and its
+        # particle contact (primitive shapes only): they run at the start of the next substep's rod launch instead
+        # (xpbd.contact_rods_fused_kernel), two launches fewer per substep (RopeThreading)
         self.contact_in_rod_launch = True
         # with chain_solver "registers": a family of open chains all of one length (2..chains_split.MAX_LINKS links)
         # solved by two threads per chain, each half in registers (kernels/chains_split.py); families it does not
@@ -705,13 +705,17 @@ class World:
         # one at a time, launched as it was given before any other launch (so nothing reads the particles without
         # them) unless the next substep's prediction launch applies them itself
         pending: list = []
-        # a substep's particle contact deferred into the next substep's fused rod launch (launch.defer_contact): at
-        # most one, launched as given before any other launch
+        # a substep's closing attachment pass and then its particle contact, deferred into the next substep's fused
+        # rod launch (launch.defer_attachments, launch.defer_contact): at most one of each, launched as given (in
+        # that order) before any other launch
+        pending_attach: list = []
         pending_contact: list = []
 
         def flush():
             if pending:
                 launch_now(*pending.pop()[3])
+            if pending_attach:
+                launch_now(*pending_attach.pop()[:4])
             if pending_contact:
                 launch_now(*pending_contact.pop())
 
@@ -730,19 +734,33 @@ class World:
 
         launch.defer_deltas = defer_deltas
 
-        def defer_contact(kernel, dim, inputs, outputs):
-            """Record the particle contact launch ``(kernel, dim, inputs, outputs)`` later: the next substep's fused rod
-            launch runs it first where it comes next (``take_contact``); any other launch first launches it."""
+        def defer_attachments(kernel, dim, inputs, outputs, bundle):
+            """Record the closing attachment launch ``(kernel, dim, inputs, outputs)`` later (``bundle``: its
+            ``xpbd.AttachmentPass``): the next substep's fused rod launch runs it first where it comes next, before
+            the deferred contact (``take_prologue``); any other launch first launches it."""
             flush()
+            pending_attach.append((kernel, dim, tuple(inputs), tuple(outputs), bundle))
+
+        def defer_contact(kernel, dim, inputs, outputs):
+            """Record the particle contact launch ``(kernel, dim, inputs, outputs)`` later, after a deferred attachment
+            pass (``defer_attachments``), the same way."""
+            if pending:
+                launch_now(*pending.pop()[3])
+            if pending_contact:
+                launch_now(*pending_contact.pop())
             pending_contact.append((kernel, dim, tuple(inputs), tuple(outputs)))
 
-        def take_contact():
-            """The deferred particle contact's ``(inputs, outputs)`` for the launch about to be recorded, or None."""
-            return pending_contact.pop()[2:] if pending_contact else None
+        def take_prologue():
+            """The deferred attachment pass (its launch and bundle) and particle contact (``(inputs, outputs)``) for
+            the launch about to be recorded, each None where none was deferred."""
+            attach = pending_attach.pop() if pending_attach else None
+            contact = pending_contact.pop()[2:] if pending_contact else None
+            return attach, contact
 
         if self._contact_in_rod_launch():
+            launch.defer_attachments = defer_attachments
             launch.defer_contact = defer_contact
-            launch.take_contact = take_contact
+            launch.take_prologue = take_prologue
 
         def launch_now(kernel, dim=None, inputs=(), outputs=(), block_dim=None):
             # A plain callable (e.g. an array scan) is recorded as is: it must only launch device work.
@@ -860,11 +878,29 @@ class World:
                 and self.rod_solver in ("auto", "fused") and m.geo_particles is None and m.edge_count == 0
                 and m.tet_count == 0 and m.hinge_count == 0)
 
+    def _no_attachment_pass(self):
+        """An ``xpbd.AttachmentPass`` without slots, for a fused rod launch that runs a deferred contact alone."""
+        if getattr(self, "_empty_attachment_pass", None) is None:
+            from lapwarp.kernels import xpbd
+
+            dev = self.device
+
+            def empty(dtype, ndim=2):
+                return wp.zeros((1, 0) if ndim == 2 else 0, dtype=dtype, device=dev)
+
+            self._empty_attachment_pass = make_struct(
+                xpbd.AttachmentPass, particle=empty(wp.int32), body=empty(wp.int32), offset=empty(wp.vec3),
+                compliance=empty(float), segment=empty(wp.int32), rotation=empty(wp.quat),
+                hold_up=empty(wp.vec3, 1), body_q_prev=empty(wp.transform), body_q=empty(wp.transform), blend=0.0,
+                inv_mass=empty(float), inv_dt2=0.0, stiff_only=0)
+        return self._empty_attachment_pass
+
     def _contact_in_rod_launch(self) -> bool:
-        """Whether a substep's particle contact may be deferred into the next substep's fused rod launch
-        (``xpbd.contact_rods_fused_kernel``): ``contact_in_rod_launch`` set and the prediction in the rod
-        launch (``_predicts_in_rod_sweep``). The contact system defers it where no shape is a mesh; any other launch
-        recorded before the next substep's rod launch launches it first (in its own launch, the order kept)."""
+        """Whether a substep's closing attachment pass and particle contact may be deferred into the next substep's
+        fused rod launch (``xpbd.contact_rods_fused_kernel``): ``contact_in_rod_launch`` set and the prediction in the
+        rod launch (``_predicts_in_rod_sweep``). The contact system defers its contact where no shape is a mesh; any
+        other launch recorded before the next substep's rod launch launches them first (each in its own launch, the
+        order kept), and a deferred attachment pass without a contact after it keeps its own launch."""
         return bool(self.contact_in_rod_launch) and self._predicts_in_rod_sweep()
 
     def _record_sweep(self, launch, xpbd, inv_dt2: float, use_lam: int, sweep: Sweep, prediction=None) -> None:
@@ -951,10 +987,17 @@ class World:
             def solve_attachments(stiff_only: int):
                 if m.attachments_distinct:
                     # distinct static slots: a thread each (the order is immaterial)
-                    launch(xpbd.solve_attachment_slots, (n, m.attachment_capacity), [*attachment_args, stiff_only],
-                           attachment_out)
+                    args = (xpbd.solve_attachment_slots, (n, m.attachment_capacity), [*attachment_args, stiff_only],
+                            attachment_out)
                 else:
-                    launch(xpbd.solve_attachments, n, [*attachment_args, stiff_only], attachment_out)
+                    args = (xpbd.solve_attachments, n, [*attachment_args, stiff_only], attachment_out)
+                if stiff_only == 0 and hasattr(launch, "defer_attachments"):
+                    # the closing pass into the next substep's rod launch where nothing else comes first but the
+                    # contact (contact_in_rod_launch)
+                    launch.defer_attachments(*args, make_struct(xpbd.AttachmentPass, **dict(zip(
+                        xpbd.ATTACHMENT_PASS_FIELDS, (*attachment_args, stiff_only), strict=True))))
+                else:
+                    launch(*args)
             if m.geo_particles is not None:
                 # held points first where their bodies hold them, so that the tethers see their anchors there, not
                 # one substep of gravity below (stiff attachments only: a soft one projected twice per sweep would be
@@ -1015,8 +1058,12 @@ class World:
                                inv_inertia=m.segment_inv_inertia, inv_mass=w_eff, inv_dt2=inv_dt2, use_lambda=use_lam,
                                segment_lam=lam.get("segment", self._dummy_v3), bend_lam=lam.get("bend", self._dummy_v3),
                                segment_active=seg_mask)
-            # the substep before's particle contact, where it was deferred to this launch (contact_in_rod_launch)
-            contact = launch.take_contact() if prediction is not None and hasattr(launch, "take_contact") else None
+            # the substep before's closing attachment pass and particle contact, where they were deferred to this
+            # launch (contact_in_rod_launch)
+            attach, contact = (launch.take_prologue() if prediction is not None and hasattr(launch, "take_prologue")
+                               else (None, None))
+            if contact is None and attach is not None:
+                launch(*attach[:4])  # the attachments alone: in their own launch, as given
             if prediction is None:
                 launch(xpbd.solve_rods_fused, (n, lanes), [rods], [s.particle_q, s.segment_q], block_dim=lanes)
             elif contact is None:
@@ -1024,9 +1071,10 @@ class World:
                        block_dim=lanes)
             else:
                 (particles, shapes, motion, poses, solve, ignore, masks, report, margin), (_, reports) = contact
+                bundle = attach[4] if attach is not None else self._no_attachment_pass()
                 launch(xpbd.contact_rods_fused_kernel(), (n, lanes),
-                       [particles, shapes, motion, poses, solve, ignore, masks, report, margin, prediction, rods],
-                       [s.particle_q, s.segment_q, reports], block_dim=lanes)
+                       [bundle, particles, shapes, motion, poses, solve, ignore, masks, report, margin, prediction,
+                        rods], [s.particle_q, s.segment_q, reports], block_dim=lanes)
         elif m.segment_count:
             off = m.segment_color_offsets
             for c in range(len(off) - 1):

@@ -935,26 +935,36 @@ def test_pose_per_step_without_shapes(device):
     np.testing.assert_array_equal(out[0], out[1])
 
 
+def _launches_of(world, name: str) -> int:
+    """How many of the recorded step's launches run a kernel whose key holds ``name``."""
+    kernels = [getattr(getattr(cmd, "__self__", None), "kernel", None) for cmd in world._cmds]
+    return sum(1 for k in kernels if k is not None and name in k.key)
+
+
 def _fused_contact_launches(world) -> int:
     """How many of the recorded step's launches run a substep's particle contact inside the next rod launch."""
-    kernels = [getattr(getattr(cmd, "__self__", None), "kernel", None) for cmd in world._cmds]
-    return sum(1 for k in kernels if k is not None and "contact_predict_and_solve_rods_fused" in k.key)
+    return _launches_of(world, "contact_predict_and_solve_rods_fused")
 
 
-def test_contact_in_the_rod_launch_matches_its_own_launch(device):
-    """``World.contact_in_rod_launch``: a substep's particle contact, its last launch, runs at the start of the next
-    substep's fused rod launch (``xpbd.contact_rods_fused_kernel``) instead of in its own. A rod held at one
-    end swings down onto a sphere and the floor (friction 0.5, forces reported): positions, velocities, contact counts
-    and forces match the separate launch (bit for bit on the CPU, to float32 round-off on a GPU); the step recorded
-    the fused launch for every substep but the first (the last substep's contact keeps its own launch, before the
-    velocity update); the rod did touch both shapes. A scene with a mesh shape keeps the separate launch; a non-bool
-    setting is refused when the step is recorded."""
+@pytest.mark.parametrize("held", ["pinned", "attached"])
+def test_contact_in_the_rod_launch_matches_its_own_launch(device, held):
+    """``World.contact_in_rod_launch``: a substep's closing attachment pass and particle contact, its last two
+    launches, run at the start of the next substep's fused rod launch (``xpbd.contact_rods_fused_kernel``) instead of
+    in their own. A rod held at one end (pinned, or by a stiff attachment to a fixed point: then the attachment pass
+    is deferred too) swings down onto a sphere and the floor (friction 0.5, forces reported): positions, velocities,
+    contact counts and forces match the separate launches (bit for bit on the CPU, to float32 round-off on a GPU); the
+    step recorded the fused launch for every substep but the first (the last substep's launches stay their own, before
+    the velocity update, and so does the first substep's attachment pass, which the step's shape pose launch
+    follows); the rod did touch both shapes. A scene with a mesh shape keeps the separate launch; a
+    non-bool setting is refused when the step is recorded."""
     substeps = 6
     out = []
     for fused in (True, False):
         b = SceneBuilder()
         rod = b.add_rod(rod_polyline([[0.0, 0.0, 0.03], [0.1, 0.0, 0.03]], 11), radius=1e-3, youngs_modulus=1e6,
-                        damping=0.3, fixed=[0])
+                        damping=0.3, fixed=[0] if held == "pinned" else [])
+        if held == "attached":
+            b.add_attachment(0, compliance=1e-8)
         world = b.finalize(2, device, substeps=substeps)
         cs = ContactSystem(world)
         cs.add_particle_group(rod, radius=1e-3)
@@ -965,11 +975,14 @@ def test_contact_in_the_rod_launch_matches_its_own_launch(device):
         assert world._contact_in_rod_launch() == fused
         world.simulate(0.3, 0.02)
         assert _fused_contact_launches(world) == (substeps - 1 if fused else 0)
+        # the first substep's attachment pass keeps its launch too: the step's shape pose launch comes after it
+        assert _launches_of(world, "solve_attachment") == (0 if held == "pinned" else 2 if fused else substeps)
         st = world.state
         out.append(([a.numpy() for a in (st.particle_q, st.particle_qd, st.segment_q, st.segment_qd)],
                     cs.counts(), cs.forces()))
     (arrays, counts, forces), (arrays_own, counts_own, forces_own) = out
     assert counts.min() > 0 and forces.min() > 0.0  # every env touches the floor and the sphere
+    assert np.abs(arrays[0][:, 0] - [0.0, 0.0, 0.03]).max() < 1e-4  # the held end stays
     np.testing.assert_array_equal(counts, counts_own)
     for a, b_ in zip((*arrays, forces), (*arrays_own, forces_own), strict=True):
         if device == "cpu":

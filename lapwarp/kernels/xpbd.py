@@ -1277,6 +1277,30 @@ def predict_and_solve_rods_fused(pred: Prediction, rods: RodSweep, q: wp.array2d
     solve_rod_colors(env, lane, lanes, barrier, rods, q, sq)
 
 
+@wp.struct
+class AttachmentPass:
+    """``solve_attachments``' arguments as one bundle, for the rod launch that runs a substep's closing attachment pass
+    first (``contact_rods_fused_kernel``); no slots (``particle`` of shape ``(n, 0)``) where none was deferred."""
+
+    particle: wp.array2d(dtype=wp.int32)
+    body: wp.array2d(dtype=wp.int32)
+    offset: wp.array2d(dtype=wp.vec3)
+    compliance: wp.array2d(dtype=float)
+    segment: wp.array2d(dtype=wp.int32)
+    rotation: wp.array2d(dtype=wp.quat)
+    hold_up: wp.array(dtype=wp.vec3)
+    body_q_prev: wp.array2d(dtype=wp.transform)
+    body_q: wp.array2d(dtype=wp.transform)
+    blend: float
+    inv_mass: wp.array2d(dtype=float)
+    inv_dt2: float
+    stiff_only: int
+
+
+#: ``AttachmentPass``' fields in ``solve_attachments``' argument order
+ATTACHMENT_PASS_FIELDS = ("particle", "body", "offset", "compliance", "segment", "rotation", "hold_up", "body_q_prev",
+                          "body_q", "blend", "inv_mass", "inv_dt2", "stiff_only")
+
 _CONTACT_ROD_KERNELS: list = []
 
 
@@ -1288,22 +1312,31 @@ def contact_rods_fused_kernel() -> wp.Kernel:
         return _CONTACT_ROD_KERNELS[0]
     collide_particle = particle_collision_func(False)
 
-    def contact_predict_and_solve_rods_fused(particles: ContactParticles, shapes: ShapeTable, motion: BodyMotion,
-                                             poses: ShapePoses, solve: ParticleSolve, ignore: IgnoreMask,
-                                             masks: CutMasks, report: int, report_margin: float, pred: Prediction,
-                                             rods: RodSweep, q: wp.array2d(dtype=wp.vec3),
-                                             sq: wp.array2d(dtype=wp.quat), reports: ContactReports):
-        """The substep before's particle contact (``contact.collide_particles``, deferred by
-        ``World.contact_in_rod_launch`` where it was that substep's last launch), a block barrier, then
-        ``predict_and_solve_rods_fused``: one launch fewer per substep. The contact reads the substep's start
-        (``solve``: its prediction and velocities) before the next prediction overwrites them; each lane takes the
-        contact particles ``lane, lane + lanes, ...``: the same arithmetic in the same order as the separate launch on
-        the CPU (one lane), so bit-identical there. Why: RopeThreading's contact launch over 409,600 threads took
-        53 us per substep on an H200 (5.3 of the 21.7 ms of kernel time per RGB env step) for a few loads per
-        particle; here the env's block does it beside its rods (untimed)."""
+    def contact_predict_and_solve_rods_fused(attach: AttachmentPass, particles: ContactParticles,
+                                             shapes: ShapeTable, motion: BodyMotion, poses: ShapePoses,
+                                             solve: ParticleSolve, ignore: IgnoreMask, masks: CutMasks, report: int,
+                                             report_margin: float, pred: Prediction, rods: RodSweep,
+                                             q: wp.array2d(dtype=wp.vec3), sq: wp.array2d(dtype=wp.quat),
+                                             reports: ContactReports):
+        """The substep before's last two launches, deferred by ``World.contact_in_rod_launch``: its closing attachment
+        pass (``solve_attachments``: lane 0 walks the env's slots in order; none where ``attach`` has no slots) and
+        its particle contact (``contact.collide_particles``: each lane takes the contact particles ``lane, lane +
+        lanes, ...``), a block barrier after each, then ``predict_and_solve_rods_fused``: two launches fewer per
+        substep. Both read the substep's start (``solve``: its prediction and velocities) before the next prediction
+        overwrites them: the same arithmetic in the same order as the separate launches on the CPU (one lane), so
+        bit-identical there. Why: RopeThreading's contact launch over 409,600 threads took 53 us per substep on an
+        H200 and its attachment launch 11 us (together 6.4 of the 21.7 ms of kernel time per RGB env step) for a few
+        loads per particle and slot; here the env's block does them beside its rods (untimed)."""
         env, lane = wp.tid()
         lanes = wp.block_dim()
         barrier = wp.tile_zeros(shape=1, dtype=int, storage="shared")
+        if lane == 0:
+            for s in range(attach.particle.shape[1]):
+                solve_attachment_slot(env, s, attach.particle, attach.body, attach.offset, attach.compliance,
+                                      attach.segment, attach.rotation, attach.hold_up, attach.body_q_prev,
+                                      attach.body_q, attach.blend, attach.inv_mass, attach.inv_dt2, attach.stiff_only,
+                                      q, sq)
+        wp.tile_scatter_masked(barrier, 0, 0, False)  # the attachments written before the contact reads them
         for k in range(lane, particles.particle.shape[0], lanes):
             collide_particle(env, k, particles, shapes, motion, poses, solve, ignore, masks, report, report_margin, q,
                              reports)

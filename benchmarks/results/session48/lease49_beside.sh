@@ -2,9 +2,10 @@
 # The next lease's GPU checks (written in the forty-eighth session), run as queue.sh's BESIDE on the second H200 of an
 # nvidia-h200-x2 lease (DEVICE=cuda:1; the queue trains on cuda:0) or, on one H200, before the queue's runs (DEVICE
 # cuda:0), each item skipped once DEADLINE (s, default 330) has passed:
-# 1. RopeThreading with each substep's particle contact in the next substep's rod launch (World.contact_in_rod_launch,
-#    the forty-eighth session's default; untimed) against its own launch, that fused launch at 96 registers (84
-#    uncapped) against its cap of 64, STATE and RGB 64x64 (#18's RGB 200k: 190.2k at 4d776a2, its own launch);
+# 1. RopeThreading with each substep's closing attachment pass and particle contact in the next substep's rod launch
+#    (World.contact_in_rod_launch, the forty-eighth session's default: 28 launches per physics step instead of 45;
+#    untimed) against their own launches, that fused launch at 96 registers (84 uncapped) against its cap of 64, STATE
+#    and RGB 64x64 (#18's RGB 200k: 190.2k at 4d776a2, their own launches);
 # 2. RopeThreading at 9 and 8 substeps per physics step against its 10, STATE and RGB. CPU, forty-eighth session: the
 #    held rope's fitted bending within 6.0 / 2.6 % (9) and 6.3 / 2.3 % (8) of E I against 5.8 / 2.8 % (10), root
 #    slope at node 15 -1.92 / -2.10 deg against -1.80 (80 substeps: -1.25), no tunnelling through the eye at full

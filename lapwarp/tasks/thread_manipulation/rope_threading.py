@@ -1150,7 +1150,8 @@ class RopeThreadingEnv(BatchedEnv):
         # calls (forty-third session, results/session43): 32 lanes 194.4k / 194.5k env-steps/s, 64 lanes 199.8k /
         # 199.9k / 199.8k, 96 190.4k, 128 192.8k; 64 lanes uncapped (72 registers) 197.0k
         world.default_register_caps["predict_and_solve_rods_fused"] = 64
-        # and for that launch with the substep before's particle contact first (World.contact_in_rod_launch; untimed)
+        # and for that launch with the substep before's attachments and contact first (World.contact_in_rod_launch;
+        # untimed)
         world.default_register_caps["contact_predict_and_solve_rods_fused"] = 64
         world.rod_block_threads = 64
         # the rope's hybrid chain solve at 128 registers instead of 217 (a 328 B spill frame, sm_90): twice the
