@@ -320,6 +320,7 @@ class World:
         self._hold_quiet = wp.zeros(n, dtype=wp.int32, device=dev)
         self._hold_moving = wp.zeros(n, dtype=wp.int32, device=dev)
         self._tet_holds: dict = {}  # the TetHold struct per hold setting (_tet_hold)
+        self._empty_attachment_pass = None  # built on first use (_no_attachment_pass)
         #: ``(num_envs, particles)`` external forces (N), allocated by :meth:`enable_external_forces`
         self.particle_force = None
         self._lam = {}
@@ -880,7 +881,7 @@ class World:
 
     def _no_attachment_pass(self):
         """An ``xpbd.AttachmentPass`` without slots, for a fused rod launch that runs a deferred contact alone."""
-        if getattr(self, "_empty_attachment_pass", None) is None:
+        if self._empty_attachment_pass is None:
             from lapwarp.kernels import xpbd
 
             dev = self.device
